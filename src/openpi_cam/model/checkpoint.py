@@ -1,0 +1,109 @@
+"""OpenPI params checkpoints: orbax PyTree directories holding `{"params": <pure dict>}`.
+
+Both layouts upstream restores are read: released checkpoints (leaf paths end at the parameter name) and
+training checkpoints written through `nnx.State` (every leaf path ends in an extra `value` key).
+"""
+
+from __future__ import annotations
+
+import pathlib
+from collections.abc import Mapping
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from openpi_cam.model.config import architecture_from_params, check_param_tree, param_shapes
+
+
+def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        path = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            out.update(flatten(value, path + "/"))
+        else:
+            out[path] = value
+    return out
+
+
+def unflatten(flat: Mapping[str, Any]) -> dict[str, Any]:
+    tree: dict[str, Any] = {}
+    for path, value in flat.items():
+        *parents, leaf = path.split("/")
+        node = tree
+        for p in parents:
+            node = node.setdefault(p, {})
+        node[leaf] = value
+    return tree
+
+
+def _strip_value_suffix(flat: dict[str, Any]) -> dict[str, Any]:
+    if flat and all(path.endswith("/value") for path in flat):
+        return {path[: -len("/value")]: v for path, v in flat.items()}
+    return flat
+
+
+def _checkpointer():
+    import orbax.checkpoint as ocp
+
+    return ocp.PyTreeCheckpointer()
+
+
+def read_param_shapes(params_dir: str | pathlib.Path) -> dict[str, tuple[int, ...]]:
+    """Paths and shapes from the checkpoint's metadata, without reading any array data."""
+    params_dir = _resolve(params_dir)
+    meta = _checkpointer().metadata(params_dir)
+    tree = getattr(meta, "item_metadata", meta)
+    tree = getattr(tree, "tree", tree)
+    if "params" not in tree:
+        raise ValueError(f"{params_dir} is not an OpenPI params checkpoint: no top-level 'params' item")
+    return _strip_value_suffix({p: tuple(m.shape) for p, m in flatten(tree["params"]).items()})
+
+
+def _resolve(params_dir: str | pathlib.Path) -> pathlib.Path:
+    path = pathlib.Path(params_dir).expanduser().resolve()
+    if not path.is_dir():
+        raise FileNotFoundError(f"params checkpoint directory not found: {path} (expected <checkpoint>/params)")
+    if not (path / "_METADATA").exists() and (path / "params" / "_METADATA").exists():
+        path = path / "params"  # the user named the checkpoint root rather than its params/ item
+    if not (path / "_METADATA").exists():
+        raise FileNotFoundError(f"{path} is not an orbax params checkpoint: {path / '_METADATA'} is missing")
+    return path
+
+
+def load_params(params_dir: str | pathlib.Path, *, dtype: str | None = None, check: bool = True) -> dict[str, Any]:
+    """Restores the params pytree (upstream names) onto the default device.
+
+    Arrays are restored straight into host numpy buffers (cast to `dtype` by orbax while reading, if given) and moved
+    to the device one leaf at a time, so peak host memory stays near one copy of the checkpoint. With `check`, the
+    tree must be exactly the pi0-FAST tree of the architecture its shapes describe.
+    """
+    import orbax.checkpoint as ocp
+
+    params_dir = _resolve(params_dir)
+    shapes = read_param_shapes(params_dir)
+    if check:
+        check_param_tree(shapes, param_shapes(*architecture_from_params(shapes)))
+    ckptr = _checkpointer()
+    meta = ckptr.metadata(params_dir)
+    tree = getattr(meta, "item_metadata", meta)
+    tree = getattr(tree, "tree", tree)
+    item = {"params": tree["params"]}
+    np_dtype = None if dtype is None else jnp.dtype(dtype)
+    restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray, dtype=np_dtype), item)
+    restored = ckptr.restore(params_dir, args=ocp.args.PyTreeRestore(item=item, restore_args=restore_args))["params"]
+    flat = _strip_value_suffix(flatten(restored))
+    device_flat = {}
+    for path in list(flat):
+        device_flat[path] = jnp.asarray(flat.pop(path))  # drop each host copy as soon as it is on the device
+    return unflatten(device_flat)
+
+
+def save_params(params_dir: str | pathlib.Path, params: Mapping[str, Any]) -> pathlib.Path:
+    """Writes `{"params": params}` in the orbax layout of OpenPI's released `<checkpoint>/params`."""
+    params_dir = pathlib.Path(params_dir).expanduser().resolve()
+    tree = jax.tree.map(jnp.asarray, dict(params))
+    _checkpointer().save(params_dir, {"params": tree})
+    return params_dir

@@ -1,0 +1,131 @@
+"""Gemma decoder as upstream's `gemma_fast` uses it for pi0-FAST: RMSNorm(1 + scale), RoPE, multi-query attention,
+gated-GELU MLP, tied input/output embedding, and a KV cache that decoding appends to.
+
+Params follow upstream's `PaliGemma/llm` tree with the layers stacked on a leading depth axis. Einsum letters:
+B batch, T query tokens, S cache slots, D width, N query heads, K kv heads, G = N / K, H head dim, F mlp dim.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from openpi_cam.model.config import GemmaConfig
+
+# Upstream masks attention logits with this constant rather than -inf, so fully masked rows get a uniform softmax.
+BIG_NEG = -2.3819763e38
+
+
+class KVCache(NamedTuple):
+    k: jax.Array  # [L, B, S, K, H] in the compute dtype
+    v: jax.Array  # [L, B, S, K, H]
+    idx: jax.Array  # int32 [], the next slot to write
+
+
+def rms_norm(x: jax.Array, scale: jax.Array) -> jax.Array:
+    var = jnp.mean(jnp.square(x.astype(jnp.float32)), axis=-1, keepdims=True)
+    normed = x * jnp.reciprocal(jnp.sqrt(var + 1e-6))
+    return (normed * (1 + scale)).astype(x.dtype)
+
+
+def embed_tokens(params: dict, tokens: jax.Array, dtype) -> jax.Array:
+    table = params["embedder"]["input_embedding"]
+    x = table[(tokens,)]
+    return (x * jnp.sqrt(table.shape[1]).astype(x.dtype)).astype(dtype)
+
+
+def logits_from_prelogits(params: dict, pre_logits: jax.Array) -> jax.Array:
+    """Tied output projection: pre_logits [..., D] @ input_embedding.T -> [..., V]."""
+    return jnp.dot(pre_logits, params["embedder"]["input_embedding"].T.astype(pre_logits.dtype))
+
+
+def apply_rope(x: jax.Array, positions: jax.Array, max_wavelength: float = 10_000.0) -> jax.Array:
+    """x [B, T, N, H], positions [B, T] -> float32, rotating the two halves of the head dim."""
+    half = x.shape[-1] // 2
+    timescale = max_wavelength ** ((2.0 / x.shape[-1]) * jnp.arange(half, dtype=jnp.float32))
+    radians = (positions[..., None] / timescale)[..., None, :]  # [B, T, 1, H/2]
+    sin, cos = jnp.sin(radians), jnp.cos(radians)
+    x1, x2 = jnp.split(x, 2, axis=-1)
+    return jnp.concatenate([x1 * cos - x2 * sin, x2 * cos + x1 * sin], axis=-1)
+
+
+def _einsum(eq: str, x: jax.Array, p: dict, name: str, lora_scale: float) -> jax.Array:
+    """`x @ w` plus, for a LoRA checkpoint, the low-rank update `x @ a @ b * alpha / rank` (upstream's lora.Einsum)."""
+    y = jnp.einsum(eq, x, p[name]["w"].astype(x.dtype))
+    if "lora_a" in p[name]:
+        lhs, rhs, out = eq.replace("->", ",").split(",")
+        r_in, r_out = rhs[-2], rhs[-1]  # LoRA factorises the last two weight axes through a rank axis 'L'
+        a_out = out.replace(r_out, "L")
+        u = jnp.einsum(f"{lhs},{rhs.replace(r_out, 'L')}->{a_out}", x, p[name]["lora_a"].astype(x.dtype))
+        y = y + jnp.einsum(f"{a_out},{rhs.replace(r_in, 'L')}->{out}", u, p[name]["lora_b"].astype(x.dtype)) * lora_scale
+    return y
+
+
+def _mlp(x: jax.Array, p: dict) -> jax.Array:
+    def dot(h, name, idx=None):
+        w = p[name] if idx is None else p[name][idx]
+        y = jnp.dot(h, w.astype(h.dtype))
+        if name + "_lora_a" in p:  # upstream's FFN LoRA carries no alpha/rank scaling
+            a, b = p[name + "_lora_a"], p[name + "_lora_b"]
+            a, b = (a, b) if idx is None else (a[idx], b[idx])
+            y = y + jnp.dot(jnp.dot(h, a.astype(h.dtype)), b.astype(h.dtype))
+        return y
+
+    gate = jax.nn.gelu(dot(x, "gating_einsum", 0), approximate=True)
+    return dot(gate * dot(x, "gating_einsum", 1), "linear")
+
+
+def _attention(x, p, positions, mask, k_cache, v_cache, idx, cfg: GemmaConfig):
+    """One layer's attention. The new tokens' K/V are written into the cache at `idx`; queries attend to every
+    cache slot allowed by `mask` [B, T, S]."""
+    dtype = x.dtype
+    scale = cfg.lora_alpha / cfg.lora_rank if cfg.lora_rank else 1.0
+    q = _einsum("BTD,NDH->BTNH", x, p, "q_einsum", scale)
+    k, v = _einsum("BSD,CKDH->CBSKH", x, p, "kv_einsum", scale)
+    q = apply_rope(q, positions) * cfg.head_dim**-0.5  # float32 from here on, as upstream
+    k = apply_rope(k, positions)
+    k_cache = jax.lax.dynamic_update_slice(k_cache, k.astype(k_cache.dtype), (0, idx, 0, 0))
+    v_cache = jax.lax.dynamic_update_slice(v_cache, v.astype(v_cache.dtype), (0, idx, 0, 0))
+
+    b, t, n, h = q.shape
+    q = q.reshape(b, t, cfg.num_kv_heads, n // cfg.num_kv_heads, h)
+    logits = jnp.einsum("BTKGH,BSKH->BKGTS", q, k_cache, preferred_element_type=jnp.float32)
+    logits = jnp.where(mask[:, None, None, :, :], logits, BIG_NEG)
+    probs = jax.nn.softmax(logits, axis=-1).astype(dtype)
+    encoded = jnp.einsum("BKGTS,BSKH->BTKGH", probs, v_cache).reshape(b, t, n, h)
+    return _einsum("BTNH,NHD->BTD", encoded, p, "attn_vec_einsum", scale), k_cache, v_cache
+
+
+def forward(
+    params: dict,
+    x: jax.Array,
+    positions: jax.Array,
+    mask: jax.Array,
+    cfg: GemmaConfig,
+    cache: KVCache | None = None,
+) -> tuple[jax.Array, KVCache]:
+    """Runs the decoder on embedded tokens x [B, T, D] and returns (pre_logits [B, T, D], updated cache).
+
+    Without a cache (prefill) a cache of `mask.shape[-1]` zero-filled slots is created and the T tokens fill its
+    first T slots; with a cache the T tokens are appended at `cache.idx`. Either way every query attends over the
+    whole cache under `mask` [B, T, S], exactly as upstream's decode=True path.
+    """
+    b, t, _ = x.shape
+    if cache is None:
+        slots = mask.shape[-1]
+        shape = (cfg.depth, b, slots, cfg.num_kv_heads, cfg.head_dim)
+        cache = KVCache(jnp.zeros(shape, x.dtype), jnp.zeros(shape, x.dtype), jnp.zeros((), jnp.int32))
+
+    def layer(h, scanned):
+        p, k_cache, v_cache = scanned
+        attn, k_cache, v_cache = _attention(
+            rms_norm(h, p["pre_attention_norm"]["scale"]), p["attn"], positions, mask, k_cache, v_cache, cache.idx, cfg
+        )
+        h = h + attn
+        h = h + _mlp(rms_norm(h, p["pre_ffw_norm"]["scale"]), p["mlp"])
+        return h, (k_cache, v_cache)
+
+    x, (k, v) = jax.lax.scan(layer, x, (params["layers"], cache.k, cache.v))
+    return rms_norm(x, params["final_norm"]["scale"]), KVCache(k, v, cache.idx + t)

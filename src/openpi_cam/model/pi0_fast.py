@@ -1,0 +1,270 @@
+"""pi0-FAST: SigLIP image tokens + prompt tokens as a bidirectional prefix, then Gemma decodes FAST action tokens.
+
+Everything here is a pure function of an explicit params pytree (upstream's names); `Pi0FAST` only bundles a
+config with its params and the compiled entry points. Shapes: B batch, C cameras, N tokens per camera, L prompt
+length, P = C*N + L prefix length, S = max_decoding_steps, D LLM width, V vocabulary.
+"""
+
+from __future__ import annotations
+
+import functools
+import pathlib
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from openpi_cam.model import gemma, siglip
+from openpi_cam.model.config import EOS_TOKEN, Pi0FASTConfig, architecture_from_params
+from openpi_cam.model.observation import Observation, preprocess_observation
+
+
+def make_attn_mask(input_mask: jax.Array, ar_mask: jax.Array) -> jax.Array:
+    """big_vision's prefix-LM rule: token i sees valid token j iff cumsum(ar)[j] <= cumsum(ar)[i]. -> [B, T, T]"""
+    ar_mask = jnp.broadcast_to(ar_mask, input_mask.shape)
+    cumsum = jnp.cumsum(ar_mask, axis=1)
+    allowed = cumsum[:, None, :] <= cumsum[:, :, None]
+    valid = input_mask[:, None, :] & input_mask[:, :, None]
+    return allowed & valid
+
+
+@jax.vmap
+def left_to_right_align(x: jax.Array, input_mask: jax.Array, attn_mask: jax.Array):
+    """Rolls each row left by (last valid index + 1) so its valid span ends at the last slot, as upstream does.
+
+    Masked tokens *inside* the valid span (e.g. a masked camera between two valid ones) stay inside it."""
+    seqlen = jnp.max(input_mask * jnp.arange(input_mask.shape[0])) + 1
+    return (
+        jnp.roll(x, -seqlen, axis=0),
+        jnp.roll(input_mask, -seqlen, axis=0),
+        jnp.roll(attn_mask, -seqlen, axis=(0, 1)),
+    )
+
+
+def embed_images(params: dict, obs: Observation, cfg: Pi0FASTConfig) -> jax.Array:
+    """SigLIP tokens of every camera, in camera order -> [B, C, N, D] (what the LLM sees; Grad-CAM's input)."""
+    dtype = jnp.dtype(cfg.dtype)
+    img_params = params["PaliGemma"]["img"]
+    return jnp.stack([siglip.encode_images(img_params, im, cfg.siglip, dtype) for im in obs.images.values()], axis=1)
+
+
+def embed_prefix(params: dict, image_tokens: jax.Array, obs: Observation, cfg: Pi0FASTConfig):
+    """[image tokens of every camera | prompt tokens] with input and AR masks, as upstream's `embed_inputs`."""
+    b, c, n, d = image_tokens.shape
+    dtype = jnp.dtype(cfg.dtype)
+    prompt = gemma.embed_tokens(params["PaliGemma"]["llm"], obs.tokenized_prompt, dtype)
+    x = jnp.concatenate([image_tokens.reshape(b, c * n, d).astype(dtype), prompt], axis=1)
+    cam_mask = jnp.stack([jnp.asarray(obs.image_masks[k], bool) for k in obs.images], axis=1)  # [B, C]
+    input_mask = jnp.concatenate([jnp.repeat(cam_mask, n, axis=1), jnp.asarray(obs.tokenized_prompt_mask, bool)], 1)
+    ar = obs.token_ar_mask if obs.token_ar_mask is not None else jnp.zeros_like(obs.tokenized_prompt)
+    ar_mask = jnp.concatenate([jnp.zeros((b, c * n), jnp.int32), jnp.asarray(ar, jnp.int32)], axis=1)
+    return x, input_mask, ar_mask
+
+
+def prefill(params: dict, x: jax.Array, input_mask: jax.Array, ar_mask: jax.Array, cfg: Pi0FASTConfig, steps: int):
+    """Right-aligns the prefix and fills a KV cache of P + `steps` slots (the unused ones zero), as upstream.
+
+    Returns (pre_logits of the last prefix slot [B, D], cache, prefill_len [B], prefix_start [B])."""
+    attn = make_attn_mask(input_mask, ar_mask)
+    x, input_mask, attn = left_to_right_align(x, input_mask, attn)
+    prefill_size = x.shape[1]
+    prefill_len = jnp.sum(input_mask, axis=-1)
+    # Fully masked rows (a masked camera, padding) softmax uniformly over *all* P + steps slots, the zero-filled
+    # decode slots included; padding the mask here, not trimming it, keeps their K/V exactly upstream's.
+    attn = jnp.pad(attn, ((0, 0), (0, 0), (0, steps)))
+    positions = jnp.cumsum(input_mask, axis=-1) - 1
+    pre, cache = gemma.forward(params["PaliGemma"]["llm"], x, positions, attn, cfg.gemma)
+    return pre[:, -1], cache, prefill_len, prefill_size - prefill_len
+
+
+def decode_window(prefix_start: jax.Array, prefill_size: int, steps: int, step: jax.Array) -> jax.Array:
+    """Upstream quirk 2: the decode step's attention window is the contiguous slot range
+    [prefix_start, prefill_size + step + 1), whatever the input mask says inside it. -> [B, T, P + steps]"""
+    slots = jnp.arange(prefill_size + steps)
+    step = jnp.atleast_1d(step)
+    return (slots[None, None, :] >= prefix_start[:, None, None]) & (slots[None, None, :] < prefill_size + step[None, :, None] + 1)
+
+
+def decode_positions(prefill_len: jax.Array, step: jax.Array) -> jax.Array:
+    """Upstream quirk 1: the token chosen at step s is fed at RoPE position prefill_len + s + 1, so position
+    prefill_len is never used (the last prefix token sits at prefill_len - 1). -> [B, T]"""
+    return prefill_len[:, None] + jnp.atleast_1d(step)[None, :] + 1
+
+
+def sample_tokens(
+    params: dict,
+    obs: Observation,
+    rng: jax.Array,
+    *,
+    cfg: Pi0FASTConfig,
+    max_decoding_steps: int,
+    temperature: float,
+    stop_token_ids: tuple[int, ...] = (),
+) -> jax.Array:
+    """Prefill then KV-cache decoding in one compiled while-loop, as upstream's `sample_actions`. -> int32 [B, S]
+
+    Decoding stops when every row's current token is EOS; with `stop_token_ids` (opt-in, not upstream) a row is
+    also finished once it has emitted one of them, and decoding stops when every row has finished."""
+    llm = params["PaliGemma"]["llm"]
+    obs = preprocess_observation(obs, cfg.image_resolution)
+    x, input_mask, ar_mask = embed_prefix(params, embed_images(params, obs, cfg), obs, cfg)
+    last_pre, cache, prefill_len, prefix_start = prefill(params, x, input_mask, ar_mask, cfg, max_decoding_steps)
+    prefill_size = x.shape[1]
+    batch = x.shape[0]
+    stop_ids = jnp.asarray((EOS_TOKEN, *stop_token_ids), jnp.int32)
+
+    def step_fn(carry):
+        rng, last_logit, tokens, cache, _, finished, step = carry
+        rng, rng_step = jax.random.split(rng)
+        if temperature > 0.0:
+            token = jax.random.categorical(rng_step, last_logit / temperature, axis=-1)
+        else:
+            token = jnp.argmax(last_logit, axis=-1)
+        token = token.astype(jnp.int32)  # [B]
+        tokens = tokens.at[:, step].set(token)
+        if stop_token_ids:
+            finished = finished | jnp.isin(token, stop_ids)
+            done = jnp.all(finished)
+        else:
+            done = jnp.all(token == EOS_TOKEN)  # upstream: every row at EOS *at this step*
+        emb = gemma.embed_tokens(llm, token[:, None], jnp.dtype(cfg.dtype))
+        mask = decode_window(prefix_start, prefill_size, max_decoding_steps, step)
+        pre, cache = gemma.forward(llm, emb, decode_positions(prefill_len, step), mask, cfg.gemma, cache)
+        return rng, gemma.logits_from_prelogits(llm, pre[:, 0]), tokens, cache, done, finished, step + 1
+
+    def cond_fn(carry):
+        return (~carry[4]) & (carry[6] < max_decoding_steps)
+
+    init = (
+        rng,
+        gemma.logits_from_prelogits(llm, last_pre),
+        jnp.zeros((batch, max_decoding_steps), jnp.int32),
+        cache,
+        jnp.array(False),
+        jnp.zeros((batch,), bool),
+        jnp.array(0, jnp.int32),
+    )
+    return jax.lax.while_loop(cond_fn, step_fn, init)[2]
+
+
+def replay_prelogits(
+    params: dict, image_tokens: jax.Array, obs: Observation, generated: jax.Array, cfg: Pi0FASTConfig
+) -> jax.Array:
+    """The pre-logits that upstream's decoding computed, as a differentiable function of the image tokens.
+
+    `generated` [B, S] are the tokens fed back (teacher forcing; S = the decode's max_decoding_steps, which sizes the
+    KV cache). Returns [B, S, D] where row k is the output that predicts generated[:, k]: the last prefix slot for
+    k = 0, else the output at generated[:, k - 1]. The prefill is upstream's; the S decode steps run as one
+    multi-token append to the same cache with the per-step window and positions of the loop, which is the same
+    computation because each decode step only attends to slots written before it.
+    """
+    llm = params["PaliGemma"]["llm"]
+    steps = generated.shape[1]
+    x, input_mask, ar_mask = embed_prefix(params, image_tokens, obs, cfg)
+    last_pre, cache, prefill_len, prefix_start = prefill(params, x, input_mask, ar_mask, cfg, steps)
+    step = jnp.arange(steps)
+    mask = decode_window(prefix_start, x.shape[1], steps, step)
+    emb = gemma.embed_tokens(llm, generated, jnp.dtype(cfg.dtype))
+    pre, _ = gemma.forward(llm, emb, decode_positions(prefill_len, step), mask, cfg.gemma, cache)
+    return jnp.concatenate([last_pre[:, None], pre[:, :-1]], axis=1)
+
+
+def compute_loss(params: dict, obs: Observation, cfg: Pi0FASTConfig) -> jax.Array:
+    """Upstream's training loss: next-token cross-entropy over `token_loss_mask`, one teacher-forced pass. -> [B]"""
+    llm = params["PaliGemma"]["llm"]
+    obs = preprocess_observation(obs, cfg.image_resolution)
+    x, input_mask, ar_mask = embed_prefix(params, embed_images(params, obs, cfg), obs, cfg)
+    attn = make_attn_mask(input_mask, ar_mask)
+    t = x.shape[1] - 1
+    positions = jnp.broadcast_to(jnp.arange(t, dtype=jnp.int32), (x.shape[0], t))  # upstream passes none here
+    pre, _ = gemma.forward(llm, x[:, :-1], positions, attn[:, :-1, :-1], cfg.gemma)
+    targets = obs.tokenized_prompt[:, 1:]
+    logits = gemma.logits_from_prelogits(llm, pre[:, -targets.shape[1] :])
+    logp = jnp.take_along_axis(jax.nn.log_softmax(logits.astype(jnp.float32), -1), targets[..., None], -1)[..., 0]
+    loss_mask = obs.token_loss_mask[:, 1:]
+    return -jnp.sum(logp * loss_mask, -1) / jnp.clip(jnp.sum(loss_mask, -1), 1)
+
+
+class Pi0FAST:
+    """A config, its params, and the compiled entry points (each compiles once per input shape)."""
+
+    def __init__(self, config: Pi0FASTConfig, params: dict):
+        self.config = config
+        self.params = params
+        self._sample = jax.jit(
+            sample_tokens, static_argnames=("cfg", "max_decoding_steps", "temperature", "stop_token_ids")
+        )
+        self._embed_images = jax.jit(functools.partial(embed_images, cfg=config))
+        self._loss = jax.jit(functools.partial(compute_loss, cfg=config))
+
+    @classmethod
+    def from_params(cls, params: dict, **data_config: Any) -> Pi0FAST:
+        """Architecture from the parameter shapes; `data_config` sets action_dim, action_horizon, max_token_len,
+        dtype (compute dtype, default bfloat16 like upstream)."""
+        from openpi_cam.model.checkpoint import flatten
+
+        gemma_cfg, siglip_cfg = architecture_from_params({k: v for k, v in flatten(params).items()})
+        config = Pi0FASTConfig(gemma=gemma_cfg, siglip=siglip_cfg, **data_config)
+        return cls(config, params)
+
+    @classmethod
+    def from_checkpoint(cls, params_dir: str | pathlib.Path, *, dtype: str = "bfloat16", **data_config: Any) -> Pi0FAST:
+        """Loads an OpenPI `<checkpoint>/params` directory. In bfloat16 the weights are restored as bfloat16, like
+        upstream's `create_trained_policy`; in float32 they are kept at their stored precision."""
+        from openpi_cam.model.checkpoint import load_params
+
+        params = load_params(params_dir, dtype=None if dtype == "float32" else dtype)
+        return cls.from_params(params, dtype=dtype, **data_config)
+
+    @property
+    def camera_grid(self) -> tuple[int, int]:
+        return self.config.siglip.grid
+
+    def sample_actions(
+        self,
+        rng: jax.Array,
+        observation: Observation,
+        *,
+        max_decoding_steps: int = 256,
+        temperature: float = 0.0,
+        stop_token_ids: Sequence[int] = (),
+    ) -> jax.Array:
+        """Generated token ids, int32 [B, max_decoding_steps] (zeros after the loop stopped)."""
+        return self._sample(
+            self.params,
+            observation,
+            rng,
+            cfg=self.config,
+            max_decoding_steps=int(max_decoding_steps),
+            temperature=float(temperature),
+            stop_token_ids=tuple(int(t) for t in stop_token_ids),
+        )
+
+    def embed_images(self, observation: Observation) -> jax.Array:
+        return self._embed_images(self.params, preprocess_observation(observation, self.config.image_resolution))
+
+    def compute_loss(self, observation: Observation) -> jax.Array:
+        return self._loss(self.params, observation)
+
+    # Grad-CAM entry points live in openpi_cam.model.gradcam; bound here so the model "knows how to explain".
+    def gradcam_for_token(self, observation: Observation, **kwargs: Any):
+        from openpi_cam.model import gradcam
+
+        return gradcam.gradcam_for_token(self, observation, **kwargs)
+
+    def gradcam_for_action_token(self, observation: Observation, generated_ids: Any, step: int | Sequence[int]):
+        from openpi_cam.model import gradcam
+
+        return gradcam.gradcam_for_steps(self, observation, generated_ids, np.atleast_1d(step), squeeze=np.ndim(step) == 0)
+
+    def gradcam_for_steps(self, observation: Observation, generated_ids: Any, steps: Sequence[int]):
+        from openpi_cam.model import gradcam
+
+        return gradcam.gradcam_for_steps(self, observation, generated_ids, steps)
+
+    def gradcam_for_chunk(self, observation: Observation, generated_ids: Any, steps: Sequence[int]):
+        from openpi_cam.model import gradcam
+
+        return gradcam.gradcam_for_chunk(self, observation, generated_ids, steps)
