@@ -102,11 +102,14 @@ def sample_tokens(
     max_decoding_steps: int,
     temperature: float,
     stop_token_ids: tuple[int, ...] = (),
-) -> jax.Array:
-    """Prefill then KV-cache decoding in one compiled while-loop, as upstream's `sample_actions`. -> int32 [B, S]
+    record_logits: bool = False,
+) -> tuple[jax.Array, jax.Array, jax.Array | None]:
+    """Prefill then KV-cache decoding in one compiled while-loop, as upstream's `sample_actions`.
 
-    Decoding stops when every row's current token is EOS; with `stop_token_ids` (opt-in, not upstream) a row is
-    also finished once it has emitted one of them, and decoding stops when every row has finished."""
+    Returns (tokens int32 [B, S], number of loop iterations run, and with `record_logits` the logits that chose each
+    token [B, S, V], for parity checks). Decoding stops when every row's current token is EOS; with
+    `stop_token_ids` (opt-in, not upstream) a row is also finished once it has emitted one of them, and decoding
+    stops when every row has finished."""
     llm = params["PaliGemma"]["llm"]
     obs = preprocess_observation(obs, cfg.image_resolution)
     x, input_mask, ar_mask = embed_prefix(params, embed_images(params, obs, cfg), obs, cfg)
@@ -116,7 +119,9 @@ def sample_tokens(
     stop_ids = jnp.asarray((EOS_TOKEN, *stop_token_ids), jnp.int32)
 
     def step_fn(carry):
-        rng, last_logit, tokens, cache, _, finished, step = carry
+        rng, last_logit, tokens, cache, _, finished, step, history = carry
+        if record_logits:
+            history = history.at[:, step].set(last_logit.astype(history.dtype))
         rng, rng_step = jax.random.split(rng)
         if temperature > 0.0:
             token = jax.random.categorical(rng_step, last_logit / temperature, axis=-1)
@@ -132,21 +137,25 @@ def sample_tokens(
         emb = gemma.embed_tokens(llm, token[:, None], jnp.dtype(cfg.dtype))
         mask = decode_window(prefix_start, prefill_size, max_decoding_steps, step)
         pre, cache = gemma.forward(llm, emb, decode_positions(prefill_len, step), mask, cfg.gemma, cache)
-        return rng, gemma.logits_from_prelogits(llm, pre[:, 0]), tokens, cache, done, finished, step + 1
+        return rng, gemma.logits_from_prelogits(llm, pre[:, 0]), tokens, cache, done, finished, step + 1, history
 
     def cond_fn(carry):
         return (~carry[4]) & (carry[6] < max_decoding_steps)
 
+    first_logit = gemma.logits_from_prelogits(llm, last_pre)
+    history = jnp.zeros((batch, max_decoding_steps, first_logit.shape[-1]), jnp.float32) if record_logits else None
     init = (
         rng,
-        gemma.logits_from_prelogits(llm, last_pre),
+        first_logit,
         jnp.zeros((batch, max_decoding_steps), jnp.int32),
         cache,
         jnp.array(False),
         jnp.zeros((batch,), bool),
         jnp.array(0, jnp.int32),
+        history,
     )
-    return jax.lax.while_loop(cond_fn, step_fn, init)[2]
+    out = jax.lax.while_loop(cond_fn, step_fn, init)
+    return out[2], out[6], out[7]
 
 
 def replay_prelogits(
@@ -194,7 +203,8 @@ class Pi0FAST:
         self.config = config
         self.params = params
         self._sample = jax.jit(
-            sample_tokens, static_argnames=("cfg", "max_decoding_steps", "temperature", "stop_token_ids")
+            sample_tokens,
+            static_argnames=("cfg", "max_decoding_steps", "temperature", "stop_token_ids", "record_logits"),
         )
         self._embed_images = jax.jit(functools.partial(embed_images, cfg=config))
         self._loss = jax.jit(functools.partial(compute_loss, cfg=config))
@@ -232,6 +242,20 @@ class Pi0FAST:
         stop_token_ids: Sequence[int] = (),
     ) -> jax.Array:
         """Generated token ids, int32 [B, max_decoding_steps] (zeros after the loop stopped)."""
+        return self.decode(rng, observation, max_decoding_steps=max_decoding_steps, temperature=temperature,
+                           stop_token_ids=stop_token_ids)[0]
+
+    def decode(
+        self,
+        rng: jax.Array,
+        observation: Observation,
+        *,
+        max_decoding_steps: int = 256,
+        temperature: float = 0.0,
+        stop_token_ids: Sequence[int] = (),
+        record_logits: bool = False,
+    ) -> tuple[jax.Array, jax.Array, jax.Array | None]:
+        """`sample_tokens` compiled: (tokens [B, S], loop iterations run, step logits [B, S, V] if recorded)."""
         return self._sample(
             self.params,
             observation,
@@ -240,6 +264,7 @@ class Pi0FAST:
             max_decoding_steps=int(max_decoding_steps),
             temperature=float(temperature),
             stop_token_ids=tuple(int(t) for t in stop_token_ids),
+            record_logits=record_logits,
         )
 
     def embed_images(self, observation: Observation) -> jax.Array:

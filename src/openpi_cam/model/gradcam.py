@@ -1,0 +1,229 @@
+"""Grad-CAM over the SigLIP tokens the LLM sees, explaining the logits upstream's decoding really used.
+
+Definition (README, "Grad-CAM"): to explain generated step k the score is the pre-softmax logit of the explained
+token at the output that predicted step k in the *decoding* computation (`pi0_fast.replay_prelogits`: upstream's
+prefill, its RoPE positions and its contiguous decode window, g_0..g_{k-1} fed back). G = dScore/dE where E [B, C, N, D]
+are the image tokens after SigLIP's head (no gradient through SigLIP). Per camera c:
+alpha_c = mean over its N tokens of G_c [D];  map_c = ReLU(E_c @ alpha_c) reshaped to the patch grid (row-major).
+
+Every entry point takes the generated sequence at its full decode length S (which sizes upstream's KV cache) and the
+steps to explain as traced values, so explaining step 0, 5 or 9 of a request reuses one compilation.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from openpi_cam.model import gemma
+from openpi_cam.model.config import Pi0FASTConfig
+from openpi_cam.model.observation import Observation, preprocess_observation
+from openpi_cam.model.pi0_fast import embed_images, replay_prelogits
+
+if TYPE_CHECKING:
+    from openpi_cam.model.pi0_fast import Pi0FAST
+
+
+@dataclasses.dataclass(frozen=True)
+class GradCamResult:
+    """Raw (unnormalised) maps per camera. Leading axis B (batch rows); multi-token targets add an axis T."""
+
+    target: str  # "token" | "tokens" | "chunk"
+    cameras: tuple[str, ...]
+    maps: dict[str, np.ndarray]  # camera -> float32 [B, Hp, Wp] or [B, T, Hp, Wp]
+    alphas: dict[str, np.ndarray]  # camera -> float32 [B, D] or [B, T, D]
+    grad_norms: dict[str, np.ndarray]  # camera -> float32 [B] or [B, T] (Frobenius norm of G over N x D)
+    spans: dict[str, tuple[int, int]]  # camera -> [start, end) of its tokens in the (unaligned) prefix
+    valid: dict[str, np.ndarray]  # camera -> bool [B]; a masked camera is invalid (its map is still reported)
+    score: np.ndarray  # [B] or [B, T]
+    token_ids: np.ndarray  # int32 [B, T]: the explained tokens
+    decode_steps: np.ndarray  # int32 [T]: the decode steps explained
+    positions: np.ndarray  # int32 [B, T]: RoPE position of the output that predicted each explained token
+    logits: np.ndarray | None  # float32 [B, V] or [B, T, V]: the full logit vector at that output (token targets)
+
+    def row(self, b: int = 0) -> dict[str, np.ndarray]:
+        return {c: m[b] for c, m in self.maps.items()}
+
+
+def _reduce(E: jax.Array, G: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """E [B, C, N, D], G [..., B, C, N, D] -> alpha [..., B, C, D], cam [..., B, C, N], grad_norm [..., B, C]."""
+    E, G = E.astype(jnp.float32), G.astype(jnp.float32)
+    alpha = jnp.mean(G, axis=-2)
+    cam = jax.nn.relu(jnp.einsum("bcnd,...bcd->...bcn", E, alpha))
+    return alpha, cam, jnp.sqrt(jnp.sum(jnp.square(G), axis=(-2, -1)))
+
+
+def _gathered_logits(params: dict, pre: jax.Array, targets: jax.Array) -> jax.Array:
+    """logit of targets[b, s] at output [b, s] without materialising [B, S, V]. -> [B, S]"""
+    table = params["PaliGemma"]["llm"]["embedder"]["input_embedding"]
+    return jnp.einsum("bsd,bsd->bs", pre, table[targets].astype(pre.dtype))
+
+
+@functools.partial(jax.jit, static_argnames=("cfg",))
+def _token_cams(params, obs, fed, targets, steps, *, cfg: Pi0FASTConfig):
+    """steps int32 [T, B]: one VJP per explained step, all sharing one forward pass (vmap over cotangents)."""
+    E = embed_images(params, obs, cfg)
+
+    def scores_fn(image_tokens):
+        pre = replay_prelogits(params, image_tokens, obs, fed, cfg)
+        return _gathered_logits(params, pre, targets), pre
+
+    scores, vjp_fn, pre = jax.vjp(scores_fn, E, has_aux=True)
+    cotangents = jax.nn.one_hot(steps, fed.shape[1], dtype=scores.dtype)  # [T, B, S]
+    (G,) = jax.vmap(vjp_fn)(cotangents)  # [T, B, C, N, D]
+    alpha, cam, grad_norm = _reduce(E, G)
+    rows = jnp.arange(fed.shape[0])
+    explained_pre = pre[rows[None, :], steps]  # [T, B, D]
+    logits = gemma.logits_from_prelogits(params["PaliGemma"]["llm"], explained_pre).astype(jnp.float32)
+    score = scores[rows[None, :], steps]  # [T, B]
+    return score.astype(jnp.float32), alpha, cam, grad_norm, logits
+
+
+@functools.partial(jax.jit, static_argnames=("cfg",))
+def _chunk_cam(params, obs, fed, weights, *, cfg: Pi0FASTConfig):
+    """Score = sum_k weights[b, k] * log_softmax(logits_k)[g_k]; one backward pass."""
+    E = embed_images(params, obs, cfg)
+
+    def score_fn(image_tokens):
+        pre = replay_prelogits(params, image_tokens, obs, fed, cfg)
+        logits = gemma.logits_from_prelogits(params["PaliGemma"]["llm"], pre).astype(jnp.float32)
+        logp = jnp.take_along_axis(jax.nn.log_softmax(logits, -1), fed[..., None], -1)[..., 0]
+        return jnp.sum(weights * logp, axis=-1)  # [B]
+
+    score, vjp_fn = jax.vjp(score_fn, E)
+    (G,) = vjp_fn(jnp.ones_like(score))
+    alpha, cam, grad_norm = _reduce(E, G)
+    return score, alpha, cam, grad_norm
+
+
+def _prepare(model: Pi0FAST, obs: Observation, generated: Any) -> tuple[Observation, jax.Array, np.ndarray]:
+    obs = preprocess_observation(obs, model.config.image_resolution)
+    fed = np.asarray(generated).astype(np.int32)
+    if fed.ndim == 1:
+        fed = fed[None]
+    batch = obs.state.shape[0]
+    if fed.shape[0] != batch:
+        raise ValueError(f"generated ids have {fed.shape[0]} rows, the observation has {batch}")
+    n = model.config.siglip.num_tokens
+    cam_valid = np.stack([np.asarray(obs.image_masks[c], bool) for c in obs.images], axis=1)  # [B, C]
+    prefill_len = cam_valid.sum(1) * n + np.asarray(obs.tokenized_prompt_mask, bool).sum(1)
+    return obs, jnp.asarray(fed), prefill_len
+
+
+def _positions(prefill_len: np.ndarray, steps: np.ndarray) -> np.ndarray:
+    """RoPE position of the output predicting step k: the last prefix token for k = 0, else g_{k-1}'s slot."""
+    steps = np.asarray(steps)[None, :]
+    return np.where(steps == 0, prefill_len[:, None] - 1, prefill_len[:, None] + steps).astype(np.int32)
+
+
+def _bucket(n: int) -> int:
+    """Pads the number of explained tokens to a power of two so varying counts share a few compilations."""
+    return 1 << max(0, (n - 1).bit_length())
+
+
+def _result(model, obs, target, alpha, cam, grad_norm, score, token_ids, steps, positions, logits) -> GradCamResult:
+    cams = tuple(obs.images)
+    n = model.config.siglip.num_tokens
+    grid = model.config.siglip.grid
+    cam = np.asarray(cam)
+    return GradCamResult(
+        target=target,
+        cameras=cams,
+        maps={c: cam[..., i, :].reshape(*cam.shape[:-2], *grid) for i, c in enumerate(cams)},
+        alphas={c: np.asarray(alpha)[..., i, :] for i, c in enumerate(cams)},
+        grad_norms={c: np.asarray(grad_norm)[..., i] for i, c in enumerate(cams)},
+        spans={c: (i * n, (i + 1) * n) for i, c in enumerate(cams)},
+        valid={c: np.asarray(obs.image_masks[c], bool).reshape(-1) for c in cams},
+        score=np.asarray(score),
+        token_ids=np.asarray(token_ids, np.int32),
+        decode_steps=np.asarray(steps, np.int32),
+        positions=positions,
+        logits=None if logits is None else np.asarray(logits),
+    )
+
+
+def gradcam_for_steps(
+    model: Pi0FAST, obs: Observation, generated_ids: Any, steps: Sequence[int], *, squeeze: bool = False
+) -> GradCamResult:
+    """Explains the generated tokens at `steps` (one map stack per camera, T = len(steps)), one shared forward."""
+    obs, fed, prefill_len = _prepare(model, obs, generated_ids)
+    return _explain_tokens(model, obs, fed, fed, np.asarray(steps, np.int32), prefill_len, squeeze)
+
+
+def gradcam_for_token(
+    model: Pi0FAST,
+    obs: Observation,
+    *,
+    token_id: int | Sequence[int],
+    step: int | None = None,
+    position: int | None = None,
+    generated_prefix: Any = None,
+    max_decoding_steps: int = 256,
+) -> GradCamResult:
+    """Explains the logit of `token_id` at decode step `step` (or at the output with RoPE `position`), with
+    `generated_prefix` = g_0 .. g_{step-1} fed back. `token_id` need not be the generated token (counterfactuals).
+    `max_decoding_steps` must be the decode's setting: it sizes the KV cache that masked prefix rows attend over."""
+    prefix = np.zeros((0,), np.int32) if generated_prefix is None else np.asarray(generated_prefix, np.int32)
+    batch = obs.state.shape[0]
+    prefix = np.broadcast_to(prefix, (batch, prefix.shape[-1])) if prefix.ndim == 1 else prefix
+    fed = np.zeros((batch, max_decoding_steps), np.int32)
+    fed[:, : prefix.shape[1]] = prefix
+    obs, fed_j, prefill_len = _prepare(model, obs, fed)
+    if (step is None) == (position is None):
+        raise ValueError("give exactly one of step= or position=")
+    if step is None:
+        steps = {0 if position == p - 1 else position - p for p in prefill_len}
+        if len(steps) != 1 or min(steps) < 0:
+            raise ValueError(f"position {position} is not a decode output position for every row")
+        step = steps.pop()
+    if not 0 <= step < max_decoding_steps:
+        raise ValueError(f"step {step} outside [0, {max_decoding_steps})")
+    if prefix.shape[1] < step:
+        raise ValueError(f"explaining step {step} needs the {step} tokens generated before it, got {prefix.shape[1]}")
+    targets = fed.copy()
+    targets[:, step] = np.broadcast_to(np.asarray(token_id, np.int32), (batch,))
+    return _explain_tokens(model, obs, fed_j, jnp.asarray(targets), np.asarray([step], np.int32), prefill_len, True)
+
+
+def _explain_tokens(model, obs, fed, targets, steps, prefill_len, squeeze) -> GradCamResult:
+    if steps.size == 0:
+        raise ValueError("no decode steps to explain")
+    if steps.min() < 0 or steps.max() >= fed.shape[1]:
+        raise ValueError(f"decode steps {steps.tolist()} outside [0, {fed.shape[1]})")
+    t = len(steps)
+    padded = np.concatenate([steps, np.full(_bucket(t) - t, steps[0], np.int32)])
+    batch = fed.shape[0]
+    score, alpha, cam, grad_norm, logits = _token_cams(
+        model.params, obs, fed, targets, jnp.asarray(np.repeat(padded[:, None], batch, 1)), cfg=model.config
+    )
+
+    def batch_first(x):  # [T_pad, B, ...] -> [B, T, ...] (or [B, ...] for one token)
+        x = np.moveaxis(np.asarray(x)[:t], 0, 1)
+        return x[:, 0] if squeeze else x
+
+    token_ids = np.asarray(targets)[:, steps]
+    return _result(
+        model, obs, "token" if squeeze else "tokens", batch_first(alpha), batch_first(cam), batch_first(grad_norm),
+        batch_first(score), token_ids, steps, _positions(prefill_len, steps), batch_first(logits),
+    )
+
+
+def gradcam_for_chunk(model: Pi0FAST, obs: Observation, generated_ids: Any, steps: Sequence[int]) -> GradCamResult:
+    """Whole-chunk target: score = sum over `steps` of log p(g_k); one backward pass, one map per camera."""
+    obs, fed, prefill_len = _prepare(model, obs, generated_ids)
+    steps = np.asarray(steps, np.int32)
+    if steps.size == 0:
+        raise ValueError("no decode steps to explain")
+    weights = np.zeros(fed.shape, np.float32)
+    weights[:, steps] = 1.0
+    score, alpha, cam, grad_norm = _chunk_cam(model.params, obs, fed, jnp.asarray(weights), cfg=model.config)
+    return _result(
+        model, obs, "chunk", alpha, cam, grad_norm, score, np.asarray(fed)[:, steps], steps,
+        _positions(prefill_len, steps), None,
+    )
