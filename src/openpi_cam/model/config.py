@@ -21,9 +21,10 @@ class GemmaConfig:
     num_kv_heads: int = 1
     head_dim: int = 256
     vocab_size: int = 257_152
-    # LoRA adapters (upstream's gemma_2b_lora: rank 16, alpha 16 on attention and FFN). 0 = none.
+    # LoRA adapters (upstream gemma_2b_lora: rank 16, alpha 16 on attention and FFN); rank 0 = none. A checkpoint does
+    # not store alpha: read-back assumes upstream's alpha = rank.
     lora_rank: int = 0
-    lora_alpha: float = 16.0
+    lora_alpha: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)

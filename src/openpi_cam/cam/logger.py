@@ -1,0 +1,329 @@
+"""CAMLogger: all disk I/O of the Grad-CAM side channel (format: docs/FORMAT.md).
+
+It runs on the CAM wrapper's background worker, next to a server that must keep serving, so I/O failures it can
+classify are counted and logged once per kind instead of raised. Wrong argument types still raise: those are bugs.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import dataclasses
+import datetime as dt
+import errno
+import io
+import logging
+import os
+import pathlib
+import secrets
+import threading
+from typing import Any
+
+import numpy as np
+
+from openpi_cam.cam.reader import (
+    FRAME_PREFIX,
+    INDEX_JSONL,
+    MANIFEST_JSON,
+    MAP_PREFIX,
+    META_KEY,
+    MODEL_FRAME_PREFIX,
+    RUN_JSON,
+    SCHEMA_VERSION,
+    STEPS_DIR,
+    build_manifest,
+    dumps,
+    index_entry,
+    step_file,
+    summarize_maps,
+    utc_now_iso,
+    write_bytes_atomic,
+    write_json_atomic,
+)
+
+log = logging.getLogger(__name__)
+
+# Fields of the step JSON that the logger owns; StepRecord.meta must not set them.
+_RESERVED_META = ("schema_version", "run_id", "seq", "connection", "step", "timestamp")
+
+_ERRNO_KINDS = {
+    errno.ENOSPC: "disk_full",
+    errno.EDQUOT: "disk_full",
+    errno.EACCES: "permission_denied",
+    errno.EPERM: "permission_denied",
+    errno.EROFS: "read_only_filesystem",
+    errno.ENOENT: "missing_path",
+    errno.ENOTDIR: "not_a_directory",
+    errno.EISDIR: "is_a_directory",
+    errno.EMFILE: "too_many_open_files",
+    errno.ENFILE: "too_many_open_files",
+    errno.EIO: "device_error",
+    errno.ENAMETOOLONG: "name_too_long",
+}
+
+
+def io_error_kind(e: OSError) -> str:
+    if e.errno in _ERRNO_KINDS:
+        return _ERRNO_KINDS[e.errno]
+    return errno.errorcode.get(e.errno, "unknown").lower() if e.errno else type(e).__name__
+
+
+@dataclasses.dataclass
+class StepRecord:
+    """One step of the side channel; `meta` holds the step JSON fields other than those the logger fills."""
+
+    connection: str
+    step: int
+    timestamp: float
+    maps: dict[str, np.ndarray]
+    frames: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    model_frames: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    meta: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+
+def _check_images(images: Any, what: str) -> dict[str, np.ndarray]:
+    if not isinstance(images, dict):
+        raise TypeError(f"StepRecord.{what} must be a dict, got {type(images).__name__}")
+    checked = {}
+    for camera, image in images.items():
+        arr = np.asarray(image)
+        if arr.dtype != np.uint8 or arr.ndim != 3 or arr.shape[-1] != 3:
+            raise TypeError(f"StepRecord.{what}[{camera!r}] must be uint8 (H, W, 3), got {arr.dtype} {arr.shape}")
+        checked[camera] = arr
+    return checked
+
+
+def _record_arrays(record: StepRecord) -> dict[str, np.ndarray]:
+    """Validates a record and returns its npz members except meta."""
+    if not isinstance(record, StepRecord):
+        raise TypeError(f"expected a StepRecord, got {type(record).__name__}")
+    if not isinstance(record.maps, dict) or not isinstance(record.meta, dict):
+        raise TypeError("StepRecord.maps and StepRecord.meta must be dicts")
+    if clash := [k for k in _RESERVED_META if k in record.meta]:
+        raise ValueError(f"StepRecord.meta must not set {clash}: the logger fills them")
+    arrays = {}
+    for camera, cam_map in record.maps.items():
+        arr = np.asarray(cam_map, dtype=np.float32)
+        if arr.ndim not in (2, 3):
+            raise ValueError(f"map {camera!r} must be (Hp, Wp) or (T, Hp, Wp), got shape {arr.shape}")
+        arrays[MAP_PREFIX + camera] = arr
+    arrays |= {FRAME_PREFIX + c: a for c, a in _check_images(record.frames, "frames").items()}
+    arrays |= {MODEL_FRAME_PREFIX + c: a for c, a in _check_images(record.model_frames, "model_frames").items()}
+    return arrays
+
+
+def _create_run_dir(cam_dir: pathlib.Path) -> pathlib.Path:
+    try:
+        cam_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OSError(e.errno, f"cannot create the CAM directory {cam_dir}: {e.strerror or e}") from e
+    stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%d-%H%M%S")
+    for _ in range(64):
+        run_dir = cam_dir / f"{stamp}-{secrets.token_hex(3)}"
+        try:
+            # mkdir without exist_ok is the atomic claim: two loggers can never share a directory.
+            run_dir.mkdir()
+        except FileExistsError:
+            continue
+        except OSError as e:
+            raise OSError(e.errno, f"cannot create a CAM run directory in {cam_dir}: {e.strerror or e}") from e
+        try:
+            (run_dir / STEPS_DIR).mkdir()
+        except OSError as e:
+            raise OSError(e.errno, f"cannot create {run_dir / STEPS_DIR}: {e.strerror or e}") from e
+        return run_dir
+    raise OSError(errno.EEXIST, f"no free CAM run directory name in {cam_dir} for {stamp}")
+
+
+class CAMLogger:
+    """Writes one run directory. Thread-safe; per-step cost does not grow with the number of earlier steps.
+
+    Caps: after `max_steps` logged steps, or once a step would take the run past `max_bytes` (step files plus index
+    lines), every later step is skipped and counted, so a capped run is always a prefix of what was offered.
+    """
+
+    def __init__(
+        self,
+        cam_dir: str | os.PathLike[str],
+        *,
+        run_config: dict[str, Any],
+        checkpoint: str,
+        options: dict[str, Any],
+        max_steps: int | None = None,
+        max_bytes: int | None = None,
+        manifest_every: int = 50,
+        compress: bool = True,
+    ) -> None:
+        if manifest_every < 1:
+            raise ValueError(f"manifest_every must be >= 1, got {manifest_every}")
+        self._max_steps = max_steps
+        self._max_bytes = max_bytes
+        self._manifest_every = manifest_every
+        self._compress = compress
+        self._lock = threading.Lock()
+        self._run_dir = _create_run_dir(pathlib.Path(cam_dir))
+        self._run_info = {
+            "schema_version": SCHEMA_VERSION,
+            "run_id": self._run_dir.name,
+            "started_at": utc_now_iso(),
+            "config": run_config,
+            "checkpoint": checkpoint,
+            "options": options,
+        }
+        try:
+            write_json_atomic(self._run_dir / RUN_JSON, self._run_info)
+        except OSError as e:
+            raise OSError(e.errno, f"cannot write {self._run_dir / RUN_JSON}: {e.strerror or e}") from e
+        self._next_seq = 0
+        self._entries: list[dict[str, Any]] = []
+        self._external: dict[str, Any] = {}
+        self._counters: dict[str, Any] = {
+            "steps_logged": 0,
+            "steps_skipped_cap": 0,
+            "steps_skipped_io": 0,
+            "steps_skipped_closed": 0,
+            "bytes_written": 0,
+            "io_errors": {},
+        }
+        self._cap_reached = False
+        self._closed = False
+        self._index_fd: int | None = None
+        # After a failed append the file may end in a partial line; the next line must not be glued onto it.
+        self._index_needs_newline = False
+
+    @property
+    def run_dir(self) -> pathlib.Path:
+        return self._run_dir
+
+    @property
+    def run_id(self) -> str:
+        return self._run_dir.name
+
+    @property
+    def counters(self) -> dict[str, Any]:
+        with self._lock:
+            return copy.deepcopy(self._counters)
+
+    def set_external_counters(self, counters: dict[str, Any]) -> None:
+        """The wrapper's own counters, stored under counters.external in the manifest."""
+        with self._lock:
+            self._external = copy.deepcopy(counters)
+
+    def log_step(self, record: StepRecord) -> bool:
+        """Writes one step; False if it was skipped (cap reached, logger closed, or an I/O error, all counted)."""
+        arrays = _record_arrays(record)
+        base = {
+            "schema_version": SCHEMA_VERSION,
+            "run_id": self.run_id,
+            "seq": -1,
+            "connection": str(record.connection),
+            "step": int(record.step),
+            "timestamp": float(record.timestamp),
+        }
+        summary = summarize_maps(record.maps)
+        with self._lock:
+            # Everything below is serialised so that seq order, file names and index order always agree.
+            if self._closed:
+                self._counters["steps_skipped_closed"] += 1
+                return False
+            if self._max_steps is not None and self._counters["steps_logged"] >= self._max_steps:
+                self._cap_reached = True
+            if self._cap_reached:
+                self._counters["steps_skipped_cap"] += 1
+                return False
+            seq = self._next_seq
+            meta = base | {"seq": seq} | record.meta
+            buf = io.BytesIO()
+            (np.savez_compressed if self._compress else np.savez)(buf, **arrays, **{META_KEY: np.array(dumps(meta))})
+            data = buf.getvalue()
+            entry = index_entry(seq, meta, summary)
+            line = (dumps(entry) + "\n").encode()
+            size = len(data) + len(line)
+            if self._max_bytes is not None and self._counters["bytes_written"] + size > self._max_bytes:
+                self._cap_reached = True
+                self._counters["steps_skipped_cap"] += 1
+                return False
+            try:
+                write_bytes_atomic(self._run_dir / step_file(seq), data)
+            except OSError as e:
+                self._count_io_error(e, f"step file {step_file(seq)}")
+                self._counters["steps_skipped_io"] += 1
+                return False
+            # The step file exists from here on: seq is consumed even if the index append fails, so nothing
+            # already on disk is ever overwritten (the reader rebuilds missing index lines from step files).
+            self._next_seq += 1
+            self._entries.append(entry)
+            self._counters["steps_logged"] += 1
+            self._counters["bytes_written"] += len(data) + self._append_index(line)
+            if self._counters["steps_logged"] % self._manifest_every == 0:
+                self._write_manifest_locked()
+            return True
+
+    def write_manifest(self) -> bool:
+        with self._lock:
+            return self._write_manifest_locked()
+
+    def close(self) -> None:
+        """Writes the final manifest; later log_step calls are skipped. Idempotent."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            if self._index_fd is not None:
+                try:
+                    os.close(self._index_fd)
+                except OSError as e:
+                    self._count_io_error(e, INDEX_JSONL)
+                self._index_fd = None
+            self._write_manifest_locked()
+
+    def __enter__(self) -> CAMLogger:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _append_index(self, line: bytes) -> int:
+        """Appends one index line with a single O_APPEND write; returns the bytes written (0 on failure)."""
+        if self._index_needs_newline:
+            line = b"\n" + line
+        try:
+            if self._index_fd is None:
+                self._index_fd = os.open(self._run_dir / INDEX_JSONL, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+            view = memoryview(line)
+            while view:
+                view = view[os.write(self._index_fd, view) :]
+        except OSError as e:
+            self._count_io_error(e, INDEX_JSONL)
+            self._index_needs_newline = True
+            if self._index_fd is not None:
+                with contextlib.suppress(OSError):
+                    os.close(self._index_fd)
+                self._index_fd = None
+            return 0
+        self._index_needs_newline = False
+        return len(line)
+
+    def _write_manifest_locked(self) -> bool:
+        counters = {"logger": copy.deepcopy(self._counters), "external": copy.deepcopy(self._external)}
+        manifest = build_manifest(self._run_info, counters, self._entries, closed=self._closed)
+        try:
+            write_json_atomic(self._run_dir / MANIFEST_JSON, manifest)
+        except OSError as e:
+            self._count_io_error(e, MANIFEST_JSON)
+            return False
+        return True
+
+    def _count_io_error(self, e: OSError, what: str) -> None:
+        kind = io_error_kind(e)
+        errors = self._counters["io_errors"]
+        if kind not in errors:
+            log.warning(
+                "CAM logger (%s): %s while writing %s: %s; further %s errors are only counted",
+                self._run_dir,
+                kind,
+                what,
+                e,
+                kind,
+            )
+        errors[kind] = errors.get(kind, 0) + 1

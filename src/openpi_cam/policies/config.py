@@ -1,0 +1,144 @@
+"""Named policy configs (what upstream's `TrainConfig` contributes at inference) and a registry for custom ones.
+
+A `PolicyConfig` fixes the robot pipeline, the action shape the FAST decoder must produce, the prompt length, the
+asset id of the normalisation stats and an optional default prompt. The model architecture (and with it the image
+resolution) comes from the checkpoint, not from here.
+
+Declaring a custom robot::
+
+    from openpi_cam.policies import GenericInputs, GenericOutputs, PolicyConfig, register_config
+
+    register_config(
+        PolicyConfig(
+            name="my_robot",
+            inputs=(GenericInputs(cameras={"base_0_rgb": "observation/image", "wrist_0_rgb": None},
+                                  state_key="observation/state", state_dim=4),),
+            outputs=(GenericOutputs(action_dim=2),),
+            asset_id="my_robot",
+            action_dim=2,
+            action_horizon=8,
+            max_token_len=64,
+            default_prompt="reach the target",
+        )
+    )
+
+after which ``create_policy("my_robot", checkpoint_dir)`` (and the CLI's ``--config my_robot``) can use it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from typing import Any
+
+from openpi_cam.policies import aloha, droid, libero
+from openpi_cam.policies.robot import RobotInputs
+from openpi_cam.transforms import AbsoluteActions, DeltaActions, Transform, make_bool_mask
+
+
+@dataclasses.dataclass(frozen=True)
+class PolicyConfig:
+    name: str
+    # Robot transforms (upstream's `data_transforms`): the first `RobotInputs` among `inputs` names the cameras.
+    inputs: tuple[Transform, ...]
+    outputs: tuple[Transform, ...]
+    # Norm stats are read from `<checkpoint>/assets/<asset_id>/norm_stats.json`.
+    asset_id: str
+    action_dim: int
+    action_horizon: int
+    max_token_len: int
+    # Injected after normalisation when the request has no prompt (upstream's model-transform default prompt).
+    default_prompt: str | None = None
+    # Upstream uses quantile normalisation for every model type except pi0.
+    use_quantile_norm: bool = True
+    # Returned to clients as the policy's metadata (upstream's `policy_metadata`).
+    policy_metadata: Mapping[str, Any] | None = None
+
+    def __post_init__(self) -> None:
+        for field in ("action_dim", "action_horizon", "max_token_len"):
+            if int(getattr(self, field)) < 1:
+                raise ValueError(f"PolicyConfig {self.name!r}: {field} must be positive")
+        if not self.name:
+            raise ValueError("PolicyConfig needs a name")
+        if not self.asset_id:
+            raise ValueError(f"PolicyConfig {self.name!r}: asset_id is empty")
+        self.robot_inputs  # noqa: B018  (fail at declaration, not at first request)
+
+    @property
+    def robot_inputs(self) -> RobotInputs:
+        for transform in self.inputs:
+            if isinstance(transform, RobotInputs):
+                return transform
+        raise ValueError(f"PolicyConfig {self.name!r}: no input transform provides camera_sources")
+
+    @property
+    def camera_sources(self) -> Mapping[str, str | None]:
+        """Model camera -> client observation key (None: a synthesised blank camera)."""
+        return self.robot_inputs.camera_sources
+
+
+PI0_FAST_DROID = PolicyConfig(
+    name="pi0_fast_droid",
+    inputs=(droid.DroidInputs(),),
+    outputs=(droid.DroidOutputs(),),
+    asset_id="droid",
+    action_dim=8,
+    action_horizon=10,
+    max_token_len=250,
+)
+
+# Upstream trains pi0_fast_libero with `extra_delta_transform=True`: the first 6 action dims are deltas w.r.t. the
+# state, so at inference the state is added back before the actions are returned.
+_LIBERO_DELTA_MASK = make_bool_mask(6, -1)
+PI0_FAST_LIBERO = PolicyConfig(
+    name="pi0_fast_libero",
+    inputs=(libero.LiberoInputs(), DeltaActions(_LIBERO_DELTA_MASK)),
+    outputs=(AbsoluteActions(_LIBERO_DELTA_MASK), libero.LiberoOutputs()),
+    asset_id="physical-intelligence/libero",
+    action_dim=7,
+    action_horizon=10,
+    max_token_len=180,
+)
+
+# Upstream (15a9616) has no pi0-FAST ALOHA config. This one combines upstream's `pi0_aloha` data pipeline (trossen
+# stats, adapt_to_pi, delta joint actions, reset pose) with `Pi0FASTConfig`'s defaults (the pi0_fast_base values).
+PI0_FAST_ALOHA = PolicyConfig(
+    name="pi0_fast_aloha",
+    inputs=(aloha.AlohaInputs(adapt_to_pi=True), DeltaActions(aloha.DELTA_ACTION_MASK)),
+    outputs=(AbsoluteActions(aloha.DELTA_ACTION_MASK), aloha.AlohaOutputs(adapt_to_pi=True)),
+    asset_id="trossen",
+    action_dim=32,
+    action_horizon=32,
+    max_token_len=250,
+    policy_metadata={"reset_pose": list(aloha.RESET_POSE)},
+)
+
+_REGISTRY: dict[str, PolicyConfig] = {}
+
+
+def register_config(config: PolicyConfig, *, replace: bool = False) -> PolicyConfig:
+    """Make ``config`` available by name; registering a different config under a taken name needs ``replace``."""
+    existing = _REGISTRY.get(config.name)
+    if existing is not None and existing != config and not replace:
+        raise ValueError(f"a different policy config named {config.name!r} is already registered")
+    _REGISTRY[config.name] = config
+    return config
+
+
+def get_config(name: str) -> PolicyConfig:
+    try:
+        return _REGISTRY[name]
+    except KeyError:
+        raise KeyError(f"unknown policy config {name!r}; known: {', '.join(sorted(_REGISTRY))}") from None
+
+
+def config_names() -> list[str]:
+    return sorted(_REGISTRY)
+
+
+def resolve_config(config: str | PolicyConfig) -> PolicyConfig:
+    return config if isinstance(config, PolicyConfig) else get_config(config)
+
+
+for _config in (PI0_FAST_DROID, PI0_FAST_LIBERO, PI0_FAST_ALOHA):
+    register_config(_config)

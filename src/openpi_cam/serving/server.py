@@ -1,0 +1,355 @@
+"""Websocket policy server, wire-compatible with `openpi_client.WebsocketClientPolicy`.
+
+Protocol (as upstream's): on connect the server sends the packed metadata; then each binary frame is one packed
+observation, answered by one packed response (the policy's dict plus `server_timing`). A text frame from the server
+is an error message; the real client raises it as RuntimeError.
+
+Beyond upstream: inference runs on one worker thread so the event loop keeps answering `/healthz`, `/stats`,
+websocket pings and other connections while the model computes; bad requests are answered with a text frame and the
+connection stays usable; an optional API key; a message size limit; graceful shutdown that lets in-flight requests
+finish and then closes the policy (which drains the Grad-CAM side channel).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import concurrent.futures
+import dataclasses
+import hmac
+import http
+import itertools
+import json
+import logging
+import signal
+import threading
+import time
+import traceback
+from collections.abc import Callable
+from typing import Any, Protocol
+from urllib.parse import urlsplit
+
+import numpy as np
+import websockets
+import websockets.asyncio.server as ws_server
+
+from openpi_cam.errors import InvalidRequest
+from openpi_cam.serving import RequestContext, msgpack_numpy
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
+_MAX_ERROR_TEXT = 2000  # characters of an unexpected exception's message sent to the client without debug
+
+
+class ServedPolicy(Protocol):
+    def infer(self, obs: dict, context: RequestContext | None = None) -> dict: ...
+
+
+@dataclasses.dataclass
+class _Connection:
+    id: str
+    websocket: ws_server.ServerConnection
+    busy: bool = False
+
+
+class ServerStats:
+    """Counters and a bounded latency window; touched only from the event loop thread."""
+
+    def __init__(self, window: int) -> None:
+        self.started = time.monotonic()
+        self.requests = 0
+        self.ok = 0
+        self.errors: collections.Counter[str] = collections.Counter()
+        self.connections_total = 0
+        self.infer_ms: collections.deque[float] = collections.deque(maxlen=window)
+        self.total_ms: collections.deque[float] = collections.deque(maxlen=window)
+
+    @staticmethod
+    def _percentiles(values: collections.deque[float]) -> dict[str, float] | None:
+        if not values:
+            return None
+        p50, p90, p99 = np.percentile(np.fromiter(values, float), [50, 90, 99])
+        return {"p50": float(p50), "p90": float(p90), "p99": float(p99), "max": float(max(values))}
+
+    def snapshot(self, open_connections: int) -> dict[str, Any]:
+        return {
+            "uptime_s": time.monotonic() - self.started,
+            "connections": {"open": open_connections, "total": self.connections_total},
+            "requests": self.requests,
+            "ok": self.ok,
+            "errors": dict(self.errors),
+            "latency_ms": {
+                "window": len(self.infer_ms),
+                "infer": self._percentiles(self.infer_ms),
+                "total": self._percentiles(self.total_ms),
+            },
+        }
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.generic | np.ndarray):
+        return obj.tolist()
+    return str(obj)
+
+
+class PolicyServer:
+    """Serves `policy` over websockets; see the module docstring for the protocol.
+
+    `policy` needs `infer(obs, context)`; `stats()` (merged into `/stats`) and `close(timeout)` (called on shutdown)
+    are used when present.
+    """
+
+    def __init__(
+        self,
+        policy: ServedPolicy,
+        *,
+        host: str = "0.0.0.0",
+        port: int = 8000,
+        metadata: dict | None = None,
+        api_key: str | None = None,
+        max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
+        debug: bool = False,
+        latency_window: int = 1000,
+        close_policy_on_stop: bool = True,
+        close_timeout: float = 60.0,
+    ) -> None:
+        if max_message_bytes <= 0:
+            raise ValueError(f"max_message_bytes must be positive, got {max_message_bytes}")
+        self._policy = policy
+        self._host = host
+        self._port = port
+        self._metadata_frame = msgpack_numpy.packb(metadata or {})  # fails here, not per connection
+        self._api_key = api_key
+        self._max_message_bytes = max_message_bytes
+        self._debug = debug
+        self._close_policy_on_stop = close_policy_on_stop
+        self._close_timeout = close_timeout
+        self._stats = ServerStats(latency_window)
+        self._connections: dict[str, _Connection] = {}
+        self._connection_ids = itertools.count()
+        self._stopping = False
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop_event: asyncio.Event | None = None
+        self.bound_port: int | None = None
+
+    # ---------------------------------------------------------------- lifecycle
+
+    def serve_forever(self) -> None:
+        """Runs until SIGINT or SIGTERM, then shuts down gracefully."""
+
+        async def main() -> None:
+            loop = asyncio.get_running_loop()
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                loop.add_signal_handler(sig, self.request_stop)
+            await self.run(on_ready=lambda port: logger.info("serving on ws://%s:%d", self._host, port))
+
+        asyncio.run(main())
+
+    def request_stop(self) -> None:
+        """Asks a running server to shut down; safe to call from any thread."""
+        if self._loop is not None and self._stop_event is not None:
+            self._loop.call_soon_threadsafe(self._stop_event.set)
+
+    async def run(self, on_ready: Callable[[int], None] | None = None) -> None:
+        """Serves until `request_stop()`; then stops accepting, finishes in-flight requests and closes the policy."""
+        self._loop = asyncio.get_running_loop()
+        self._stop_event = asyncio.Event()
+        executor = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="policy-infer")
+        try:
+            async with ws_server.serve(
+                lambda ws: self._handle(ws, executor),
+                self._host,
+                self._port,
+                compression=None,
+                max_size=self._max_message_bytes,
+                process_request=self._process_request,
+            ) as server:
+                self.bound_port = server.sockets[0].getsockname()[1]
+                if on_ready is not None:
+                    on_ready(self.bound_port)
+                await self._stop_event.wait()
+                await self._shutdown(server)
+        finally:
+            executor.shutdown(wait=True)
+        close = getattr(self._policy, "close", None)
+        if self._close_policy_on_stop and callable(close):
+            logger.info("closing the policy (timeout %.0fs)", self._close_timeout)
+            await asyncio.to_thread(close, self._close_timeout)
+
+    async def _shutdown(self, server: ws_server.Server) -> None:
+        logger.info("shutting down: no new connections; finishing %d open", len(self._connections))
+        self._stopping = True
+        server.close(close_connections=False)
+        # Idle connections close now; busy ones close themselves once their response is sent.
+        for conn in list(self._connections.values()):
+            if not conn.busy:
+                await conn.websocket.close(websockets.CloseCode.GOING_AWAY, "server shutting down")
+        await server.wait_closed()
+
+    # ---------------------------------------------------------------- HTTP side
+
+    def _authorized(self, request: ws_server.Request) -> bool:
+        if self._api_key is None:
+            return True
+        expected = f"Api-Key {self._api_key}"
+        return hmac.compare_digest(request.headers.get("Authorization", "").encode(), expected.encode())
+
+    async def _process_request(
+        self, connection: ws_server.ServerConnection, request: ws_server.Request
+    ) -> ws_server.Response | None:
+        path = urlsplit(request.path).path
+        if path == "/healthz":
+            return connection.respond(http.HTTPStatus.OK, "OK\n")
+        if not self._authorized(request):
+            self._stats.errors["unauthorized"] += 1
+            logger.warning("refused %s from %s: missing or wrong API key", path, connection.remote_address)
+            return connection.respond(
+                http.HTTPStatus.UNAUTHORIZED,
+                "missing or wrong API key: send the header 'Authorization: Api-Key <key>'\n",
+            )
+        if path == "/stats":
+            response = connection.respond(http.HTTPStatus.OK, json.dumps(await self.stats(), default=_json_default))
+            response.headers["Content-Type"] = "application/json"
+            return response
+        return None
+
+    async def stats(self) -> dict[str, Any]:
+        """The `/stats` document: server counters plus `policy.stats()` under "policy"."""
+        snapshot = self._stats.snapshot(len(self._connections))
+        policy_stats = getattr(self._policy, "stats", None)
+        if callable(policy_stats):
+            try:
+                snapshot["policy"] = await asyncio.to_thread(policy_stats)
+            except Exception as e:  # a broken stats() must not take /stats down
+                logger.exception("policy.stats() failed")
+                snapshot["policy"] = {"error": f"{type(e).__name__}: {e}"}
+        return snapshot
+
+    # ---------------------------------------------------------------- websocket side
+
+    async def _handle(self, websocket: ws_server.ServerConnection, executor: concurrent.futures.Executor) -> None:
+        conn = _Connection(id=f"conn{next(self._connection_ids):04d}", websocket=websocket)
+        self._connections[conn.id] = conn
+        self._stats.connections_total += 1
+        logger.info("%s opened from %s", conn.id, websocket.remote_address)
+        try:
+            await websocket.send(self._metadata_frame)
+            prev_total_ms: float | None = None
+            for request_index in itertools.count():
+                # Upstream starts its per-request clock before waiting for the frame, so `prev_total_ms` includes
+                # the wait for the request; kept for compatibility. /stats measures from the frame's arrival.
+                wait_start = time.monotonic()
+                frame = await websocket.recv()
+                start = time.monotonic()
+                conn.busy = True
+                self._stats.requests += 1
+                context = RequestContext(conn.id, request_index)
+                reply, infer_ms = await self._answer(frame, context, prev_total_ms, executor)
+                try:
+                    await websocket.send(reply)
+                finally:
+                    conn.busy = False
+                if infer_ms is not None:
+                    end = time.monotonic()
+                    prev_total_ms = (end - wait_start) * 1000
+                    self._stats.ok += 1
+                    self._stats.infer_ms.append(infer_ms)
+                    self._stats.total_ms.append((end - start) * 1000)
+                if self._stopping:
+                    await websocket.close(websockets.CloseCode.GOING_AWAY, "server shutting down")
+                    break
+        except websockets.ConnectionClosed as e:
+            if e.sent is not None and e.sent.code == websockets.CloseCode.MESSAGE_TOO_BIG:
+                self._stats.errors["too_large"] += 1
+                logger.warning("%s closed: message over %d bytes", conn.id, self._max_message_bytes)
+        finally:
+            del self._connections[conn.id]
+            logger.info("%s closed", conn.id)
+
+    async def _answer(
+        self,
+        frame: bytes | str,
+        context: RequestContext,
+        prev_total_ms: float | None,
+        executor: concurrent.futures.Executor,
+    ) -> tuple[bytes | str, float | None]:
+        """Returns (packed response, infer_ms) on success, (error text, None) otherwise."""
+        kind = "decode"
+        try:
+            if isinstance(frame, str):
+                kind = "text_frame"
+                raise InvalidRequest("expected a binary msgpack frame, got a text frame")
+            obs = msgpack_numpy.unpack_request(frame)
+            kind = "invalid_request"
+            result, infer_ms = await asyncio.get_running_loop().run_in_executor(executor, self._infer, obs, context)
+            kind = "internal"
+            if not isinstance(result, dict):
+                raise TypeError(f"policy returned {type(result).__name__}, expected a dict")
+            timing = {"infer_ms": infer_ms}
+            if prev_total_ms is not None:
+                # Like upstream: only the previous request's total is known here (it includes sending the response).
+                timing["prev_total_ms"] = prev_total_ms
+            return msgpack_numpy.packb({**result, "server_timing": timing}), infer_ms
+        except InvalidRequest as e:
+            self._stats.errors[kind] += 1
+            logger.info("%s request %d rejected: %s", context.connection_id, context.request_index, e)
+            return f"InvalidRequest: {e}", None
+        except Exception as e:
+            self._stats.errors["internal"] += 1
+            logger.exception("%s request %d failed", context.connection_id, context.request_index)
+            text = f"Internal server error: {type(e).__name__}: {e}"[:_MAX_ERROR_TEXT]
+            if self._debug:
+                return f"{text}\n\n{traceback.format_exc()}", None
+            return f"{text} (details in the server log)", None
+
+    def _infer(self, obs: dict, context: RequestContext) -> tuple[dict, float]:
+        start = time.monotonic()
+        result = self._policy.infer(obs, context)
+        return result, (time.monotonic() - start) * 1000
+
+
+@dataclasses.dataclass
+class RunningServer:
+    """A `PolicyServer` running on its own thread and event loop (tests, the demo)."""
+
+    server: PolicyServer
+    host: str
+    port: int
+    thread: threading.Thread
+
+    @property
+    def url(self) -> str:
+        return f"ws://{self.host}:{self.port}"
+
+    def stop(self, timeout: float = 60.0) -> None:
+        self.server.request_stop()
+        self.thread.join(timeout)
+        if self.thread.is_alive():
+            raise TimeoutError(f"server on port {self.port} did not stop within {timeout}s")
+
+
+def start_server_in_thread(
+    policy: ServedPolicy, host: str = "127.0.0.1", port: int = 0, startup_timeout: float = 30.0, **kwargs: Any
+) -> RunningServer:
+    """Starts a `PolicyServer` (kwargs as its constructor's) on a daemon thread; port 0 lets the OS pick one."""
+    server = PolicyServer(policy, host=host, port=port, **kwargs)
+    ready = threading.Event()
+    failure: list[BaseException] = []
+
+    def target() -> None:
+        try:
+            asyncio.run(server.run(on_ready=lambda _: ready.set()))
+        except BaseException as e:
+            failure.append(e)
+            logger.exception("policy server thread failed")
+        finally:
+            ready.set()
+
+    thread = threading.Thread(target=target, name=f"policy-server-{port}", daemon=True)
+    thread.start()
+    if not ready.wait(startup_timeout):
+        raise TimeoutError(f"policy server did not start within {startup_timeout}s")
+    if failure or server.bound_port is None:
+        raise RuntimeError(f"policy server failed to start on {host}:{port}") from (failure[0] if failure else None)
+    return RunningServer(server=server, host=host, port=server.bound_port, thread=thread)

@@ -1,0 +1,45 @@
+"""Locating and loading the PaliGemma SentencePiece model without any download."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import sentencepiece
+
+OPENPI_DATA_HOME_ENV = "OPENPI_DATA_HOME"
+DEFAULT_OPENPI_DATA_HOME = "~/.cache/openpi"
+# Where upstream's `maybe_download("gs://big_vision/paligemma_tokenizer.model")` leaves the file inside its cache.
+PALIGEMMA_TOKENIZER_CACHE_PATH = Path("big_vision") / "paligemma_tokenizer.model"
+
+
+def openpi_data_home() -> Path:
+    """Upstream's cache root: `$OPENPI_DATA_HOME`, else `~/.cache/openpi` (not created here)."""
+    return Path(os.environ.get(OPENPI_DATA_HOME_ENV, DEFAULT_OPENPI_DATA_HOME)).expanduser()
+
+
+def resolve_paligemma_tokenizer_path(path: str | Path | None = None) -> Path:
+    """The SentencePiece model to use: `path` if given, else the file in upstream's cache.
+
+    Raises FileNotFoundError naming every place looked at and how to provide the file.
+    """
+    if path is not None:
+        candidate = Path(path).expanduser()
+        if candidate.is_file():
+            return candidate.resolve()
+        raise FileNotFoundError(f"PaliGemma tokenizer model not found at the given path {candidate}")
+    candidate = openpi_data_home() / PALIGEMMA_TOKENIZER_CACHE_PATH
+    if candidate.is_file():
+        return candidate.resolve()
+    raise FileNotFoundError(
+        f"PaliGemma tokenizer model not found. Looked at {candidate} "
+        f"(${OPENPI_DATA_HOME_ENV} or {DEFAULT_OPENPI_DATA_HOME} + /{PALIGEMMA_TOKENIZER_CACHE_PATH.as_posix()}). "
+        "Pass an explicit path, or copy gs://big_vision/paligemma_tokenizer.model to that place "
+        "(e.g. `gsutil cp gs://big_vision/paligemma_tokenizer.model <place>`); nothing is downloaded at run time."
+    )
+
+
+def load_paligemma_tokenizer(path: str | Path | None = None) -> sentencepiece.SentencePieceProcessor:
+    """Load the SentencePiece model found by `resolve_paligemma_tokenizer_path`."""
+    resolved = resolve_paligemma_tokenizer_path(path)
+    return sentencepiece.SentencePieceProcessor(model_proto=resolved.read_bytes())

@@ -1,0 +1,388 @@
+"""Upstream OpenPI's inference data transforms, as plain callables over (nested) dicts of numpy arrays.
+
+Each transform takes the dict produced by the previous one and returns the next, with upstream's semantics. Unlike
+upstream, anything a client controls is checked where it enters the pipeline (`parse_image`, `parse_vector`,
+`parse_prompt`, `require`) and rejected with `InvalidRequest` naming the key and the problem, instead of failing deep
+inside numpy, PIL or the model.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, Protocol
+
+import numpy as np
+
+from openpi_cam.errors import InvalidRequest
+from openpi_cam.image_tools import letterbox_geometry, resize_with_pad_pil
+from openpi_cam.normalize import NormStats
+
+DataDict = dict[str, Any]
+Transform = Callable[[DataDict], DataDict]
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# Client input checks
+
+
+def require(data: Mapping[str, Any], key: str) -> Any:
+    """``data[key]``, or `InvalidRequest` naming the missing key."""
+    if key not in data or data[key] is None:
+        present = ", ".join(sorted(map(str, data))) or "none"
+        raise InvalidRequest(f"missing observation key '{key}' (keys present: {present})")
+    return data[key]
+
+
+def _as_array(value: Any, key: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value)
+    except (ValueError, TypeError) as e:
+        raise InvalidRequest(f"'{key}': cannot be read as an array ({e})") from e
+    if arr.dtype == object or arr.dtype.kind in "USV":
+        raise InvalidRequest(f"'{key}': expected numbers, got dtype {arr.dtype}")
+    return arr
+
+
+def parse_image(value: Any, key: str, *, channels_first: bool | None = None) -> np.ndarray:
+    """A client image as uint8 ``[H, W, 3]``, converted the way upstream's robot policies convert it.
+
+    Accepts uint8 or float images (floats must lie in ``[0, 1]`` and become ``(255 * x).astype(uint8)``), channel-last
+    or channel-first. ``channels_first=None`` applies upstream's rule (leading axis of size 3 means ``[3, H, W]``);
+    ``True`` always transposes (upstream ALOHA).
+    """
+    img = _as_array(value, key)
+    if not (img.dtype == np.uint8 or np.issubdtype(img.dtype, np.floating)):
+        raise InvalidRequest(f"'{key}': image dtype {img.dtype} is not supported; send uint8 (or float in [0, 1])")
+    if img.ndim != 3:
+        raise InvalidRequest(f"'{key}': expected a 3-D image [H, W, 3] or [3, H, W], got shape {img.shape}")
+    if np.issubdtype(img.dtype, np.floating):
+        if not np.all(np.isfinite(img)):
+            raise InvalidRequest(f"'{key}': float image contains NaN or inf")
+        if img.size and (img.min() < 0.0 or img.max() > 1.0):
+            raise InvalidRequest(
+                f"'{key}': float image values must lie in [0, 1], got [{float(img.min())}, {float(img.max())}]"
+            )
+        img = (255 * img).astype(np.uint8)
+    transpose = img.shape[0] == 3 if channels_first is None else channels_first
+    if transpose:
+        if img.shape[0] != 3:
+            raise InvalidRequest(f"'{key}': expected a channel-first image [3, H, W], got shape {img.shape}")
+        img = img.transpose(1, 2, 0)
+    if img.shape[-1] != 3:
+        raise InvalidRequest(f"'{key}': expected 3 colour channels ([H, W, 3] or [3, H, W]), got shape {img.shape}")
+    if img.shape[0] < 1 or img.shape[1] < 1:
+        raise InvalidRequest(f"'{key}': empty image, shape {img.shape}")
+    return np.ascontiguousarray(img)
+
+
+def parse_vector(value: Any, key: str, *, dim: int | None = None, allow_scalar: bool = False) -> np.ndarray:
+    """A finite 1-D numeric vector (a scalar becomes length 1 when ``allow_scalar``), checked against ``dim``."""
+    arr = _as_array(value, key)
+    if arr.dtype.kind not in "biuf":
+        raise InvalidRequest(f"'{key}': expected a numeric vector, got dtype {arr.dtype}")
+    if arr.ndim == 0 and allow_scalar:
+        arr = arr[np.newaxis]
+    if arr.ndim != 1:
+        raise InvalidRequest(f"'{key}': expected a 1-D vector, got shape {arr.shape}")
+    if dim is not None and arr.shape[0] != dim:
+        raise InvalidRequest(f"'{key}': expected {dim} values, got {arr.shape[0]}")
+    if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
+        raise InvalidRequest(f"'{key}': contains NaN or inf")
+    return arr
+
+
+def parse_prompt(value: Any, key: str = "prompt") -> str:
+    """A prompt as ``str``: accepts str, bytes (UTF-8) or a 0-d numpy string array (what upstream's `.item()` reads)."""
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        value = value.item()
+    if isinstance(value, bytes):
+        try:
+            value = value.decode("utf-8")
+        except UnicodeDecodeError as e:
+            raise InvalidRequest(f"'{key}': bytes are not valid UTF-8") from e
+    if not isinstance(value, str):
+        raise InvalidRequest(f"'{key}': expected a string, got {type(value).__name__}")
+    return value
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# Dict helpers
+
+
+def flatten_dict(tree: Mapping[str, Any], sep: str = "/") -> dict[str, Any]:
+    """Nested dicts -> one dict with ``a/b/c`` keys (upstream's convention)."""
+    out: dict[str, Any] = {}
+    for k, v in tree.items():
+        if isinstance(v, Mapping) and v:
+            for sub_k, sub_v in flatten_dict(v, sep).items():
+                out[f"{k}{sep}{sub_k}"] = sub_v
+        else:
+            out[k] = v
+    return out
+
+
+def unflatten_dict(flat: Mapping[str, Any], sep: str = "/") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in flat.items():
+        *parents, leaf = k.split(sep)
+        node = out
+        for p in parents:
+            node = node.setdefault(p, {})
+        node[leaf] = v
+    return out
+
+
+def pad_to_dim(x: np.ndarray, target_dim: int, axis: int = -1, value: float = 0.0) -> np.ndarray:
+    """Pad ``x`` with ``value`` along ``axis`` up to ``target_dim`` (no-op when already that long)."""
+    current = x.shape[axis]
+    if current >= target_dim:
+        return x
+    widths = [(0, 0)] * x.ndim
+    widths[axis] = (0, target_dim - current)
+    return np.pad(x, widths, constant_values=value)
+
+
+def make_bool_mask(*dims: int) -> tuple[bool, ...]:
+    """``make_bool_mask(6, -1)`` -> six True then one False (positive = True run, negative = False run)."""
+    mask: list[bool] = []
+    for d in dims:
+        mask.extend([d > 0] * abs(d))
+    return tuple(mask)
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# Transforms
+
+
+@dataclasses.dataclass(frozen=True)
+class CompositeTransform:
+    transforms: Sequence[Transform]
+
+    def __call__(self, data: DataDict) -> DataDict:
+        for transform in self.transforms:
+            data = transform(data)
+        return data
+
+
+def compose(transforms: Sequence[Transform]) -> CompositeTransform:
+    return CompositeTransform(tuple(transforms))
+
+
+@dataclasses.dataclass(frozen=True)
+class RepackTransform:
+    """Build a new dict whose leaves are taken from flattened ``a/b`` paths of the input.
+
+    Upstream applies repacking only to training data; its inference pipelines (and ours) use none.
+    """
+
+    structure: Mapping[str, Any]
+
+    def __call__(self, data: DataDict) -> DataDict:
+        flat = flatten_dict(data)
+
+        def pick(node: Any) -> Any:
+            if isinstance(node, Mapping):
+                return {k: pick(v) for k, v in node.items()}
+            return require(flat, node)
+
+        return pick(self.structure)
+
+
+@dataclasses.dataclass(frozen=True)
+class InjectDefaultPrompt:
+    prompt: str | None
+
+    def __call__(self, data: DataDict) -> DataDict:
+        if self.prompt is not None and "prompt" not in data:
+            data["prompt"] = np.asarray(self.prompt)
+        return data
+
+
+def _check_quantiles(norm_stats: Mapping[str, NormStats]) -> None:
+    for k, v in flatten_dict(norm_stats).items():
+        if not v.has_quantiles:
+            raise ValueError(f"quantile normalisation needs q01 and q99, but the stats for '{k}' lack them")
+
+
+def _apply_stats(
+    data: DataDict,
+    norm_stats: Mapping[str, NormStats],
+    fn: Callable[[str, np.ndarray, NormStats], np.ndarray],
+    *,
+    strict: bool,
+) -> DataDict:
+    flat = flatten_dict(data)
+    stats = flatten_dict(norm_stats)
+    if strict:
+        for k in stats:
+            if k not in flat:
+                raise ValueError(f"norm stats key '{k}' not found in the data")
+    return unflatten_dict({k: fn(k, v, stats[k]) if k in stats else v for k, v in flat.items()})
+
+
+@dataclasses.dataclass(frozen=True)
+class Normalize:
+    """Quantile (``[q01, q99] -> [-1, 1]``) or z-score normalisation of the keys the stats name."""
+
+    norm_stats: Mapping[str, NormStats] | None
+    use_quantiles: bool = False
+    strict: bool = False
+
+    def __post_init__(self) -> None:
+        if self.norm_stats is not None and self.use_quantiles:
+            _check_quantiles(self.norm_stats)
+
+    def __call__(self, data: DataDict) -> DataDict:
+        if self.norm_stats is None:
+            return data
+        return _apply_stats(data, self.norm_stats, self._normalize, strict=self.strict)
+
+    def _normalize(self, key: str, x: np.ndarray, stats: NormStats) -> np.ndarray:
+        x = np.asarray(x)
+        n = x.shape[-1]
+        # Stats longer than the data are sliced (upstream does this too); data longer than the stats cannot be mapped.
+        if n > stats.mean.shape[-1]:
+            raise InvalidRequest(f"'{key}' has {n} values but the normalisation stats cover {stats.mean.shape[-1]}")
+        if self.use_quantiles:
+            q01, q99 = stats.q01[..., :n], stats.q99[..., :n]
+            return (x - q01) / (q99 - q01 + 1e-6) * 2.0 - 1.0
+        mean, std = stats.mean[..., :n], stats.std[..., :n]
+        return (x - mean) / (std + 1e-6)
+
+
+@dataclasses.dataclass(frozen=True)
+class Unnormalize:
+    """Inverse of `Normalize`; strict (every key in the stats must be present), as upstream."""
+
+    norm_stats: Mapping[str, NormStats] | None
+    use_quantiles: bool = False
+
+    def __post_init__(self) -> None:
+        if self.norm_stats is not None and self.use_quantiles:
+            _check_quantiles(self.norm_stats)
+
+    def __call__(self, data: DataDict) -> DataDict:
+        if self.norm_stats is None:
+            return data
+        return _apply_stats(data, self.norm_stats, self._unnormalize, strict=True)
+
+    def _unnormalize(self, key: str, x: np.ndarray, stats: NormStats) -> np.ndarray:
+        x = np.asarray(x)
+        if self.use_quantiles:
+            q01, q99 = stats.q01, stats.q99
+            dim = q01.shape[-1]
+            if dim < x.shape[-1]:
+                # Dimensions beyond the stats (model padding) pass through unchanged.
+                head = (x[..., :dim] + 1.0) / 2.0 * (q99 - q01 + 1e-6) + q01
+                return np.concatenate([head, x[..., dim:]], axis=-1)
+            return (x + 1.0) / 2.0 * (q99 - q01 + 1e-6) + q01
+        mean = pad_to_dim(stats.mean, x.shape[-1], value=0.0)
+        std = pad_to_dim(stats.std, x.shape[-1], value=1.0)
+        return x * (std + 1e-6) + mean
+
+
+@dataclasses.dataclass(frozen=True)
+class ResizeImages:
+    """Letterbox every ``image/*`` entry to the model resolution with upstream's PIL bilinear resize."""
+
+    height: int
+    width: int
+
+    def __call__(self, data: DataDict) -> DataDict:
+        images = data["image"]
+        for name, img in images.items():
+            try:
+                letterbox_geometry(img.shape[-3], img.shape[-2], self.height, self.width)
+            except ValueError as e:
+                raise InvalidRequest(f"image for camera '{name}': {e}") from e
+        data["image"] = {k: resize_with_pad_pil(v, self.height, self.width) for k, v in images.items()}
+        return data
+
+
+class FastPromptTokenizer(Protocol):
+    """What the FAST transforms need from `openpi_cam.tokenizers.Pi0FastTokenizer`."""
+
+    def tokenize(
+        self, prompt: str, state: np.ndarray, actions: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]: ...
+
+    def extract_actions(self, tokens: np.ndarray, action_horizon: int, action_dim: int) -> np.ndarray: ...
+
+    def extract_actions_checked(
+        self, tokens: np.ndarray, action_horizon: int, action_dim: int
+    ) -> tuple[np.ndarray, str | None]: ...
+
+
+@dataclasses.dataclass(frozen=True)
+class TokenizeFASTInputs:
+    """Prompt + discretised state (+ actions when training) -> pi0-FAST token arrays."""
+
+    tokenizer: FastPromptTokenizer
+
+    def __call__(self, data: DataDict) -> DataDict:
+        if data.get("prompt") is None:
+            raise InvalidRequest("missing 'prompt' (and no default prompt is configured)")
+        prompt = parse_prompt(data.pop("prompt"))
+        tokens, token_mask, ar_mask, loss_mask = self.tokenizer.tokenize(prompt, data["state"], data.get("actions"))
+        return {
+            **data,
+            "tokenized_prompt": tokens,
+            "tokenized_prompt_mask": token_mask,
+            "token_ar_mask": ar_mask,
+            "token_loss_mask": loss_mask,
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class ExtractFASTActions:
+    """Generated token ids (in ``actions``) -> normalised action chunk ``[action_horizon, action_dim]``."""
+
+    tokenizer: FastPromptTokenizer
+    action_horizon: int
+    action_dim: int
+
+    def extract(self, tokens: np.ndarray) -> tuple[np.ndarray, str | None]:
+        """Actions plus why the generation was malformed (None when it was well formed)."""
+        tokens = np.asarray(tokens).astype(np.int32)
+        return self.tokenizer.extract_actions_checked(tokens, self.action_horizon, self.action_dim)
+
+    def __call__(self, data: DataDict) -> DataDict:
+        if "actions" not in data:
+            return data
+        tokens = np.asarray(data.pop("actions")).astype(np.int32)
+        return {**data, "actions": self.tokenizer.extract_actions(tokens, self.action_horizon, self.action_dim)}
+
+
+@dataclasses.dataclass(frozen=True)
+class DeltaActions:
+    """Actions -> deltas w.r.t. the state on the masked dims (a no-op at inference, where there are no actions)."""
+
+    mask: Sequence[bool] | None
+
+    def __call__(self, data: DataDict) -> DataDict:
+        if "actions" not in data or self.mask is None:
+            return data
+        mask = np.asarray(self.mask)
+        dims = mask.shape[-1]
+        state, actions = data["state"], np.array(data["actions"])
+        actions[..., :dims] -= np.expand_dims(np.where(mask, state[..., :dims], 0), axis=-2)
+        data["actions"] = actions
+        return data
+
+
+@dataclasses.dataclass(frozen=True)
+class AbsoluteActions:
+    """Inverse of `DeltaActions`: add the state back on the masked dims."""
+
+    mask: Sequence[bool] | None
+
+    def __call__(self, data: DataDict) -> DataDict:
+        if "actions" not in data or self.mask is None:
+            return data
+        mask = np.asarray(self.mask)
+        dims = mask.shape[-1]
+        state, actions = data["state"], np.array(data["actions"])
+        actions[..., :dims] += np.expand_dims(np.where(mask, state[..., :dims], 0), axis=-2)
+        data["actions"] = actions
+        return data

@@ -1,0 +1,328 @@
+"""`openpi-cam render`: per-camera overlays, per-step panels, a video per connection and an HTML report."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import pathlib
+import re
+import sys
+from collections.abc import Mapping, Sequence
+from typing import Annotated, Any, Literal, Protocol
+
+import numpy as np
+import tyro
+from PIL import Image, ImageDraw, ImageFont
+
+from openpi_cam.image_tools import LetterboxGeometry
+from openpi_cam.viz.colormap import LUT
+from openpi_cam.viz.overlay import blend, map_for_frame, reduce_tokens
+from openpi_cam.viz.progress import progress
+from openpi_cam.viz.stats import StepStats, compute_stats, transient
+
+Norm = Literal["step", "run"]
+
+_BG = (24, 24, 28)
+_FG = (232, 232, 232)
+_DIM = (150, 150, 160)
+_PAD = 8
+_LINE = 18
+
+
+class StepView(Protocol):
+    """What rendering needs from a logged step (satisfied by the CAM reader's steps)."""
+
+    seq: int
+    meta: Mapping[str, Any]
+    maps: Mapping[str, np.ndarray]
+    frames: Mapping[str, np.ndarray]
+    model_frames: Mapping[str, np.ndarray]
+
+
+@dataclasses.dataclass(frozen=True)
+class RenderOptions:
+    norm: Norm = "step"
+    alpha: float = 0.5
+    tile_height: int = 240
+    thumb_height: int = 72
+    fps: float = 5.0
+    videos: bool = True
+    gif_max_width: int = 640
+    gif_max_frames: int = 400
+    html: bool = True
+    progress: bool = True
+
+
+@dataclasses.dataclass(frozen=True)
+class StepAssets:
+    """Paths relative to the output directory."""
+
+    panel: str
+    thumb: str
+    overlays: dict[str, str]
+
+
+@dataclasses.dataclass
+class RenderResult:
+    out_dir: pathlib.Path
+    steps: dict[int, StepAssets]
+    videos: dict[str, dict[str, str]]  # connection -> {"mp4": path, "gif": path}
+    stats: list[StepStats]
+    report: pathlib.Path | None = None
+
+
+def slug(name: str) -> str:
+    """A file-name-safe version of a connection or camera name."""
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._") or "_"
+
+
+def _font(size: int = 13) -> ImageFont.ImageFont | ImageFont.FreeTypeFont:
+    try:
+        return ImageFont.load_default(size=size)
+    except (TypeError, OSError):  # Pillow without FreeType: fixed bitmap font
+        return ImageFont.load_default()
+
+
+def step_scale(st: StepStats) -> float:
+    """The per-step normaliser: the largest value over the step's valid cameras."""
+    values = [cs.peak_value for cs in st.cameras.values() if cs.valid and not math.isnan(cs.peak_value)]
+    return max(values, default=0.0)
+
+
+def camera_image(step: StepView, camera: str) -> tuple[np.ndarray, LetterboxGeometry | None]:
+    """The image a camera's map is drawn on, with the letterbox to invert (None: stretch the grid over it).
+
+    Prefers the client's original frame; falls back to the model frame, then to a blank model-sized canvas.
+    """
+    cam_meta = step.meta.get("cameras", {}).get(camera, {})
+    geometry = cam_meta.get("geometry")
+    box = LetterboxGeometry.from_dict(geometry) if geometry else None
+    if camera in step.frames:
+        return np.asarray(step.frames[camera], dtype=np.uint8), box
+    if camera in step.model_frames:
+        return np.asarray(step.model_frames[camera], dtype=np.uint8), None
+    hp, wp = cam_meta.get("grid") or np.shape(step.maps[camera])[-2:]
+    h, w = (box.model_h, box.model_w) if box else (hp * 14, wp * 14)
+    return np.zeros((h, w, 3), np.uint8), None
+
+
+def camera_overlay(step: StepView, camera: str, scale: float, alpha: float) -> np.ndarray:
+    """The camera's map, divided by `scale` and colour-blended over its image; masked cameras stay plain."""
+    image, box = camera_image(step, camera)
+    valid = bool(step.meta.get("cameras", {}).get(camera, {}).get("valid", True))
+    if camera not in step.maps or not valid:
+        return image
+    heat = map_for_frame(reduce_tokens(step.maps[camera]), image.shape[:2], box)
+    heat = heat / scale if scale > 0 else np.zeros_like(heat)
+    return blend(image, heat, alpha)
+
+
+def _fmt_list(values: Any, limit: int = 8) -> str:
+    items = list(np.atleast_1d(values)) if values is not None else []
+    text = " ".join(f"{v:.3g}" if isinstance(v, float) else str(v) for v in items[:limit])
+    return text + (f" ... (+{len(items) - limit})" if len(items) > limit else "")
+
+
+def _colorbar(height: int, width: int = 12) -> Image.Image:
+    ramp = LUT[np.linspace(len(LUT) - 1, 0, height).round().astype(int)]
+    return Image.fromarray(np.repeat(ramp[:, None, :], width, axis=1))
+
+
+def step_panel(
+    step: StepView, st: StepStats, overlays: Mapping[str, np.ndarray], norm_label: str, tile_height: int
+) -> Image.Image:
+    """All cameras of a step side by side, with the explained tokens, score and normalisation written above."""
+    meta = step.meta
+    font, small = _font(13), _font(11)
+    tiles = []
+    for camera, img in overlays.items():
+        h, w = img.shape[:2]
+        tw = max(1, round(w * tile_height / h))
+        tiles.append((camera, Image.fromarray(img).resize((tw, tile_height), Image.Resampling.BILINEAR)))
+    header = [
+        f"seq {st.seq} | connection {st.connection} | step {st.step} | target {st.target}",
+        f"tokens [{_fmt_list(meta.get('token_ids'))}] decode steps [{_fmt_list(meta.get('decode_steps'))}]"
+        f" | score {_fmt_list(meta.get('score'), 4)}",
+        f"{norm_label} | prompt: {str(meta.get('prompt', ''))[:90]}",
+    ]
+    bar_w = 12 + 40
+    width = _PAD + sum(t.width + _PAD for _, t in tiles) + bar_w
+    width = max(width, 560)
+    height = _PAD + len(header) * _LINE + _PAD + _LINE + tile_height + _PAD
+    panel = Image.new("RGB", (width, height), _BG)
+    draw = ImageDraw.Draw(panel)
+    for i, line in enumerate(header):
+        draw.text((_PAD, _PAD + i * _LINE), line, fill=_FG if i == 0 else _DIM, font=font)
+    top = _PAD + len(header) * _LINE + _PAD
+    x = _PAD
+    for camera, tile in tiles:
+        cs = st.cameras.get(camera)
+        if cs is None or not cs.valid:
+            caption = f"{camera} (masked)"
+        else:
+            peak = f"peak {cs.peak[0]},{cs.peak[1]}" if cs.peak else "no mass"
+            caption = f"{camera}  {100 * cs.share:.0f}%  {peak}"
+        draw.text((x, top), caption, fill=_FG, font=small)
+        panel.paste(tile, (x, top + _LINE))
+        x += tile.width + _PAD
+    bar = _colorbar(tile_height)
+    panel.paste(bar, (x, top + _LINE))
+    draw.text((x + bar.width + 3, top + _LINE), "max", fill=_DIM, font=small)
+    draw.text((x + bar.width + 3, top + _LINE + tile_height - 12), "0", fill=_DIM, font=small)
+    return panel
+
+
+def _fit(img: Image.Image, size: tuple[int, int]) -> Image.Image:
+    """`img` scaled down to fit `size` if needed and centred on a background canvas of exactly that size."""
+    if img.width > size[0] or img.height > size[1]:
+        img = img.copy()
+        img.thumbnail(size, Image.Resampling.BILINEAR)
+    canvas = Image.new("RGB", size, _BG)
+    canvas.paste(img, ((size[0] - img.width) // 2, (size[1] - img.height) // 2))
+    return canvas
+
+
+class _ConnectionVideo:
+    """Streams one connection's panels into an MP4 and collects a subsampled, downscaled GIF."""
+
+    def __init__(self, mp4: pathlib.Path, gif: pathlib.Path, fps: float, total: int, opts: RenderOptions):
+        self.mp4, self.gif, self.fps = mp4, gif, fps
+        self.stride = max(1, math.ceil(total / opts.gif_max_frames))
+        self.gif_max_width = opts.gif_max_width
+        self.size: tuple[int, int] | None = None
+        self.writer: Any = None
+        self.gif_frames: list[Image.Image] = []
+        self.count = 0
+
+    def add(self, panel: Image.Image) -> None:
+        if self.size is None:
+            # libx264 with yuv420p wants even sizes; 16-aligned avoids imageio's own resize.
+            self.size = (-(-panel.width // 16) * 16, -(-panel.height // 16) * 16)
+            import imageio.v2 as iio
+
+            self.writer = iio.get_writer(
+                self.mp4,
+                format="FFMPEG",
+                mode="I",
+                fps=self.fps,
+                codec="libx264",
+                pixelformat="yuv420p",
+                macro_block_size=16,
+                ffmpeg_log_level="error",
+            )
+        frame = _fit(panel, self.size)
+        self.writer.append_data(np.asarray(frame))
+        if self.count % self.stride == 0:
+            small = frame.copy()
+            small.thumbnail((self.gif_max_width, self.gif_max_width), Image.Resampling.BILINEAR)
+            self.gif_frames.append(small.quantize(colors=255, method=Image.Quantize.MEDIANCUT))
+        self.count += 1
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+        if self.gif_frames:
+            duration = round(1000 * self.stride / self.fps)
+            self.gif_frames[0].save(
+                self.gif, save_all=True, append_images=self.gif_frames[1:], duration=duration, loop=0
+            )
+
+
+def _videos_available() -> bool:
+    try:
+        import imageio.v2  # noqa: F401
+        import imageio_ffmpeg  # noqa: F401
+    except ImportError:
+        print(
+            "openpi-cam render: no videos (pip install 'openpi-cam[viz]' for imageio + imageio-ffmpeg)", file=sys.stderr
+        )
+        return False
+    return True
+
+
+def render_run(steps: Sequence[StepView], out_dir: pathlib.Path, opts: RenderOptions) -> RenderResult:
+    """Writes overlays, panels, thumbnails and per-connection videos for `steps` under `out_dir`."""
+    steps = sorted(steps, key=lambda s: s.seq)
+    stats = compute_stats(steps)
+    for sub in ("panels", "thumbs", "overlays", "videos"):
+        (out_dir / sub).mkdir(parents=True, exist_ok=True)
+    run_max = max((step_scale(st) for st in stats), default=0.0)
+    per_connection: dict[str, int] = {}
+    for st in stats:
+        per_connection[st.connection] = per_connection.get(st.connection, 0) + 1
+    make_videos = opts.videos and _videos_available()
+    videos: dict[str, _ConnectionVideo] = {}
+    assets: dict[int, StepAssets] = {}
+    for step, st in progress(zip(map(transient, steps), stats, strict=True), len(steps), "render", opts.progress):
+        scale = run_max if opts.norm == "run" else step_scale(st)
+        norm_label = f"normalised per {opts.norm} (max {scale:.3g})"
+        cameras = list(step.meta.get("cameras", {})) or list(step.maps)
+        overlays = {c: camera_overlay(step, c, scale, opts.alpha) for c in cameras}
+        name = f"{st.seq:08d}"
+        overlay_paths = {}
+        for c, img in overlays.items():
+            rel = f"overlays/{name}-{slug(c)}.png"
+            Image.fromarray(img).save(out_dir / rel)
+            overlay_paths[c] = rel
+        panel = step_panel(step, st, overlays, norm_label, opts.tile_height)
+        panel.save(out_dir / f"panels/{name}.png")
+        thumb = panel.copy()
+        thumb.thumbnail((10 * opts.thumb_height, opts.thumb_height), Image.Resampling.BILINEAR)
+        thumb.save(out_dir / f"thumbs/{name}.jpg", quality=85)
+        assets[st.seq] = StepAssets(f"panels/{name}.png", f"thumbs/{name}.jpg", overlay_paths)
+        if make_videos:
+            if st.connection not in videos:
+                base = out_dir / "videos" / slug(st.connection)
+                videos[st.connection] = _ConnectionVideo(
+                    base.with_suffix(".mp4"), base.with_suffix(".gif"), opts.fps, per_connection[st.connection], opts
+                )
+            videos[st.connection].add(panel)
+    for v in videos.values():
+        v.close()
+    video_paths = {
+        conn: {"mp4": v.mp4.relative_to(out_dir).as_posix(), "gif": v.gif.relative_to(out_dir).as_posix()}
+        for conn, v in videos.items()
+    }
+    return RenderResult(out_dir, assets, video_paths, stats)
+
+
+def render_cmd(
+    run_dir: Annotated[pathlib.Path, tyro.conf.arg(metavar="RUN_DIR")],
+    /,
+    out: pathlib.Path | None = None,
+    norm: Norm = "step",
+    alpha: float = 0.5,
+    tile_height: int = 240,
+    fps: float = 5.0,
+    videos: bool = True,
+    html: bool = True,
+    progress: bool = True,
+) -> int:
+    """Overlays, per-step panels, an MP4 and a GIF per connection, and a static HTML report for a CAM run.
+
+    Args:
+        run_dir: a CAM run directory (holds run.json and steps/).
+        out: output directory; defaults to RUN_DIR/render.
+        norm: divide maps by the step's maximum over cameras ("step") or by the whole run's maximum ("run").
+        alpha: opacity of the heatmap over the image.
+        tile_height: height in pixels of each camera tile in the panels and videos.
+        fps: frames (steps) per second of the videos.
+        videos: write the MP4 and GIF per connection.
+        html: write index.html (self-contained, opens from disk).
+        progress: show progress on stderr.
+    """
+    from openpi_cam.cam.reader import load_run
+
+    run = load_run(run_dir, load_arrays=False)
+    out_dir = pathlib.Path(out) if out is not None else pathlib.Path(run_dir) / "render"
+    opts = RenderOptions(
+        norm=norm, alpha=alpha, tile_height=tile_height, fps=fps, videos=videos, html=html, progress=progress
+    )
+    result = render_run(run.steps, out_dir, opts)
+    if html:
+        from openpi_cam.viz.report import write_report
+
+        result.report = write_report(result, dict(run.manifest), opts)
+    where = result.report or out_dir
+    print(f"rendered {len(result.steps)} steps to {where}", file=sys.stderr)
+    return 0

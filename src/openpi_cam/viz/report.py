@@ -1,0 +1,291 @@
+"""The static HTML report of a rendered CAM run: one file, relative image links, inline SVG timelines, no network."""
+
+from __future__ import annotations
+
+import dataclasses
+import html
+import json
+import math
+import pathlib
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
+
+from openpi_cam.viz.stats import StepStats, aggregate, camera_names
+
+if TYPE_CHECKING:
+    from openpi_cam.viz.render import RenderOptions, RenderResult
+
+_PALETTE = ("#4e9af1", "#f28e2b", "#59a14f", "#e15759", "#b07aa1", "#76b7b2", "#edc948", "#ff9da7")
+
+
+@dataclasses.dataclass(frozen=True)
+class Flag:
+    seq: int
+    reason: str
+
+
+def usual_camera(stats: Sequence[StepStats]) -> str | None:
+    """The camera most often dominant over these steps."""
+    counts = Counter(st.dominant for st in stats if st.dominant is not None)
+    return counts.most_common(1)[0][0] if counts else None
+
+
+def flag_steps(stats: Sequence[StepStats], score_drop: float = 0.3) -> list[Flag]:
+    """Steps where attention left the connection's usual camera, or the score fell by more than `score_drop`
+    (a fraction) from the connection's previous step."""
+    flags: list[Flag] = []
+    for conn_stats in by_connection(stats).values():
+        usual = usual_camera(conn_stats)
+        prev_score = math.nan
+        for st in conn_stats:
+            if usual is not None and st.dominant is not None and st.dominant != usual:
+                flags.append(Flag(st.seq, f"attention moved from {usual} to {st.dominant}"))
+            if prev_score > 0 and st.score < (1.0 - score_drop) * prev_score:
+                flags.append(Flag(st.seq, f"score dropped {100 * (1 - st.score / prev_score):.0f}%"))
+            prev_score = st.score
+    return sorted(flags, key=lambda f: f.seq)
+
+
+def by_connection(stats: Sequence[StepStats]) -> dict[str, list[StepStats]]:
+    groups: dict[str, list[StepStats]] = {}
+    for st in stats:
+        groups.setdefault(st.connection, []).append(st)
+    return groups
+
+
+def _e(x: Any) -> str:
+    return html.escape(str(x), quote=True)
+
+
+def _polyline(xs: Sequence[float], ys: Sequence[float], color: str, dash: str = "") -> str:
+    """Polylines broken at missing (NaN) values."""
+    runs: list[list[str]] = [[]]
+    for x, y in zip(xs, ys, strict=True):
+        if y is None or math.isnan(y):
+            runs.append([])
+        else:
+            runs[-1].append(f"{x:.1f},{y:.1f}")
+    style = f' stroke-dasharray="{dash}"' if dash else ""
+    return "".join(
+        f'<polyline points="{" ".join(r)}" fill="none" stroke="{color}" stroke-width="1.5"{style}/>'
+        if len(r) > 1
+        else f'<circle cx="{r[0].split(",")[0]}" cy="{r[0].split(",")[1]}" r="2" fill="{color}"/>'
+        for r in runs
+        if r
+    )
+
+
+def timeline_svg(
+    title: str,
+    steps: Sequence[StepStats],
+    series: Sequence[tuple[str, str, Sequence[float], str]],
+    flags: Mapping[int, list[str]],
+    y_range: tuple[float, float] | None = None,
+) -> str:
+    """A small inline SVG line chart over the connection's steps; flagged steps are clickable red markers.
+
+    `series` holds (label, colour, values, dash pattern). Clicking anywhere over a step jumps to its detail.
+    """
+    width, height, left, right, top, bottom = 900, 150, 46, 10, 20, 18
+    n = len(steps)
+    values = [v for _, _, vs, _ in series for v in vs if v is not None and not math.isnan(v)]
+    lo, hi = y_range or ((min(values), max(values)) if values else (0.0, 1.0))
+    if hi <= lo:
+        lo, hi = lo - 0.5, hi + 0.5
+    plot_w, plot_h = width - left - right, height - top - bottom
+
+    def x_of(i: int) -> float:
+        return left + (plot_w * (i + 0.5) / n if n else 0)
+
+    def y_of(v: float) -> float:
+        return top + plot_h * (1 - (v - lo) / (hi - lo))
+
+    parts = [
+        f'<svg class="timeline" viewBox="0 0 {width} {height}" width="{width}" height="{height}" role="img">',
+        f'<text x="{left}" y="13" class="t">{_e(title)}</text>',
+        f'<rect x="{left}" y="{top}" width="{plot_w}" height="{plot_h}" class="frame"/>',
+        f'<text x="{left - 4}" y="{top + 9}" class="ax" text-anchor="end">{hi:.3g}</text>',
+        f'<text x="{left - 4}" y="{top + plot_h}" class="ax" text-anchor="end">{lo:.3g}</text>',
+    ]
+    slot = plot_w / n if n else plot_w
+    for i, st in enumerate(steps):
+        reasons = flags.get(st.seq)
+        cls = "flag" if reasons else "hit"
+        tip = f"seq {st.seq}, step {st.step}" + (": " + "; ".join(reasons) if reasons else "")
+        parts.append(
+            f'<a href="#step-{st.seq}"><rect x="{left + i * slot:.1f}" y="{top}" width="{max(slot, 1):.1f}"'
+            f' height="{plot_h}" class="{cls}"><title>{_e(tip)}</title></rect></a>'
+        )
+    xs = [x_of(i) for i in range(n)]
+    legend_x = left + 200
+    for label, color, vs, dash in series:
+        parts.append(_polyline(xs, [math.nan if v is None or math.isnan(v) else y_of(v) for v in vs], color, dash))
+        parts.append(f'<text x="{legend_x}" y="13" class="lg" fill="{color}">{_e(label)}</text>')
+        legend_x += 8 * len(label) + 24
+    parts.append(
+        f'<text x="{left}" y="{height - 4}" class="ax">steps {steps[0].step if n else ""}..'
+        f"{steps[-1].step if n else ''}</text>"
+    )
+    parts.append("</svg>")
+    return "".join(parts)
+
+
+def _connection_section(
+    conn: str, steps: Sequence[StepStats], result: RenderResult, flags: Mapping[int, list[str]], cams: list[str]
+) -> str:
+    colors = {c: _PALETTE[i % len(_PALETTE)] for i, c in enumerate(cams)}
+
+    def col(c: str, field: str) -> list[float]:
+        out = []
+        for st in steps:
+            cs = st.cameras.get(c)
+            out.append(math.nan if cs is None else getattr(cs, field))
+        return out
+
+    def peak_frac(c: str, axis: int) -> list[float]:
+        out = []
+        for st in steps:
+            cs = st.cameras.get(c)
+            out.append(cs.peak[axis] if cs is not None and cs.peak is not None else math.nan)
+        return out
+
+    share = timeline_svg(
+        "attention share per camera", steps, [(c, colors[c], col(c, "share"), "") for c in cams], flags, (0.0, 1.0)
+    )
+    peaks = timeline_svg(
+        "peak cell per camera (solid: row, dashed: column)",
+        steps,
+        [
+            s
+            for c in cams
+            for s in ((f"{c} row", colors[c], peak_frac(c, 0), ""), (f"{c} col", colors[c], peak_frac(c, 1), "4 3"))
+        ],
+        flags,
+    )
+    score = timeline_svg("score", steps, [("score", "#dddddd", [st.score for st in steps], "")], flags)
+    conn_flags = [(st, flags[st.seq]) for st in steps if st.seq in flags]
+    flag_items = "".join(
+        f'<li><a href="#step-{st.seq}">seq {st.seq} (step {st.step})</a>: {_e("; ".join(r))}</li>'
+        for st, r in conn_flags
+    )
+    video = result.videos.get(conn)
+    media = (
+        f'<p><a href="{_e(video["mp4"])}">MP4</a> · <a href="{_e(video["gif"])}">GIF</a></p>'
+        f'<video src="{_e(video["mp4"])}" controls loop muted preload="metadata"></video>'
+        if video
+        else ""
+    )
+    thumbs = "".join(
+        f'<a href="#step-{st.seq}" class="th{" flagged" if st.seq in flags else ""}" title="seq {st.seq}">'
+        f'<img src="{_e(result.steps[st.seq].thumb)}" alt="seq {st.seq}" loading="lazy"></a>'
+        for st in steps
+    )
+    return (
+        f'<section class="conn" id="conn-{_e(conn)}"><h2>connection {_e(conn)} · {len(steps)} steps</h2>{media}'
+        f"{share}{peaks}{score}"
+        f"<h3>flagged steps ({len(conn_flags)})</h3><ul>{flag_items or '<li>none</li>'}</ul>"
+        f'<div class="thumbs">{thumbs}</div></section>'
+    )
+
+
+def _step_section(
+    st: StepStats, meta_cams: list[str], assets: Any, flags: list[str], prev_next: tuple[Any, Any]
+) -> str:
+    rows = []
+    for c in meta_cams:
+        cs = st.cameras.get(c)
+        if cs is None:
+            continue
+        peak = f"{cs.peak[0]}, {cs.peak[1]}" if cs.peak else "-"
+        shift = "-" if math.isnan(cs.peak_shift) else f"{cs.peak_shift:.2f}"
+        entropy = "-" if math.isnan(cs.entropy_norm) else f"{cs.entropy_norm:.3f}"
+        link = assets.overlays.get(c)
+        name = f'<a href="{_e(link)}">{_e(c)}</a>' if link else _e(c)
+        rows.append(
+            f"<tr><td>{name}</td><td>{'yes' if cs.valid else 'no'}</td><td>{100 * cs.share:.1f}%</td>"
+            f"<td>{entropy}</td><td>{peak}</td><td>{shift}</td></tr>"
+        )
+    nav = " ".join(
+        f'<a href="#step-{s.seq}">{label}</a>' for s, label in zip(prev_next, ("prev", "next"), strict=True) if s
+    )
+    warn = f'<p class="warn">{_e("; ".join(flags))}</p>' if flags else ""
+    return (
+        f'<section class="step" id="step-{st.seq}" data-seq="{st.seq}">'
+        f"<h3>seq {st.seq} · connection {_e(st.connection)} · step {st.step} · {_e(st.target)} · "
+        f"score {st.score:.4g} <small>{nav}</small></h3>{warn}"
+        f'<a href="{_e(assets.panel)}"><img class="panel" src="{_e(assets.panel)}" alt="seq {st.seq}"></a>'
+        "<table><tr><th>camera</th><th>valid</th><th>share</th><th>entropy (norm.)</th><th>peak (row, col)</th>"
+        f"<th>peak shift</th></tr>{''.join(rows)}</table>"
+        f"<p class='dim'>tokens {_e(' '.join(map(str, st.token_ids)))}</p></section>"
+    )
+
+
+_STYLE = """
+body{background:#18181c;color:#e8e8e8;font:14px/1.4 system-ui,sans-serif;margin:16px 24px}
+a{color:#8cb8ff}h1,h2,h3{font-weight:600}table{border-collapse:collapse;margin:6px 0}
+td,th{border:1px solid #444;padding:2px 8px;text-align:left}.dim{color:#999}.warn{color:#ff8a80}
+.timeline{display:block;margin:6px 0;background:#202026}.timeline .t{fill:#ccc;font-size:12px}
+.timeline .ax,.timeline .lg{font-size:10px;fill:#aaa}.timeline .frame{fill:none;stroke:#555}
+.timeline .hit{fill:transparent}.timeline .hit:hover{fill:rgba(255,255,255,.08)}
+.timeline .flag{fill:rgba(255,90,90,.25)}.timeline .flag:hover{fill:rgba(255,90,90,.5)}
+.thumbs{display:flex;flex-wrap:wrap;gap:4px}.th img{display:block;border:2px solid transparent}
+.th.flagged img{border-color:#ff5a5a}img.panel{max-width:100%}video{max-width:100%;display:block}
+section.step{border-top:1px solid #333;padding-top:8px;margin-top:12px}
+"""
+
+# Marks each step whose panel image actually decoded, so a headless browser's DOM dump can prove it.
+_SCRIPT = """
+window.addEventListener('load',function(){var n=0;document.querySelectorAll('section.step').forEach(function(s){
+var i=s.querySelector('img.panel');if(i&&i.complete&&i.naturalWidth>0){s.setAttribute('data-rendered','1');n++;}});
+document.body.setAttribute('data-rendered-steps',String(n));});
+"""
+
+
+def write_report(
+    result: RenderResult, manifest: Mapping[str, Any], opts: RenderOptions, score_drop: float = 0.3
+) -> pathlib.Path:
+    """Writes `index.html` into the render directory and returns its path."""
+    stats = result.stats
+    cams = camera_names(stats)
+    flag_map: dict[int, list[str]] = {}
+    for f in flag_steps(stats, score_drop):
+        flag_map.setdefault(f.seq, []).append(f.reason)
+    summary = aggregate(stats)
+    run_id = manifest.get("run_id", result.out_dir.name)
+    info = {k: manifest.get(k) for k in ("run_id", "started_at", "checkpoint") if manifest.get(k) is not None}
+    cam_rows = "".join(
+        f"<tr><td>{_e(c)}</td><td>{a['valid_steps']}</td><td>{_pct(a['mean_share'])}</td>"
+        f"<td>{_num(a['mean_entropy_norm'])}</td><td>{_pct(a['peak_stay_rate'])}</td>"
+        f"<td>{_num(a['mean_peak_shift'])}</td><td>{a['dominant_steps']}</td></tr>"
+        for c, a in summary["cameras"].items()
+    )
+    groups = by_connection(stats)
+    sections = "".join(_connection_section(conn, steps, result, flag_map, cams) for conn, steps in groups.items())
+    step_html = []
+    for steps in groups.values():
+        for i, st in enumerate(steps):
+            neighbours = (steps[i - 1] if i > 0 else None, steps[i + 1] if i + 1 < len(steps) else None)
+            step_html.append(_step_section(st, cams, result.steps[st.seq], flag_map.get(st.seq, []), neighbours))
+    doc = (
+        f'<!doctype html><html lang="en"><head><meta charset="utf-8"><title>CAM run {_e(run_id)}</title>'
+        f"<style>{_STYLE}</style></head><body>"
+        f"<h1>CAM run {_e(run_id)}</h1>"
+        f"<p class='dim'>{_e(json.dumps(info))} · {summary['steps']} steps · {summary['connections']} connections · "
+        f"maps normalised per {_e(opts.norm)} · flagged: attention left the usual camera, or score fell by more "
+        f"than {100 * score_drop:.0f}% from the previous step</p>"
+        "<table><tr><th>camera</th><th>valid steps</th><th>mean share</th><th>mean entropy (norm.)</th>"
+        f"<th>peak stayed</th><th>mean peak shift (cells)</th><th>dominant in</th></tr>{cam_rows}</table>"
+        f"{sections}<h2>steps</h2>{''.join(step_html)}<script>{_SCRIPT}</script></body></html>\n"
+    )
+    path = result.out_dir / "index.html"
+    path.write_text(doc, encoding="utf-8")
+    return path
+
+
+def _pct(x: float | None) -> str:
+    return "-" if x is None else f"{100 * x:.1f}%"
+
+
+def _num(x: float | None) -> str:
+    return "-" if x is None else f"{x:.3g}"

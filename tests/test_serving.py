@@ -1,0 +1,715 @@
+"""The websocket server against the real `openpi-client` (PyPI, in its own numpy<2 venv) and the real tiny policy.
+
+Every client below is a small script run with `.venv-client/bin/python` against a server on 127.0.0.1 with an
+OS-assigned port, the way a robot computer would talk to us. Servers are cheap; the policy (and its compiled model)
+is built once per session by the `tiny_droid_policy` fixture.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import sys
+import threading
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from client_env import collect, run_client, spawn_client
+
+from openpi_cam.errors import InvalidRequest
+from openpi_cam.serving import RequestContext, msgpack_numpy
+from openpi_cam.serving.server import start_server_in_thread
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+# Runs in the client venv (numpy 1.x, openpi_client 0.1.x). argv[1] is a JSON object of arguments.
+CLIENT_PRELUDE = r"""
+import json, sys
+import msgpack
+import numpy as np
+from openpi_client import msgpack_numpy, websocket_client_policy
+
+ARGS = json.loads(sys.argv[1])
+
+def connect(api_key=None):
+    return websocket_client_policy.WebsocketClientPolicy(host="127.0.0.1", port=ARGS["port"], api_key=api_key)
+
+# The random observations of upstream's examples/simple_client, drawn from a seeded generator.
+def droid_obs(rng, size=(224, 224)):
+    return {
+        "observation/exterior_image_1_left": rng.randint(256, size=(*size, 3), dtype=np.uint8),
+        "observation/wrist_image_left": rng.randint(256, size=(*size, 3), dtype=np.uint8),
+        "observation/joint_position": rng.rand(7),
+        "observation/gripper_position": rng.rand(1),
+        "prompt": "do something",
+    }
+
+def libero_obs(rng):
+    return {
+        "observation/state": rng.rand(8),
+        "observation/image": rng.randint(256, size=(224, 224, 3), dtype=np.uint8),
+        "observation/wrist_image": rng.randint(256, size=(224, 224, 3), dtype=np.uint8),
+        "prompt": "do something",
+    }
+
+def aloha_obs(rng):
+    cams = ("cam_high", "cam_low", "cam_left_wrist", "cam_right_wrist")
+    return {
+        "state": np.ones((14,)),
+        "images": {c: rng.randint(256, size=(3, 224, 224), dtype=np.uint8) for c in cams},
+        "prompt": "do something",
+    }
+
+OBSERVATIONS = {"droid": droid_obs, "libero": libero_obs, "aloha": aloha_obs}
+
+def write(path, obj):
+    # Packed with the client's own msgpack_numpy: the test decodes these bytes with ours.
+    with open(path, "wb") as f:
+        f.write(msgpack_numpy.packb(obj))
+
+class RawPacker:
+    def __init__(self, payload):
+        self.payload = payload
+    def pack(self, obs):
+        return self.payload
+
+def infer_raw(policy, payload):
+    # Sends `payload` as is (bytes: binary frame, str: text frame) through the real client's infer().
+    packer, policy._packer = policy._packer, RawPacker(payload)
+    try:
+        return policy.infer({})
+    finally:
+        policy._packer = packer
+
+def error_of(fn):
+    try:
+        fn()
+    except Exception as e:
+        return f"{type(e).__name__}: {e}"
+    return None
+
+def done(**result):
+    print(json.dumps(result))
+"""
+
+ROUND_TRIP = r"""
+policy = connect()
+write(ARGS["out"] + "/metadata.msgpack", policy.get_server_metadata())
+rng = np.random.RandomState(ARGS["seed"])
+for i in range(ARGS["n"]):
+    obs = OBSERVATIONS[ARGS["env"]](rng)
+    response = policy.infer(obs)
+    write(ARGS["out"] + f"/obs{i}.msgpack", obs)
+    write(ARGS["out"] + f"/response{i}.msgpack", response)
+done(n=ARGS["n"])
+"""
+
+
+def client_script(body: str) -> str:
+    return CLIENT_PRELUDE + body
+
+
+def read_packed(path: Path) -> Any:
+    return msgpack_numpy.unpackb(path.read_bytes())
+
+
+def round_trip(port: int, out: Path, *, env: str = "droid", seed: int = 0, n: int = 1) -> subprocess.Popen:
+    out.mkdir(parents=True, exist_ok=True)
+    args = json.dumps({"port": port, "out": str(out), "env": env, "seed": seed, "n": n})
+    return spawn_client(client_script(ROUND_TRIP), args)
+
+
+def assert_matches_in_process(policy: Any, out: Path, n: int) -> list[dict]:
+    """Each served response equals `policy.infer` run here on the same decoded observation, bit for bit."""
+    responses = []
+    for i in range(n):
+        obs = read_packed(out / f"obs{i}.msgpack")
+        served = read_packed(out / f"response{i}.msgpack")
+        local = policy.infer(obs)
+        assert set(served) == set(local) | {"server_timing"}
+        assert "actions" in local
+        for key in set(local) - {"policy_timing"}:
+            assert served[key].dtype == np.asarray(local[key]).dtype, key
+            np.testing.assert_array_equal(served[key], np.asarray(local[key]), err_msg=key)
+        responses.append(served)
+    return responses
+
+
+def http_get(url: str, headers: dict[str, str] | None = None, timeout: float = 5.0) -> tuple[int, str]:
+    request = urllib.request.Request(url, headers=headers or {})
+    try:
+        with urllib.request.urlopen(request, timeout=timeout) as response:
+            return response.status, response.read().decode()
+    except urllib.error.HTTPError as e:
+        return e.code, e.read().decode()
+
+
+def get_stats(port: int, headers: dict[str, str] | None = None) -> dict:
+    status, body = http_get(f"http://127.0.0.1:{port}/stats", headers)
+    assert status == 200, body
+    return json.loads(body)
+
+
+class GatedPolicy:
+    """The real policy, except that `infer` can be held (gate closed) to keep a request in flight."""
+
+    def __init__(self, inner: Any) -> None:
+        self.inner = inner
+        self.entered = threading.Event()
+        self.gate = threading.Event()
+        self.gate.set()
+        self.events: list[str] = []
+        self.contexts: list[RequestContext | None] = []
+
+    @property
+    def metadata(self) -> dict:
+        return self.inner.metadata
+
+    def infer(self, obs: dict, context: RequestContext | None = None) -> dict:
+        self.contexts.append(context)
+        self.entered.set()
+        if not self.gate.wait(120):
+            raise TimeoutError("the test never opened the gate")
+        result = self.inner.infer(obs, context)
+        self.events.append("infer")
+        return result
+
+    def stats(self) -> dict:
+        return {"gated_calls": len(self.contexts)}
+
+    def close(self, timeout: float) -> None:
+        self.events.append(f"close({timeout})")
+
+
+# ---------------------------------------------------------------- fixtures
+
+
+@pytest.fixture(scope="module")
+def policy(tiny_droid_policy):
+    return tiny_droid_policy
+
+
+@pytest.fixture(scope="module")
+def metadata(policy) -> dict:
+    # Extra entries check that arrays and scalars in the metadata survive the trip to the real client.
+    return {**policy.metadata, "probe_array": np.arange(6, dtype=">i2").reshape(2, 3), "probe_scalar": np.float32(0.5)}
+
+
+@pytest.fixture(scope="module")
+def env_policies(tiny_policy_files, tmp_path_factory) -> dict[str, Any]:
+    """LIBERO and ALOHA policies over the tiny DROID checkpoint's params.
+
+    Their configs read norm stats under other asset ids and with other dimensions, so a scratch checkpoint links the
+    same params and carries seeded stats of the right sizes.
+    """
+    from openpi_cam.normalize import compute_norm_stats, save_norm_stats
+    from openpi_cam.policies.config import get_config
+    from openpi_cam.policies.policy import create_policy
+
+    policies = {}
+    rng = np.random.default_rng(0)
+    for env, name, state_dim, action_dim in [("libero", "pi0_fast_libero", 8, 7), ("aloha", "pi0_fast_aloha", 14, 14)]:
+        checkpoint = tmp_path_factory.mktemp(f"{env}_checkpoint")
+        (checkpoint / "params").symlink_to(tiny_policy_files.checkpoint / "params", target_is_directory=True)
+        stats = {
+            "state": compute_norm_stats(rng.normal(size=(64, state_dim))),
+            "actions": compute_norm_stats(rng.normal(size=(64, action_dim))),
+        }
+        save_norm_stats(checkpoint / "assets" / get_config(name).asset_id, stats)
+        policies[env] = create_policy(name, checkpoint, **tiny_policy_files.create_kwargs())
+    return policies
+
+
+@pytest.fixture(scope="module")
+def server(policy, metadata):
+    running = start_server_in_thread(policy, metadata=metadata, close_policy_on_stop=False)
+    yield running
+    running.stop()
+
+
+# ---------------------------------------------------------------- wire format (in process)
+
+
+def _packed_array(data: bytes, dtype: str, shape: list) -> dict:
+    return {b"__ndarray__": True, b"data": data, b"dtype": dtype, b"shape": shape}
+
+
+def test_wire_format_round_trip_keeps_values_dtypes_and_byte_order():
+    obj = {
+        "f64": np.linspace(-1, 1, 7),
+        "big_endian": np.arange(4, dtype=">f4"),
+        "fortran": np.asfortranarray(np.arange(12, dtype=np.int32).reshape(3, 4)),
+        "empty": np.zeros((0, 5), np.uint8),
+        "zero_d": np.array(True),
+        "strings": np.array(["ab", "c"]),
+        "nested": {"scalar": np.int64(-3), "list": [1, 2.5, "x", b"raw"]},
+    }
+    back = msgpack_numpy.unpack_request(msgpack_numpy.packb(obj))
+    for key in ("f64", "big_endian", "fortran", "empty", "zero_d", "strings"):
+        assert back[key].dtype == obj[key].dtype, key
+        np.testing.assert_array_equal(back[key], obj[key], err_msg=key)
+    assert type(back["nested"]["scalar"]) is np.int64 and back["nested"]["scalar"] == -3
+    assert back["nested"]["list"] == [1, 2.5, "x", b"raw"]
+
+
+@pytest.mark.parametrize(
+    ("payload", "expected"),
+    [
+        (b"\xc1\xc1", "not valid msgpack"),
+        (msgpack_numpy.packb({"a": np.zeros(10)})[:-5], "not valid msgpack"),
+        (msgpack_numpy.packb([1, 2]), "must be a map"),
+        (msgpack_numpy.packb({"a": _packed_array(b"\0" * 16, "<c8", [2])}), "'<c8'"),
+        (msgpack_numpy.packb({"a": _packed_array(b"\0" * 8, "|O8", [1])}), "'|O8'"),
+        (msgpack_numpy.packb({"a": _packed_array(b"\0" * 8, "|V8", [1])}), "'|V8'"),
+        (msgpack_numpy.packb({"a": _packed_array(b"\0" * 8, "[('x', '<i4')]", [1])}), "dtype"),
+        (msgpack_numpy.packb({"a": _packed_array(b"\0" * 10, "<f4", [3])}), "10 bytes"),
+        (msgpack_numpy.packb({"a": _packed_array(b"", "|u1", [0, 2**40])}), "shape"),
+        (msgpack_numpy.packb({"a": _packed_array(b"", "|u1", [-1])}), "shape"),
+        (msgpack_numpy.packb({"a": _packed_array(b"", "|u1", [1] * 40)}), "shape"),
+        (msgpack_numpy.packb({"a": {b"__npgeneric__": True, b"data": 300, b"dtype": "|u1"}}), "does not fit"),
+        (msgpack_numpy.packb({"a": {b"__ndarray__": True, b"data": b""}}), "malformed array"),
+    ],
+)
+def test_wire_format_rejects_malformed_requests_naming_the_problem(payload: bytes, expected: str):
+    with pytest.raises(InvalidRequest) as info:
+        msgpack_numpy.unpack_request(payload)
+    assert expected in str(info.value)
+
+
+def test_responses_pack_jax_arrays_and_refuse_unsendable_dtypes():
+    import jax.numpy as jnp
+
+    back = msgpack_numpy.unpackb(msgpack_numpy.packb({"a": jnp.arange(3, dtype=jnp.float32)}))
+    assert back["a"].dtype == np.float32 and back["a"].tolist() == [0.0, 1.0, 2.0]
+    with pytest.raises(TypeError, match="complex128"):
+        msgpack_numpy.packb({"a": np.zeros(2, complex)})
+    with pytest.raises(TypeError, match="object"):
+        msgpack_numpy.packb({"a": object()})
+
+
+def test_decoded_arrays_are_read_only_views_like_upstream():
+    back = msgpack_numpy.unpack_request(msgpack_numpy.packb({"x": np.ones(3)}))
+    assert not back["x"].flags.writeable
+
+
+# ---------------------------------------------------------------- real client, real policy
+
+
+def test_real_client_gets_metadata_and_bit_identical_droid_actions(server, policy, metadata, tmp_path):
+    collect(round_trip(server.port, tmp_path, env="droid", seed=1, n=2))
+    got = read_packed(tmp_path / "metadata.msgpack")
+    assert set(got) == set(metadata)
+    assert got["probe_array"].dtype == np.dtype(">i2")
+    np.testing.assert_array_equal(got["probe_array"], metadata["probe_array"])
+    assert type(got["probe_scalar"]) is np.float32 and got["probe_scalar"] == 0.5
+
+    first, second = assert_matches_in_process(policy, tmp_path, n=2)
+    assert first["actions"].shape == (10, 8)
+    # Like upstream: only the second request on a connection knows the previous request's total time.
+    assert set(first["server_timing"]) == {"infer_ms"}
+    assert set(second["server_timing"]) == {"infer_ms", "prev_total_ms"}
+    assert second["server_timing"]["prev_total_ms"] >= first["server_timing"]["infer_ms"] > 0
+
+
+def test_real_client_bytes_equal_ours(tmp_path):
+    """Our packer writes the same bytes as openpi-client's for what it sends (maps keep key order)."""
+    body = r"""
+obs = aloha_obs(np.random.RandomState(3))
+obs.update(scalar=np.float32(1.5), flag=np.bool_(True), count=np.int64(-7), text=np.str_("hi"), nested=[1, {"a": b"x"}])
+write(ARGS["out"] + "/obs.msgpack", obs)
+done(ok=True)
+"""
+    run_client(client_script(body), json.dumps({"out": str(tmp_path)}))
+    client_bytes = (tmp_path / "obs.msgpack").read_bytes()
+    decoded = msgpack_numpy.unpackb(client_bytes)
+    assert type(decoded["scalar"]) is np.float32 and decoded["images"]["cam_high"].shape == (3, 224, 224)
+    assert msgpack_numpy.packb(decoded) == client_bytes
+
+
+def test_golden_droid_observation_through_the_wire(server, golden_dir, tmp_path):
+    """Upstream's recorded DROID case, sent by the real client, comes back with upstream's actions."""
+    case = np.load(golden_dir / "tiny_policy_droid" / "droid_case.npz")
+    prompt = json.loads((golden_dir / "tiny_policy_droid" / "case.json").read_text())
+    raw_prompt = "Pick up the red_block and put it in the bowl"
+    assert raw_prompt in json.dumps(prompt)  # guards the prompt the README states
+    obs = {
+        "observation/exterior_image_1_left": case["raw/exterior_image_1_left"],
+        "observation/wrist_image_left": case["raw/wrist_image_left"],
+        "observation/joint_position": case["raw/joint_position"],
+        "observation/gripper_position": case["raw/gripper_position"],
+        "prompt": raw_prompt,
+    }
+    (tmp_path / "obs.msgpack").write_bytes(msgpack_numpy.packb(obs))
+    body = r"""
+policy = connect()
+with open(ARGS["out"] + "/obs.msgpack", "rb") as f:
+    obs = msgpack_numpy.unpackb(f.read())
+write(ARGS["out"] + "/response.msgpack", policy.infer(obs))
+done(ok=True)
+"""
+    run_client(client_script(body), json.dumps({"port": server.port, "out": str(tmp_path)}))
+    served = read_packed(tmp_path / "response.msgpack")
+    # Upstream computed these in float64 from the same float32 model output; 1e-6 allows float32 rounding only.
+    np.testing.assert_allclose(served["actions"], case["policy_output/actions"], rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("env", ["libero", "aloha"])
+def test_example_client_observations_for_other_robots(env, env_policies, tmp_path):
+    pol = env_policies[env]
+    running = start_server_in_thread(pol, metadata=pol.metadata, close_policy_on_stop=False)
+    try:
+        collect(round_trip(running.port, tmp_path, env=env, seed=2, n=1))
+    finally:
+        running.stop()
+    (served,) = assert_matches_in_process(pol, tmp_path, n=1)
+    assert served["actions"].shape == {"libero": (10, 7), "aloha": (32, 14)}[env]
+
+
+BAD_REQUESTS = r"""
+JOINT = "observation/joint_position"
+IMAGE = "observation/exterior_image_1_left"
+policy = connect()
+good = droid_obs(np.random.RandomState(0), size=(64, 96))
+
+def with_field(key, value):
+    obs = dict(good)
+    obs[key] = value
+    return obs
+
+def without(key):
+    return {k: v for k, v in good.items() if k != key}
+
+def crafted(obs):
+    # Plain msgpack with hand-made array maps: the client's own packer refuses these dtypes.
+    return msgpack.packb(obs, default=msgpack_numpy.pack_array)
+
+def arr(data, dtype, shape):
+    return {b"__ndarray__": True, b"data": data, b"dtype": dtype, b"shape": shape}
+
+cases = {
+    "garbage": lambda: infer_raw(policy, b"\xc1\xc1 this is not msgpack"),
+    "truncated": lambda: infer_raw(policy, msgpack_numpy.packb(good)[:-7]),
+    "text_frame": lambda: infer_raw(policy, "hello"),
+    "top_level_list": lambda: policy.infer([1, 2, 3]),
+    "complex_dtype": lambda: infer_raw(policy, crafted(with_field(JOINT, arr(b"\0" * 112, "<c16", [7])))),
+    "object_dtype": lambda: infer_raw(policy, crafted(with_field(JOINT, arr(b"\0" * 56, "|O8", [7])))),
+    "void_dtype": lambda: infer_raw(policy, crafted(with_field(JOINT, arr(b"\0" * 56, "|V8", [7])))),
+    "buffer_mismatch": lambda: infer_raw(policy, crafted(with_field(IMAGE, arr(b"\0" * 100, "|u1", [64, 96, 3])))),
+    "absurd_shape": lambda: infer_raw(policy, crafted(with_field(IMAGE, arr(b"", "|u1", [0, 2**40, 3])))),
+    "missing_key": lambda: policy.infer(without(JOINT)),
+    "image_shape": lambda: policy.infer(with_field(IMAGE, good[IMAGE][..., 0])),
+    "image_dtype": lambda: policy.infer(with_field(IMAGE, good[IMAGE].astype(np.int32))),
+    "non_finite_state": lambda: policy.infer(with_field(JOINT, np.array([0.1, np.nan, 0, 0, 0, 0, 0]))),
+}
+results = {}
+for name, fn in cases.items():
+    error = error_of(fn)
+    after = policy.infer(good)  # the same connection keeps serving
+    results[name] = {"error": error, "after_shape": list(after["actions"].shape)}
+done(results=results)
+"""
+
+# What each bad request's message must name. "decode" problems are caught by the wire format, the rest by the
+# policy's input transforms.
+BAD_REQUEST_EXPECTATIONS = {
+    "garbage": ("decode", "not valid msgpack"),
+    "truncated": ("decode", "not valid msgpack"),
+    "text_frame": ("text_frame", "text frame"),
+    "top_level_list": ("decode", "must be a map"),
+    "complex_dtype": ("decode", "'<c16'"),
+    "object_dtype": ("decode", "'|O8'"),
+    "void_dtype": ("decode", "'|V8'"),
+    "buffer_mismatch": ("decode", "100 bytes"),
+    "absurd_shape": ("decode", "shape"),
+    "missing_key": ("invalid_request", "observation/joint_position"),
+    "image_shape": ("invalid_request", "observation/exterior_image_1_left"),
+    "image_dtype": ("invalid_request", "int32"),
+    "non_finite_state": ("invalid_request", "NaN"),
+}
+
+
+def test_bad_requests_get_named_errors_and_the_connection_keeps_working(policy):
+    running = start_server_in_thread(policy, metadata={}, close_policy_on_stop=False)
+    try:
+        result = run_client(client_script(BAD_REQUESTS), json.dumps({"port": running.port}))["results"]
+        stats = get_stats(running.port)
+    finally:
+        running.stop()
+    assert set(result) == set(BAD_REQUEST_EXPECTATIONS)
+    for name, (_, expected) in BAD_REQUEST_EXPECTATIONS.items():
+        error = result[name]["error"]
+        assert error is not None, f"{name}: the server accepted it"
+        # The real client raises a text frame as RuntimeError("Error in inference server:\n<frame>").
+        assert error.startswith("RuntimeError: Error in inference server:\nInvalidRequest: "), (name, error)
+        assert expected in error, (name, error)
+        assert result[name]["after_shape"] == [10, 8], name
+
+    n = len(BAD_REQUEST_EXPECTATIONS)
+    assert stats["requests"] == 2 * n
+    assert stats["ok"] == n
+    expected_errors: dict[str, int] = {}
+    for kind, _ in BAD_REQUEST_EXPECTATIONS.values():
+        expected_errors[kind] = expected_errors.get(kind, 0) + 1
+    assert stats["errors"] == expected_errors
+    latency = stats["latency_ms"]
+    assert latency["window"] == n
+    assert 0 < latency["infer"]["p50"] <= latency["infer"]["p90"] <= latency["infer"]["p99"] <= latency["infer"]["max"]
+    assert latency["total"]["p50"] >= latency["infer"]["p50"]
+    assert stats["connections"] == {"open": 0, "total": 1}
+
+
+class _Exploding:
+    """A policy whose infer fails the way a bug would (not an InvalidRequest)."""
+
+    metadata: dict = {}  # noqa: RUF012
+
+    def __init__(self, inner: Any) -> None:
+        self.inner = inner
+        self.calls = 0
+
+    def infer(self, obs: dict, context: RequestContext | None = None) -> dict:
+        self.calls += 1
+        if self.calls == 1:
+            raise ZeroDivisionError("boom in the model")
+        return self.inner.infer(obs, context)
+
+
+@pytest.mark.parametrize("debug", [False, True])
+def test_unexpected_errors_are_reported_short_unless_debug(policy, debug):
+    running = start_server_in_thread(_Exploding(policy), debug=debug, close_policy_on_stop=False)
+    body = r"""
+policy = connect()
+obs = droid_obs(np.random.RandomState(0), size=(32, 32))
+error = error_of(lambda: policy.infer(obs))
+done(error=error, after=list(policy.infer(obs)["actions"].shape))
+"""
+    try:
+        result = run_client(client_script(body), json.dumps({"port": running.port}))
+        stats = get_stats(running.port)
+    finally:
+        running.stop()
+    assert "Internal server error: ZeroDivisionError: boom in the model" in result["error"]
+    assert ("Traceback (most recent call last)" in result["error"]) == debug
+    assert result["after"] == [10, 8]
+    assert stats["errors"] == {"internal": 1}
+
+
+def test_two_concurrent_clients(server, policy, tmp_path):
+    procs = [round_trip(server.port, tmp_path / f"c{i}", env="droid", seed=10 + i, n=2) for i in range(2)]
+    for proc in procs:
+        collect(proc)
+    for i in range(2):
+        assert_matches_in_process(policy, tmp_path / f"c{i}", n=2)
+
+
+def test_healthz_stats_and_new_connections_answer_while_inference_runs(policy, tmp_path):
+    gated = GatedPolicy(policy)
+    running = start_server_in_thread(gated, metadata={"who": "gated"}, close_policy_on_stop=False)
+    try:
+        gated.gate.clear()
+        busy = round_trip(running.port, tmp_path / "busy", n=1)
+        assert gated.entered.wait(60), "the request never reached the policy"
+
+        start = time.monotonic()
+        status, body = http_get(f"http://127.0.0.1:{running.port}/healthz")
+        assert (status, body) == (200, "OK\n")
+        stats = get_stats(running.port)
+        assert stats["connections"]["open"] == 1 and stats["policy"] == {"gated_calls": 1}
+        metadata_only = run_client(
+            client_script("done(meta=connect().get_server_metadata())"), json.dumps({"port": running.port})
+        )
+        assert metadata_only["meta"] == {"who": "gated"}
+        # All of that happened with the only request still held inside the policy.
+        assert gated.events == [] and not busy.poll()
+        assert time.monotonic() - start < 30
+
+        gated.gate.set()
+        collect(busy)
+    finally:
+        gated.gate.set()
+        running.stop()
+    assert_matches_in_process(policy, tmp_path / "busy", n=1)
+    (context,) = gated.contexts
+    assert context is not None and context.request_index == 0 and context.connection_id
+
+
+def test_request_context_identifies_connection_and_frame(policy):
+    recorder = GatedPolicy(policy)  # gate open: only records the contexts
+    running = start_server_in_thread(recorder, close_policy_on_stop=False)
+    body = r"""
+obs = droid_obs(np.random.RandomState(0), size=(32, 32))
+first = connect()
+error_of(lambda: infer_raw(first, b"not msgpack"))  # frame 0: rejected before the policy
+first.infer(obs)
+first.infer(obs)
+connect().infer(obs)
+done(ok=True)
+"""
+    try:
+        run_client(client_script(body), json.dumps({"port": running.port}))
+    finally:
+        running.stop()
+    a, b, c = recorder.contexts
+    assert (a.connection_id, a.request_index) == (b.connection_id, 1)
+    assert b.request_index == 2
+    assert c.request_index == 0 and c.connection_id != a.connection_id
+
+
+def test_api_key_and_message_size_limit(policy):
+    running = start_server_in_thread(policy, api_key="s3cret", max_message_bytes=200_000, close_policy_on_stop=False)
+    body = r"""
+res = {}
+res["no_key"] = error_of(lambda: connect())
+res["wrong_key"] = error_of(lambda: connect(api_key="nope"))
+policy = connect(api_key="s3cret")
+small = droid_obs(np.random.RandomState(0), size=(96, 128))  # ~74 kB packed
+big = droid_obs(np.random.RandomState(0), size=(224, 224))  # ~301 kB packed
+res["small"] = list(policy.infer(small)["actions"].shape)
+res["big"] = error_of(lambda: policy.infer(big))
+res["after_reconnect"] = list(connect(api_key="s3cret").infer(small)["actions"].shape)
+done(**res)
+"""
+    try:
+        result = run_client(client_script(body), json.dumps({"port": running.port}))
+        base = f"http://127.0.0.1:{running.port}"
+        healthz = http_get(f"{base}/healthz")
+        stats_without_key = http_get(f"{base}/stats")
+        stats = get_stats(running.port, {"Authorization": "Api-Key s3cret"})
+    finally:
+        running.stop()
+    assert "401" in result["no_key"] and "401" in result["wrong_key"]
+    assert result["small"] == [10, 8] and result["after_reconnect"] == [10, 8]
+    # websockets closes an over-limit message's connection with 1009 (message too big), naming the limit.
+    assert "1009" in result["big"] and "200000" in result["big"], result["big"]
+    assert healthz == (200, "OK\n")
+    assert stats_without_key[0] == 401 and "Api-Key" in stats_without_key[1]
+    assert stats["errors"] == {"unauthorized": 3, "too_large": 1}
+    assert stats["ok"] == 2
+
+
+def _port_refuses(port: int) -> bool:
+    try:
+        socket.create_connection(("127.0.0.1", port), timeout=1).close()
+    except OSError:
+        return True
+    return False
+
+
+def test_shutdown_finishes_in_flight_request_then_closes_the_policy(policy, tmp_path):
+    gated = GatedPolicy(policy)
+    running = start_server_in_thread(gated, close_timeout=7.5)
+    body = r"""
+policy = connect()
+obs = droid_obs(np.random.RandomState(0), size=(32, 32))
+first = list(policy.infer(obs)["actions"].shape)
+done(first=first, second=error_of(lambda: policy.infer(obs)))
+"""
+    gated.gate.clear()
+    proc = spawn_client(client_script(body), json.dumps({"port": running.port}))
+    try:
+        assert gated.entered.wait(60)
+        stopper = threading.Thread(target=running.stop)
+        stopper.start()
+        deadline = time.monotonic() + 10
+        while not _port_refuses(running.port) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert _port_refuses(running.port), "still accepting connections after stop()"
+        assert gated.events == []
+    finally:
+        gated.gate.set()
+    stopper.join(60)
+    result = collect(proc)
+    assert result["first"] == [10, 8]  # the in-flight request was answered
+    assert "1001" in result["second"]  # then the connection closed as "going away"
+    assert gated.events == ["infer", "close(7.5)"]
+
+
+# ---------------------------------------------------------------- `openpi-cam serve`
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _serve_cmd(*args: str) -> list[str]:
+    return [sys.executable, "-m", "openpi_cam", "serve", *args]
+
+
+def test_serve_reports_missing_files_without_traceback(tiny_policy_files, tmp_path):
+    missing_checkpoint = tmp_path / "no_such_checkpoint"
+    missing_tokenizer = tmp_path / "no_such_tokenizer.model"
+    for args, missing in [
+        (
+            [
+                "--checkpoint-dir",
+                str(missing_checkpoint),
+                "--paligemma-tokenizer",
+                str(tiny_policy_files.paligemma_tokenizer),
+                "--fast-tokenizer",
+                str(tiny_policy_files.fast_tokenizer),
+            ],
+            missing_checkpoint,
+        ),
+        (
+            [
+                "--checkpoint-dir",
+                str(tiny_policy_files.checkpoint),
+                "--paligemma-tokenizer",
+                str(missing_tokenizer),
+                "--fast-tokenizer",
+                str(tiny_policy_files.fast_tokenizer),
+            ],
+            missing_tokenizer,
+        ),
+    ]:
+        proc = subprocess.run(_serve_cmd(*args), capture_output=True, text=True, timeout=120, cwd=REPO_ROOT)
+        assert proc.returncode != 0
+        assert str(missing) in proc.stderr, proc.stderr
+        assert "Traceback" not in proc.stderr, proc.stderr
+
+
+def test_serve_command_serves_and_stops_on_sigterm(tiny_policy_files, tmp_path):
+    port = _free_port()
+    args = [
+        "--checkpoint-dir",
+        str(tiny_policy_files.checkpoint),
+        "--paligemma-tokenizer",
+        str(tiny_policy_files.paligemma_tokenizer),
+        "--fast-tokenizer",
+        str(tiny_policy_files.fast_tokenizer),
+        "--dtype",
+        "float32",
+        "--host",
+        "127.0.0.1",
+        "--port",
+        str(port),
+    ]
+    log = (tmp_path / "serve.log").open("w")
+    proc = subprocess.Popen(_serve_cmd(*args), stdout=log, stderr=subprocess.STDOUT, cwd=REPO_ROOT)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and proc.poll() is None:
+            try:
+                if http_get(f"http://127.0.0.1:{port}/healthz", timeout=1)[0] == 200:
+                    break
+            except OSError:
+                time.sleep(0.2)
+        assert proc.poll() is None, (tmp_path / "serve.log").read_text()
+        meta = run_client(
+            client_script("done(meta=sorted(connect().get_server_metadata()))"), json.dumps({"port": port})
+        )
+        assert isinstance(meta["meta"], list)
+        proc.terminate()  # SIGTERM
+        assert proc.wait(60) == 0, (tmp_path / "serve.log").read_text()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        log.close()

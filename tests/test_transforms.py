@@ -1,0 +1,333 @@
+"""Transforms, robot pipelines and letterbox geometry against upstream's tiny DROID reference (`tiny_policy_droid`)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from openpi_cam.errors import InvalidRequest
+from openpi_cam.image_tools import letterbox_geometry, resize_with_pad, resize_with_pad_pil
+from openpi_cam.normalize import (
+    NormStats,
+    compute_norm_stats,
+    load_checkpoint_norm_stats,
+    load_norm_stats,
+    norm_stats_path,
+    save_norm_stats,
+)
+from openpi_cam.policies import aloha, droid, libero
+from openpi_cam.policies.config import PI0_FAST_DROID, PI0_FAST_LIBERO
+from openpi_cam.policies.policy import build_transforms
+from openpi_cam.policies.robot import GenericInputs
+from openpi_cam.tokenizers.pi0_fast import Pi0FastTokenizer
+from openpi_cam.transforms import (
+    AbsoluteActions,
+    DeltaActions,
+    ExtractFASTActions,
+    Normalize,
+    Unnormalize,
+    compose,
+    make_bool_mask,
+)
+
+PROMPT = "Pick up the red_block and put it in the bowl"  # droid_case's raw prompt (README / case.json)
+
+
+@pytest.fixture(scope="module")
+def droid_dir(golden_dir: Path) -> Path:
+    return golden_dir / "tiny_policy_droid"
+
+
+@pytest.fixture(scope="module")
+def case(droid_dir: Path) -> dict[str, np.ndarray]:
+    with np.load(droid_dir / "droid_case.npz") as f:
+        return dict(f)
+
+
+@pytest.fixture(scope="module")
+def tokenizer(tiny_policy_files) -> Pi0FastTokenizer:
+    return Pi0FastTokenizer.from_files(
+        tiny_policy_files.paligemma_tokenizer, tiny_policy_files.fast_tokenizer, max_len=PI0_FAST_DROID.max_token_len
+    )
+
+
+@pytest.fixture(scope="module")
+def stats(droid_dir: Path) -> dict[str, NormStats]:
+    return load_checkpoint_norm_stats(droid_dir / "checkpoint", "droid")
+
+
+@pytest.fixture(scope="module")
+def chains(stats, tokenizer):
+    return build_transforms(PI0_FAST_DROID, stats, tokenizer, (224, 224))
+
+
+def raw_obs(case: dict[str, np.ndarray]) -> dict:
+    return {
+        droid.EXTERIOR_IMAGE_KEY: case["raw/exterior_image_1_left"].copy(),
+        droid.WRIST_IMAGE_KEY: case["raw/wrist_image_left"].copy(),
+        droid.JOINT_POSITION_KEY: case["raw/joint_position"].copy(),
+        droid.GRIPPER_POSITION_KEY: case["raw/gripper_position"].copy(),
+        "prompt": PROMPT,
+    }
+
+
+# ---------------------------------------------------------------------------------------------------- input chain
+
+
+def test_droid_input_chain_reproduces_upstream_model_inputs_exactly(case, chains):
+    inputs, _, _ = chains
+    out = compose(inputs)(raw_obs(case))
+    assert list(out["image"]) == ["base_0_rgb", "base_1_rgb", "wrist_0_rgb"]
+    for cam in out["image"]:
+        img = out["image"][cam]
+        assert img.dtype == np.uint8 and img.shape == (224, 224, 3)
+        np.testing.assert_array_equal(img, case[f"model_input/image_{cam}"], err_msg=cam)
+        assert bool(out["image_mask"][cam]) == bool(case[f"model_input/image_mask_{cam}"])
+    # Quantile normalisation in float64 like upstream; exact up to float64 rounding of the same expression.
+    assert out["state"].dtype == np.float64
+    np.testing.assert_allclose(out["state"], case["model_input/state"], rtol=0, atol=1e-15)
+    for key in ("tokenized_prompt", "tokenized_prompt_mask", "token_ar_mask", "token_loss_mask"):
+        np.testing.assert_array_equal(out[key], case[f"model_input/{key}"], err_msg=key)
+    assert "prompt" not in out
+
+
+def test_input_chain_leaves_client_dict_alone_and_accepts_scalar_gripper(case, chains):
+    inputs, _, _ = chains
+    obs = raw_obs(case)
+    obs[droid.GRIPPER_POSITION_KEY] = float(case["raw/gripper_position"][0])  # upstream accepts a scalar too
+    out = compose(inputs)(dict(obs))
+    np.testing.assert_array_equal(out["tokenized_prompt"], case["model_input/tokenized_prompt"])
+
+
+def test_float_chw_images_are_converted_like_upstream(case, chains):
+    # LeRobot-style float [3, H, W] in [0, 1] must become the uint8 HWC image (255 * x).astype(uint8) would give.
+    inputs, _, _ = chains
+    obs = raw_obs(case)
+    hwc = case["raw/exterior_image_1_left"]
+    obs[droid.EXTERIOR_IMAGE_KEY] = (hwc.astype(np.float32) / 255.0).transpose(2, 0, 1)
+    expected = (255 * (hwc.astype(np.float32) / 255.0)).astype(np.uint8)
+    got = droid.DroidInputs()(dict(obs))["image"]["base_0_rgb"]
+    np.testing.assert_array_equal(got, expected)
+    assert compose(inputs)(obs)["image"]["base_0_rgb"].shape == (224, 224, 3)
+
+
+def test_default_prompt_injected_only_when_missing(case, stats, tokenizer):
+    inputs, _, _ = build_transforms(PI0_FAST_DROID, stats, tokenizer, (224, 224), default_prompt=PROMPT)
+    obs = raw_obs(case)
+    del obs["prompt"]
+    np.testing.assert_array_equal(compose(inputs)(obs)["tokenized_prompt"], case["model_input/tokenized_prompt"])
+    other = raw_obs(case)
+    other["prompt"] = "wipe the table"
+    assert not np.array_equal(compose(inputs)(other)["tokenized_prompt"], case["model_input/tokenized_prompt"])
+
+
+@pytest.mark.parametrize(
+    ("mutate", "needle"),
+    [
+        (lambda o: o.pop(droid.WRIST_IMAGE_KEY), droid.WRIST_IMAGE_KEY),
+        (lambda o: o.pop("prompt"), "prompt"),
+        (lambda o: o.update({droid.JOINT_POSITION_KEY: np.array([0.1, np.nan, 0, 0, 0, 0, 0])}), "NaN"),
+        (lambda o: o.update({droid.JOINT_POSITION_KEY: np.zeros(6)}), "expected 7 values"),
+        (lambda o: o.update({droid.GRIPPER_POSITION_KEY: np.array(["a"])}), droid.GRIPPER_POSITION_KEY),
+        (lambda o: o.update({droid.EXTERIOR_IMAGE_KEY: np.zeros((180, 320), np.uint8)}), "3-D image"),
+        (lambda o: o.update({droid.EXTERIOR_IMAGE_KEY: np.zeros((180, 320, 4), np.uint8)}), "3 colour channels"),
+        (lambda o: o.update({droid.EXTERIOR_IMAGE_KEY: np.zeros((180, 320, 3), np.int64)}), "dtype int64"),
+        (lambda o: o.update({droid.EXTERIOR_IMAGE_KEY: np.full((180, 320, 3), 200.0)}), "[0, 1]"),
+        (lambda o: o.update({droid.EXTERIOR_IMAGE_KEY: np.zeros((1, 400, 3), np.uint8)}), "elongated"),
+        (lambda o: o.update({"prompt": 5}), "prompt"),
+    ],
+)
+def test_bad_client_input_is_rejected_with_a_message_naming_it(case, chains, mutate, needle):
+    inputs, _, _ = chains
+    obs = raw_obs(case)
+    mutate(obs)
+    with pytest.raises(InvalidRequest) as info:
+        compose(inputs)(obs)
+    assert needle in str(info.value)
+
+
+# --------------------------------------------------------------------------------------------------- output chain
+
+
+def test_hand_made_generation_through_output_chain(case, chains):
+    _, extract, outputs = chains
+    data = {"state": case["hand/state_normalized"].astype(np.float32), "actions": case["hand/generated_tokens"]}
+    normalized = extract(dict(data))["actions"]
+    # Decode path: sentencepiece + BPE + idct of the same integers as upstream; float64 rounding only.
+    np.testing.assert_allclose(normalized, case["hand/after_extract_actions"], rtol=0, atol=1e-12)
+    actions, reason = extract.extract(case["hand/generated_tokens"])
+    assert reason is None
+    out = compose(outputs)({"state": data["state"], "actions": actions})
+    assert list(out) == ["actions"]  # DroidOutputs returns only the actions, as upstream
+    np.testing.assert_allclose(out["actions"], case["hand/policy_output_actions"], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("name", "expected_reason"), [("no_action_prefix", "no_action_prefix"), ("truncated", "*"), ("edge_no_bar", None)]
+)
+def test_malformed_generations(golden_dir, chains, name, expected_reason):
+    _, extract, outputs = chains
+    with np.load(golden_dir / "tiny_policy_droid" / "malformed_cases.npz") as f:
+        cases = dict(f)
+    tokens = cases[f"{name}/generated_tokens"].astype(np.float32)  # fed as float32 like a model output
+    state = cases["state_normalized"].astype(np.float32)
+    actions, reason = extract.extract(tokens)
+    np.testing.assert_allclose(actions, cases[f"{name}/after_extract_actions"], rtol=0, atol=1e-12)
+    if expected_reason == "*":
+        assert isinstance(reason, str) and reason
+    else:
+        assert reason == expected_reason
+    out = compose(outputs)({"state": state, "actions": actions})
+    np.testing.assert_allclose(out["actions"], cases[f"{name}/policy_output_actions"], rtol=0, atol=1e-12)
+    # The plain upstream-style transform gives the same numbers.
+    plain = ExtractFASTActions(extract.tokenizer, extract.action_horizon, extract.action_dim)({"actions": tokens})
+    np.testing.assert_array_equal(plain["actions"], actions)
+
+
+# ---------------------------------------------------------------------------------------------- normalisation
+
+
+def test_normalize_round_trip_and_strictness(stats):
+    x = np.array([[0.3, -0.2, 0.0, 1.0, 0.5, -1.0, 0.2, 0.9]])
+    for quantiles in (True, False):
+        back = Unnormalize(stats, use_quantiles=quantiles)(
+            {"state": Normalize(stats, use_quantiles=quantiles)({"state": x})["state"], "actions": x}
+        )
+        np.testing.assert_allclose(back["state"], x, rtol=0, atol=1e-12)
+    # Unnormalize is strict (every key in the stats must be present); Normalize by default is not.
+    with pytest.raises(ValueError, match="actions"):
+        Unnormalize(stats, use_quantiles=True)({"state": x})
+    assert "actions" not in Normalize(stats, use_quantiles=True)({"state": x})
+    with pytest.raises(ValueError, match="actions"):
+        Normalize(stats, use_quantiles=True, strict=True)({"state": x})
+    with pytest.raises(InvalidRequest, match="'state' has 9 values"):
+        Normalize(stats, use_quantiles=True)({"state": np.zeros(9)})
+    with pytest.raises(ValueError, match="q01"):
+        Normalize({"state": NormStats(mean=np.zeros(2), std=np.ones(2))}, use_quantiles=True)
+
+
+def test_unnormalize_passes_dims_beyond_stats_through(stats):
+    x = np.linspace(-1, 1, 10 * 12).reshape(10, 12)
+    out = Unnormalize(stats, use_quantiles=True)({"state": np.zeros(8), "actions": x})["actions"]
+    np.testing.assert_array_equal(out[:, 8:], x[:, 8:])
+    q = stats["actions"]
+    np.testing.assert_allclose(out[:, :8], (x[:, :8] + 1) / 2 * (q.q99 - q.q01 + 1e-6) + q.q01)
+
+
+def test_norm_stats_save_load_round_trip_in_upstream_format(tmp_path, droid_dir, stats):
+    path = save_norm_stats(tmp_path / "assets" / "droid", stats)
+    assert path == norm_stats_path(tmp_path, "droid")
+    # Same JSON layout as upstream's file: the same nesting and the same numbers (JSON floats round-trip exactly).
+    written = json.loads(path.read_text())
+    assert written == json.loads(norm_stats_path(droid_dir / "checkpoint", "droid").read_text())
+    loaded = load_norm_stats(path)
+    for key, value in stats.items():
+        for field in ("mean", "std", "q01", "q99"):
+            np.testing.assert_array_equal(getattr(loaded[key], field), getattr(value, field))
+    with pytest.raises(FileNotFoundError, match=str(tmp_path / "assets" / "nope" / "norm_stats.json")):
+        load_checkpoint_norm_stats(tmp_path, "nope")
+    computed = compute_norm_stats(np.arange(300.0).reshape(100, 3))
+    np.testing.assert_allclose(computed.q01, np.quantile(np.arange(0, 300, 3.0), 0.01) + np.arange(3))
+
+
+# ---------------------------------------------------------------------------------------------- other robots
+
+
+def test_libero_and_aloha_inputs_and_outputs():
+    obs = libero.make_libero_example(height=64, width=96)
+    out = libero.LiberoInputs()(dict(obs))
+    assert list(out["image"]) == ["base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb"]
+    assert all(bool(m) for m in out["image_mask"].values())  # FAST does not mask the padding camera
+    assert not out["image"]["right_wrist_0_rgb"].any()
+    assert libero.LiberoOutputs()({"actions": np.ones((10, 9))})["actions"].shape == (10, 7)
+
+    obs = aloha.make_aloha_example(height=48, width=64)
+    del obs["images"]["cam_right_wrist"]
+    inputs = aloha.AlohaInputs()
+    out = inputs(dict(obs))
+    assert out["image"]["base_0_rgb"].shape == (48, 64, 3)  # ALOHA images arrive [3, H, W]
+    assert bool(out["image_mask"]["left_wrist_0_rgb"]) and not bool(out["image_mask"]["right_wrist_0_rgb"])
+    assert inputs.camera_sources_for(obs)["right_wrist_0_rgb"] is None
+    # Joint flips: state all ones -> dims 1, 2, 8, 9 negated.
+    assert out["state"][1] == -1 and out["state"][8] == -1 and out["state"][0] == 1
+    with pytest.raises(InvalidRequest, match="unknown cameras"):
+        inputs({**obs, "images": {**obs["images"], "cam_extra": obs["images"]["cam_high"]}})
+
+
+def test_aloha_gripper_conversions_invert_each_other():
+    x = np.linspace(-0.3, 0.9, 7)
+    np.testing.assert_allclose(aloha.gripper_from_angular(aloha.gripper_from_angular_inv(x)), x, atol=1e-12)
+    actions = np.random.default_rng(0).normal(size=(5, 14))
+    round_trip = aloha.encode_actions(aloha.encode_actions_inv(actions.copy(), adapt_to_pi=True), adapt_to_pi=True)
+    np.testing.assert_allclose(round_trip, actions, atol=1e-12)
+
+
+def test_delta_and_absolute_actions_invert_each_other():
+    mask = make_bool_mask(6, -1)
+    assert mask == (True,) * 6 + (False,)
+    state = np.arange(7.0)
+    actions = np.ones((3, 7))
+    delta = DeltaActions(mask)({"state": state, "actions": actions.copy()})["actions"]
+    np.testing.assert_array_equal(delta[:, 6], 1.0)
+    np.testing.assert_array_equal(delta[0, :6], 1.0 - state[:6])
+    back = AbsoluteActions(mask)({"state": state, "actions": delta})["actions"]
+    np.testing.assert_array_equal(back, actions)
+    assert PI0_FAST_LIBERO.outputs[0] == AbsoluteActions(mask)  # upstream pi0_fast_libero: extra_delta_transform
+
+
+def test_generic_inputs_synthesise_blank_cameras():
+    inputs = GenericInputs(cameras={"top": "obs/top", "blank": None}, state_key="obs/state", state_dim=3)
+    out = inputs({"obs/top": np.full((10, 20, 3), 7, np.uint8), "obs/state": [1.0, 2.0, 3.0]})
+    assert out["image"]["blank"].shape == (10, 20, 3) and not out["image"]["blank"].any()
+    nested = inputs({"obs": {"top": np.zeros((10, 20, 3), np.uint8), "state": np.zeros(3)}})
+    assert nested["state"].shape == (3,)
+    with pytest.raises(InvalidRequest, match="obs/state"):
+        inputs({"obs/top": np.zeros((10, 20, 3), np.uint8)})
+
+
+# -------------------------------------------------------------------------------------------- letterbox geometry
+
+
+def test_resize_with_pad_jax_and_pil_agree_on_geometry(case):
+    raw = case["raw/exterior_image_1_left"]
+    geo = letterbox_geometry(*raw.shape[:2], 224, 224)
+    assert (geo.resized_h, geo.resized_w, geo.pad_top, geo.pad_left) == (126, 224, 49, 0)  # README: 49 rows each side
+    pil = resize_with_pad_pil(raw, 224, 224)
+    jx = np.asarray(resize_with_pad(raw, 224, 224))
+    for img in (pil, jx):
+        assert not img[: geo.pad_top].any() and not img[geo.pad_top + geo.resized_h :].any()
+    # The two bilinear implementations differ by at most one grey level (rounding of nearly equal weights).
+    assert np.abs(pil.astype(int) - jx.astype(int)).max() <= 1
+    flt = np.asarray(resize_with_pad(raw.astype(np.float32) / 127.5 - 1.0, 224, 224))
+    assert flt.dtype == np.float32 and (flt[: geo.pad_top] == -1.0).all()  # float images pad with -1 (black)
+    batched = np.asarray(resize_with_pad(np.stack([raw, raw])[None], 224, 224))
+    assert batched.shape == (1, 2, 224, 224, 3)
+    np.testing.assert_array_equal(batched[0, 1], jx)
+
+
+def test_geometry_maps_model_points_back_to_a_non_square_original():
+    # A 100 x 300 image (portrait padding): a bright marker at original (x=210..240, y=40..60).
+    orig = np.zeros((100, 300, 3), np.uint8)
+    orig[40:60, 210:240] = 255
+    geo = letterbox_geometry(100, 300, 96, 96)
+    assert (geo.resized_h, geo.resized_w, geo.pad_top, geo.pad_left) == (32, 96, 32, 0)
+    model = resize_with_pad_pil(orig, 96, 96)
+    ys, xs = np.nonzero(model[..., 0] > 128)
+    cx, cy = xs.mean() + 0.5, ys.mean() + 0.5  # pixel-centre convention
+    ox, oy = geo.model_to_original(cx, cy)
+    # The marker's centre is (225, 50); one model pixel is 300/96 = 3.125 original pixels, so allow one model pixel.
+    assert abs(ox - 225) <= geo.scale_x and abs(oy - 50) <= geo.scale_y
+    np.testing.assert_allclose(geo.original_to_model(*geo.model_to_original(10.0, 40.0)), (10.0, 40.0))
+    assert geo.model_to_original(0, 0, clip=True) == (0.0, 0.0)  # padding clamps onto the border
+    assert not geo.contains_model_point(50, 10) and geo.contains_model_point(50, 40)
+    assert geo.model_box_to_original((0, 32, 96, 64)) == (0.0, 0.0, 300.0, 100.0)
+    xs, ys = geo.model_to_original(np.array([0.0, 48.0, 96.0]), np.array([32.0, 48.0, 64.0]))  # arrays map elementwise
+    np.testing.assert_allclose(xs, [0.0, 150.0, 300.0])
+    np.testing.assert_allclose(ys, [0.0, 50.0, 100.0])
+    assert type(geo).from_dict(geo.as_dict()) == geo
+    tall = letterbox_geometry(300, 100, 96, 96)
+    assert (tall.resized_w, tall.pad_left, tall.pad_top) == (32, 32, 0)
+    assert tall.model_to_original(32 + 16, 48) == (50.0, 150.0)
