@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import functools
 import json
-import re
 import pathlib
+import re
 import shutil
 
 import jax
@@ -35,14 +35,18 @@ def load_case(name: str) -> dict:
 
 
 @pytest.mark.parametrize(
-    ("tree_file", "variant"), [("pi0_fast_param_tree.json", "gemma_2b"), ("pi0_fast_param_tree_lora.json", "gemma_2b_lora")]
+    ("tree_file", "variant"),
+    [("pi0_fast_param_tree.json", "gemma_2b"), ("pi0_fast_param_tree_lora.json", "gemma_2b_lora")],
 )
 def test_default_param_tree_equals_upstream(tree_file: str, variant: str):
     reference = json.loads((GOLDEN / tree_file).read_text())
     expected = {p["path"]: tuple(p["shape"]) for p in reference["params"]}
     config = pi0_fast_config(variant)
     # Built without allocating 3B parameters.
-    built = {k: tuple(v.shape) for k, v in flatten(jax.eval_shape(functools.partial(init_params, config), jax.random.key(0))).items()}
+    built = {
+        k: tuple(v.shape)
+        for k, v in flatten(jax.eval_shape(functools.partial(init_params, config), jax.random.key(0))).items()
+    }
     assert built == expected
     assert param_shapes(config.gemma, config.siglip) == expected
     assert sum(int(np.prod(s)) for s in built.values()) == reference["total_params"]
@@ -59,7 +63,13 @@ def test_checkpoint_restores_bitwise_and_reads_architecture(model: Pi0FAST):
     cfg = json.loads((TINY / "config.json").read_text())["gemma"]
     g = model.config.gemma
     assert (g.width, g.depth, g.mlp_dim, g.num_heads, g.num_kv_heads, g.head_dim, g.vocab_size) == (
-        cfg["width"], cfg["depth"], cfg["mlp_dim"], cfg["num_heads"], cfg["num_kv_heads"], cfg["head_dim"], cfg["vocab_size"]
+        cfg["width"],
+        cfg["depth"],
+        cfg["mlp_dim"],
+        cfg["num_heads"],
+        cfg["num_kv_heads"],
+        cfg["head_dim"],
+        cfg["vocab_size"],
     )
     assert model.config.siglip.grid == (16, 16)
 
@@ -82,7 +92,10 @@ def test_bfloat16_restore_casts_every_leaf():
     ("mutate", "message"),
     [
         (lambda f: f.pop("PaliGemma/llm/final_norm/scale"), "missing parameter 'PaliGemma/llm/final_norm/scale'"),
-        (lambda f: f.__setitem__("PaliGemma/llm/extra/w", np.zeros(3, np.float32)), "unexpected parameter 'PaliGemma/llm/extra/w'"),
+        (
+            lambda f: f.__setitem__("PaliGemma/llm/extra/w", np.zeros(3, np.float32)),
+            "unexpected parameter 'PaliGemma/llm/extra/w'",
+        ),
         (
             lambda f: f.__setitem__("PaliGemma/img/head/bias", np.zeros(7, np.float32)),
             "'PaliGemma/img/head/bias' has shape [7], expected [128]",
@@ -115,8 +128,15 @@ def test_golden_parity_every_case(golden_results):
     assert not failed, "\n".join(failed)
     names = {(c.case, c.name) for c in golden_results}
     for case in ("case_a", "case_b", "case_c"):  # every array the README defines is compared
-        for name in ("siglip_base_0_rgb", "prompt_logits", "output_tokens", "decode_step_logits", "gc_replay_k3_cam",
-                     "gc_replay_chunk_alpha", "gc_replay_k7_logits"):
+        for name in (
+            "siglip_base_0_rgb",
+            "prompt_logits",
+            "output_tokens",
+            "decode_step_logits",
+            "gc_replay_k3_cam",
+            "gc_replay_chunk_alpha",
+            "gc_replay_k7_logits",
+        ):
             assert (case, name) in names
 
 

@@ -39,11 +39,14 @@ class Comparison:
 
     def line(self) -> str:
         status = "ok  " if self.ok else "FAIL"
-        return f"{status} {self.case:<8} {self.name:<28} max_abs={self.max_abs:.3g} max_rel={self.max_rel:.3g} {self.note}"
+        return (
+            f"{status} {self.case:<8} {self.name:<28} max_abs={self.max_abs:.3g} max_rel={self.max_rel:.3g} {self.note}"
+        )
 
 
-def compare(case: str, name: str, got, want, *, atol: float | None = None, rel_to_max: float | None = None,
-            exact: bool = False) -> Comparison:
+def compare(
+    case: str, name: str, got, want, *, atol: float | None = None, rel_to_max: float | None = None, exact: bool = False
+) -> Comparison:
     got, want = np.asarray(got), np.asarray(want)
     if got.shape != want.shape:
         return Comparison(case, name, np.inf, np.inf, False, f"shape {got.shape} != {want.shape}")
@@ -90,11 +93,13 @@ def check_case(model: Pi0FAST, name: str, case: dict, cameras: list[str], max_st
             out.append(compare(name, f"siglip_{cam}", image_tokens[:, i], case[f"siglip_{cam}"], atol=ATOL["siglip"]))
     if "prompt_token_embeddings" in case:
         emb = gemma.embed_tokens(model.params["PaliGemma"]["llm"], obs.tokenized_prompt, jnp.float32)
-        out.append(compare(name, "prompt_token_embeddings", emb, case["prompt_token_embeddings"],
-                           atol=ATOL["embeddings"]))
+        out.append(
+            compare(name, "prompt_token_embeddings", emb, case["prompt_token_embeddings"], atol=ATOL["embeddings"])
+        )
     if "prompt_logits" in case:
-        out.append(compare(name, "prompt_logits", plain_prompt_logits(model, obs), case["prompt_logits"],
-                           atol=ATOL["logits"]))
+        out.append(
+            compare(name, "prompt_logits", plain_prompt_logits(model, obs), case["prompt_logits"], atol=ATOL["logits"])
+        )
     tokens, n_steps, step_logits = model.decode(
         jax.random.key(0), obs, max_decoding_steps=max_steps, temperature=0.0, record_logits=True
     )
@@ -104,12 +109,16 @@ def check_case(model: Pi0FAST, name: str, case: dict, cameras: list[str], max_st
     if "num_decoded_steps" in case:
         out.append(compare(name, "num_decoded_steps", n_steps, case["num_decoded_steps"], exact=True))
     if "prefix_last_logits" in case:
-        out.append(compare(name, "prefix_last_logits", step_logits[:, 0], case["prefix_last_logits"],
-                           atol=ATOL["logits"]))
+        out.append(
+            compare(name, "prefix_last_logits", step_logits[:, 0], case["prefix_last_logits"], atol=ATOL["logits"])
+        )
     if "decode_step_logits" in case:
         n = int(n_steps)
-        out.append(compare(name, "decode_step_logits", step_logits[:, :n], case["decode_step_logits"][:, :n],
-                           atol=ATOL["logits"]))
+        out.append(
+            compare(
+                name, "decode_step_logits", step_logits[:, :n], case["decode_step_logits"][:, :n], atol=ATOL["logits"]
+            )
+        )
     out += check_gradcam(model, name, case, obs, cameras)
     return out
 
@@ -129,15 +138,25 @@ def check_gradcam(model: Pi0FAST, name: str, case: dict, obs: Observation, camer
         out.append(compare(name, f"{prefix}_logits", res.logits, case[f"{prefix}_logits"], atol=ATOL["logits"]))
         out.append(compare(name, f"{prefix}_score", res.score, case[f"{prefix}_score"], atol=ATOL["score"]))
         for field, key in (("alphas", "alpha"), ("maps", "cam"), ("grad_norms", "grad_norm")):
-            out.append(compare(name, f"{prefix}_{key}", _stack(res, field, cameras), case[f"{prefix}_{key}"],
-                               rel_to_max=REL_TO_MAX))
+            out.append(
+                compare(
+                    name, f"{prefix}_{key}", _stack(res, field, cameras), case[f"{prefix}_{key}"], rel_to_max=REL_TO_MAX
+                )
+            )
     if "gc_replay_chunk_score" in case:
         n = int(case.get("num_decoded_steps", generated.shape[1]))
         res = model.gradcam_for_chunk(obs, generated, list(range(n)))
         out.append(compare(name, "gc_replay_chunk_score", res.score, case["gc_replay_chunk_score"], atol=ATOL["score"]))
         for field, key in (("alphas", "alpha"), ("maps", "cam"), ("grad_norms", "grad_norm")):
-            out.append(compare(name, f"gc_replay_chunk_{key}", _stack(res, field, cameras),
-                               case[f"gc_replay_chunk_{key}"], rel_to_max=REL_TO_MAX))
+            out.append(
+                compare(
+                    name,
+                    f"gc_replay_chunk_{key}",
+                    _stack(res, field, cameras),
+                    case[f"gc_replay_chunk_{key}"],
+                    rel_to_max=REL_TO_MAX,
+                )
+            )
     return out
 
 

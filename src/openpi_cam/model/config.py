@@ -89,9 +89,7 @@ def siglip_variant(name: str, *, out_dim: int, image_size: int = 224, **override
     return dataclasses.replace(base, **overrides)
 
 
-def pi0_fast_config(
-    paligemma_variant: str = "gemma_2b", siglip: str = "So400m/14", **kwargs: Any
-) -> Pi0FASTConfig:
+def pi0_fast_config(paligemma_variant: str = "gemma_2b", siglip: str = "So400m/14", **kwargs: Any) -> Pi0FASTConfig:
     """Upstream's `Pi0FASTConfig(paligemma_variant=...)` architecture, with the data-side sizes as keywords."""
     gemma = GEMMA_VARIANTS[paligemma_variant]
     return Pi0FASTConfig(gemma=gemma, siglip=siglip_variant(siglip, out_dim=gemma.width), **kwargs)
@@ -194,6 +192,4 @@ def check_param_tree(flat_shapes: Mapping[str, tuple[int, ...]], expected: Mappi
             raise ValueError(f"checkpoint has unexpected parameter {path!r} (shape {list(flat_shapes[path])})")
     for path in sorted(expected):
         if tuple(flat_shapes[path]) != tuple(expected[path]):
-            raise ValueError(
-                f"parameter {path!r} has shape {list(flat_shapes[path])}, expected {list(expected[path])}"
-            )
+            raise ValueError(f"parameter {path!r} has shape {list(flat_shapes[path])}, expected {list(expected[path])}")

@@ -59,7 +59,10 @@ def _einsum(eq: str, x: jax.Array, p: dict, name: str, lora_scale: float) -> jax
         r_in, r_out = rhs[-2], rhs[-1]  # LoRA factorises the last two weight axes through a rank axis 'L'
         a_out = out.replace(r_out, "L")
         u = jnp.einsum(f"{lhs},{rhs.replace(r_out, 'L')}->{a_out}", x, p[name]["lora_a"].astype(x.dtype))
-        y = y + jnp.einsum(f"{a_out},{rhs.replace(r_in, 'L')}->{out}", u, p[name]["lora_b"].astype(x.dtype)) * lora_scale
+        y = (
+            y
+            + jnp.einsum(f"{a_out},{rhs.replace(r_in, 'L')}->{out}", u, p[name]["lora_b"].astype(x.dtype)) * lora_scale
+        )
     return y
 
 

@@ -67,7 +67,11 @@ def _gathered_logits(params: dict, pre: jax.Array, targets: jax.Array) -> jax.Ar
 
 @functools.partial(jax.jit, static_argnames=("cfg",))
 def _token_cams(params, obs, fed, targets, steps, *, cfg: Pi0FASTConfig):
-    """steps int32 [T, B]: one VJP per explained step, all sharing one forward pass (vmap over cotangents)."""
+    """steps int32 [T, B]: one VJP per explained step, all sharing one forward pass.
+
+    The backward passes run as a `lax.map` over cotangents, not `vmap`: under jax 0.10.2 on CPU, `vmap` of this
+    VJP returned wrong gradients for all but the first cotangent at real prefix lengths (B=2, 816 tokens), while
+    `lax.map` and single VJPs agree (tests/test_gradcam.py compares the stack with the per-token loop)."""
     E = embed_images(params, obs, cfg)
 
     def scores_fn(image_tokens):
@@ -76,7 +80,7 @@ def _token_cams(params, obs, fed, targets, steps, *, cfg: Pi0FASTConfig):
 
     scores, vjp_fn, pre = jax.vjp(scores_fn, E, has_aux=True)
     cotangents = jax.nn.one_hot(steps, fed.shape[1], dtype=scores.dtype)  # [T, B, S]
-    (G,) = jax.vmap(vjp_fn)(cotangents)  # [T, B, C, N, D]
+    G = jax.lax.map(lambda cot: vjp_fn(cot)[0], cotangents)  # [T, B, C, N, D]
     alpha, cam, grad_norm = _reduce(E, G)
     rows = jnp.arange(fed.shape[0])
     explained_pre = pre[rows[None, :], steps]  # [T, B, D]
@@ -209,8 +213,17 @@ def _explain_tokens(model, obs, fed, targets, steps, prefill_len, squeeze) -> Gr
 
     token_ids = np.asarray(targets)[:, steps]
     return _result(
-        model, obs, "token" if squeeze else "tokens", batch_first(alpha), batch_first(cam), batch_first(grad_norm),
-        batch_first(score), token_ids, steps, _positions(prefill_len, steps), batch_first(logits),
+        model,
+        obs,
+        "token" if squeeze else "tokens",
+        batch_first(alpha),
+        batch_first(cam),
+        batch_first(grad_norm),
+        batch_first(score),
+        token_ids,
+        steps,
+        _positions(prefill_len, steps),
+        batch_first(logits),
     )
 
 
@@ -224,6 +237,15 @@ def gradcam_for_chunk(model: Pi0FAST, obs: Observation, generated_ids: Any, step
     weights[:, steps] = 1.0
     score, alpha, cam, grad_norm = _chunk_cam(model.params, obs, fed, jnp.asarray(weights), cfg=model.config)
     return _result(
-        model, obs, "chunk", alpha, cam, grad_norm, score, np.asarray(fed)[:, steps], steps,
-        _positions(prefill_len, steps), None,
+        model,
+        obs,
+        "chunk",
+        alpha,
+        cam,
+        grad_norm,
+        score,
+        np.asarray(fed)[:, steps],
+        steps,
+        _positions(prefill_len, steps),
+        None,
     )

@@ -84,7 +84,9 @@ def decode_window(prefix_start: jax.Array, prefill_size: int, steps: int, step: 
     [prefix_start, prefill_size + step + 1), whatever the input mask says inside it. -> [B, T, P + steps]"""
     slots = jnp.arange(prefill_size + steps)
     step = jnp.atleast_1d(step)
-    return (slots[None, None, :] >= prefix_start[:, None, None]) & (slots[None, None, :] < prefill_size + step[None, :, None] + 1)
+    return (slots[None, None, :] >= prefix_start[:, None, None]) & (
+        slots[None, None, :] < prefill_size + step[None, :, None] + 1
+    )
 
 
 def decode_positions(prefill_len: jax.Array, step: jax.Array) -> jax.Array:
@@ -242,8 +244,13 @@ class Pi0FAST:
         stop_token_ids: Sequence[int] = (),
     ) -> jax.Array:
         """Generated token ids, int32 [B, max_decoding_steps] (zeros after the loop stopped)."""
-        return self.decode(rng, observation, max_decoding_steps=max_decoding_steps, temperature=temperature,
-                           stop_token_ids=stop_token_ids)[0]
+        return self.decode(
+            rng,
+            observation,
+            max_decoding_steps=max_decoding_steps,
+            temperature=temperature,
+            stop_token_ids=stop_token_ids,
+        )[0]
 
     def decode(
         self,
@@ -282,7 +289,9 @@ class Pi0FAST:
     def gradcam_for_action_token(self, observation: Observation, generated_ids: Any, step: int | Sequence[int]):
         from openpi_cam.model import gradcam
 
-        return gradcam.gradcam_for_steps(self, observation, generated_ids, np.atleast_1d(step), squeeze=np.ndim(step) == 0)
+        return gradcam.gradcam_for_steps(
+            self, observation, generated_ids, np.atleast_1d(step), squeeze=np.ndim(step) == 0
+        )
 
     def gradcam_for_steps(self, observation: Observation, generated_ids: Any, steps: Sequence[int]):
         from openpi_cam.model import gradcam

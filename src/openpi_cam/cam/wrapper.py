@@ -1,0 +1,257 @@
+"""The Grad-CAM side channel around a `Policy`: decides when to explain and what to log; never changes actions.
+
+Scheduled inferences run through `Policy.infer_traced`, which returns the very response `infer` would plus the exact
+model inputs and generated tokens of that call. A job carrying them goes into a bounded queue; one background worker
+computes Grad-CAM and hands the result to the `CAMLogger`. The response never waits for the worker; a full queue
+drops the new job (counted); every failure inside the side channel is counted per kind and logged once.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import logging
+import pathlib
+import queue
+import threading
+import time
+from typing import Any, Literal
+
+import numpy as np
+
+from openpi_cam.cam.engine import TARGETS, CamSkipped, explain
+
+logger = logging.getLogger(__name__)
+
+SaveFrames = Literal["none", "raw", "model", "both"]
+# Observation keys with this prefix are not passed to the policy; their values go into the step's `extra` metadata
+# (e.g. the demo's ground-truth target box).
+EXTRA_PREFIX = "cam_extra/"
+
+
+@dataclasses.dataclass(frozen=True)
+class CAMOptions:
+    every_k: int = 1  # explain every k-th inference of each connection (0 = off)
+    cam_dir: str | pathlib.Path = "cam_runs"
+    save_frames: SaveFrames = "model"
+    target: Literal["action-token", "all-action-tokens", "chunk"] = "action-token"
+    action_index: int = 0  # which FAST action token, for target "action-token"
+    queue_size: int = 8
+    max_steps: int | None = None
+    max_bytes: int | None = None
+    drain_timeout: float = 30.0  # seconds `close()` waits for queued jobs
+
+    def __post_init__(self):
+        if self.every_k < 0 or self.queue_size < 1 or self.action_index < 0:
+            raise ValueError("every_k >= 0, queue_size >= 1 and action_index >= 0 are required")
+        if self.target not in TARGETS:
+            raise ValueError(f"unknown Grad-CAM target {self.target!r}; expected one of {TARGETS}")
+        if self.save_frames not in ("none", "raw", "model", "both"):
+            raise ValueError(f"save_frames must be none|raw|model|both, got {self.save_frames!r}")
+
+
+@dataclasses.dataclass
+class _Job:
+    trace: Any
+    connection: str
+    step: int
+    timestamp: float
+    extra: dict[str, Any]
+
+
+def _to_jsonable(value: Any) -> Any:
+    arr = np.asarray(value)
+    return arr.item() if arr.ndim == 0 else arr.tolist()
+
+
+def model_frame_uint8(image: Any) -> np.ndarray:
+    """The model's input image ([-1, 1] float, batch row 0) back as uint8 RGB (exact for uint8-derived inputs)."""
+    x = np.asarray(image, np.float32)
+    x = x[0] if x.ndim == 4 else x
+    return np.clip(np.round((x + 1.0) / 2.0 * 255.0), 0, 255).astype(np.uint8)
+
+
+class CAMPolicy:
+    """Serves exactly what the wrapped policy serves; explains scheduled inferences in the background."""
+
+    def __init__(self, policy: Any, options: CAMOptions, cam_logger: Any):
+        self._policy = policy
+        self._options = options
+        self._logger = cam_logger
+        self._queue: queue.Queue[_Job | None] = queue.Queue(maxsize=options.queue_size)
+        self._lock = threading.Lock()
+        self._counters: collections.Counter[str] = collections.Counter()
+        self._steps: collections.Counter[str] = collections.Counter()  # per-connection inference index
+        self._warned: set[str] = set()
+        self._closed = False
+        self._worker = threading.Thread(target=self._work, name="gradcam-worker", daemon=True)
+        self._worker.start()
+
+    @property
+    def metadata(self) -> dict[str, Any]:
+        return self._policy.metadata
+
+    @property
+    def policy(self) -> Any:
+        return self._policy
+
+    @property
+    def run_dir(self) -> pathlib.Path | None:
+        return None if self._logger is None else self._logger.run_dir
+
+    def _count(self, kind: str, message: str | None = None) -> None:
+        with self._lock:
+            self._counters[kind] += 1
+            first = kind not in self._warned
+            self._warned.add(kind)
+        if message is not None and first:
+            logger.warning("Grad-CAM side channel: %s (%s); further occurrences are only counted", message, kind)
+
+    def infer(self, obs: dict[str, Any], context: Any = None) -> dict[str, Any]:
+        extra = {k[len(EXTRA_PREFIX) :]: obs[k] for k in obs if isinstance(k, str) and k.startswith(EXTRA_PREFIX)}
+        if extra:
+            obs = {k: v for k, v in obs.items() if k not in {EXTRA_PREFIX + e for e in extra}}
+        connection = getattr(context, "connection_id", "local")
+        with self._lock:
+            step = self._steps[connection]
+            self._steps[connection] += 1
+        every_k = self._options.every_k
+        if self._logger is None or self._closed or every_k == 0 or step % every_k:
+            return self._policy.infer(obs, context)
+        response, trace = self._policy.infer_traced(obs)
+        self._count("scheduled")
+        try:
+            job = _Job(trace, connection, step, time.time(), {k: _to_jsonable(v) for k, v in extra.items()})
+            self._queue.put_nowait(job)
+        except queue.Full:
+            self._count("dropped_queue_full", "queue full, job dropped")
+        except Exception as e:  # the side channel never reaches the client
+            self._count(f"enqueue_error_{type(e).__name__}", f"could not queue a job: {e}")
+        return response
+
+    def _work(self) -> None:
+        while True:
+            job = self._queue.get()
+            try:
+                if job is None:
+                    return
+                self._process(job)
+            finally:
+                self._queue.task_done()
+
+    def _process(self, job: _Job) -> None:
+        from openpi_cam.cam.logger import StepRecord
+
+        t0 = time.perf_counter()
+        try:
+            trace = job.trace
+            exp = explain(
+                self._policy.model,
+                self._policy.tokenizer,
+                trace.observation,
+                trace.generated_tokens,
+                target=self._options.target,
+                action_index=self._options.action_index,
+            )
+        except CamSkipped as e:
+            self._count(f"skipped_{e.kind}", str(e))
+            return
+        except Exception as e:
+            self._count(f"failed_{type(e).__name__}", f"Grad-CAM raised {type(e).__name__}: {e}")
+            return
+        gradcam_s = time.perf_counter() - t0
+        save = self._options.save_frames
+        frames = {}
+        if save in ("raw", "both"):
+            frames = {c: np.asarray(im) for c, im in trace.raw_images.items() if im is not None}
+        model_frames = {}
+        if save in ("model", "both"):
+            model_frames = {c: model_frame_uint8(im) for c, im in trace.observation.images.items()}
+        cameras = {
+            c: {
+                "obs_key": trace.camera_sources.get(c),
+                **info,
+                "geometry": trace.geometry[c].as_dict() if trace.geometry.get(c) is not None else None,
+            }
+            for c, info in exp.cameras.items()
+        }
+        meta = {
+            "target": exp.target,
+            "token_ids": exp.token_ids,
+            "decode_steps": exp.decode_steps,
+            "positions": exp.positions,
+            "action_indices": exp.action_indices,
+            "score": exp.score,
+            "prompt": trace.prompt,
+            "cameras": cameras,
+            "malformed_reason": trace.malformed_reason,
+            "gradcam_ms": round(gradcam_s * 1000.0, 3),
+            "extra": job.extra,
+        }
+        record = StepRecord(job.connection, job.step, job.timestamp, exp.maps, frames, model_frames, meta)
+        try:
+            logged = self._logger.log_step(record)
+        except Exception as e:
+            self._count(f"log_error_{type(e).__name__}", f"logging a step raised {type(e).__name__}: {e}")
+            return
+        self._count("completed" if logged else "not_logged")
+
+    def stats(self) -> dict[str, Any]:
+        base = self._policy.stats() if hasattr(self._policy, "stats") else {}
+        with self._lock:
+            cam = dict(self._counters)
+        cam["queued"] = self._queue.qsize()
+        if self._logger is not None:
+            cam["logger"] = self._logger.counters
+            cam["run_dir"] = str(self._logger.run_dir)
+        return {**base, "gradcam": cam}
+
+    def close(self, timeout: float | None = None) -> None:
+        """Stops scheduling, drains queued jobs up to the deadline, writes the final manifest."""
+        if self._closed:
+            return
+        self._closed = True
+        deadline = time.monotonic() + (self._options.drain_timeout if timeout is None else timeout)
+        while time.monotonic() < deadline:
+            try:
+                self._queue.put(None, timeout=max(0.0, deadline - time.monotonic()))
+                break
+            except queue.Full:
+                continue
+        self._worker.join(max(0.0, deadline - time.monotonic()))
+        if self._worker.is_alive():
+            self._count("unfinished_at_shutdown", "shutdown deadline passed with jobs pending")
+        if self._logger is not None:
+            with self._lock:
+                counters = dict(self._counters)
+            self._logger.set_external_counters(counters)
+            self._logger.close()
+        if hasattr(self._policy, "close"):
+            self._policy.close(timeout)
+
+
+def wrap_policy_with_cam(
+    policy: Any, options: CAMOptions, *, run_config: dict[str, Any] | None = None, checkpoint: str = ""
+) -> CAMPolicy:
+    """Creates the run directory and the worker. If the run directory cannot be created, the server still serves:
+    the side channel is disabled and the reason logged and counted."""
+    from openpi_cam.cam.logger import CAMLogger
+
+    try:
+        cam_logger = CAMLogger(
+            options.cam_dir,
+            run_config=run_config or {},
+            checkpoint=str(checkpoint),
+            options={k: str(v) if isinstance(v, pathlib.Path) else v for k, v in dataclasses.asdict(options).items()},
+            max_steps=options.max_steps,
+            max_bytes=options.max_bytes,
+        )
+    except OSError as e:
+        logger.error("Grad-CAM side channel disabled: cannot create a run directory under %s: %s", options.cam_dir, e)
+        wrapped = CAMPolicy(policy, options, None)
+        wrapped._count("disabled_logger_unavailable")
+        return wrapped
+    logger.info(
+        "Grad-CAM side channel on: every %d inference(s), run directory %s", options.every_k, cam_logger.run_dir
+    )
+    return CAMPolicy(policy, options, cam_logger)
