@@ -35,7 +35,7 @@ def case(name: str):
 
 @pytest.mark.parametrize("name", ["case_a", "case_b", "case_c"])
 def test_explained_logits_are_the_decode_time_logits(model, name):
-    data, obs = case(name)
+    _, obs = case(name)
     tokens, n_steps, step_logits = model.decode(jax.random.key(0), obs, max_decoding_steps=16, record_logits=True)
     step_logits = np.asarray(step_logits)
     res = model.gradcam_for_steps(obs, tokens, list(range(int(n_steps))))
