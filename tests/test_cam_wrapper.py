@@ -22,11 +22,11 @@ from typing import Any
 import numpy as np
 import pytest
 from client_env import collect, spawn_client
-from test_serving import CLIENT_PRELUDE, assert_matches_in_process, get_stats, read_packed
+from test_serving import CLIENT_PRELUDE, get_stats, read_packed
 
 from openpi_cam.cam.engine import explain
 from openpi_cam.cam.reader import load_run
-from openpi_cam.cam.wrapper import CAMOptions, CAMPolicy, model_frame_uint8, wrap_policy_with_cam
+from openpi_cam.cam.wrapper import CAMOptions, model_frame_uint8, wrap_policy_with_cam
 from openpi_cam.serving import RequestContext, msgpack_numpy
 from openpi_cam.serving.server import start_server_in_thread
 
@@ -282,10 +282,13 @@ from test_cam_wrapper import HandGeneration, droid_obs
 from openpi_cam.cam.wrapper import CAMOptions, wrap_policy_with_cam
 from openpi_cam.policies.policy import create_policy
 golden = sys.argv[1]
-policy = create_policy("pi0_fast_droid", golden + "/checkpoint", paligemma_tokenizer=golden + "/paligemma_tokenizer_tiny.model",
-                       fast_tokenizer=golden + "/fast_tokenizer", dtype="float32")
+policy = create_policy(
+    "pi0_fast_droid", golden + "/checkpoint", paligemma_tokenizer=golden + "/paligemma_tokenizer_tiny.model",
+    fast_tokenizer=golden + "/fast_tokenizer", dtype="float32",
+)
 tokens = np.load(golden + "/droid_case.npz")["hand/generated_tokens"]
-wrapped = wrap_policy_with_cam(HandGeneration(policy, tokens), CAMOptions(every_k=1, cam_dir=sys.argv[2], queue_size=64))
+options = CAMOptions(every_k=1, cam_dir=sys.argv[2], queue_size=64)
+wrapped = wrap_policy_with_cam(HandGeneration(policy, tokens), options)
 print(wrapped.run_dir, flush=True)
 i = 0
 while True:
