@@ -16,6 +16,7 @@ import numpy as np
 
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.image_tools import letterbox_geometry, resize_with_pad_pil
+from openpi_cam.nested import flatten_dict, unflatten_dict
 from openpi_cam.normalize import NormStats
 
 DataDict = dict[str, Any]
@@ -108,29 +109,6 @@ def parse_prompt(value: Any, key: str = "prompt") -> str:
 
 # --------------------------------------------------------------------------------------------------------------------
 # Dict helpers
-
-
-def flatten_dict(tree: Mapping[str, Any], sep: str = "/") -> dict[str, Any]:
-    """Nested dicts -> one dict with ``a/b/c`` keys (upstream's convention)."""
-    out: dict[str, Any] = {}
-    for k, v in tree.items():
-        if isinstance(v, Mapping) and v:
-            for sub_k, sub_v in flatten_dict(v, sep).items():
-                out[f"{k}{sep}{sub_k}"] = sub_v
-        else:
-            out[k] = v
-    return out
-
-
-def unflatten_dict(flat: Mapping[str, Any], sep: str = "/") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in flat.items():
-        *parents, leaf = k.split(sep)
-        node = out
-        for p in parents:
-            node = node.setdefault(p, {})
-        node[leaf] = v
-    return out
 
 
 def pad_to_dim(x: np.ndarray, target_dim: int, axis: int = -1, value: float = 0.0) -> np.ndarray:
@@ -359,6 +337,7 @@ class DeltaActions:
     """Actions -> deltas w.r.t. the state on the masked dims (a no-op at inference, where there are no actions)."""
 
     mask: Sequence[bool] | None
+    sign = -1.0  # AbsoluteActions adds the state back
 
     def __call__(self, data: DataDict) -> DataDict:
         if "actions" not in data or self.mask is None:
@@ -366,23 +345,13 @@ class DeltaActions:
         mask = np.asarray(self.mask)
         dims = mask.shape[-1]
         state, actions = data["state"], np.array(data["actions"])
-        actions[..., :dims] -= np.expand_dims(np.where(mask, state[..., :dims], 0), axis=-2)
+        actions[..., :dims] += self.sign * np.expand_dims(np.where(mask, state[..., :dims], 0), axis=-2)
         data["actions"] = actions
         return data
 
 
 @dataclasses.dataclass(frozen=True)
-class AbsoluteActions:
+class AbsoluteActions(DeltaActions):
     """Inverse of `DeltaActions`: add the state back on the masked dims."""
 
-    mask: Sequence[bool] | None
-
-    def __call__(self, data: DataDict) -> DataDict:
-        if "actions" not in data or self.mask is None:
-            return data
-        mask = np.asarray(self.mask)
-        dims = mask.shape[-1]
-        state, actions = data["state"], np.array(data["actions"])
-        actions[..., :dims] += np.expand_dims(np.where(mask, state[..., :dims], 0), axis=-2)
-        data["actions"] = actions
-        return data
+    sign = 1.0

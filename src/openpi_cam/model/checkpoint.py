@@ -15,28 +15,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from openpi_cam.model.config import architecture_from_params, check_param_tree, param_shapes
+from openpi_cam.nested import flatten_dict, unflatten_dict
 
 
-def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for key, value in tree.items():
-        path = f"{prefix}{key}"
-        if isinstance(value, Mapping):
-            out.update(flatten(value, path + "/"))
-        else:
-            out[path] = value
-    return out
+def flatten(tree: Mapping[str, Any]) -> dict[str, Any]:
+    return flatten_dict(tree)
 
 
 def unflatten(flat: Mapping[str, Any]) -> dict[str, Any]:
-    tree: dict[str, Any] = {}
-    for path, value in flat.items():
-        *parents, leaf = path.split("/")
-        node = tree
-        for p in parents:
-            node = node.setdefault(p, {})
-        node[leaf] = value
-    return tree
+    return unflatten_dict(flat)
 
 
 def _strip_value_suffix(flat: dict[str, Any]) -> dict[str, Any]:

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.policies.robot import pass_prompt
+from openpi_cam.policies.robot import FixedCameraSources, pass_prompt
 from openpi_cam.transforms import DataDict, parse_image, parse_vector, require
 
 EXTERIOR_IMAGE_KEY = "observation/exterior_image_1_left"
@@ -27,13 +27,8 @@ CAMERA_SOURCES: Mapping[str, str | None] = {
 
 
 @dataclasses.dataclass(frozen=True)
-class DroidInputs:
-    @property
-    def camera_sources(self) -> Mapping[str, str | None]:
-        return dict(CAMERA_SOURCES)
-
-    def camera_sources_for(self, obs: Mapping[str, Any]) -> dict[str, str | None]:
-        return dict(CAMERA_SOURCES)
+class DroidInputs(FixedCameraSources):
+    CAMERA_SOURCES = CAMERA_SOURCES
 
     def __call__(self, data: DataDict) -> DataDict:
         joints = parse_vector(require(data, JOINT_POSITION_KEY), JOINT_POSITION_KEY, dim=JOINT_DIM)

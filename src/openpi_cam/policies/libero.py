@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.policies.robot import pass_prompt
+from openpi_cam.policies.robot import FixedCameraSources, pass_prompt
 from openpi_cam.transforms import DataDict, parse_image, parse_vector, require
 
 IMAGE_KEY = "observation/image"
@@ -26,13 +26,8 @@ CAMERA_SOURCES: Mapping[str, str | None] = {
 
 
 @dataclasses.dataclass(frozen=True)
-class LiberoInputs:
-    @property
-    def camera_sources(self) -> Mapping[str, str | None]:
-        return dict(CAMERA_SOURCES)
-
-    def camera_sources_for(self, obs: Mapping[str, Any]) -> dict[str, str | None]:
-        return dict(CAMERA_SOURCES)
+class LiberoInputs(FixedCameraSources):
+    CAMERA_SOURCES = CAMERA_SOURCES
 
     def __call__(self, data: DataDict) -> DataDict:
         base = parse_image(require(data, IMAGE_KEY), IMAGE_KEY)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -30,6 +30,19 @@ class RobotInputs(Protocol):
         ...
 
     def __call__(self, data: DataDict) -> DataDict: ...
+
+
+class FixedCameraSources:
+    """For robots whose camera layout is the same for every observation: subclasses set ``CAMERA_SOURCES``."""
+
+    CAMERA_SOURCES: ClassVar[Mapping[str, str | None]]
+
+    @property
+    def camera_sources(self) -> Mapping[str, str | None]:
+        return dict(self.CAMERA_SOURCES)
+
+    def camera_sources_for(self, obs: Mapping[str, Any]) -> dict[str, str | None]:
+        return dict(self.CAMERA_SOURCES)
 
 
 def lookup(data: Mapping[str, Any], key: str) -> Any:
