@@ -44,7 +44,13 @@ def _meta(score: float, base_geometry: dict | None) -> dict:
         "score": score,
         "prompt": "pick up the cube",
         "cameras": {
-            BASE: {"obs_key": "image", "valid": True, "grid": [GRID, GRID], "span": [0, 256], "geometry": base_geometry},
+            BASE: {
+                "obs_key": "image",
+                "valid": True,
+                "grid": [GRID, GRID],
+                "span": [0, 256],
+                "geometry": base_geometry,
+            },
             WRIST: {"obs_key": "wrist", "valid": True, "grid": [GRID, GRID], "span": [256, 512], "geometry": None},
         },
         "extra": {},

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import html
-import json
 import math
 import pathlib
 from collections import Counter
@@ -87,7 +86,7 @@ def timeline_svg(
 
     `series` holds (label, colour, values, dash pattern). Clicking anywhere over a step jumps to its detail.
     """
-    width, height, left, right, top, bottom = 900, 150, 46, 10, 20, 18
+    width, height, left, right, top, bottom = 900, 164, 46, 10, 34, 18
     n = len(steps)
     values = [v for _, _, vs, _ in series for v in vs if v is not None and not math.isnan(v)]
     lo, hi = y_range or ((min(values), max(values)) if values else (0.0, 1.0))
@@ -118,11 +117,17 @@ def timeline_svg(
             f' height="{plot_h}" class="{cls}"><title>{_e(tip)}</title></rect></a>'
         )
     xs = [x_of(i) for i in range(n)]
-    legend_x = left + 200
+    legend_x = left
     for label, color, vs, dash in series:
+        if all(v is None or math.isnan(v) for v in vs):
+            continue  # e.g. a camera masked on the whole connection
         parts.append(_polyline(xs, [math.nan if v is None or math.isnan(v) else y_of(v) for v in vs], color, dash))
-        parts.append(f'<text x="{legend_x}" y="13" class="lg" fill="{color}">{_e(label)}</text>')
-        legend_x += 8 * len(label) + 24
+        # The legend sits on its own line under the title; 6 px per character fits the 10 px font.
+        mark = f'<line x1="{legend_x}" y1="24" x2="{legend_x + 14}" y2="24" stroke="{color}" stroke-width="2"' + (
+            f' stroke-dasharray="{dash}"/>' if dash else "/>"
+        )
+        parts.append(f'{mark}<text x="{legend_x + 18}" y="28" class="lg">{_e(label)}</text>')
+        legend_x += 6 * len(label) + 34
     parts.append(
         f'<text x="{left}" y="{height - 4}" class="ax">steps {steps[0].step if n else ""}..'
         f"{steps[-1].step if n else ''}</text>"
@@ -230,7 +235,8 @@ td,th{border:1px solid #444;padding:2px 8px;text-align:left}.dim{color:#999}.war
 .timeline .hit{fill:transparent}.timeline .hit:hover{fill:rgba(255,255,255,.08)}
 .timeline .flag{fill:rgba(255,90,90,.25)}.timeline .flag:hover{fill:rgba(255,90,90,.5)}
 .thumbs{display:flex;flex-wrap:wrap;gap:4px}.th img{display:block;border:2px solid transparent}
-.th.flagged img{border-color:#ff5a5a}img.panel{max-width:100%}video{max-width:100%;display:block}
+.th.flagged img{border-color:#ff5a5a}img.panel{max-width:100%}video{max-width:900px;width:100%;display:block}
+dl{display:grid;grid-template-columns:max-content auto;gap:2px 12px}dt{color:#999}dd{margin:0}
 section.step{border-top:1px solid #333;padding-top:8px;margin-top:12px}
 """
 
@@ -253,7 +259,15 @@ def write_report(
         flag_map.setdefault(f.seq, []).append(f.reason)
     summary = aggregate(stats)
     run_id = manifest.get("run_id", result.out_dir.name)
-    info = {k: manifest.get(k) for k in ("run_id", "started_at", "checkpoint") if manifest.get(k) is not None}
+    info = {
+        "started": manifest.get("started_at"),
+        "checkpoint": manifest.get("checkpoint"),
+        "steps": f"{summary['steps']} on {summary['connections']} connection(s)",
+        "normalisation": f"per {opts.norm}",
+        "flagged": f"attention left the connection's usual camera, or the score fell by more than "
+        f"{100 * score_drop:.0f}% from the previous step",
+    }
+    info_html = "".join(f"<dt>{_e(k)}</dt><dd>{_e(v)}</dd>" for k, v in info.items() if v is not None)
     cam_rows = "".join(
         f"<tr><td>{_e(c)}</td><td>{a['valid_steps']}</td><td>{_pct(a['mean_share'])}</td>"
         f"<td>{_num(a['mean_entropy_norm'])}</td><td>{_pct(a['peak_stay_rate'])}</td>"
@@ -271,9 +285,7 @@ def write_report(
         f'<!doctype html><html lang="en"><head><meta charset="utf-8"><title>CAM run {_e(run_id)}</title>'
         f"<style>{_STYLE}</style></head><body>"
         f"<h1>CAM run {_e(run_id)}</h1>"
-        f"<p class='dim'>{_e(json.dumps(info))} · {summary['steps']} steps · {summary['connections']} connections · "
-        f"maps normalised per {_e(opts.norm)} · flagged: attention left the usual camera, or score fell by more "
-        f"than {100 * score_drop:.0f}% from the previous step</p>"
+        f"<dl>{info_html}</dl>"
         "<table><tr><th>camera</th><th>valid steps</th><th>mean share</th><th>mean entropy (norm.)</th>"
         f"<th>peak stayed</th><th>mean peak shift (cells)</th><th>dominant in</th></tr>{cam_rows}</table>"
         f"{sections}<h2>steps</h2>{''.join(step_html)}<script>{_SCRIPT}</script></body></html>\n"
