@@ -146,3 +146,19 @@ def test_masked_camera_is_flagged_and_spans_are_explicit(model):
     # Upstream's decode window reaches the masked camera for k > 0, so its gradient is not zero (golden case_b).
     assert res.grad_norms["base_1_rgb"][0] > 0
     assert all(m.dtype == np.float32 and (m >= 0).all() for m in res.maps.values())
+
+
+def test_rows_may_explain_different_steps(model):
+    """Batched offline explanation gives every row its own steps; each row equals its own shared-step call."""
+    data, obs = case("case_c")
+    per_row = model.gradcam_for_steps(obs, data["output_tokens"], [[0, 3], [7, 12]])
+    assert per_row.decode_steps.tolist() == [[0, 3], [7, 12]]
+    for b, steps in enumerate(([0, 3], [7, 12])):
+        shared = model.gradcam_for_steps(obs, data["output_tokens"], steps)
+        np.testing.assert_allclose(per_row.score[b], shared.score[b], atol=1e-5)
+        scale = np.abs(shared.maps["wrist_0_rgb"][b]).max()
+        np.testing.assert_allclose(per_row.maps["wrist_0_rgb"][b], shared.maps["wrist_0_rgb"][b], atol=1e-4 * scale)
+    chunk = model.gradcam_for_chunk(obs, data["output_tokens"], [[0, 1, 2], [5, 6]])
+    assert chunk.decode_steps.tolist() == [[0, 1, 2], [5, 6, -1]] and chunk.token_ids[1, 2] == -1
+    alone = model.gradcam_for_chunk(obs, data["output_tokens"], [5, 6])
+    np.testing.assert_allclose(chunk.score[1], alone.score[1], atol=1e-5)

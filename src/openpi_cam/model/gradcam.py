@@ -43,7 +43,7 @@ class GradCamResult:
     valid: dict[str, np.ndarray]  # camera -> bool [B]; a masked camera is invalid (its map is still reported)
     score: np.ndarray  # [B] or [B, T]
     token_ids: np.ndarray  # int32 [B, T]: the explained tokens
-    decode_steps: np.ndarray  # int32 [T]: the decode steps explained
+    decode_steps: np.ndarray  # int32 [T] (or [B, T] when rows explain different steps): the decode steps explained
     positions: np.ndarray  # int32 [B, T]: RoPE position of the output that predicted each explained token
     logits: np.ndarray | None  # float32 [B, V] or [B, T, V]: the full logit vector at that output (token targets)
 
@@ -121,9 +121,19 @@ def _prepare(model: Pi0FAST, obs: Observation, generated: Any) -> tuple[Observat
 
 
 def _positions(prefill_len: np.ndarray, steps: np.ndarray) -> np.ndarray:
-    """RoPE position of the output predicting step k: the last prefix token for k = 0, else g_{k-1}'s slot."""
-    steps = np.asarray(steps)[None, :]
+    """RoPE position of the output predicting step k: the last prefix token for k = 0, else g_{k-1}'s slot.
+    steps [B, T] -> [B, T]"""
     return np.where(steps == 0, prefill_len[:, None] - 1, prefill_len[:, None] + steps).astype(np.int32)
+
+
+def _per_row(steps: Any, batch: int) -> tuple[np.ndarray, bool]:
+    """Steps shared by every row ([T]) or given per row ([B, T]) -> ([B, T], whether they were shared)."""
+    steps = np.asarray(steps, np.int32)
+    if steps.ndim == 1:
+        return np.broadcast_to(steps, (batch, steps.shape[0])), True
+    if steps.ndim != 2 or steps.shape[0] != batch:
+        raise ValueError(f"steps must be [T] or [B={batch}, T], got shape {steps.shape}")
+    return steps, False
 
 
 def _bucket(n: int) -> int:
@@ -153,11 +163,12 @@ def _result(model, obs, target, alpha, cam, grad_norm, score, token_ids, steps, 
 
 
 def gradcam_for_steps(
-    model: Pi0FAST, obs: Observation, generated_ids: Any, steps: Sequence[int], *, squeeze: bool = False
+    model: Pi0FAST, obs: Observation, generated_ids: Any, steps: Any, *, squeeze: bool = False
 ) -> GradCamResult:
-    """Explains the generated tokens at `steps` (one map stack per camera, T = len(steps)), one shared forward."""
+    """Explains the generated tokens at `steps` ([T] for every row, or [B, T] per row; one map stack per camera),
+    with one forward pass shared by all of them."""
     obs, fed, prefill_len = _prepare(model, obs, generated_ids)
-    return _explain_tokens(model, obs, fed, fed, np.asarray(steps, np.int32), prefill_len, squeeze)
+    return _explain_tokens(model, obs, fed, fed, steps, prefill_len, squeeze)
 
 
 def gradcam_for_token(
@@ -192,26 +203,27 @@ def gradcam_for_token(
         raise ValueError(f"explaining step {step} needs the {step} tokens generated before it, got {prefix.shape[1]}")
     targets = fed.copy()
     targets[:, step] = np.broadcast_to(np.asarray(token_id, np.int32), (batch,))
-    return _explain_tokens(model, obs, fed_j, jnp.asarray(targets), np.asarray([step], np.int32), prefill_len, True)
+    return _explain_tokens(model, obs, fed_j, jnp.asarray(targets), [step], prefill_len, True)
 
 
 def _explain_tokens(model, obs, fed, targets, steps, prefill_len, squeeze) -> GradCamResult:
+    batch = fed.shape[0]
+    steps, shared = _per_row(steps, batch)
     if steps.size == 0:
         raise ValueError("no decode steps to explain")
     if steps.min() < 0 or steps.max() >= fed.shape[1]:
         raise ValueError(f"decode steps {steps.tolist()} outside [0, {fed.shape[1]})")
-    t = len(steps)
-    padded = np.concatenate([steps, np.full(_bucket(t) - t, steps[0], np.int32)])
-    batch = fed.shape[0]
+    t = steps.shape[1]
+    padded = np.concatenate([steps, np.repeat(steps[:, :1], _bucket(t) - t, axis=1)], axis=1)  # [B, T_pad]
     score, alpha, cam, grad_norm, logits = _token_cams(
-        model.params, obs, fed, targets, jnp.asarray(np.repeat(padded[:, None], batch, 1)), cfg=model.config
+        model.params, obs, fed, targets, jnp.asarray(padded.T), cfg=model.config
     )
 
     def batch_first(x):  # [T_pad, B, ...] -> [B, T, ...] (or [B, ...] for one token)
         x = np.moveaxis(np.asarray(x)[:t], 0, 1)
         return x[:, 0] if squeeze else x
 
-    token_ids = np.asarray(targets)[:, steps]
+    token_ids = np.take_along_axis(np.asarray(targets), steps, axis=1)
     return _result(
         model,
         obs,
@@ -221,31 +233,33 @@ def _explain_tokens(model, obs, fed, targets, steps, prefill_len, squeeze) -> Gr
         batch_first(grad_norm),
         batch_first(score),
         token_ids,
-        steps,
+        steps[0] if shared else steps,
         _positions(prefill_len, steps),
         batch_first(logits),
     )
 
 
-def gradcam_for_chunk(model: Pi0FAST, obs: Observation, generated_ids: Any, steps: Sequence[int]) -> GradCamResult:
-    """Whole-chunk target: score = sum over `steps` of log p(g_k); one backward pass, one map per camera."""
+def gradcam_for_chunk(model: Pi0FAST, obs: Observation, generated_ids: Any, steps: Any) -> GradCamResult:
+    """Whole-chunk target: score = sum over `steps` of log p(g_k); one backward pass, one map per camera.
+
+    `steps` is one list for every row, or one list per row (lengths may differ: per-row `token_ids`,
+    `decode_steps` and `positions` are then padded with -1)."""
     obs, fed, prefill_len = _prepare(model, obs, generated_ids)
-    steps = np.asarray(steps, np.int32)
-    if steps.size == 0:
-        raise ValueError("no decode steps to explain")
+    batch = fed.shape[0]
+    shared = all(np.ndim(s) == 0 for s in steps)
+    rows = [np.asarray(steps, np.int32)] * batch if shared else [np.asarray(r, np.int32) for r in steps]
+    if len(rows) != batch or any(r.size == 0 for r in rows):
+        raise ValueError(f"give one non-empty list of decode steps, or one per row (batch {batch})")
+    width = max(r.size for r in rows)
+    padded = np.full((batch, width), -1, np.int32)
     weights = np.zeros(fed.shape, np.float32)
-    weights[:, steps] = 1.0
+    for b, r in enumerate(rows):
+        padded[b, : r.size] = r
+        weights[b, r] = 1.0
     score, alpha, cam, grad_norm = _chunk_cam(model.params, obs, fed, jnp.asarray(weights), cfg=model.config)
+    valid = padded >= 0
+    token_ids = np.where(valid, np.take_along_axis(np.asarray(fed), np.maximum(padded, 0), axis=1), -1)
+    positions = np.where(valid, _positions(prefill_len, np.maximum(padded, 0)), -1)
     return _result(
-        model,
-        obs,
-        "chunk",
-        alpha,
-        cam,
-        grad_norm,
-        score,
-        np.asarray(fed)[:, steps],
-        steps,
-        _positions(prefill_len, steps),
-        None,
+        model, obs, "chunk", alpha, cam, grad_norm, score, token_ids, rows[0] if shared else padded, positions, None
     )
