@@ -82,6 +82,7 @@ def load_params(params_dir: str | pathlib.Path, *, dtype: str | None = None, che
     restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray, dtype=np_dtype), item)
     restored = ckptr.restore(params_dir, args=ocp.args.PyTreeRestore(item=item, restore_args=restore_args))["params"]
     flat = _strip_value_suffix(flatten(restored))
+    del restored  # `flat` now holds the only references to the host buffers
     device_flat = {}
     for path in list(flat):
         device_flat[path] = jnp.asarray(flat.pop(path))  # drop each host copy as soon as it is on the device
