@@ -26,7 +26,8 @@ from test_serving import CLIENT_PRELUDE, get_stats, read_packed
 
 from openpi_cam.cam.engine import explain
 from openpi_cam.cam.reader import load_run
-from openpi_cam.cam.wrapper import CAMOptions, model_frame_uint8, wrap_policy_with_cam
+from openpi_cam.cam.records import model_frame_uint8
+from openpi_cam.cam.wrapper import CAMOptions, wrap_policy_with_cam
 from openpi_cam.serving import RequestContext, msgpack_numpy
 from openpi_cam.serving.server import start_server_in_thread
 

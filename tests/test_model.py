@@ -199,9 +199,10 @@ print(status("VmHWM") - before, status("VmRSS") - before)
 def test_loading_peak_memory_is_bounded(tmp_path):
     """Loading keeps one copy of the params and orbax's transient read buffers, not two full copies.
 
-    Measured on this machine for a 508 MB float32 checkpoint whose largest leaf is half of it: peak growth 1.72x the
-    params' size (orbax decompresses each leaf's single chunk next to its destination buffer), 1.04x once loaded.
-    The bound asserted, 1.9x, would catch a second full copy (a leftover host tree or a device copy kept alive).
+    Measured on this machine for a 508 MB float32 checkpoint whose largest leaf is half of it: peak growth 1.60x the
+    params' size (orbax decompresses each leaf's single chunk next to its destination buffer; the real 3B tree's
+    largest leaf is 41% of it), 1.24x once loaded. Copying every leaf to the device instead of aliasing it measured
+    1.81x peak and 1.6x resident; the bounds catch that or any other second full copy.
     """
     import subprocess
     import sys
@@ -223,5 +224,5 @@ def test_loading_peak_memory_is_bounded(tmp_path):
     )
     peak_growth, resident_growth = (int(v) for v in out.stdout.split()[-2:])
     assert size > 300e6
-    assert peak_growth < 1.9 * size, f"loading {size / 1e6:.0f} MB peaked {peak_growth / 1e6:.0f} MB above baseline"
-    assert resident_growth < 1.2 * size
+    assert peak_growth < 1.75 * size, f"loading {size / 1e6:.0f} MB peaked {peak_growth / 1e6:.0f} MB above baseline"
+    assert resident_growth < 1.4 * size

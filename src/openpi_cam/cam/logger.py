@@ -31,6 +31,10 @@ from openpi_cam.cam.reader import (
     RUN_JSON,
     SCHEMA_VERSION,
     STEPS_DIR,
+    _read_json,
+    _read_run_info,
+    _scan,
+    _step_files,
     build_manifest,
     dumps,
     index_entry,
@@ -154,13 +158,7 @@ class CAMLogger:
         manifest_every: int = 50,
         compress: bool = True,
     ) -> None:
-        if manifest_every < 1:
-            raise ValueError(f"manifest_every must be >= 1, got {manifest_every}")
-        self._max_steps = max_steps
-        self._max_bytes = max_bytes
-        self._manifest_every = manifest_every
-        self._compress = compress
-        self._lock = threading.Lock()
+        self._setup(max_steps, max_bytes, manifest_every, compress)
         self._run_dir = _create_run_dir(pathlib.Path(cam_dir))
         self._run_info = {
             "schema_version": SCHEMA_VERSION,
@@ -174,6 +172,16 @@ class CAMLogger:
             write_json_atomic(self._run_dir / RUN_JSON, self._run_info)
         except OSError as e:
             raise OSError(e.errno, f"cannot write {self._run_dir / RUN_JSON}: {e.strerror or e}") from e
+
+    def _setup(self, max_steps: int | None, max_bytes: int | None, manifest_every: int, compress: bool) -> None:
+        """State shared by a fresh logger and a resumed one (an empty run)."""
+        if manifest_every < 1:
+            raise ValueError(f"manifest_every must be >= 1, got {manifest_every}")
+        self._max_steps = max_steps
+        self._max_bytes = max_bytes
+        self._manifest_every = manifest_every
+        self._compress = compress
+        self._lock = threading.Lock()
         self._next_seq = 0
         self._entries: list[dict[str, Any]] = []
         self._external: dict[str, Any] = {}
@@ -190,6 +198,62 @@ class CAMLogger:
         self._index_fd: int | None = None
         # After a failed append the file may end in a partial line; the next line must not be glued onto it.
         self._index_needs_newline = False
+        self._resumed_at: list[str] = []
+
+    @classmethod
+    def resume(
+        cls,
+        run_dir: str | os.PathLike[str],
+        *,
+        max_steps: int | None = None,
+        max_bytes: int | None = None,
+        manifest_every: int = 50,
+        compress: bool = True,
+    ) -> CAMLogger:
+        """Reopens an existing run directory (even one whose writer was killed) and appends to it.
+
+        Step files are the source of truth: the next seq follows the highest readable step file, the manifest lists
+        every step found, and the old manifest's counters are carried on. Caps count the whole run, earlier steps
+        included. run.json is left as it was; each resumption is recorded in the manifest's `resumed_at`.
+        """
+        run_dir = pathlib.Path(run_dir)
+        run_info = _read_run_info(run_dir)  # raises FileNotFoundError for a directory that is not a run
+        if not (run_dir / STEPS_DIR).is_dir():
+            raise FileNotFoundError(f"{run_dir} has no {STEPS_DIR}/ directory")
+        self = cls.__new__(cls)
+        self._setup(max_steps, max_bytes, manifest_every, compress)
+        self._run_dir = run_dir
+        self._run_info = run_info
+        steps, entries, problems = _scan(run_dir, load_arrays=False)
+        if problems:
+            log.warning("CAM logger (%s): resuming past unreadable step files: %s", run_dir, problems)
+        # Unreadable step files keep their seq too: appending must never overwrite a file already on disk.
+        self._next_seq = max(_step_files(run_dir), default=-1) + 1
+        self._entries = [entries[s.seq] for s in steps]
+        old = _read_json(run_dir / MANIFEST_JSON) or {}
+        old_counters = old.get("counters") if isinstance(old.get("counters"), dict) else {}
+        logger_counters = old_counters.get("logger") if isinstance(old_counters.get("logger"), dict) else {}
+        for key, value in logger_counters.items():
+            if key in self._counters and isinstance(value, type(self._counters[key])):
+                self._counters[key] = copy.deepcopy(value)
+        # What is on disk wins over a stale manifest for the counts caps are checked against.
+        self._counters["steps_logged"] = len(steps)
+        on_disk = sum(s.file.stat().st_size for s in steps)
+        self._counters["bytes_written"] = max(int(self._counters["bytes_written"]), on_disk)
+        if isinstance(old_counters.get("external"), dict):
+            self._external = copy.deepcopy(old_counters["external"])
+        previous = old.get("resumed_at")
+        self._resumed_at = [*(previous if isinstance(previous, list) else []), utc_now_iso()]
+        try:
+            with open(run_dir / INDEX_JSONL, "rb") as f:
+                f.seek(0, os.SEEK_END)
+                if f.tell():
+                    f.seek(-1, os.SEEK_END)
+                    self._index_needs_newline = f.read(1) != b"\n"  # a line cut short by a crash
+        except FileNotFoundError:
+            pass
+        self._write_manifest_locked()
+        return self
 
     @property
     def run_dir(self) -> pathlib.Path:
@@ -306,7 +370,8 @@ class CAMLogger:
 
     def _write_manifest_locked(self) -> bool:
         counters = {"logger": copy.deepcopy(self._counters), "external": copy.deepcopy(self._external)}
-        manifest = build_manifest(self._run_info, counters, self._entries, closed=self._closed)
+        extra = {"resumed_at": self._resumed_at} if self._resumed_at else {}
+        manifest = build_manifest(self._run_info, counters, self._entries, closed=self._closed, **extra)
         try:
             write_json_atomic(self._run_dir / MANIFEST_JSON, manifest)
         except OSError as e:

@@ -17,13 +17,11 @@ import threading
 import time
 from typing import Any, Literal
 
-import numpy as np
-
 from openpi_cam.cam.engine import TARGETS, CamSkipped, explain
+from openpi_cam.cam.records import SaveFrames, jsonable, step_record
 
 logger = logging.getLogger(__name__)
 
-SaveFrames = Literal["none", "raw", "model", "both"]
 # Observation keys with this prefix are not passed to the policy; their values go into the step's `extra` metadata
 # (e.g. the demo's ground-truth target box).
 EXTRA_PREFIX = "cam_extra/"
@@ -57,18 +55,6 @@ class _Job:
     step: int
     timestamp: float
     extra: dict[str, Any]
-
-
-def _to_jsonable(value: Any) -> Any:
-    arr = np.asarray(value)
-    return arr.item() if arr.ndim == 0 else arr.tolist()
-
-
-def model_frame_uint8(image: Any) -> np.ndarray:
-    """The model's input image ([-1, 1] float, batch row 0) back as uint8 RGB (exact for uint8-derived inputs)."""
-    x = np.asarray(image, np.float32)
-    x = x[0] if x.ndim == 4 else x
-    return np.clip(np.round((x + 1.0) / 2.0 * 255.0), 0, 255).astype(np.uint8)
 
 
 class CAMPolicy:
@@ -121,7 +107,7 @@ class CAMPolicy:
         response, trace = self._policy.infer_traced(obs)
         self._count("scheduled")
         try:
-            job = _Job(trace, connection, step, time.time(), {k: _to_jsonable(v) for k, v in extra.items()})
+            job = _Job(trace, connection, step, time.time(), {k: jsonable(v) for k, v in extra.items()})
             self._queue.put_nowait(job)
         except queue.Full:
             self._count("dropped_queue_full", "queue full, job dropped")
@@ -140,8 +126,6 @@ class CAMPolicy:
                 self._queue.task_done()
 
     def _process(self, job: _Job) -> None:
-        from openpi_cam.cam.logger import StepRecord
-
         t0 = time.perf_counter()
         try:
             trace = job.trace
@@ -160,35 +144,16 @@ class CAMPolicy:
             self._count(f"failed_{type(e).__name__}", f"Grad-CAM raised {type(e).__name__}: {e}")
             return
         gradcam_s = time.perf_counter() - t0
-        save = self._options.save_frames
-        frames = {}
-        if save in ("raw", "both"):
-            frames = {c: np.asarray(im) for c, im in trace.raw_images.items() if im is not None}
-        model_frames = {}
-        if save in ("model", "both"):
-            model_frames = {c: model_frame_uint8(im) for c, im in trace.observation.images.items()}
-        cameras = {
-            c: {
-                "obs_key": trace.camera_sources.get(c),
-                **info,
-                "geometry": trace.geometry[c].as_dict() if trace.geometry.get(c) is not None else None,
-            }
-            for c, info in exp.cameras.items()
-        }
-        meta = {
-            "target": exp.target,
-            "token_ids": exp.token_ids,
-            "decode_steps": exp.decode_steps,
-            "positions": exp.positions,
-            "action_indices": exp.action_indices,
-            "score": exp.score,
-            "prompt": trace.prompt,
-            "cameras": cameras,
-            "malformed_reason": trace.malformed_reason,
-            "gradcam_ms": round(gradcam_s * 1000.0, 3),
-            "extra": job.extra,
-        }
-        record = StepRecord(job.connection, job.step, job.timestamp, exp.maps, frames, model_frames, meta)
+        record = step_record(
+            trace,
+            exp,
+            connection=job.connection,
+            step=job.step,
+            timestamp=job.timestamp,
+            save_frames=self._options.save_frames,
+            extra=job.extra,
+            gradcam_ms=gradcam_s * 1000.0,
+        )
         try:
             logged = self._logger.log_step(record)
         except Exception as e:

@@ -64,8 +64,8 @@ def load_params(params_dir: str | pathlib.Path, *, dtype: str | None = None, che
     """Restores the params pytree (upstream names) onto the default device.
 
     Arrays are restored straight into host numpy buffers (cast to `dtype` by orbax while reading, if given) and moved
-    to the device one leaf at a time, so peak host memory stays near one copy of the checkpoint. With `check`, the
-    tree must be exactly the pi0-FAST tree of the architecture its shapes describe.
+    to the device one leaf at a time, so host memory holds one copy of the params plus orbax's transient read
+    buffers. With `check`, the tree must be exactly the pi0-FAST tree of the architecture its shapes describe.
     """
     import orbax.checkpoint as ocp
 
@@ -85,7 +85,9 @@ def load_params(params_dir: str | pathlib.Path, *, dtype: str | None = None, che
     del restored  # `flat` now holds the only references to the host buffers
     device_flat = {}
     for path in list(flat):
-        device_flat[path] = jnp.asarray(flat.pop(path))  # drop each host copy as soon as it is on the device
+        # On a CPU backend the device array may alias the host buffer instead of copying it; on an accelerator the
+        # host copy is dropped as soon as it is on the device.
+        device_flat[path] = jax.device_put(flat.pop(path), may_alias=True)
     return unflatten(device_flat)
 
 

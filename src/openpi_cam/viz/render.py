@@ -297,6 +297,7 @@ def render_cmd(
     videos: bool = True,
     html: bool = True,
     progress: bool = True,
+    rerun: pathlib.Path | None = None,
 ) -> int:
     """Overlays, per-step panels, an MP4 and a GIF per connection, and a static HTML report for a CAM run.
 
@@ -310,6 +311,7 @@ def render_cmd(
         videos: write the MP4 and GIF per connection.
         html: write index.html (self-contained, opens from disk).
         progress: show progress on stderr.
+        rerun: also write the run as a Rerun recording to this .rrd file (needs the `rerun` extra).
     """
     from openpi_cam.cam.reader import load_run
 
@@ -325,4 +327,13 @@ def render_cmd(
         result.report = write_report(result, dict(run.manifest), opts)
     where = result.report or out_dir
     print(f"rendered {len(result.steps)} steps to {where}", file=sys.stderr)
+    if rerun is not None:
+        from openpi_cam.viz.rerun_sink import write_rrd
+
+        try:
+            write_rrd(run_dir, rerun, norm=norm, alpha=alpha)
+        except ImportError as e:
+            print(f"openpi-cam render: {e}", file=sys.stderr)
+            return 1
+        print(f"wrote Rerun recording {rerun}", file=sys.stderr)
     return 0

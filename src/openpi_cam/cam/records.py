@@ -1,0 +1,67 @@
+"""The logger record of one explained inference, shared by the live side channel and offline explanation."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+import numpy as np
+
+from openpi_cam.cam.engine import Explanation
+from openpi_cam.cam.logger import StepRecord
+
+SaveFrames = Literal["none", "raw", "model", "both"]
+
+
+def jsonable(value: Any) -> Any:
+    """A client value (numpy scalar or array) as plain JSON data for the step metadata."""
+    arr = np.asarray(value)
+    return arr.item() if arr.ndim == 0 else arr.tolist()
+
+
+def model_frame_uint8(image: Any) -> np.ndarray:
+    """The model's input image ([-1, 1] float, batch row 0) back as uint8 RGB (exact for uint8-derived inputs)."""
+    x = np.asarray(image, np.float32)
+    x = x[0] if x.ndim == 4 else x
+    return np.clip(np.round((x + 1.0) / 2.0 * 255.0), 0, 255).astype(np.uint8)
+
+
+def step_record(
+    trace: Any,
+    exp: Explanation,
+    *,
+    connection: str,
+    step: int,
+    timestamp: float,
+    save_frames: SaveFrames,
+    extra: dict[str, Any],
+    gradcam_ms: float,
+) -> StepRecord:
+    """The logger record of one explained inference, in the layout the side channel writes (docs/FORMAT.md)."""
+    frames = {}
+    if save_frames in ("raw", "both"):
+        frames = {c: np.asarray(im) for c, im in trace.raw_images.items() if im is not None}
+    model_frames = {}
+    if save_frames in ("model", "both"):
+        model_frames = {c: model_frame_uint8(im) for c, im in trace.observation.images.items()}
+    cameras = {
+        c: {
+            "obs_key": trace.camera_sources.get(c),
+            **info,
+            "geometry": trace.geometry[c].as_dict() if trace.geometry.get(c) is not None else None,
+        }
+        for c, info in exp.cameras.items()
+    }
+    meta = {
+        "target": exp.target,
+        "token_ids": exp.token_ids,
+        "decode_steps": exp.decode_steps,
+        "positions": exp.positions,
+        "action_indices": exp.action_indices,
+        "score": exp.score,
+        "prompt": trace.prompt,
+        "cameras": cameras,
+        "malformed_reason": trace.malformed_reason,
+        "gradcam_ms": round(gradcam_ms, 3),
+        "extra": extra,
+    }
+    return StepRecord(connection, step, timestamp, exp.maps, frames, model_frames, meta)

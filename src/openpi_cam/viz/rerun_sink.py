@@ -1,0 +1,83 @@
+"""A CAM run as a Rerun recording (`.rrd`), for people who already look at robot data in the Rerun viewer.
+
+Layout, per connection `<conn>` (escaped as one entity-path part) and model camera `<cam>`:
+  /<conn>/<cam>/frame     the image the map is drawn on (client frame, else model frame)
+  /<conn>/<cam>/overlay   the map blended over it, as `openpi-cam render` draws it
+  /<conn>/share/<cam>     the camera's share of the step's attention mass (scalar; openpi_cam.viz.stats)
+  /<conn>/score           the explained score (mean over tokens for multi-token targets)
+Timelines: `step` (the request's index in its connection), `seq` (logging order) and `time` (request time).
+
+`rerun-sdk` is optional (`pip install "openpi-cam[rerun]"`); it is imported only when a recording is written.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import pathlib
+from typing import Any, Literal
+
+RERUN_MISSING = 'writing a Rerun recording needs rerun-sdk: pip install "openpi-cam[rerun]"'
+
+
+def _import_rerun() -> Any:
+    try:
+        import rerun
+    except ImportError as e:
+        raise ImportError(RERUN_MISSING) from e
+    return rerun
+
+
+def entity_paths(connection: str, cameras: list[str]) -> list[str]:
+    """Every entity path one connection's steps log to (what a reader of the recording can look for)."""
+    rr = _import_rerun()
+    conn = rr.escape_entity_path_part(connection)
+    paths = [f"/{conn}/score"]
+    for c in cameras:
+        cam = rr.escape_entity_path_part(c)
+        paths += [f"/{conn}/{cam}/frame", f"/{conn}/{cam}/overlay", f"/{conn}/share/{cam}"]
+    return paths
+
+
+def write_rrd(
+    run_dir: str | os.PathLike[str],
+    out_path: str | os.PathLike[str],
+    *,
+    norm: Literal["step", "run"] = "step",
+    alpha: float = 0.5,
+) -> pathlib.Path:
+    """Writes the run's frames, overlays and per-camera attention shares to `out_path`; returns it."""
+    rr = _import_rerun()
+    from openpi_cam.cam.reader import load_run
+    from openpi_cam.viz.render import camera_image, camera_overlay, step_scale
+    from openpi_cam.viz.stats import compute_stats, transient
+
+    run = load_run(run_dir, load_arrays=False)
+    steps = sorted(run.steps, key=lambda s: s.seq)
+    stats = compute_stats(steps)
+    run_max = max((step_scale(st) for st in stats), default=0.0)
+    out_path = pathlib.Path(out_path)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    rec = rr.RecordingStream("openpi-cam", recording_id=str(run.run_info.get("run_id", run.run_dir.name)))
+    rec.save(out_path)
+    try:
+        for step, st in zip(map(transient, steps), stats, strict=True):
+            rec.set_time("step", sequence=st.step)
+            rec.set_time("seq", sequence=st.seq)
+            if math.isfinite(st.timestamp):
+                rec.set_time("time", timestamp=st.timestamp)
+            conn = rr.escape_entity_path_part(st.connection)
+            scale = run_max if norm == "run" else step_scale(st)
+            if math.isfinite(st.score):
+                rec.log(f"/{conn}/score", rr.Scalars(st.score))
+            for camera in list(step.meta.get("cameras", {})) or list(step.maps):
+                cam = rr.escape_entity_path_part(camera)
+                image, _ = camera_image(step, camera)
+                rec.log(f"/{conn}/{cam}/frame", rr.Image(image))
+                rec.log(f"/{conn}/{cam}/overlay", rr.Image(camera_overlay(step, camera, scale, alpha)))
+                if camera in st.cameras:
+                    rec.log(f"/{conn}/share/{cam}", rr.Scalars(st.cameras[camera].share))
+    finally:
+        rec.flush()
+        rec.disconnect()
+    return out_path
