@@ -19,15 +19,15 @@ logger = logging.getLogger(__name__)
 
 
 def serve(
-    checkpoint_dir: Path,
-    config: str = "pi0_fast_droid",
+    checkpoint_dir: Path | None = None,
+    config: str | None = None,
     paligemma_tokenizer: Path | None = None,
     fast_tokenizer: Path | None = None,
     port: int = 8000,
     host: str = "0.0.0.0",
     default_prompt: str | None = None,
     api_key: str | None = None,
-    dtype: Literal["bfloat16", "float32"] = "bfloat16",
+    dtype: Literal["bfloat16", "float32"] | None = None,
     max_message_mb: float = 64.0,
     debug: bool = False,
     stop_at_action_end: bool = False,
@@ -43,15 +43,16 @@ def serve(
     """Serve a pi0-FAST checkpoint over websockets (openpi-client compatible), optionally logging Grad-CAM.
 
     Args:
-        checkpoint_dir: checkpoint folder with `params/` and `assets/<asset_id>/norm_stats.json`.
-        config: named policy config (e.g. pi0_fast_droid, pi0_fast_libero).
+        checkpoint_dir: checkpoint folder with `params/` and `assets/<asset_id>/norm_stats.json`; default: the
+            bundled demo model (config `demo_reach`, its own tokenizers, float32).
+        config: named policy config (e.g. pi0_fast_droid, pi0_fast_libero); default pi0_fast_droid for a checkpoint.
         paligemma_tokenizer: PaliGemma SentencePiece model; default: the policy factory's standard location.
         fast_tokenizer: FAST action tokenizer folder; default: the policy factory's standard location.
         port: TCP port.
         host: interface to listen on (0.0.0.0 = all, like upstream).
         default_prompt: prompt used when a request has none.
         api_key: if set, clients must send `Authorization: Api-Key <key>` (openpi-client's `api_key=`).
-        dtype: parameter dtype; upstream serves bfloat16.
+        dtype: parameter and compute dtype; default bfloat16 for a checkpoint, as upstream serves.
         max_message_mb: largest accepted request frame; larger ones close the connection (code 1009).
         debug: send tracebacks of unexpected errors to clients.
         stop_at_action_end: stop decoding at the end of the action string instead of running to EOS.
@@ -73,6 +74,18 @@ def serve(
         return 2
     from openpi_cam.policies.policy import create_policy
 
+    max_decoding_steps = 256  # upstream's default
+    if checkpoint_dir is None:  # the bundled default: a tiny pi0-FAST trained on the demo task
+        from openpi_cam.demo import bundled
+
+        max_decoding_steps = bundled.MAX_DECODING_STEPS
+        checkpoint_dir = bundled.CHECKPOINT
+        config = config or bundled.DEMO_CONFIG.name
+        paligemma_tokenizer = paligemma_tokenizer or bundled.PALIGEMMA_TOKENIZER
+        fast_tokenizer = fast_tokenizer or bundled.FAST_TOKENIZER
+        dtype = dtype or "float32"
+    config = config or "pi0_fast_droid"
+    dtype = dtype or "bfloat16"
     try:
         policy = create_policy(
             config,
@@ -82,6 +95,7 @@ def serve(
             dtype=dtype,
             default_prompt=default_prompt,
             stop_at_action_end=stop_at_action_end,
+            max_decoding_steps=max_decoding_steps,
         )
     except FileNotFoundError as e:
         # Missing files are an operator problem, not a bug: the message says what is missing and where.
