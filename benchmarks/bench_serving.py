@@ -2,8 +2,8 @@
 
     python benchmarks/bench_serving.py [--requests 30 --pause-ms 300 --target action-token]
 
-Two servers on loopback over the same policy (the bundled demo model by default, or `--config/--checkpoint-dir`
-and the tokenizer flags): plain, and wrapped with `--cam-every-k 1`. A websocket client speaking the openpi-client
+Two servers on loopback over the same policy (the bundled demo model, whose generations hold action tokens to
+explain): plain, and wrapped with `--cam-every-k 1`. A websocket client speaking the openpi-client
 protocol sends the same observations to each, in two patterns: paced (pausing `--pause-ms` between requests, as a
 robot executing its action chunk would) and back to back. Printed: request latency p50 / p99 per mode, the on/off
 ratios, and Grad-CAM jobs completed per second of wall time.
@@ -46,18 +46,16 @@ def drive(port: int, observations: list[dict[str, Any]], pause_s: float) -> list
     return latencies
 
 
-def load_policy(args: argparse.Namespace):
-    from openpi_cam.policies.policy import create_policy
+def demo_setup(n: int, seed: int = 0):
+    """The bundled demo policy and `n` client observations of random scenes (with their `cam_extra/` truth)."""
+    from openpi_cam.demo import bundled, task
 
-    if args.checkpoint_dir is None:
-        from openpi_cam.demo import bundled
-
-        return bundled.create_demo_policy(), bundled.make_observations(args.requests, seed=0)
-    policy = create_policy(
-        args.config, args.checkpoint_dir, paligemma_tokenizer=args.paligemma_tokenizer,
-        fast_tokenizer=args.fast_tokenizer, dtype=args.dtype,
-    )
-    raise SystemExit(f"observations for {args.config} are not generated here; use the bundled demo ({policy})")
+    rng = np.random.default_rng(seed)
+    observations = []
+    for _ in range(n):
+        scene = task.random_scene(rng)
+        observations.append(bundled.client_observation(task.observe(scene, task.random_start(rng, scene)), scene))
+    return bundled.create_demo_policy(), observations
 
 
 def main() -> None:
@@ -65,16 +63,11 @@ def main() -> None:
     ap.add_argument("--requests", type=int, default=30)
     ap.add_argument("--pause-ms", type=float, default=300.0)
     ap.add_argument("--target", default="action-token", choices=["action-token", "all-action-tokens", "chunk"])
-    ap.add_argument("--config", default="pi0_fast_droid")
-    ap.add_argument("--checkpoint-dir", default=None)
-    ap.add_argument("--paligemma-tokenizer", default=None)
-    ap.add_argument("--fast-tokenizer", default=None)
-    ap.add_argument("--dtype", default="float32")
     args = ap.parse_args()
 
-    policy, observations = load_policy(args)
-    for obs in observations[:2]:  # compile inference and Grad-CAM before timing
-        policy.infer(obs)
+    policy, observations = demo_setup(args.requests)
+    for obs in observations[:2]:  # compile inference before timing
+        policy.infer({k: v for k, v in obs.items() if not k.startswith("cam_extra/")})
     with tempfile.TemporaryDirectory() as cam_dir:
         options = CAMOptions(every_k=1, cam_dir=cam_dir, target=args.target, queue_size=4)
         wrapped = wrap_policy_with_cam(policy, options)
@@ -97,17 +90,23 @@ def main() -> None:
             cam_server.stop()
             wrapped.close(60)
         stats = wrapped.stats()["gradcam"]
-    print(f"machine: {platform.machine()}, {__import__('os').cpu_count()} cores; {args.requests} requests per mode; "
-          f"target {args.target}; pause {args.pause_ms:.0f} ms (paced)")
+    print(
+        f"machine: {platform.machine()}, {__import__('os').cpu_count()} cores; {args.requests} requests per mode; "
+        f"target {args.target}; pause {args.pause_ms:.0f} ms (paced)"
+    )
     print("| pattern | side channel | p50 ms | p99 ms | Grad-CAM jobs done | jobs / s |")
     print("| --- | --- | --- | --- | --- | --- |")
     for (pattern, mode), (lat, wall, done) in results.items():
-        print(f"| {pattern} | {mode} | {statistics.median(lat):.1f} | {percentile(lat, 99):.1f} | {done} | "
-              f"{done / wall:.2f} |")
+        print(
+            f"| {pattern} | {mode} | {statistics.median(lat):.1f} | {percentile(lat, 99):.1f} | {done} | "
+            f"{done / wall:.2f} |"
+        )
     for pattern in ("paced", "back-to-back"):
         off, on = results[pattern, "off"][0], results[pattern, "on"][0]
-        print(f"{pattern}: p50 on/off = {statistics.median(on) / statistics.median(off):.2f}, "
-              f"p99 on/off = {percentile(on, 99) / percentile(off, 99):.2f}")
+        print(
+            f"{pattern}: p50 on/off = {statistics.median(on) / statistics.median(off):.2f}, "
+            f"p99 on/off = {percentile(on, 99) / percentile(off, 99):.2f}"
+        )
     print(f"side-channel counters: { {k: v for k, v in stats.items() if k not in ('logger', 'run_dir')} }")
 
 
