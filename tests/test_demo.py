@@ -90,6 +90,7 @@ def test_pointing_game_geometry():
     assert quality.hits(cam, box, 64)
     cam[0, 7] = 2.0
     assert not quality.hits(cam, box, 64)
+    assert not quality.hits(np.zeros((8, 8)), (0, 0, 8, 8), 64)  # no mass: points nowhere, even at cell (0, 0)
 
 
 @pytest.mark.slow

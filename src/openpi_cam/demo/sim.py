@@ -40,7 +40,8 @@ class ReachSim:
         return self.success
 
 
-def new_episode(seed: int, cfg: task.TaskConfig = task.TaskConfig()) -> ReachSim:
+def new_episode(seed: int, cfg: task.TaskConfig | None = None) -> ReachSim:
+    cfg = cfg or task.TaskConfig()
     rng = np.random.default_rng(seed)
     scene = task.random_scene(rng, cfg)
     return ReachSim(scene=scene, state=task.random_start(rng, scene, cfg), cfg=cfg)

@@ -1,0 +1,101 @@
+"""The bundled demo model: artefact locations, its robot's policy config, and the client-side observation format."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from openpi_cam.demo import task
+from openpi_cam.model.config import GemmaConfig, Pi0FASTConfig, SiglipConfig
+from openpi_cam.policies.config import PolicyConfig, register_config
+from openpi_cam.policies.robot import GenericInputs, GenericOutputs
+
+ASSETS = Path(__file__).resolve().parents[1] / "assets" / "demo"
+CHECKPOINT = ASSETS / "checkpoint"  # OpenPI layout: params/ and assets/<ASSET_ID>/norm_stats.json
+PALIGEMMA_TOKENIZER = ASSETS / "paligemma_tokenizer.model"
+FAST_TOKENIZER = ASSETS / "fast_tokenizer"
+
+IMAGE_KEY = "observation/image"
+WRIST_KEY = "observation/wrist_image"
+STATE_KEY = "observation/state"
+EXTRA_PREFIX = "cam_extra/"  # keys the CAM wrapper moves into the step metadata instead of the policy input
+
+ASSET_ID = "demo_reach"
+MAX_DECODING_STEPS = 32  # the longest expert postfix is 23 tokens; a short cap keeps a broken model cheap
+
+DEMO_CONFIG = register_config(
+    PolicyConfig(
+        name="demo_reach",
+        inputs=(
+            GenericInputs(
+                cameras={"base_0_rgb": IMAGE_KEY, "wrist_0_rgb": WRIST_KEY}, state_key=STATE_KEY, state_dim=2
+            ),
+        ),
+        outputs=(GenericOutputs(action_dim=2),),
+        asset_id=ASSET_ID,
+        action_dim=2,
+        action_horizon=task.TaskConfig().action_horizon,
+        max_token_len=56,  # the longest training sequence is 47 tokens
+    )
+)
+
+
+def model_config(vocab_size: int, *, width: int = 128, depth: int = 2, vit_width: int = 64) -> Pi0FASTConfig:
+    """pi0-FAST's architecture scaled down: 64 px images in 8 px patches give an 8 x 8 Grad-CAM grid per camera."""
+    gemma = GemmaConfig(
+        width=width, depth=depth, mlp_dim=2 * width, num_heads=4, num_kv_heads=1, head_dim=32, vocab_size=vocab_size
+    )
+    siglip = SiglipConfig(
+        width=vit_width,
+        depth=depth,
+        mlp_dim=2 * vit_width,
+        num_heads=2,
+        patch_size=8,
+        image_size=task.TaskConfig().image_size,
+        out_dim=width,
+    )
+    cfg = DEMO_CONFIG
+    return Pi0FASTConfig(
+        gemma=gemma,
+        siglip=siglip,
+        action_dim=cfg.action_dim,
+        action_horizon=cfg.action_horizon,
+        max_token_len=cfg.max_token_len,
+        dtype="float32",
+    )
+
+
+def create_demo_policy(*, assets: Path = ASSETS, dtype: str = "float32", **kwargs: Any):
+    """The bundled model served through the same `create_policy` as any OpenPI checkpoint."""
+    from openpi_cam.policies.policy import create_policy
+
+    return create_policy(
+        DEMO_CONFIG,
+        assets / CHECKPOINT.name,
+        paligemma_tokenizer=assets / PALIGEMMA_TOKENIZER.name,
+        fast_tokenizer=assets / FAST_TOKENIZER.name,
+        dtype=dtype,
+        max_decoding_steps=MAX_DECODING_STEPS,
+        **kwargs,
+    )
+
+
+def client_observation(sample: task.Sample, scene: task.Scene | None = None) -> dict[str, Any]:
+    """What the demo robot sends; the `cam_extra/` entries are ground truth for judging the maps."""
+    obs: dict[str, Any] = {
+        IMAGE_KEY: sample.base_image,
+        WRIST_KEY: sample.wrist_image,
+        STATE_KEY: sample.state.astype(np.float64),
+        "prompt": sample.prompt,
+        EXTRA_PREFIX + "target_box": np.asarray(sample.target_box, np.int32),
+    }
+    if scene is not None:
+        obs[EXTRA_PREFIX + "block_boxes"] = np.asarray([b.box for b in scene.blocks], np.int32)
+        obs[EXTRA_PREFIX + "block_colors"] = [b.color for b in scene.blocks]
+    return obs
+
+
+def policy_input(obs: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in obs.items() if not k.startswith(EXTRA_PREFIX)}

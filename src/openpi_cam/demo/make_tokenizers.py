@@ -1,0 +1,122 @@
+"""The demo's two tokenizers, built reproducibly from the task (`python -m openpi_cam.demo.train` calls both).
+
+* SentencePiece: a small BPE model with PaliGemma's special ids (pad 0, eos 1, bos 2, unk 3) and byte fallback,
+  trained on the task's prompt texts; then 256 `<locNNNN>` and 128 `<segNNN>` pieces are appended as in PaliGemma.
+  The last 128 ids are skipped and FAST id f maps to `vocab_size - 1 - 128 - f`, i.e. onto the `<loc>` pieces.
+* FAST: fitted with `FastActionTokenizer.fit` on expert chunks normalised with the checkpoint's norm stats.
+
+Standalone: `python -m openpi_cam.demo.make_tokenizers --out DIR` (the FAST fit then uses stats computed here).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import sentencepiece as spm
+from sentencepiece import sentencepiece_model_pb2
+
+from openpi_cam.demo import bundled, task
+from openpi_cam.normalize import compute_norm_stats
+from openpi_cam.tokenizers.fast import FastActionTokenizer, dct_coefficients
+
+TEXT_VOCAB = 320  # 4 specials + 256 byte pieces + merges over the task's few words
+FAST_VOCAB = 256  # the <loc> region, like PaliGemma: the most FAST ids the vocabulary can hold
+SEG_PIECES = 128  # the skipped tail
+FAST_SCALE = 10.0
+
+
+def _corpus(rng: np.random.Generator, n: int) -> list[str]:
+    lines = []
+    for _ in range(n):
+        color = str(rng.choice(list(task.COLORS)))
+        state = " ".join(str(int(v)) for v in rng.integers(0, 256, size=2))
+        lines.append(f"Task: {task.prompt_for(color)}, State: {state};")
+    # The postfix markers occur once per training example, so give them the same weight as the prompts.
+    return lines + ["Action: ", "Action: |", "|"] * (n // 3)
+
+
+def sentencepiece_model(seed: int = 0) -> bytes:
+    buffer = io.BytesIO()
+    spm.SentencePieceTrainer.train(
+        sentence_iterator=iter(_corpus(np.random.default_rng(seed), 2000)),
+        model_writer=buffer,
+        model_type="bpe",
+        vocab_size=TEXT_VOCAB,
+        byte_fallback=True,
+        split_digits=True,
+        add_dummy_prefix=False,
+        remove_extra_whitespaces=False,
+        normalization_rule_name="identity",
+        pad_id=0,
+        eos_id=1,
+        bos_id=2,
+        unk_id=3,
+        pad_piece="<pad>",
+        eos_piece="<eos>",
+        bos_piece="<bos>",
+        unk_piece="<unk>",
+        num_threads=1,
+        minloglevel=2,
+    )
+    proto = sentencepiece_model_pb2.ModelProto()
+    proto.ParseFromString(buffer.getvalue())
+    names = [f"<loc{i:04d}>" for i in range(FAST_VOCAB)] + [f"<seg{i:03d}>" for i in range(SEG_PIECES)]
+    for name in names:
+        piece = proto.pieces.add()
+        piece.piece, piece.score = name, 0.0
+        piece.type = sentencepiece_model_pb2.ModelProto.SentencePiece.USER_DEFINED
+    return proto.SerializeToString()
+
+
+def train_sentencepiece(out: Path, *, seed: int = 0) -> Path:
+    path = out / bundled.PALIGEMMA_TOKENIZER.name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(sentencepiece_model(seed))
+    return path
+
+
+def fit_fast(
+    out: Path, normalize: Callable[[np.ndarray], np.ndarray], *, seed: int = 1, num_chunks: int = 5000
+) -> FastActionTokenizer:
+    """FAST fitted on normalised expert chunks; `normalize` must be the checkpoint's action normalisation.
+
+    The BPE vocabulary is exactly the coefficient alphabet, i.e. no merges: every chunk becomes the same number of
+    tokens (one per DCT coefficient), a fixed layout a model this small learns far more reliably than merged runs.
+    """
+    rng = np.random.default_rng(seed)
+    cfg = task.TaskConfig()
+    chunks = list(normalize(np.stack([task.training_sample(rng, cfg).actions for _ in range(num_chunks)])))
+    coefficients = np.concatenate([np.around(dct_coefficients(c) * FAST_SCALE).ravel() for c in chunks])
+    alphabet = int(coefficients.max() - coefficients.min()) + 1
+    if alphabet > FAST_VOCAB:
+        raise ValueError(f"FAST alphabet {alphabet} does not fit the {FAST_VOCAB} <loc> pieces")
+    fast = FastActionTokenizer.fit(
+        chunks, scale=FAST_SCALE, vocab_size=alphabet, action_dim=2, time_horizon=cfg.action_horizon
+    )
+    fast.save(out / bundled.FAST_TOKENIZER.name)
+    return fast
+
+
+@dataclasses.dataclass(frozen=True)
+class Args:
+    out: Path = Path("/tmp/openpi_cam_demo_tokenizers")
+    seed: int = 0
+
+
+def main(args: Args) -> None:
+    sp_path = train_sentencepiece(args.out, seed=args.seed)
+    data = task.make_dataset(2, 20000)
+    stats = compute_norm_stats(data["actions"].reshape(-1, 2))
+    fast = fit_fast(args.out, lambda c: (c - stats.q01) / (stats.q99 - stats.q01 + 1e-6) * 2.0 - 1.0)
+    vocab = spm.SentencePieceProcessor(model_file=str(sp_path)).vocab_size()
+    print(f"sentencepiece: {vocab} pieces -> {sp_path}; FAST: {fast.bpe_vocab_size} ids -> {args.out}")
+
+
+if __name__ == "__main__":
+    import tyro
+
+    main(tyro.cli(Args))

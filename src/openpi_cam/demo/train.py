@@ -1,0 +1,154 @@
+"""Train the bundled tiny pi0-FAST on the reaching task: `python -m openpi_cam.demo.train --out DIR`.
+
+One reproducible command (fixed seeds, CPU): norm stats from task data (upstream's quantile format) -> the two
+tokenizers -> upstream's FAST training format (prefix `Task: ..., State: ...;\\n`, postfix `Action: ` + FAST ids + `|`
++ EOS, loss on the postfix) -> AdamW on `compute_loss` -> `<out>/checkpoint/{params, assets/demo_reach/norm_stats.json}`
+-> closed-loop success rate in the simulator.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import shutil
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from openpi_cam.demo import bundled, make_tokenizers, sim, task
+from openpi_cam.model.checkpoint import save_params
+from openpi_cam.model.observation import Observation
+from openpi_cam.model.pi0_fast import compute_loss, init_params
+from openpi_cam.normalize import compute_norm_stats, load_norm_stats, save_norm_stats
+from openpi_cam.transforms import Normalize
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainArgs:
+    out: Path = bundled.ASSETS
+    steps: int = 3000
+    batch_size: int = 32
+    lr: float = 1e-3
+    warmup: int = 100
+    seed: int = 0
+    width: int = 128
+    depth: int = 2
+    vit_width: int = 64
+    eval_episodes: int = 50
+    log_every: int = 50
+
+
+def norm_stats_dir(out: Path) -> Path:
+    return out / bundled.CHECKPOINT.name / "assets" / bundled.ASSET_ID
+
+
+def write_norm_stats(out: Path, *, seed: int = 2, n: int = 20000) -> Normalize:
+    data = task.make_dataset(seed, n)
+    stats = {"state": compute_norm_stats(data["state"]), "actions": compute_norm_stats(data["actions"])}
+    save_norm_stats(norm_stats_dir(out), stats)
+    return Normalize(load_norm_stats(norm_stats_dir(out)), use_quantiles=True)
+
+
+class Batches:
+    """Fresh procedural samples every step, in the format the policy's input transforms produce."""
+
+    def __init__(self, out: Path, normalize: Normalize, batch_size: int, seed: int):
+        from openpi_cam.tokenizers.pi0_fast import Pi0FastTokenizer
+
+        self.tokenizer = Pi0FastTokenizer.from_files(
+            out / bundled.PALIGEMMA_TOKENIZER.name,
+            out / bundled.FAST_TOKENIZER.name,
+            max_len=bundled.DEMO_CONFIG.max_token_len,
+        )
+        self.normalize = normalize
+        self.rng = np.random.default_rng(seed)
+        self.batch_size = batch_size
+
+    def __call__(self) -> Observation:
+        samples = [task.training_sample(self.rng) for _ in range(self.batch_size)]
+        states, rows = [], []
+        for s in samples:
+            norm = self.normalize({"state": s.state.astype(np.float64), "actions": s.actions.astype(np.float64)})
+            states.append(norm["state"])
+            rows.append(self.tokenizer.tokenize(s.prompt, norm["state"], norm["actions"]))
+        tokens, mask, ar, loss = (np.stack(x) for x in zip(*rows, strict=True))
+        images = {
+            "base_0_rgb": np.stack([s.base_image for s in samples]),
+            "wrist_0_rgb": np.stack([s.wrist_image for s in samples]),
+        }
+        return Observation.from_dict(
+            {
+                "image": images,
+                "image_mask": {k: np.ones(self.batch_size, bool) for k in images},
+                "state": np.stack(states).astype(np.float32),
+                "tokenized_prompt": tokens,
+                "tokenized_prompt_mask": mask,
+                "token_ar_mask": ar,
+                "token_loss_mask": loss,
+            }
+        )
+
+
+def run_episode(policy, seed: int, *, max_calls: int = 8, execute: int = 5) -> tuple[bool, int]:
+    """Closed loop: infer a chunk, execute its first `execute` actions, repeat until success or `max_calls`."""
+    episode = sim.new_episode(seed)
+    for call in range(max_calls):
+        obs = bundled.policy_input(bundled.client_observation(episode.observe()))
+        if episode.execute(policy.infer(obs)["actions"], execute):
+            return True, call + 1
+    return False, max_calls
+
+
+def evaluate(out: Path, episodes: int, seed: int = 10_000) -> float:
+    policy = bundled.create_demo_policy(assets=out)
+    return float(np.mean([run_episode(policy, seed + e)[0] for e in range(episodes)]))
+
+
+def train(args: TrainArgs) -> dict:
+    args.out.mkdir(parents=True, exist_ok=True)
+    normalize = write_norm_stats(args.out)
+    make_tokenizers.train_sentencepiece(args.out, seed=args.seed)
+    make_tokenizers.fit_fast(args.out, lambda chunks: normalize({"actions": chunks})["actions"])
+
+    vocab = make_tokenizers.TEXT_VOCAB + make_tokenizers.FAST_VOCAB + make_tokenizers.SEG_PIECES
+    cfg = bundled.model_config(vocab, width=args.width, depth=args.depth, vit_width=args.vit_width)
+    params = init_params(cfg, jax.random.key(args.seed))
+    schedule = optax.warmup_cosine_decay_schedule(
+        0.0, args.lr, min(args.warmup, args.steps // 2), args.steps, 0.05 * args.lr
+    )
+    optimizer = optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(schedule, weight_decay=1e-4))
+    opt_state = optimizer.init(params)
+
+    @functools.partial(jax.jit, donate_argnums=(0, 1))
+    def step(params, opt_state, obs):
+        loss, grads = jax.value_and_grad(lambda p: jnp.mean(compute_loss(p, obs, cfg)))(params)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, loss
+
+    batches = Batches(args.out, normalize, args.batch_size, args.seed + 1)
+    t0, losses = time.time(), []
+    for i in range(args.steps):
+        params, opt_state, loss = step(params, opt_state, batches())
+        losses.append(float(loss))
+        if (i + 1) % args.log_every == 0:
+            recent = np.mean(losses[-args.log_every :])
+            print(f"step {i + 1}/{args.steps} loss {recent:.4f} {time.time() - t0:.0f}s", flush=True)
+    params_dir = args.out / bundled.CHECKPOINT.name / "params"
+    shutil.rmtree(params_dir, ignore_errors=True)
+    save_params(params_dir, params)
+    summary = {"final_loss": float(np.mean(losses[-args.log_every :])), "train_seconds": round(time.time() - t0)}
+    if args.eval_episodes:
+        summary["success_rate"] = evaluate(args.out, args.eval_episodes)
+    print(json.dumps(summary), flush=True)
+    return summary
+
+
+if __name__ == "__main__":
+    import tyro
+
+    train(tyro.cli(TrainArgs))
