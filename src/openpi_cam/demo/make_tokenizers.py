@@ -24,6 +24,7 @@ from openpi_cam.normalize import compute_norm_stats
 from openpi_cam.tokenizers.fast import FastActionTokenizer, dct_coefficients
 
 TEXT_VOCAB = 320  # 4 specials + 256 byte pieces + merges over the task's few words
+MERGES = 32
 FAST_VOCAB = 256  # the <loc> region, like PaliGemma: the most FAST ids the vocabulary can hold
 SEG_PIECES = 128  # the skipped tail
 FAST_SCALE = 10.0
@@ -84,18 +85,18 @@ def fit_fast(
 ) -> FastActionTokenizer:
     """FAST fitted on normalised expert chunks; `normalize` must be the checkpoint's action normalisation.
 
-    The BPE vocabulary is exactly the coefficient alphabet, i.e. no merges: every chunk becomes the same number of
-    tokens (one per DCT coefficient), a fixed layout a model this small learns far more reliably than merged runs.
+    The BPE vocabulary is the coefficient alphabet plus `MERGES` merges, which fold the run of zero coefficients of a
+    constant expert chunk into a couple of tokens.
     """
     rng = np.random.default_rng(seed)
     cfg = task.TaskConfig()
     chunks = list(normalize(np.stack([task.training_sample(rng, cfg).actions for _ in range(num_chunks)])))
     coefficients = np.concatenate([np.around(dct_coefficients(c) * FAST_SCALE).ravel() for c in chunks])
     alphabet = int(coefficients.max() - coefficients.min()) + 1
-    if alphabet > FAST_VOCAB:
-        raise ValueError(f"FAST alphabet {alphabet} does not fit the {FAST_VOCAB} <loc> pieces")
+    if alphabet + MERGES > FAST_VOCAB:
+        raise ValueError(f"FAST alphabet {alphabet} + {MERGES} merges does not fit the {FAST_VOCAB} <loc> pieces")
     fast = FastActionTokenizer.fit(
-        chunks, scale=FAST_SCALE, vocab_size=alphabet, action_dim=2, time_horizon=cfg.action_horizon
+        chunks, scale=FAST_SCALE, vocab_size=alphabet + MERGES, action_dim=2, time_horizon=cfg.action_horizon
     )
     fast.save(out / bundled.FAST_TOKENIZER.name)
     return fast
