@@ -1,14 +1,11 @@
 """The Grad-CAM side channel in serving: same actions, complete run directories, failures that stay inside.
 
-The tiny upstream DROID model has random weights and never writes `Action: `, so a trace of it has no FAST action
-token to explain. `HandGeneration` keeps everything real (transforms, model inputs, inference, actions) and only
-swaps the trace's generated tokens for upstream's hand-made well-formed generation (`hand/generated_tokens`), the
-way a trained checkpoint's output looks. The maps are then real Grad-CAM of those tokens on the real inputs.
+The tiny upstream DROID model never writes `Action: `; `FixedGeneration` (tests/fixed_generation.py) swaps in
+upstream's hand-made well-formed generation so there are action tokens to explain.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import signal
@@ -22,6 +19,7 @@ from typing import Any
 import numpy as np
 import pytest
 from client_env import collect, spawn_client
+from fixed_generation import FixedGeneration
 from test_serving import CLIENT_PRELUDE, get_stats, read_packed
 
 from openpi_cam.cam.engine import explain
@@ -32,31 +30,6 @@ from openpi_cam.serving import RequestContext, msgpack_numpy
 from openpi_cam.serving.server import start_server_in_thread
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-
-
-class HandGeneration:
-    """The real policy; its traces carry a well-formed generation instead of the random model's."""
-
-    def __init__(self, policy: Any, tokens: np.ndarray, model: Any = None):
-        self.inner = policy
-        self.tokens = np.asarray(tokens, np.int32)
-        self.model = model if model is not None else policy.model
-
-    tokenizer = property(lambda self: self.inner.tokenizer)
-    metadata = property(lambda self: self.inner.metadata)
-
-    def infer(self, obs, context=None):
-        return self.inner.infer(obs, context)
-
-    def infer_traced(self, obs):
-        response, trace = self.inner.infer_traced(obs)
-        return response, dataclasses.replace(trace, generated_tokens=self.tokens)
-
-    def stats(self):
-        return self.inner.stats()
-
-    def close(self, timeout=None):
-        pass
 
 
 class GatedModel:
@@ -83,7 +56,7 @@ def hand_tokens(golden_dir) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def hand_policy(tiny_droid_policy, hand_tokens):
-    return HandGeneration(tiny_droid_policy, hand_tokens)
+    return FixedGeneration(tiny_droid_policy, hand_tokens)
 
 
 def droid_obs(seed: int, size=(180, 320)) -> dict:
@@ -218,7 +191,7 @@ def test_failures_stay_inside_the_side_channel(tiny_droid_policy, hand_tokens, t
     obs = droid_obs(4)
     expected = tiny_droid_policy.infer(obs)["actions"]
     # Grad-CAM raising.
-    failing = HandGeneration(tiny_droid_policy, hand_tokens, GatedModel(tiny_droid_policy.model, fail=True))
+    failing = FixedGeneration(tiny_droid_policy, hand_tokens, GatedModel(tiny_droid_policy.model, fail=True))
     wrapped = wrap_policy_with_cam(failing, CAMOptions(every_k=1, cam_dir=tmp_path / "a"))
     for _ in range(2):
         np.testing.assert_array_equal(wrapped.infer(obs)["actions"], expected)
@@ -241,7 +214,7 @@ def test_failures_stay_inside_the_side_channel(tiny_droid_policy, hand_tokens, t
 def test_slow_worker_and_full_queue_never_block_responses(tiny_droid_policy, hand_tokens, tmp_path):
     gated = GatedModel(tiny_droid_policy.model)
     wrapped = wrap_policy_with_cam(
-        HandGeneration(tiny_droid_policy, hand_tokens, gated), CAMOptions(every_k=1, cam_dir=tmp_path, queue_size=1)
+        FixedGeneration(tiny_droid_policy, hand_tokens, gated), CAMOptions(every_k=1, cam_dir=tmp_path, queue_size=1)
     )
     obs = droid_obs(5)
     wrapped.infer(obs)
@@ -279,7 +252,8 @@ def test_disk_failure_mid_run_is_counted_and_earlier_steps_survive(hand_policy, 
 KILL_SCRIPT = r"""
 import sys, time, numpy as np
 sys.path.insert(0, sys.argv[3])
-from test_cam_wrapper import HandGeneration, droid_obs
+from fixed_generation import FixedGeneration
+from test_cam_wrapper import droid_obs
 from openpi_cam.cam.wrapper import CAMOptions, wrap_policy_with_cam
 from openpi_cam.policies.policy import create_policy
 golden = sys.argv[1]
@@ -289,7 +263,7 @@ policy = create_policy(
 )
 tokens = np.load(golden + "/droid_case.npz")["hand/generated_tokens"]
 options = CAMOptions(every_k=1, cam_dir=sys.argv[2], queue_size=64)
-wrapped = wrap_policy_with_cam(HandGeneration(policy, tokens), options)
+wrapped = wrap_policy_with_cam(FixedGeneration(policy, tokens), options)
 print(wrapped.run_dir, flush=True)
 i = 0
 while True:

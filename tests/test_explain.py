@@ -10,7 +10,6 @@ compiled Grad-CAM program per target.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import json
 import os
 import pathlib
@@ -21,6 +20,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from fixed_generation import FixedGeneration
 
 from openpi_cam.cam.batch_engine import explain_batch, stack_observations
 from openpi_cam.cam.engine import CamSkipped, explain
@@ -40,30 +40,6 @@ from openpi_cam.serving import RequestContext
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 BATCH = 2
-
-
-class FixedGeneration:
-    """The real tiny policy whose traces carry a chosen well-formed generation."""
-
-    def __init__(self, policy: Any, tokens: np.ndarray):
-        self.inner, self.tokens = policy, np.asarray(tokens, np.int32)
-
-    model = property(lambda self: self.inner.model)
-    tokenizer = property(lambda self: self.inner.tokenizer)
-    metadata = property(lambda self: self.inner.metadata)
-
-    def infer(self, obs, context=None):
-        return self.inner.infer(obs, context)
-
-    def infer_traced(self, obs):
-        response, trace = self.inner.infer_traced(obs)
-        return response, dataclasses.replace(trace, generated_tokens=self.tokens)
-
-    def stats(self):
-        return self.inner.stats()
-
-    def close(self, timeout=None):
-        pass
 
 
 def _obs(seed: int) -> dict:
