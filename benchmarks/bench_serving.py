@@ -46,6 +46,16 @@ def drive(port: int, observations: list[dict[str, Any]], pause_s: float) -> list
     return latencies
 
 
+def wait_drained(wrapped, timeout: float = 300.0) -> None:
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        stats = wrapped.stats()["gradcam"]
+        finished = sum(v for k, v in stats.items() if isinstance(v, int) and k != "scheduled" and k != "queued")
+        if stats.get("queued", 0) == 0 and finished >= stats.get("scheduled", 0):
+            return
+        time.sleep(0.05)
+
+
 def demo_setup(n: int, seed: int = 0):
     """The bundled demo policy and `n` client observations of random scenes (with their `cam_extra/` truth)."""
     from openpi_cam.demo import bundled, task
@@ -74,14 +84,16 @@ def main() -> None:
         plain_server = start_server_in_thread(policy, close_policy_on_stop=False)
         cam_server = start_server_in_thread(wrapped, close_policy_on_stop=False)
         try:
-            drive(cam_server.port, observations[:2], 0.0)  # warm the Grad-CAM compilation
-            time.sleep(0.5)
+            drive(plain_server.port, observations[:2], 0.0)  # warm both servers (connections, compilation)
+            drive(cam_server.port, observations[:2], 0.0)
+            wait_drained(wrapped)
             results = {}
             for pattern, pause in (("paced", args.pause_ms / 1e3), ("back-to-back", 0.0)):
                 for mode, server in (("off", plain_server), ("on", cam_server)):
                     before = wrapped.stats()["gradcam"].get("completed", 0)
                     t0 = time.perf_counter()
                     lat = drive(server.port, observations, pause)
+                    wait_drained(wrapped)  # jobs/s counts until the last job of this mode is written
                     wall = time.perf_counter() - t0
                     done = wrapped.stats()["gradcam"].get("completed", 0) - before
                     results[pattern, mode] = (lat, wall, done)
