@@ -217,3 +217,25 @@ def test_custom_config_takes_resolution_from_the_model(tmp_path, tiny_policy_fil
     with pytest.raises(ValueError, match="already registered"):
         register_config(dataclasses.replace(config, action_horizon=5))
     assert PI0_FAST_DROID.camera_sources["base_1_rgb"] is None
+
+
+def test_stop_at_action_end_keeps_well_formed_actions_and_saves_steps():
+    """On the bundled demo model, whose generations are well formed, stopping at `|` returns identical actions."""
+    from openpi_cam.demo import bundled, task
+
+    plain = bundled.create_demo_policy()
+    stopping = bundled.create_demo_policy(stop_at_action_end=True)
+    rng = np.random.default_rng(7)
+    saved = []
+    for _ in range(4):
+        scene = task.random_scene(rng)
+        obs = bundled.policy_input(bundled.client_observation(task.observe(scene, task.random_start(rng, scene))))
+        full, full_trace = plain.infer_traced(obs)
+        short, short_trace = stopping.infer_traced(obs)
+        assert full_trace.malformed_reason is None
+        np.testing.assert_array_equal(short["actions"], full["actions"])
+        saved.append(
+            int(np.count_nonzero(full_trace.generated_tokens) - np.count_nonzero(short_trace.generated_tokens))
+        )
+    assert min(saved) >= 0 and max(saved) >= 1  # at least the EOS after '|' is never decoded
+    print(f"decode steps saved by --stop-at-action-end per request: {saved}")
