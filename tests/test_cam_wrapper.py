@@ -299,3 +299,19 @@ def test_kill_9_mid_run_leaves_every_completed_step_readable(golden_dir, tmp_pat
     assert [s.seq for s in run.steps] == list(range(len(written)))
     for step in run.steps:
         assert step.maps["base_0_rgb"].shape == (16, 16) and np.isfinite(step.maps["base_0_rgb"]).all()
+
+
+def test_float_channels_first_client_images_are_logged_as_uint8_frames(hand_policy, tmp_path):
+    wrapped = wrap_policy_with_cam(hand_policy, CAMOptions(every_k=1, cam_dir=tmp_path, save_frames="raw"))
+    obs = droid_obs(8, size=(224, 224))
+    as_float_chw = {
+        **obs,
+        "observation/exterior_image_1_left": np.moveaxis(obs["observation/exterior_image_1_left"], -1, 0) / 255.0,
+    }
+    wrapped.infer(as_float_chw)
+    wrapped.infer(obs)
+    wrapped.close(120)
+    assert wrapped.stats()["gradcam"]["completed"] == 2
+    first, second = load_run(wrapped.run_dir).steps
+    np.testing.assert_array_equal(first.frames["base_0_rgb"], obs["observation/exterior_image_1_left"])
+    np.testing.assert_array_equal(second.frames["base_0_rgb"], obs["observation/exterior_image_1_left"])

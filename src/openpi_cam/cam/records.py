@@ -25,6 +25,16 @@ def model_frame_uint8(image: Any) -> np.ndarray:
     return np.clip(np.round((x + 1.0) / 2.0 * 255.0), 0, 255).astype(np.uint8)
 
 
+def client_frame_uint8(image: Any) -> np.ndarray:
+    """A client image as uint8 HWC RGB: clients may send [3, H, W] and float images in [0, 1] (as upstream accepts)."""
+    x = np.asarray(image)
+    if x.ndim == 3 and x.shape[0] == 3 and x.shape[-1] != 3:
+        x = np.moveaxis(x, 0, -1)
+    if x.dtype != np.uint8:
+        x = np.clip(np.round(x.astype(np.float32) * 255.0), 0, 255).astype(np.uint8)
+    return np.ascontiguousarray(x)
+
+
 def step_record(
     trace: Any,
     exp: Explanation,
@@ -39,7 +49,7 @@ def step_record(
     """The logger record of one explained inference, in the layout the side channel writes (docs/FORMAT.md)."""
     frames = {}
     if save_frames in ("raw", "both"):
-        frames = {c: np.asarray(im) for c, im in trace.raw_images.items() if im is not None}
+        frames = {c: client_frame_uint8(im) for c, im in trace.raw_images.items() if im is not None}
     model_frames = {}
     if save_frames in ("model", "both"):
         model_frames = {c: model_frame_uint8(im) for c, im in trace.observation.images.items()}

@@ -122,6 +122,8 @@ class CAMPolicy:
                 if job is None:
                     return
                 self._process(job)
+            except Exception as e:  # a bug in the side channel must not stop the worker (or reach a client)
+                self._count(f"worker_error_{type(e).__name__}", f"side-channel worker raised {type(e).__name__}: {e}")
             finally:
                 self._queue.task_done()
 
@@ -144,17 +146,17 @@ class CAMPolicy:
             self._count(f"failed_{type(e).__name__}", f"Grad-CAM raised {type(e).__name__}: {e}")
             return
         gradcam_s = time.perf_counter() - t0
-        record = step_record(
-            trace,
-            exp,
-            connection=job.connection,
-            step=job.step,
-            timestamp=job.timestamp,
-            save_frames=self._options.save_frames,
-            extra=job.extra,
-            gradcam_ms=gradcam_s * 1000.0,
-        )
         try:
+            record = step_record(
+                trace,
+                exp,
+                connection=job.connection,
+                step=job.step,
+                timestamp=job.timestamp,
+                save_frames=self._options.save_frames,
+                extra=job.extra,
+                gradcam_ms=gradcam_s * 1000.0,
+            )
             logged = self._logger.log_step(record)
         except Exception as e:
             self._count(f"log_error_{type(e).__name__}", f"logging a step raised {type(e).__name__}: {e}")
