@@ -30,8 +30,7 @@ import numpy as np
 import tyro
 
 from openpi_cam.cam.engine import CamSkipped
-from openpi_cam.cam.records import SaveFrames, jsonable
-from openpi_cam.cam.wrapper import EXTRA_PREFIX
+from openpi_cam.cam.records import EXTRA_PREFIX, SaveFrames, jsonable, split_extra
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.nested import unflatten_dict
 
@@ -71,10 +70,10 @@ class ExplainOptions:
             raise ValueError("batch_size >= 1, action_index >= 0 and limit >= 0 are required")
 
 
-def split_extra(obs: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+def split_extra_json(obs: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
     """(what the policy receives, the `cam_extra/` values as JSON), as the side channel splits a live request."""
-    extra = {k[len(EXTRA_PREFIX) :]: jsonable(v) for k, v in obs.items() if k.startswith(EXTRA_PREFIX)}
-    return {k: v for k, v in obs.items() if not k.startswith(EXTRA_PREFIX)}, extra
+    obs, extra = split_extra(dict(obs))
+    return obs, {k: jsonable(v) for k, v in extra.items()}
 
 
 def record_observation(record: Mapping[str, Any], nested: bool) -> dict[str, Any]:
@@ -97,7 +96,7 @@ def iter_policy_records(folder: pathlib.Path, nested: bool) -> Iterator[Replay]:
     for n, path in files:
         # Upstream stores each record as a pickled object array: only open records from a source you trust.
         record = np.load(path, allow_pickle=True).item()
-        obs, extra = split_extra(record_observation(record, nested))
+        obs, extra = split_extra_json(record_observation(record, nested))
         actions = record.get("outputs/actions")
         yield Replay(path.name, "records", n, obs, extra, None if actions is None else np.asarray(actions))
 

@@ -10,6 +10,17 @@ from openpi_cam.cam.engine import Explanation
 from openpi_cam.cam.logger import StepRecord
 
 SaveFrames = Literal["none", "raw", "model", "both"]
+# Observation keys with this prefix are not passed to the policy; their values go into the step's `extra` metadata
+# (e.g. the demo's ground-truth target box).
+EXTRA_PREFIX = "cam_extra/"
+
+
+def split_extra(obs: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(the observation without `cam_extra/` keys, those values keyed without the prefix)."""
+    extra = {k[len(EXTRA_PREFIX) :]: v for k, v in obs.items() if isinstance(k, str) and k.startswith(EXTRA_PREFIX)}
+    if not extra:
+        return obs, extra
+    return {k: v for k, v in obs.items() if not (isinstance(k, str) and k.startswith(EXTRA_PREFIX))}, extra
 
 
 def jsonable(value: Any) -> Any:

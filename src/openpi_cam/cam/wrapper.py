@@ -18,13 +18,9 @@ import time
 from typing import Any, Literal
 
 from openpi_cam.cam.engine import TARGETS, CamSkipped, explain
-from openpi_cam.cam.records import SaveFrames, jsonable, step_record
+from openpi_cam.cam.records import SaveFrames, jsonable, split_extra, step_record
 
 logger = logging.getLogger(__name__)
-
-# Observation keys with this prefix are not passed to the policy; their values go into the step's `extra` metadata
-# (e.g. the demo's ground-truth target box).
-EXTRA_PREFIX = "cam_extra/"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,9 +90,7 @@ class CAMPolicy:
             logger.warning("Grad-CAM side channel: %s (%s); further occurrences are only counted", message, kind)
 
     def infer(self, obs: dict[str, Any], context: Any = None) -> dict[str, Any]:
-        extra = {k[len(EXTRA_PREFIX) :]: obs[k] for k in obs if isinstance(k, str) and k.startswith(EXTRA_PREFIX)}
-        if extra:
-            obs = {k: v for k, v in obs.items() if k not in {EXTRA_PREFIX + e for e in extra}}
+        obs, extra = split_extra(obs)
         connection = getattr(context, "connection_id", "local")
         with self._lock:
             step = self._steps[connection]

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from openpi_cam.cam.records import EXTRA_PREFIX, split_extra
 from openpi_cam.demo import task
 from openpi_cam.model.config import GemmaConfig, Pi0FASTConfig, SiglipConfig
 from openpi_cam.policies.config import PolicyConfig, register_config
@@ -20,7 +21,6 @@ FAST_TOKENIZER = ASSETS / "fast_tokenizer"
 IMAGE_KEY = "observation/image"
 WRIST_KEY = "observation/wrist_image"
 STATE_KEY = "observation/state"
-EXTRA_PREFIX = "cam_extra/"  # keys the CAM wrapper moves into the step metadata instead of the policy input
 
 ASSET_ID = "demo_reach"
 MAX_DECODING_STEPS = 32  # the longest expert postfix is 23 tokens; a short cap keeps a broken model cheap
@@ -98,4 +98,4 @@ def client_observation(sample: task.Sample, scene: task.Scene | None = None) -> 
 
 
 def policy_input(obs: dict[str, Any]) -> dict[str, Any]:
-    return {k: v for k, v in obs.items() if not k.startswith(EXTRA_PREFIX)}
+    return split_extra(obs)[0]
