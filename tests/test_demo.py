@@ -93,6 +93,17 @@ def test_pointing_game_geometry():
     assert not quality.hits(np.zeros((8, 8)), (0, 0, 8, 8), 64)  # no mass: points nowhere, even at cell (0, 0)
 
 
+def test_object_pointing_counts_any_block_and_its_chance():
+    boxes = [(10, 20, 22, 32), (40, 0, 48, 8)]  # 4 cells + 1 cell of 64
+    cam = np.zeros((8, 8))
+    cam[0, 5] = 1.0  # on the second block only
+    assert quality.object_pointing(cam, boxes, 64) == (True, 5 / 64)
+    assert not quality.hits(cam, boxes[0], 64)
+    cam[7, 7] = 2.0
+    assert quality.object_pointing(cam, boxes, 64)[0] is False
+    assert quality.object_pointing(np.zeros((8, 8)), boxes, 64)[0] is False
+
+
 @pytest.mark.slow
 def test_short_demo_run_is_readable(tmp_path):
     from openpi_cam.cam.reader import load_run
@@ -107,3 +118,4 @@ def test_short_demo_run_is_readable(tmp_path):
         assert np.shape(step.maps["base_0_rgb"])[-2:] == (8, 8)
     figures = quality.run_figures(run_dir)
     assert figures["episodes"] == 1 and figures["steps"] == len(run.steps)
+    assert 0.0 <= figures["object_pointing"] <= 1.0 and figures["object_pointing_chance"] > 0

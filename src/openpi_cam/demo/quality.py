@@ -3,6 +3,8 @@
 * success rate of the run's episodes;
 * pointing game: share of logged steps whose base-camera map peaks on a patch overlapping the named block's box, next
   to chance (the share of patches overlapping the box, and the box's share of the image area);
+* object pointing: share of steps whose peak lies on any block, next to its chance (patches overlapping any block):
+  separates "the map finds objects" from "the policy picked the named one";
 * model randomisation (Adebayo et al.): Spearman rank correlation between the trained model's maps and those of a
   re-initialised copy explaining the same tokens; low means the maps depend on what the model learned;
 * prompt swap: naming another block in the same scene moves the peak onto that block.
@@ -49,15 +51,25 @@ def hits(cam_map: np.ndarray, box: tuple[int, ...], image_size: int) -> bool:
     return bool(cells_overlapping(box, grid, image_size)[r, c])
 
 
+def object_pointing(cam_map: np.ndarray, boxes: list[tuple[int, ...]], image_size: int) -> tuple[bool, float]:
+    """(does the peak lie on any of the blocks, share of patches overlapping any block)."""
+    grid = np.shape(cam_map)[-2:]
+    any_block = np.logical_or.reduce([cells_overlapping(b, grid, image_size) for b in boxes])
+    if not np.asarray(cam_map).max() > 0:
+        return False, float(any_block.mean())
+    return bool(any_block[peak_cell(cam_map)]), float(any_block.mean())
+
+
 def run_figures(run_dir: Path, image_size: int = task.TaskConfig().image_size) -> dict[str, Any]:
     """Success rate (from the demo's episode file) and the pointing game over every logged step."""
     from openpi_cam.cam.reader import load_run
     from openpi_cam.demo.demo_cmd import EPISODES_FILE
 
     run = load_run(run_dir)
-    hit, cell_chance, area_chance = [], [], []
+    hit, cell_chance, area_chance, on_block, block_chance = [], [], [], [], []
     for step in run.steps:
-        box = (step.meta.get("extra") or {}).get("target_box")
+        extra = step.meta.get("extra") or {}
+        box = extra.get("target_box")
         maps = step.maps
         if box is None or BASE_CAMERA not in maps:
             continue
@@ -65,6 +77,10 @@ def run_figures(run_dir: Path, image_size: int = task.TaskConfig().image_size) -
         hit.append(hits(cam_map, tuple(box), image_size))
         cell_chance.append(cells_overlapping(tuple(box), np.shape(cam_map)[-2:], image_size).mean())
         area_chance.append((box[2] - box[0]) * (box[3] - box[1]) / image_size**2)
+        if extra.get("block_boxes") is not None:
+            hit_any, chance = object_pointing(cam_map, [tuple(b) for b in extra["block_boxes"]], image_size)
+            on_block.append(hit_any)
+            block_chance.append(chance)
     episodes_path = Path(run_dir) / EPISODES_FILE
     episodes = json.loads(episodes_path.read_text()) if episodes_path.exists() else []
     return {
@@ -74,6 +90,8 @@ def run_figures(run_dir: Path, image_size: int = task.TaskConfig().image_size) -
         "pointing_game": float(np.mean(hit)) if hit else float("nan"),
         "pointing_chance": float(np.mean(cell_chance)) if hit else float("nan"),
         "pointing_chance_area": float(np.mean(area_chance)) if hit else float("nan"),
+        "object_pointing": float(np.mean(on_block)) if on_block else float("nan"),
+        "object_pointing_chance": float(np.mean(block_chance)) if on_block else float("nan"),
     }
 
 
@@ -107,7 +125,7 @@ def offline_figures(samples: int = 30, seed: int = 1234, target: str = "chunk") 
     random_model = Pi0FAST(model.config, init_params(model.config, jax.random.key(seed)))
     rng = np.random.default_rng(seed)
     size = task.TaskConfig().image_size
-    rhos, kept, moved, swaps = [], [], [], 0
+    rhos, kept, moved, on_block, block_chance, swaps = [], [], [], [], [], 0
     while swaps < samples:
         scene = task.random_scene(rng)
         state = task.random_start(rng, scene)
@@ -120,6 +138,9 @@ def offline_figures(samples: int = 30, seed: int = 1234, target: str = "chunk") 
         randomised = explain(random_model, policy.tokenizer, trace.observation, trace.generated_tokens, target=target)
         rhos.append(spearman(trained.maps[BASE_CAMERA], randomised.maps[BASE_CAMERA]))
         kept.append(hits(trained.maps[BASE_CAMERA], scene.target_block.box, size))
+        hit_any, chance = object_pointing(trained.maps[BASE_CAMERA], [b.box for b in scene.blocks], size)
+        on_block.append(hit_any)
+        block_chance.append(chance)
         other = scene.with_target(next(b.color for i, b in enumerate(scene.blocks) if i != scene.target))
         _, swapped = _explain(model, policy, bundled.client_observation(task.observe(other, state)), target)
         if swapped is not None:
@@ -129,6 +150,8 @@ def offline_figures(samples: int = 30, seed: int = 1234, target: str = "chunk") 
     return {
         "samples": swaps,
         "pointing_game_fresh": float(np.mean(kept)),
+        "object_pointing_fresh": float(np.mean(on_block)),
+        "object_pointing_chance": float(np.mean(block_chance)),
         "randomisation_spearman_mean": float(np.mean(finite)) if finite else float("nan"),
         "randomisation_spearman_abs_mean": float(np.mean(np.abs(finite))) if finite else float("nan"),
         "prompt_swap_peak_moves": float(np.mean(moved)) if moved else float("nan"),
