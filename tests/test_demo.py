@@ -70,6 +70,24 @@ def test_shipped_tokenizers_load_and_round_trip():
         np.testing.assert_allclose(decoded, norm["actions"], atol=0.15)
 
 
+def test_expert_postfix_fits_the_decoding_cap():
+    from openpi_cam.normalize import load_checkpoint_norm_stats
+    from openpi_cam.tokenizers.pi0_fast import Pi0FastTokenizer
+    from openpi_cam.transforms import Normalize
+
+    tok = Pi0FastTokenizer.from_files(bundled.PALIGEMMA_TOKENIZER, bundled.FAST_TOKENIZER, max_len=56)
+    normalize = Normalize(load_checkpoint_norm_stats(bundled.CHECKPOINT, bundled.ASSET_ID), use_quantiles=True)
+    data = task.make_dataset(12, 40)
+    lengths = set()
+    for prompt, state, actions in zip(data["prompt"], data["state"], data["actions"], strict=True):
+        norm = normalize({"state": state.astype(np.float64), "actions": actions.astype(np.float64)})
+        _, mask, ar, _ = tok.tokenize(str(prompt), norm["state"], norm["actions"])
+        lengths.add(int(((ar == 1) & mask).sum()))
+    # The shipped FAST fit leaves the zero-coefficient run unmerged (zero is written as a space): 20 ids per chunk.
+    assert lengths == {27}
+    assert max(lengths) <= bundled.MAX_DECODING_STEPS
+
+
 def test_shipped_checkpoint_loads_through_the_normal_loader():
     from openpi_cam.model.checkpoint import load_params
     from openpi_cam.model.pi0_fast import Pi0FAST

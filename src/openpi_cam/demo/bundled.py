@@ -23,7 +23,8 @@ WRIST_KEY = "observation/wrist_image"
 STATE_KEY = "observation/state"
 
 ASSET_ID = "demo_reach"
-MAX_DECODING_STEPS = 32  # the longest expert postfix is 23 tokens; a short cap keeps a broken model cheap
+# An expert postfix is 27 tokens (`Action: ` in 5, 20 FAST ids, `|`, EOS); a short cap keeps a broken model cheap.
+MAX_DECODING_STEPS = 32
 
 DEMO_CONFIG = register_config(
     PolicyConfig(

@@ -85,8 +85,10 @@ def fit_fast(
 ) -> FastActionTokenizer:
     """FAST fitted on normalised expert chunks; `normalize` must be the checkpoint's action normalisation.
 
-    The BPE vocabulary is the coefficient alphabet plus `MERGES` merges, which fold the run of zero coefficients of a
-    constant expert chunk into a couple of tokens.
+    The BPE vocabulary is the coefficient alphabet plus `MERGES` merges. Measured on the shipped fit: the run of zero
+    coefficients is *not* merged, because the coefficients span [-32, 32], so zero is written as chr(32), a space, and
+    FAST's byte-level pre-tokenizer splits on whitespace. A constant chunk is therefore 20 ids, and a policy must emit
+    exactly 18 zero ids or the chunk fails to decode (upstream then returns zeros).
     """
     rng = np.random.default_rng(seed)
     cfg = task.TaskConfig()

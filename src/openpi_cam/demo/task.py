@@ -135,8 +135,9 @@ def render_wrist(scene: Scene, state: np.ndarray, cfg: TaskConfig = TaskConfig()
 
 def expert_chunk(state: np.ndarray, goal: np.ndarray, cfg: TaskConfig = TaskConfig()) -> np.ndarray:
     """Head for the goal at `max_speed`: the same step repeated over the chunk (the robot replans every few steps and
-    the simulator stops on arrival). A constant chunk has a single non-zero DCT coefficient per dimension, so the
-    policy's FAST output is two informative tokens plus a run of zeros that BPE merges: small enough to learn on CPU."""
+    the simulator stops on arrival). A constant chunk has a single non-zero DCT coefficient per dimension, so its FAST
+    tokens are two informative ids followed by 18 zero-coefficient ids (the shipped FAST fit does not merge that run:
+    see `make_tokenizers.fit_fast`)."""
     d = np.asarray(goal, np.float64) - np.asarray(state, np.float64)
     dist = float(np.linalg.norm(d))
     step = d * (cfg.max_speed / dist) if dist > 1e-9 else np.zeros(2)
