@@ -85,10 +85,11 @@ def fit_fast(
 ) -> FastActionTokenizer:
     """FAST fitted on normalised expert chunks; `normalize` must be the checkpoint's action normalisation.
 
-    The BPE vocabulary is the coefficient alphabet plus `MERGES` merges. Measured on the shipped fit: the run of zero
-    coefficients is *not* merged, because the coefficients span [-32, 32], so zero is written as chr(32), a space, and
-    FAST's byte-level pre-tokenizer splits on whitespace. A constant chunk is therefore 20 ids, and a policy must emit
-    exactly 18 zero ids or the chunk fails to decode (upstream then returns zeros).
+    The BPE vocabulary is asked for as the coefficient alphabet plus `MERGES` merges, but FAST's byte-level BPE starts
+    from 256 byte symbols, more than that budget, so the fit learns no merges at all (measured: the same data fitted
+    with a vocabulary of 300 folds a constant chunk into 2 ids). A constant chunk is therefore 20 ids, and a policy
+    must emit exactly 18 zero ids after the two informative ones or the chunk fails to decode (upstream then returns
+    zeros). Room for merges needs more FAST ids than the 256 `<loc>` pieces, i.e. a larger text vocabulary.
     """
     rng = np.random.default_rng(seed)
     cfg = task.TaskConfig()

@@ -136,7 +136,7 @@ def render_wrist(scene: Scene, state: np.ndarray, cfg: TaskConfig = TaskConfig()
 def expert_chunk(state: np.ndarray, goal: np.ndarray, cfg: TaskConfig = TaskConfig()) -> np.ndarray:
     """Head for the goal at `max_speed`: the same step repeated over the chunk (the robot replans every few steps and
     the simulator stops on arrival). A constant chunk has a single non-zero DCT coefficient per dimension, so its FAST
-    tokens are two informative ids followed by 18 zero-coefficient ids (the shipped FAST fit does not merge that run:
+    tokens are two informative ids followed by 18 zero-coefficient ids (the shipped FAST fit learned no merges:
     see `make_tokenizers.fit_fast`)."""
     d = np.asarray(goal, np.float64) - np.asarray(state, np.float64)
     dist = float(np.linalg.norm(d))
