@@ -48,41 +48,39 @@ def test_moving_away_from_the_target_fails():
     assert episode.steps == 10
 
 
-def test_shipped_tokenizers_load_and_round_trip():
+def _shipped_tokenizer_rows(seed: int, n: int):
+    """The shipped tokenizers and, per task sample, (normalised actions, tokenize() output) as in training."""
     from openpi_cam.normalize import load_checkpoint_norm_stats
     from openpi_cam.tokenizers.pi0_fast import Pi0FastTokenizer
     from openpi_cam.transforms import Normalize
 
     tok = Pi0FastTokenizer.from_files(bundled.PALIGEMMA_TOKENIZER, bundled.FAST_TOKENIZER, max_len=56)
+    normalize = Normalize(load_checkpoint_norm_stats(bundled.CHECKPOINT, bundled.ASSET_ID), use_quantiles=True)
+    data = task.make_dataset(seed, n)
+    rows = []
+    for prompt, state, actions in zip(data["prompt"], data["state"], data["actions"], strict=True):
+        norm = normalize({"state": state.astype(np.float64), "actions": actions.astype(np.float64)})
+        rows.append((norm["actions"], tok.tokenize(str(prompt), norm["state"], norm["actions"])))
+    return tok, rows
+
+
+def test_shipped_tokenizers_load_and_round_trip():
+    tok, rows = _shipped_tokenizer_rows(11, 40)
     sp = tok.paligemma
     assert [sp.pad_id(), sp.eos_id(), sp.bos_id(), sp.unk_id()] == [0, 1, 2, 3]
     # PaliGemma's layout: FAST id f lands on <loc{255 - f}>, the last 128 pieces are skipped.
     assert sp.id_to_piece(int(tok.fast_to_paligemma([0])[0])) == "<loc0255>"
     assert sp.id_to_piece(sp.vocab_size() - 1) == "<seg127>"
-    normalize = Normalize(load_checkpoint_norm_stats(bundled.CHECKPOINT, bundled.ASSET_ID), use_quantiles=True)
-    data = task.make_dataset(11, 40)
-    for prompt, state, actions in zip(data["prompt"], data["state"], data["actions"], strict=True):
-        norm = normalize({"state": state.astype(np.float64), "actions": actions.astype(np.float64)})
-        tokens, mask, ar, loss = tok.tokenize(str(prompt), norm["state"], norm["actions"])
+    for actions, (tokens, mask, ar, loss) in rows:
         assert mask.sum() < len(mask), "training sequence does not fit max_token_len"
         np.testing.assert_array_equal(loss, (ar == 1) & mask)  # loss on the postfix only, as upstream
         decoded = tok.extract_actions(tokens[(ar == 1) & mask], 10, 2)
-        np.testing.assert_allclose(decoded, norm["actions"], atol=0.15)
+        np.testing.assert_allclose(decoded, actions, atol=0.15)
 
 
 def test_expert_postfix_fits_the_decoding_cap():
-    from openpi_cam.normalize import load_checkpoint_norm_stats
-    from openpi_cam.tokenizers.pi0_fast import Pi0FastTokenizer
-    from openpi_cam.transforms import Normalize
-
-    tok = Pi0FastTokenizer.from_files(bundled.PALIGEMMA_TOKENIZER, bundled.FAST_TOKENIZER, max_len=56)
-    normalize = Normalize(load_checkpoint_norm_stats(bundled.CHECKPOINT, bundled.ASSET_ID), use_quantiles=True)
-    data = task.make_dataset(12, 40)
-    lengths = set()
-    for prompt, state, actions in zip(data["prompt"], data["state"], data["actions"], strict=True):
-        norm = normalize({"state": state.astype(np.float64), "actions": actions.astype(np.float64)})
-        _, mask, ar, _ = tok.tokenize(str(prompt), norm["state"], norm["actions"])
-        lengths.add(int(((ar == 1) & mask).sum()))
+    _, rows = _shipped_tokenizer_rows(12, 40)
+    lengths = {int(((ar == 1) & mask).sum()) for _, (_, mask, ar, _) in rows}
     # The shipped FAST fit has no merges (its 97-id budget is below the 256 byte symbols): 20 ids per chunk.
     assert lengths == {27}
     assert max(lengths) <= bundled.MAX_DECODING_STEPS

@@ -42,22 +42,21 @@ def cells_overlapping(box: tuple[int, ...], grid: tuple[int, int], image_size: i
     return rows[:, None] & cols[None, :]
 
 
+def peak_in(cam_map: np.ndarray, cells: np.ndarray) -> bool:
+    """Does the map's peak fall in `cells` [Hp, Wp]? A map without any positive mass points nowhere: a miss."""
+    return bool(np.asarray(cam_map).max() > 0 and cells[peak_cell(cam_map)])
+
+
 def hits(cam_map: np.ndarray, box: tuple[int, ...], image_size: int) -> bool:
-    """Pointing-game hit; a map without any positive mass points nowhere, so it is a miss."""
-    if not np.asarray(cam_map).max() > 0:
-        return False
-    grid = np.shape(cam_map)[-2:]
-    r, c = peak_cell(cam_map)
-    return bool(cells_overlapping(box, grid, image_size)[r, c])
+    """Pointing-game hit: the peak lies on a patch overlapping the box."""
+    return peak_in(cam_map, cells_overlapping(box, np.shape(cam_map)[-2:], image_size))
 
 
 def object_pointing(cam_map: np.ndarray, boxes: list[tuple[int, ...]], image_size: int) -> tuple[bool, float]:
     """(does the peak lie on any of the blocks, share of patches overlapping any block)."""
     grid = np.shape(cam_map)[-2:]
     any_block = np.logical_or.reduce([cells_overlapping(b, grid, image_size) for b in boxes])
-    if not np.asarray(cam_map).max() > 0:
-        return False, float(any_block.mean())
-    return bool(any_block[peak_cell(cam_map)]), float(any_block.mean())
+    return peak_in(cam_map, any_block), float(any_block.mean())
 
 
 def run_figures(run_dir: Path, image_size: int = task.TaskConfig().image_size) -> dict[str, Any]:
