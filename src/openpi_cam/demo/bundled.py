@@ -43,7 +43,9 @@ DEMO_CONFIG = register_config(
 )
 
 
-def model_config(vocab_size: int, *, width: int = 128, depth: int = 2, vit_width: int = 64) -> Pi0FASTConfig:
+def model_config(
+    vocab_size: int, *, width: int = 128, depth: int = 2, vit_width: int = 64, patch_size: int = 8
+) -> Pi0FASTConfig:
     """pi0-FAST's architecture scaled down: 64 px images in 8 px patches give an 8 x 8 Grad-CAM grid per camera."""
     gemma = GemmaConfig(
         width=width, depth=depth, mlp_dim=2 * width, num_heads=4, num_kv_heads=1, head_dim=32, vocab_size=vocab_size
@@ -53,7 +55,7 @@ def model_config(vocab_size: int, *, width: int = 128, depth: int = 2, vit_width
         depth=depth,
         mlp_dim=2 * vit_width,
         num_heads=2,
-        patch_size=8,
+        patch_size=patch_size,
         image_size=task.TaskConfig().image_size,
         out_dim=width,
     )

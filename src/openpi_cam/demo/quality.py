@@ -7,7 +7,10 @@
   separates "the map finds objects" from "the policy picked the named one";
 * model randomisation (Adebayo et al.): Spearman rank correlation between the trained model's maps and those of a
   re-initialised copy explaining the same tokens; low means the maps depend on what the model learned;
-* prompt swap: naming another block in the same scene moves the peak onto that block.
+* prompt swap: naming another block in the same scene moves the peak onto that block;
+* binding probe: does the model prefer the chunk toward the named block over one toward another block (0.5: it
+  ignores the colour word);
+* camera occlusion: how often the policy heads for the named / any block with the blocks erased from one view.
 
 `python -m openpi_cam.demo.quality RUN_DIR [--samples 30]`
 """
@@ -16,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -94,6 +98,75 @@ def run_figures(run_dir: Path, image_size: int = task.TaskConfig().image_size) -
     }
 
 
+def binding_pairs(samples: int, seed: int) -> tuple[list[task.Sample], list[task.Sample]]:
+    """Rollout starts in fresh scenes, each twice: as the expert sees it (the chunk heads for the named block) and with
+    the chunk heading for another block instead; prompt and images are the same in both."""
+    rng = np.random.default_rng(seed)
+    named, other = [], []
+    for _ in range(samples):
+        scene = task.random_scene(rng)
+        state = task.random_start(rng, scene)
+        sample = task.observe(scene, state)
+        distractor = scene.blocks[int(rng.choice([i for i in range(len(scene.blocks)) if i != scene.target]))]
+        goal = task.block_center(distractor, task.TaskConfig().image_size)
+        named.append(sample)
+        other.append(dataclasses.replace(sample, actions=task.expert_chunk(state, goal)))
+    return named, other
+
+
+def binding_probe(
+    example_losses: Callable[[list[task.Sample]], np.ndarray], samples: int = 96, seed: int = 999
+) -> float:
+    """Share of scenes where the model finds the chunk toward the *named* block likelier (lower teacher-forced loss)
+    than the chunk toward another block, given the same prompt and images. 0.5 is a policy that ignores the colour
+    word (it may still head for *a* block); 1.0 binds the word to the block. No decoding, so it is cheap enough to log
+    during training; `example_losses` maps samples to per-example training losses."""
+    named, other = binding_pairs(samples, seed)
+    return float(np.mean(np.asarray(example_losses(named)) < np.asarray(example_losses(other))))
+
+
+def heads_for(actions: np.ndarray, state: np.ndarray, goal: np.ndarray, *, execute: int = 5, tolerance: float = 20.0):
+    """Does the executed part of a chunk (its first `execute` steps, as the demo robot runs it) point at `goal` within
+    `tolerance` degrees?"""
+    move = np.asarray(actions, np.float64)[:execute].sum(0)
+    want = np.asarray(goal, np.float64) - np.asarray(state, np.float64)
+    norm = np.linalg.norm(move) * np.linalg.norm(want)
+    return bool(norm > 0 and np.degrees(np.arccos(np.clip(move @ want / norm, -1.0, 1.0))) <= tolerance)
+
+
+OCCLUSIONS = ("none", "base", "wrist")
+
+
+def occlusion_figures(policy: Any, samples: int = 40, seed: int = 4321) -> dict[str, dict[str, float]]:
+    """Which camera drives the policy? Per occlusion (the blocks erased from no view, from the base view, from the wrist
+    view; the end-effector marker stays), the share of fresh rollout starts whose executed chunk heads for the named
+    block, and for any block. A causal counterpart to the maps: a camera the policy does not use cannot be where its
+    Grad-CAM peak means anything."""
+    rng = np.random.default_rng(seed)
+    size = task.TaskConfig().image_size
+    empty = task.Scene(blocks=(), target=0)
+    named = {k: [] for k in OCCLUSIONS}
+    any_block = {k: [] for k in OCCLUSIONS}
+    for _ in range(samples):
+        scene = task.random_scene(rng)
+        state = task.random_start(rng, scene)
+        sample = task.observe(scene, state)
+        for occlusion in OCCLUSIONS:
+            shown = sample
+            if occlusion == "base":
+                shown = dataclasses.replace(sample, base_image=task.render_base(empty, state))
+            elif occlusion == "wrist":
+                shown = dataclasses.replace(sample, wrist_image=task.render_wrist(empty, state))
+            actions = policy.infer(bundled.policy_input(bundled.client_observation(shown)))["actions"]
+            heads = [heads_for(actions, state, task.block_center(b, size)) for b in scene.blocks]
+            named[occlusion].append(heads[scene.target])
+            any_block[occlusion].append(any(heads))
+    return {
+        k: {"heads_for_named_block": float(np.mean(named[k])), "heads_for_any_block": float(np.mean(any_block[k]))}
+        for k in OCCLUSIONS
+    }
+
+
 def _explain(model: Any, policy: Any, obs: dict[str, Any], target: str):
     from openpi_cam.cam.engine import CamSkipped, explain
 
@@ -114,7 +187,7 @@ def spearman(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def offline_figures(samples: int = 30, seed: int = 1234, target: str = "chunk") -> dict[str, Any]:
-    """Randomisation check and prompt swap on fresh scenes (multi-block scenes only, so a swap is possible)."""
+    """Randomisation check, prompt swap, binding probe and camera occlusion on fresh scenes."""
     import jax
 
     from openpi_cam.model.pi0_fast import Pi0FAST, init_params
@@ -146,7 +219,13 @@ def offline_figures(samples: int = 30, seed: int = 1234, target: str = "chunk") 
             moved.append(hits(swapped.maps[BASE_CAMERA], other.target_block.box, size))
         swaps += 1
     finite = [r for r in rhos if np.isfinite(r)]
+    from openpi_cam.demo.train import Batches, load_normalize
+
+    batches = Batches(bundled.ASSETS, load_normalize(bundled.ASSETS), 1, seed)
+    probe = binding_probe(lambda samples: np.asarray(model.compute_loss(batches.observation(samples))))
     return {
+        "binding_probe": probe,
+        "occlusion": occlusion_figures(policy, samples, seed),
         "samples": swaps,
         "pointing_game_fresh": float(np.mean(kept)),
         "object_pointing_fresh": float(np.mean(on_block)),

@@ -165,15 +165,29 @@ def random_start(rng: np.random.Generator, scene: Scene, cfg: TaskConfig = TaskC
             return state
 
 
-def training_sample(rng: np.random.Generator, cfg: TaskConfig = TaskConfig()) -> Sample:
-    """An i.i.d. (scene, state) pair: the expert is Markov in the state, so this covers every state a rollout meets."""
-    scene = random_scene(rng, cfg)
+def training_state(rng: np.random.Generator, scene: Scene, cfg: TaskConfig = TaskConfig()) -> np.ndarray:
+    """Anywhere on the table, or (`near_fraction` of the time) close to the named block so decelerating chunks occur."""
     goal = block_center(scene.target_block, cfg.image_size)
     if rng.random() < cfg.near_fraction:
         state = goal + rng.uniform(-0.4, 0.4, size=2)
     else:
         state = rng.uniform(-0.95, 0.95, size=2)
-    return observe(scene, np.clip(state, -0.95, 0.95), cfg)
+    return np.clip(state, -0.95, 0.95)
+
+
+def training_sample(rng: np.random.Generator, cfg: TaskConfig = TaskConfig()) -> Sample:
+    """An i.i.d. (scene, state) pair: the expert is Markov in the state, so this covers every state a rollout meets."""
+    scene = random_scene(rng, cfg)
+    return observe(scene, training_state(rng, scene, cfg), cfg)
+
+
+def contrast_pair(rng: np.random.Generator, cfg: TaskConfig = TaskConfig()) -> tuple[Sample, Sample]:
+    """One scene and state observed twice, the prompt naming two different blocks: identical images, different
+    answers, so only the prompt can tell the two apart (a batch of such pairs rewards reading the colour)."""
+    scene = random_scene(rng, cfg)
+    state = training_state(rng, scene, cfg)
+    other = int(rng.choice([i for i in range(len(scene.blocks)) if i != scene.target]))
+    return observe(scene, state, cfg), observe(dataclasses.replace(scene, target=other), state, cfg)
 
 
 def make_dataset(seed: int, n: int, cfg: TaskConfig = TaskConfig()) -> dict[str, np.ndarray]:

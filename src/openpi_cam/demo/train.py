@@ -21,6 +21,7 @@ import numpy as np
 import optax
 
 from openpi_cam.demo import bundled, make_tokenizers, sim, task
+from openpi_cam.demo.quality import binding_probe
 from openpi_cam.model.checkpoint import save_params
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.pi0_fast import compute_loss, init_params
@@ -39,25 +40,33 @@ class TrainArgs:
     width: int = 128
     depth: int = 2
     vit_width: int = 64
+    patch_size: int = 8
+    contrast_pairs: bool = False  # batches of (same scene, two prompts) pairs: see `task.contrast_pair`
     eval_episodes: int = 50
     log_every: int = 50
+    probe_every: int = 0  # log the binding probe (`quality.binding_probe`) every this many steps; 0: never
 
 
 def norm_stats_dir(out: Path) -> Path:
     return out / bundled.CHECKPOINT.name / "assets" / bundled.ASSET_ID
 
 
+def load_normalize(out: Path) -> Normalize:
+    """The checkpoint's normalisation, as the policy applies it (quantiles, like upstream's pi0-FAST configs)."""
+    return Normalize(load_norm_stats(norm_stats_dir(out)), use_quantiles=True)
+
+
 def write_norm_stats(out: Path, *, seed: int = 2, n: int = 20000) -> Normalize:
     data = task.make_dataset(seed, n)
     stats = {"state": compute_norm_stats(data["state"]), "actions": compute_norm_stats(data["actions"])}
     save_norm_stats(norm_stats_dir(out), stats)
-    return Normalize(load_norm_stats(norm_stats_dir(out)), use_quantiles=True)
+    return load_normalize(out)
 
 
 class Batches:
     """Fresh procedural samples every step, in the format the policy's input transforms produce."""
 
-    def __init__(self, out: Path, normalize: Normalize, batch_size: int, seed: int):
+    def __init__(self, out: Path, normalize: Normalize, batch_size: int, seed: int, *, contrast_pairs: bool = False):
         from openpi_cam.tokenizers.pi0_fast import Pi0FastTokenizer
 
         self.tokenizer = Pi0FastTokenizer.from_files(
@@ -68,9 +77,18 @@ class Batches:
         self.normalize = normalize
         self.rng = np.random.default_rng(seed)
         self.batch_size = batch_size
+        self.contrast_pairs = contrast_pairs
 
     def __call__(self) -> Observation:
-        samples = [task.training_sample(self.rng) for _ in range(self.batch_size)]
+        if self.contrast_pairs:
+            pairs = [task.contrast_pair(self.rng) for _ in range((self.batch_size + 1) // 2)]
+            samples = [s for pair in pairs for s in pair][: self.batch_size]
+        else:
+            samples = [task.training_sample(self.rng) for _ in range(self.batch_size)]
+        return self.observation(samples)
+
+    def observation(self, samples: list[task.Sample]) -> Observation:
+        """Training format: the prompt, state and expert chunk tokenized together, loss on the postfix."""
         states, rows = [], []
         for s in samples:
             norm = self.normalize({"state": s.state.astype(np.float64), "actions": s.actions.astype(np.float64)})
@@ -84,7 +102,7 @@ class Batches:
         return Observation.from_dict(
             {
                 "image": images,
-                "image_mask": {k: np.ones(self.batch_size, bool) for k in images},
+                "image_mask": {k: np.ones(len(samples), bool) for k in images},
                 "state": np.stack(states).astype(np.float32),
                 "tokenized_prompt": tokens,
                 "tokenized_prompt_mask": mask,
@@ -116,7 +134,9 @@ def train(args: TrainArgs) -> dict:
     make_tokenizers.fit_fast(args.out, lambda chunks: normalize({"actions": chunks})["actions"])
 
     vocab = make_tokenizers.TEXT_VOCAB + make_tokenizers.FAST_VOCAB + make_tokenizers.SEG_PIECES
-    cfg = bundled.model_config(vocab, width=args.width, depth=args.depth, vit_width=args.vit_width)
+    cfg = bundled.model_config(
+        vocab, width=args.width, depth=args.depth, vit_width=args.vit_width, patch_size=args.patch_size
+    )
     params = init_params(cfg, jax.random.key(args.seed))
     schedule = optax.warmup_cosine_decay_schedule(
         0.0, args.lr, min(args.warmup, args.steps // 2), args.steps, 0.05 * args.lr
@@ -130,7 +150,8 @@ def train(args: TrainArgs) -> dict:
         updates, opt_state = optimizer.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, loss
 
-    batches = Batches(args.out, normalize, args.batch_size, args.seed + 1)
+    batches = Batches(args.out, normalize, args.batch_size, args.seed + 1, contrast_pairs=args.contrast_pairs)
+    example_losses = jax.jit(lambda p, obs: compute_loss(p, obs, cfg))
     t0, losses = time.time(), []
     for i in range(args.steps):
         params, opt_state, loss = step(params, opt_state, batches())
@@ -138,6 +159,9 @@ def train(args: TrainArgs) -> dict:
         if (i + 1) % args.log_every == 0:
             recent = np.mean(losses[-args.log_every :])
             print(f"step {i + 1}/{args.steps} loss {recent:.4f} {time.time() - t0:.0f}s", flush=True)
+        if args.probe_every and (i + 1) % args.probe_every == 0:
+            probe = binding_probe(lambda samples, p=params: np.asarray(example_losses(p, batches.observation(samples))))
+            print(f"step {i + 1}/{args.steps} binding probe {probe:.2f} (chance 0.5)", flush=True)
     params_dir = args.out / bundled.CHECKPOINT.name / "params"
     shutil.rmtree(params_dir, ignore_errors=True)
     save_params(params_dir, params)
