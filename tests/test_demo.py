@@ -141,7 +141,8 @@ def test_shipped_checkpoint_loads_through_the_normal_loader():
 
     params = load_params(bundled.CHECKPOINT / "params")
     model = Pi0FAST.from_params(params, action_dim=2, action_horizon=10, max_token_len=56, dtype="float32")
-    assert model.camera_grid == (8, 8)
+    grid = task.TaskConfig().image_size // bundled.PATCH_SIZE
+    assert model.camera_grid == (grid, grid) == (4, 4)
     assert model.config.image_resolution == (64, 64)
     assert model.config.gemma.vocab_size == bundled.create_demo_policy().tokenizer.vocab_size
 
@@ -183,22 +184,74 @@ def test_heads_for_measures_the_executed_heading():
 
 def test_shipped_model_scores_expert_chunks_and_occlusion_runs():
     from openpi_cam.demo.train import Batches, load_normalize
+    from openpi_cam.model.pi0_fast import compute_loss
 
     policy = bundled.create_demo_policy()
     batches = Batches(bundled.ASSETS, load_normalize(bundled.ASSETS), 1, seed=0)
     named, _ = quality.binding_pairs(8, seed=3)
     rng = np.random.default_rng(0)
     aimless = [dataclasses.replace(s, actions=np.tile(rng.uniform(-0.1, 0.1, 2), (10, 1))) for s in named]
-    loss = lambda samples: np.asarray(policy.model.compute_loss(batches.observation(samples)))  # noqa: E731
+    model = policy.model
+
+    def loss(samples):
+        return np.asarray(compute_loss(model.params, batches.observation(samples), model.config, decode_offset=1))
+
     # The training-format observation must line up with what the model learned: the expert's chunks are much
-    # likelier than chunks in random directions (measured with the shipped model: 0.18 vs 0.52 mean loss per postfix
-    # token, three seeds of 8 scenes).
+    # likelier than chunks in random directions (measured with the shipped model: 0.09 vs 1.0 mean loss per postfix
+    # token, three seeds of 8 scenes; 0.18 vs 0.52 for the earlier, weaker model).
     assert loss(named).mean() < 0.5 * loss(aimless).mean()
     figures = quality.occlusion_figures(policy, samples=2, seed=1)
     assert set(figures) == set(quality.OCCLUSIONS)
     for shares in figures.values():
         assert set(shares) == {"heads_for_named_block", "heads_for_any_block"}
         assert shares["heads_for_named_block"] <= shares["heads_for_any_block"]
+
+
+def test_decode_offset_trains_the_positions_the_decoder_serves():
+    """compute_loss(decode_offset=1) on (prompt, generated tokens) is the cross-entropy of the logits the decode loop
+    really produced; upstream's training layout (0) is not, because generated tokens sit one RoPE position on."""
+    import jax
+    import jax.numpy as jnp
+
+    from openpi_cam.model import gemma
+    from openpi_cam.model.observation import Observation
+    from openpi_cam.model.pi0_fast import EOS_TOKEN, compute_loss, embed_images, replay_prelogits
+
+    policy = bundled.create_demo_policy()
+    model = policy.model
+    rng = np.random.default_rng(2)
+    scene = task.random_scene(rng)
+    _, trace = policy.infer_traced(
+        bundled.policy_input(bundled.client_observation(task.observe(scene, task.random_start(rng, scene))))
+    )
+    obs, generated = trace.observation, np.asarray(trace.generated_tokens)
+    n = int(np.argmax(generated == EOS_TOKEN)) + 1  # up to and including EOS
+    fed = jnp.asarray(generated[None])
+    pre = replay_prelogits(model.params, embed_images(model.params, obs, model.config), obs, fed, model.config)
+    logp = jax.nn.log_softmax(gemma.logits_from_prelogits(model.params["PaliGemma"]["llm"], pre), -1)[0]
+    decoded = -float(np.mean([logp[k, generated[k]] for k in range(n)]))
+
+    prefix = np.asarray(obs.tokenized_prompt)[0][np.asarray(obs.tokenized_prompt_mask)[0]]
+    tokens = np.concatenate([prefix, generated[:n]])
+    width = len(tokens) + 3  # trailing padding, as in training batches
+    pad = lambda a: np.pad(a, (0, width - len(a)))[None]  # noqa: E731
+    train_obs = Observation.from_dict(
+        {
+            "image": {k: np.asarray(v) for k, v in obs.images.items()},
+            "image_mask": {k: np.asarray(v) for k, v in obs.image_masks.items()},
+            "state": np.asarray(obs.state),
+            "tokenized_prompt": pad(tokens).astype(np.int32),
+            "tokenized_prompt_mask": pad(np.ones(len(tokens), bool)),
+            "token_ar_mask": pad(np.r_[np.zeros(len(prefix)), np.ones(n)]).astype(np.int32),
+            "token_loss_mask": pad(np.r_[np.zeros(len(prefix), bool), np.ones(n, bool)]),
+        }
+    )
+    served = float(compute_loss(model.params, train_obs, model.config, decode_offset=1)[0])
+    upstream = float(compute_loss(model.params, train_obs, model.config)[0])
+    # float32 sums in a different order: measured |served - decoded| 7e-8 and |upstream - decoded| 2.1e-3 with the
+    # shipped model (1.5e-8 and 1.7e-3 with an earlier one trained at offset 0).
+    assert served == pytest.approx(decoded, abs=1e-5)
+    assert abs(upstream - decoded) > 1e-4
 
 
 @pytest.mark.slow
@@ -212,7 +265,7 @@ def test_short_demo_run_is_readable(tmp_path):
     assert 1 <= len(run.steps) <= 2
     for step in run.steps:
         assert len(step.meta["extra"]["target_box"]) == 4
-        assert np.shape(step.maps["base_0_rgb"])[-2:] == (8, 8)
+        assert np.shape(step.maps["base_0_rgb"])[-2:] == (4, 4)
     figures = quality.run_figures(run_dir)
     assert figures["episodes"] == 1 and figures["steps"] == len(run.steps)
     assert 0.0 <= figures["object_pointing"] <= 1.0 and figures["object_pointing_chance"] > 0

@@ -25,7 +25,7 @@ MARKER = (255, 255, 255)
 @dataclasses.dataclass(frozen=True)
 class TaskConfig:
     image_size: int = 64
-    block_size: int = 12  # pixels; spans 2-3 patches of 8 px so the target is visible on the Grad-CAM grid
+    block_size: int = 12  # pixels: 1-4 of the model's 16 px patches, so the target shows on the Grad-CAM grid
     min_blocks: int = 2
     max_blocks: int = 3
     wrist_crop: int = 32  # pixels of the base view around the end effector, upsampled to image_size

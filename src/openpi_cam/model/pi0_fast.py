@@ -182,14 +182,19 @@ def replay_prelogits(
     return jnp.concatenate([last_pre[:, None], pre[:, :-1]], axis=1)
 
 
-def compute_loss(params: dict, obs: Observation, cfg: Pi0FASTConfig) -> jax.Array:
-    """Upstream's training loss: next-token cross-entropy over `token_loss_mask`, one teacher-forced pass. -> [B]"""
+def compute_loss(params: dict, obs: Observation, cfg: Pi0FASTConfig, *, decode_offset: int = 0) -> jax.Array:
+    """Upstream's training loss: next-token cross-entropy over `token_loss_mask`, one teacher-forced pass. -> [B]
+
+    `decode_offset=1` moves the postfix (the `token_ar_mask` tokens) one RoPE position on, where upstream's decoder
+    feeds generated tokens (quirk 1, `decode_positions`); upstream trains with 0. A model that leans on exact
+    relative positions must be trained with 1 to be served by upstream's decoder."""
     llm = params["PaliGemma"]["llm"]
     obs = preprocess_observation(obs, cfg.image_resolution)
     x, input_mask, ar_mask = embed_prefix(params, embed_images(params, obs, cfg), obs, cfg)
     attn = make_attn_mask(input_mask, ar_mask)
     t = x.shape[1] - 1
     positions = jnp.broadcast_to(jnp.arange(t, dtype=jnp.int32), (x.shape[0], t))  # upstream passes none here
+    positions = positions + decode_offset * (jnp.cumsum(ar_mask[:, :t], axis=1) > 0)
     pre, _ = gemma.forward(llm, x[:, :-1], positions, attn[:, :-1, :-1], cfg.gemma)
     targets = obs.tokenized_prompt[:, 1:]
     logits = gemma.logits_from_prelogits(llm, pre[:, -targets.shape[1] :])
