@@ -107,7 +107,7 @@ def binding_pairs(samples: int, seed: int) -> tuple[list[task.Sample], list[task
         scene = task.random_scene(rng)
         state = task.random_start(rng, scene)
         sample = task.observe(scene, state)
-        distractor = scene.blocks[int(rng.choice([i for i in range(len(scene.blocks)) if i != scene.target]))]
+        distractor = scene.blocks[task.other_block(rng, scene)]
         goal = task.block_center(distractor, task.TaskConfig().image_size)
         named.append(sample)
         other.append(dataclasses.replace(sample, actions=task.expert_chunk(state, goal)))
@@ -125,7 +125,9 @@ def binding_probe(
     return float(np.mean(np.asarray(example_losses(named)) < np.asarray(example_losses(other))))
 
 
-def heads_for(actions: np.ndarray, state: np.ndarray, goal: np.ndarray, *, execute: int = 5, tolerance: float = 20.0):
+def heads_for(
+    actions: np.ndarray, state: np.ndarray, goal: np.ndarray, *, execute: int = 5, tolerance: float = 20.0
+) -> bool:
     """Does the executed part of a chunk (its first `execute` steps, as the demo robot runs it) point at `goal` within
     `tolerance` degrees?"""
     move = np.asarray(actions, np.float64)[:execute].sum(0)

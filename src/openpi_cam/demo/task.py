@@ -181,13 +181,18 @@ def training_sample(rng: np.random.Generator, cfg: TaskConfig = TaskConfig()) ->
     return observe(scene, training_state(rng, scene, cfg), cfg)
 
 
+def other_block(rng: np.random.Generator, scene: Scene) -> int:
+    """A random block other than the named one (scenes hold at least two)."""
+    return int(rng.choice([i for i in range(len(scene.blocks)) if i != scene.target]))
+
+
 def contrast_pair(rng: np.random.Generator, cfg: TaskConfig = TaskConfig()) -> tuple[Sample, Sample]:
     """One scene and state observed twice, the prompt naming two different blocks: identical images, different
     answers, so only the prompt can tell the two apart (a batch of such pairs rewards reading the colour)."""
     scene = random_scene(rng, cfg)
     state = training_state(rng, scene, cfg)
-    other = int(rng.choice([i for i in range(len(scene.blocks)) if i != scene.target]))
-    return observe(scene, state, cfg), observe(dataclasses.replace(scene, target=other), state, cfg)
+    other = dataclasses.replace(scene, target=other_block(rng, scene))
+    return observe(scene, state, cfg), observe(other, state, cfg)
 
 
 def make_dataset(seed: int, n: int, cfg: TaskConfig = TaskConfig()) -> dict[str, np.ndarray]:
