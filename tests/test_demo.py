@@ -184,7 +184,6 @@ def test_heads_for_measures_the_executed_heading():
 
 def test_shipped_model_scores_expert_chunks_and_occlusion_runs():
     from openpi_cam.demo.train import Batches, load_normalize
-    from openpi_cam.model.pi0_fast import compute_loss
 
     policy = bundled.create_demo_policy()
     batches = Batches(bundled.ASSETS, load_normalize(bundled.ASSETS), 1, seed=0)
@@ -194,7 +193,7 @@ def test_shipped_model_scores_expert_chunks_and_occlusion_runs():
     model = policy.model
 
     def loss(samples):
-        return np.asarray(compute_loss(model.params, batches.observation(samples), model.config, decode_offset=1))
+        return np.asarray(model.compute_loss(batches.observation(samples), decode_offset=1))
 
     # The training-format observation must line up with what the model learned: the expert's chunks are much
     # likelier than chunks in random directions (measured with the shipped model: 0.09 vs 1.0 mean loss per postfix

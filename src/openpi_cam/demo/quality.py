@@ -192,7 +192,7 @@ def offline_figures(samples: int = 30, seed: int = 1234, target: str = "chunk") 
     """Randomisation check, prompt swap, binding probe and camera occlusion on fresh scenes."""
     import jax
 
-    from openpi_cam.model.pi0_fast import Pi0FAST, compute_loss, init_params
+    from openpi_cam.model.pi0_fast import Pi0FAST, init_params
 
     policy = bundled.create_demo_policy()
     model = policy.model
@@ -224,8 +224,8 @@ def offline_figures(samples: int = 30, seed: int = 1234, target: str = "chunk") 
     from openpi_cam.demo.train import Batches, load_normalize
 
     batches = Batches(bundled.ASSETS, load_normalize(bundled.ASSETS), 1, seed)
-    served = jax.jit(lambda obs: compute_loss(model.params, obs, model.config, decode_offset=1))  # served positions
-    probe = binding_probe(lambda samples: np.asarray(served(batches.observation(samples))))
+    # At the positions the decoder serves the action tokens at.
+    probe = binding_probe(lambda samples: np.asarray(model.compute_loss(batches.observation(samples), decode_offset=1)))
     return {
         "binding_probe": probe,
         "occlusion": occlusion_figures(policy, samples, seed),

@@ -214,7 +214,7 @@ class Pi0FAST:
             static_argnames=("cfg", "max_decoding_steps", "temperature", "stop_token_ids", "record_logits"),
         )
         self._embed_images = jax.jit(functools.partial(embed_images, cfg=config))
-        self._loss = jax.jit(functools.partial(compute_loss, cfg=config))
+        self._loss = jax.jit(functools.partial(compute_loss, cfg=config), static_argnames="decode_offset")
 
     @classmethod
     def from_params(cls, params: dict, **data_config: Any) -> Pi0FAST:
@@ -282,8 +282,8 @@ class Pi0FAST:
     def embed_images(self, observation: Observation) -> jax.Array:
         return self._embed_images(self.params, preprocess_observation(observation, self.config.image_resolution))
 
-    def compute_loss(self, observation: Observation) -> jax.Array:
-        return self._loss(self.params, observation)
+    def compute_loss(self, observation: Observation, *, decode_offset: int = 0) -> jax.Array:
+        return self._loss(self.params, observation, decode_offset=decode_offset)
 
     # Grad-CAM entry points live in openpi_cam.model.gradcam; bound here so the model "knows how to explain".
     def gradcam_for_token(self, observation: Observation, **kwargs: Any):
