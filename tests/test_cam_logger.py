@@ -63,6 +63,7 @@ def make_record(i: int, *, connection: str = "c0", stack: bool = False, frames: 
         "extra": {"target_box": [1, 2, 3, 4]},
     }
     rec = StepRecord(connection=connection, step=i, timestamp=1_700_000_000.0 + i, maps=maps, meta=meta)
+    rec.gradnorm_maps = {c: np.abs(m[::-1]) + 1.0 for c, m in maps.items()}  # same shapes, different values
     if frames:
         rec.frames = {CAMERAS[0]: rng.integers(0, 256, (100, 200, 3), dtype=np.uint8)}
         rec.model_frames = {c: rng.integers(0, 256, (224, 224, 3), dtype=np.uint8) for c in CAMERAS}
@@ -80,6 +81,7 @@ def step_seqs(run_dir: pathlib.Path) -> list[int]:
 def test_round_trip_with_numpy_alone(tmp_path):
     lg = new_logger(tmp_path, compress=True)
     records = [make_record(0), make_record(1, stack=True), make_record(2, frames=False)]
+    records[2].gradnorm_maps = {}  # optional: a record without them writes no gradnorm/ keys
     assert [lg.log_step(r) for r in records] == [True, True, True]
     lg.close()
 
@@ -96,6 +98,9 @@ def test_round_trip_with_numpy_alone(tmp_path):
             for c in CAMERAS:
                 assert z[f"cam/{c}"].dtype == np.float32
                 np.testing.assert_array_equal(z[f"cam/{c}"], rec.maps[c])
+            for c, m in rec.gradnorm_maps.items():
+                assert z[f"gradnorm/{c}"].dtype == np.float32
+                np.testing.assert_array_equal(z[f"gradnorm/{c}"], m)
             for c, frame in rec.frames.items():
                 assert z[f"frame/{c}"].dtype == np.uint8
                 np.testing.assert_array_equal(z[f"frame/{c}"], frame)
@@ -104,6 +109,7 @@ def test_round_trip_with_numpy_alone(tmp_path):
             assert sorted(z.files) == sorted(
                 ["meta"]
                 + [f"cam/{c}" for c in CAMERAS]
+                + [f"gradnorm/{c}" for c in rec.gradnorm_maps]
                 + [f"frame/{c}" for c in rec.frames]
                 + [f"frame_model/{c}" for c in rec.model_frames]
             )
@@ -131,6 +137,9 @@ def test_round_trip_with_numpy_alone(tmp_path):
             assert step.file == lg.run_dir / "steps" / f"{step.seq:08d}.npz"
             assert set(step.maps) == set(CAMERAS) and set(step.frames) == set(rec.frames)
             np.testing.assert_array_equal(step.maps[CAMERAS[0]], rec.maps[CAMERAS[0]])
+            assert set(step.gradnorm_maps) == set(rec.gradnorm_maps)
+            for c, m in rec.gradnorm_maps.items():
+                np.testing.assert_array_equal(step.gradnorm_maps[c], m)
             for c in rec.model_frames:
                 np.testing.assert_array_equal(step.model_frames[c], rec.model_frames[c])
 
@@ -299,6 +308,8 @@ def test_wrong_types_raise(tmp_path):
         lg.log_step(StepRecord("c", 0, 0.0, {"a": np.zeros((2, 2))}, meta={"seq": 3}))
     with pytest.raises(ValueError, match="Hp, Wp"):
         lg.log_step(StepRecord("c", 0, 0.0, {"a": np.zeros(4)}))
+    with pytest.raises(ValueError, match="gradnorm_maps 'a' must be"):
+        lg.log_step(StepRecord("c", 0, 0.0, {"a": np.zeros((2, 2))}, gradnorm_maps={"a": np.zeros(4)}))
     assert lg.counters["steps_logged"] == 0 and step_seqs(lg.run_dir) == []
 
 

@@ -123,6 +123,9 @@ def test_real_client_side_channel_on_same_actions_and_complete_run(tmp_path, tin
             logged = step.maps[cam]
             assert logged.dtype == np.float32 and logged.shape == (16, 16)
             np.testing.assert_allclose(logged, direct.maps[cam][0], rtol=0, atol=1e-5 * (np.abs(logged).max() + 1e-12))
+            logged = step.gradnorm_maps[cam]
+            assert logged.dtype == np.float32 and logged.shape == (16, 16)
+            np.testing.assert_allclose(logged, direct.gradnorm_maps[cam][0], rtol=0, atol=1e-5 * (logged.max() + 1e-12))
             np.testing.assert_array_equal(step.model_frames[cam], model_frame_uint8(trace.observation.images[cam]))
         np.testing.assert_array_equal(step.frames["base_0_rgb"], obs["observation/exterior_image_1_left"])
         np.testing.assert_array_equal(step.frames["wrist_0_rgb"], obs["observation/wrist_image_left"])

@@ -114,6 +114,8 @@ def test_batched_rows_equal_the_single_row_engine(policy, golden_tokens):
                 assert got.maps[c].shape == m.shape
                 # Measured max |diff| 3e-6 against maps peaking at 5e-3 .. 0.18 (batch shapes change float sums).
                 np.testing.assert_allclose(got.maps[c], m, rtol=0, atol=1e-3 * np.abs(m).max())
+                norms = one.gradnorm_maps[c]
+                np.testing.assert_allclose(got.gradnorm_maps[c], norms, rtol=0, atol=1e-3 * norms.max())
         if target == "chunk":
             assert len(rows[1].decode_steps) == 3 and len(rows[0].decode_steps) == len(steps)
     # A row whose generation lacks the requested action token is answered with the engine's reason, not dropped.

@@ -81,10 +81,15 @@ def test_gradient_matches_finite_differences(model):
     analytic = float(jnp.vdot(grad, direction))
     fd_dir = (float(score(E + 0.3 * direction)) - float(score(E - 0.3 * direction))) / 0.6
     assert abs(fd_dir - analytic) <= 1e-2 * abs(analytic) + 1e-5
-    # And the reported alpha is the per-camera mean of exactly this gradient.
+    # And the reported alpha is the per-camera mean of exactly this gradient, the gradient-norm map its per-token
+    # norm on the patch grid, and grad_norm (checked against the golden elsewhere) the root sum of that map's squares.
     res = model.gradcam_for_action_token(obs, data["output_tokens"], k)
     for c, cam in enumerate(CAMERAS):
         np.testing.assert_allclose(res.alphas[cam][0], grad[0, c].mean(0), atol=1e-4 * np.abs(grad).max())
+        per_token = np.linalg.norm(grad[0, c], axis=-1)
+        assert res.gradnorm_maps[cam].shape == res.maps[cam].shape == (len(grad), 16, 16)
+        np.testing.assert_allclose(res.gradnorm_maps[cam][0].ravel(), per_token, atol=1e-4 * per_token.max())
+        np.testing.assert_allclose(res.grad_norms[cam], np.sqrt((res.gradnorm_maps[cam] ** 2).sum((1, 2))), rtol=1e-5)
 
 
 def test_all_tokens_in_one_call_equals_the_per_token_loop(model):
@@ -97,6 +102,8 @@ def test_all_tokens_in_one_call_equals_the_per_token_loop(model):
             assert stacked.maps[cam].shape == (2, len(steps), 16, 16)
             scale = np.abs(single.maps[cam]).max() + 1e-12
             np.testing.assert_allclose(stacked.maps[cam][:, i], single.maps[cam], atol=1e-4 * scale)
+            scale = single.gradnorm_maps[cam].max() + 1e-12
+            np.testing.assert_allclose(stacked.gradnorm_maps[cam][:, i], single.gradnorm_maps[cam], atol=1e-4 * scale)
         np.testing.assert_allclose(stacked.score[:, i], single.score, atol=1e-5)
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import html.parser
+import json
 import pathlib
 import re
 import shutil
@@ -57,8 +58,13 @@ def _meta(score: float, base_geometry: dict | None) -> dict:
     }
 
 
-def _log(cam_dir: pathlib.Path, steps: list[tuple[str, dict[str, np.ndarray], float]]) -> pathlib.Path:
-    """A run whose base camera has a black 180x320 original frame and whose wrist camera only a model frame."""
+def _log(
+    cam_dir: pathlib.Path,
+    steps: list[tuple[str, dict[str, np.ndarray], float]],
+    gradnorm: dict[str, np.ndarray] | None = None,
+) -> pathlib.Path:
+    """A run whose base camera has a black 180x320 original frame and whose wrist camera only a model frame; every
+    step carries the `gradnorm` maps when given."""
     geo = letterbox_geometry(180, 320, MODEL, MODEL)
     frames = {BASE: np.zeros((180, 320, 3), np.uint8)}
     model_frames = {WRIST: np.full((MODEL, MODEL, 3), 40, np.uint8)}
@@ -66,7 +72,8 @@ def _log(cam_dir: pathlib.Path, steps: list[tuple[str, dict[str, np.ndarray], fl
     with CAMLogger(cam_dir, run_config={}, checkpoint="ckpt", options={}) as logger:
         for i, (conn, maps, score) in enumerate(steps):
             step = counters[conn] = counters.get(conn, -1) + 1
-            record = StepRecord(conn, step, 100.0 + i, maps, frames, model_frames, _meta(score, geo.as_dict()))
+            meta = _meta(score, geo.as_dict())
+            record = StepRecord(conn, step, 100.0 + i, maps, frames, model_frames, meta, gradnorm or {})
             assert logger.log_step(record)
     return logger.run_dir
 
@@ -231,3 +238,27 @@ def test_render_command(tmp_path):
     out = run_dir / "render"
     assert (out / "index.html").is_file() and len(list((out / "panels").glob("*.png"))) == 2
     assert not any((out / "videos").iterdir())
+
+
+def test_render_and_stats_can_show_the_gradient_norm_maps(tmp_path, capsys):
+    """`--map gradnorm` draws and measures the `gradnorm/` maps, not the Grad-CAM ones, and says so."""
+    maps = {BASE: _hot((6, 10)), WRIST: _hot((1, 1))}
+    run_dir = _log(tmp_path / "cam", [("a", maps, 1.0)], gradnorm={BASE: _hot((8, 4)), WRIST: _hot((12, 12))})
+    cli_main(["render", str(run_dir), "--map", "gradnorm", "--no-videos"])
+    out = run_dir / "render-gradnorm"
+    assert "gradient norm maps" in (out / "index.html").read_text()
+    (overlay,) = (out / "overlays").glob(f"*-{BASE}.png")
+    r, c = _brightest(np.asarray(Image.open(overlay)))
+    # Cell (8, 4) is centred on model pixel (119, 63) -> original ((119 - 49) * 180 / 126, 63 * 320 / 224).
+    assert abs(r + 0.5 - 100.0) <= 1 and abs(c + 0.5 - 90.0) <= 1
+    capsys.readouterr()
+    for kind, peak in (("gradcam", [6, 10]), ("gradnorm", [8, 4])):
+        cli_main(["stats", str(run_dir), "--map", kind, "--format", "json"])
+        (row,) = json.loads(capsys.readouterr().out)["steps"]
+        assert [row[f"{BASE}/peak_row"], row[f"{BASE}/peak_col"]] == peak
+
+    older = _log(tmp_path / "old", [("a", maps, 1.0)])  # written without gradient-norm maps
+    for command in ("render", "stats"):
+        with pytest.raises(SystemExit) as exc:
+            cli_main([command, str(older), "--map", "gradnorm"])
+        assert exc.value.code == 2 and "no gradient-norm maps" in capsys.readouterr().err

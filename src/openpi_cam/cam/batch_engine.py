@@ -135,18 +135,19 @@ def explain_batch(
             continue
         t = own.size
         if target == "chunk":
-            maps = {c: np.asarray(m[b], np.float32) for c, m in result.maps.items()}
+            index: Any = b
             row_score: float | list[float] = float(score[b])
         elif target == "action-token":
-            maps = {c: np.asarray(m[b, 0], np.float32) for c, m in result.maps.items()}
+            index = (b, 0)
             row_score = float(score[b, 0])
         else:
-            maps = {c: np.asarray(m[b, :t], np.float32) for c, m in result.maps.items()}
+            index = (b, slice(0, t))
             row_score = [float(s) for s in score[b, :t]]
         out.append(
             Explanation(
                 target=target,
-                maps=maps,
+                maps={c: np.asarray(m[index], np.float32) for c, m in result.maps.items()},
+                gradnorm_maps={c: np.asarray(m[index], np.float32) for c, m in result.gradnorm_maps.items()},
                 token_ids=[int(x) for x in token_ids[b, :t]],
                 decode_steps=[int(s) for s in own],
                 positions=[int(p) for p in positions[b, :t]],

@@ -38,6 +38,8 @@ class Explanation:
     action_indices: list[int]
     score: float | list[float]
     cameras: dict[str, dict[str, Any]]  # camera -> {"valid", "grid", "span"}
+    # like `maps`: the norm of dScore/dE per token (model.gradcam's gradient-norm map)
+    gradnorm_maps: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
 
 
 def explain(
@@ -67,6 +69,7 @@ def explain(
     return Explanation(
         target=target,
         maps={c: np.asarray(m[0], np.float32) for c, m in result.maps.items()},
+        gradnorm_maps={c: np.asarray(m[0], np.float32) for c, m in result.gradnorm_maps.items()},
         token_ids=[int(t) for t in np.asarray(result.token_ids)[0]],
         decode_steps=[int(s) for s in steps],
         positions=[int(p) for p in np.asarray(result.positions)[0]],

@@ -23,6 +23,7 @@ import numpy as np
 
 from openpi_cam.cam.reader import (
     FRAME_PREFIX,
+    GRADNORM_PREFIX,
     INDEX_JSONL,
     MANIFEST_JSON,
     MAP_PREFIX,
@@ -83,6 +84,19 @@ class StepRecord:
     frames: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
     model_frames: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
     meta: dict[str, Any] = dataclasses.field(default_factory=dict)
+    gradnorm_maps: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+
+
+def _check_maps(maps: Any, what: str) -> dict[str, np.ndarray]:
+    if not isinstance(maps, dict):
+        raise TypeError(f"StepRecord.{what} must be a dict, got {type(maps).__name__}")
+    checked = {}
+    for camera, cam_map in maps.items():
+        arr = np.asarray(cam_map, dtype=np.float32)
+        if arr.ndim not in (2, 3):
+            raise ValueError(f"{what} {camera!r} must be (Hp, Wp) or (T, Hp, Wp), got shape {arr.shape}")
+        checked[camera] = arr
+    return checked
 
 
 def _check_images(images: Any, what: str) -> dict[str, np.ndarray]:
@@ -101,16 +115,12 @@ def _record_arrays(record: StepRecord) -> dict[str, np.ndarray]:
     """Validates a record and returns its npz members except meta."""
     if not isinstance(record, StepRecord):
         raise TypeError(f"expected a StepRecord, got {type(record).__name__}")
-    if not isinstance(record.maps, dict) or not isinstance(record.meta, dict):
-        raise TypeError("StepRecord.maps and StepRecord.meta must be dicts")
+    if not isinstance(record.meta, dict):
+        raise TypeError("StepRecord.meta must be a dict")
     if clash := [k for k in _RESERVED_META if k in record.meta]:
         raise ValueError(f"StepRecord.meta must not set {clash}: the logger fills them")
-    arrays = {}
-    for camera, cam_map in record.maps.items():
-        arr = np.asarray(cam_map, dtype=np.float32)
-        if arr.ndim not in (2, 3):
-            raise ValueError(f"map {camera!r} must be (Hp, Wp) or (T, Hp, Wp), got shape {arr.shape}")
-        arrays[MAP_PREFIX + camera] = arr
+    arrays = {MAP_PREFIX + c: a for c, a in _check_maps(record.maps, "maps").items()}
+    arrays |= {GRADNORM_PREFIX + c: a for c, a in _check_maps(record.gradnorm_maps, "gradnorm_maps").items()}
     arrays |= {FRAME_PREFIX + c: a for c, a in _check_images(record.frames, "frames").items()}
     arrays |= {MODEL_FRAME_PREFIX + c: a for c, a in _check_images(record.model_frames, "model_frames").items()}
     return arrays

@@ -30,6 +30,7 @@ INDEX_JSONL = "index.jsonl"
 MANIFEST_JSON = "manifest.json"
 STEPS_DIR = "steps"
 MAP_PREFIX = "cam/"
+GRADNORM_PREFIX = "gradnorm/"
 FRAME_PREFIX = "frame/"
 MODEL_FRAME_PREFIX = "frame_model/"
 META_KEY = "meta"
@@ -126,12 +127,16 @@ class StepArrays(NamedTuple):
     maps: dict[str, np.ndarray]
     frames: dict[str, np.ndarray]
     model_frames: dict[str, np.ndarray]
+    gradnorm_maps: dict[str, np.ndarray]  # empty for steps written before the key existed
+
+
+_ARRAY_PREFIXES = (MAP_PREFIX, FRAME_PREFIX, MODEL_FRAME_PREFIX, GRADNORM_PREFIX)  # StepArrays' field order
 
 
 def _split_arrays(npz: Any) -> StepArrays:
-    arrays = StepArrays({}, {}, {})
+    arrays = StepArrays({}, {}, {}, {})
     for key in npz.files:
-        for prefix, target in zip((MAP_PREFIX, FRAME_PREFIX, MODEL_FRAME_PREFIX), arrays, strict=True):
+        for prefix, target in zip(_ARRAY_PREFIXES, arrays, strict=True):
             if key.startswith(prefix):
                 target[key[len(prefix) :]] = npz[key]
     return arrays
@@ -159,6 +164,10 @@ class CAMStep:
     @property
     def maps(self) -> dict[str, np.ndarray]:
         return self.arrays().maps
+
+    @property
+    def gradnorm_maps(self) -> dict[str, np.ndarray]:
+        return self.arrays().gradnorm_maps
 
     @property
     def frames(self) -> dict[str, np.ndarray]:

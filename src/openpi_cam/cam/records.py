@@ -85,4 +85,4 @@ def step_record(
         "gradcam_ms": round(gradcam_ms, 3),
         "extra": extra,
     }
-    return StepRecord(connection, step, timestamp, exp.maps, frames, model_frames, meta)
+    return StepRecord(connection, step, timestamp, exp.maps, frames, model_frames, meta, exp.gradnorm_maps)

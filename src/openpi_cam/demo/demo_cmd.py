@@ -14,6 +14,7 @@ from typing import Literal
 
 from openpi_cam.demo import bundled, sim
 from openpi_cam.demo.client import PolicyClient
+from openpi_cam.viz.stats import MAP_LABELS
 
 EPISODES_FILE = "demo_episodes.json"
 
@@ -84,20 +85,21 @@ def demo(
         print("demo: the Grad-CAM side channel could not create its run directory; see the log")
         return 1
     (run_dir / EPISODES_FILE).write_text(json.dumps(results, indent=2))
-    report = None
+    reports = {}
     if render:
         from openpi_cam.viz.render import render_cmd
 
-        render_cmd(run_dir, videos=videos, progress=False)
-        report = run_dir / "render" / "index.html"
+        for kind in quality.MAP_KINDS:
+            render_cmd(run_dir, map=kind, videos=videos, progress=False)
+            reports[kind] = run_dir / ("render" if kind == "gradcam" else f"render-{kind}") / "index.html"
     figures = quality.run_figures(run_dir)
     wins = sum(r["success"] for r in results)
     print(f"\nopenpi-cam demo: {wins}/{len(results)} episodes reached their block in {time.time() - t0:.0f}s")
-    print(
-        f"pointing game (base camera map peaks on the named block): {figures['pointing_game']:.0%} "
-        f"of {figures['steps']} steps (chance {figures['pointing_chance']:.0%})"
-    )
+    print(f"pointing game over {figures['steps']} steps (the base camera's map peaks on the named block):")
+    for kind, f in figures["maps"].items():
+        print(f"  {MAP_LABELS[kind]:>13}: {f['pointing_game']:.0%} (chance {f['pointing_chance']:.0%})")
     print(f"run directory: {run_dir}")
-    if report is not None and report.exists():
-        print(f"open the report: {report}")
+    for kind, report in reports.items():
+        if report.exists():
+            print(f"open the {MAP_LABELS[kind]} report: {report}")
     return 0

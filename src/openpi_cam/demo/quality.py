@@ -1,5 +1,8 @@
 """Does the demo's Grad-CAM point at the right thing? Figures from a demo run directory and from fresh inferences.
 
+The map figures are reported for both maps the side channel logs from one gradient: Grad-CAM (`cam/`) and the
+per-token gradient norm (`gradnorm/`).
+
 * success rate of the run's episodes;
 * pointing game: share of logged steps whose base-camera map peaks on a patch overlapping the named block's box, next
   to chance (the share of patches overlapping the box, and the box's share of the image area);
@@ -63,39 +66,57 @@ def object_pointing(cam_map: np.ndarray, boxes: list[tuple[int, ...]], image_siz
     return peak_in(cam_map, any_block), float(any_block.mean())
 
 
+MAP_KINDS = ("gradcam", "gradnorm")  # Grad-CAM (`cam/`) and the per-token gradient norm (`gradnorm/`)
+
+
+def maps_of(logged: Any, kind: str) -> dict[str, np.ndarray]:
+    """The maps of one kind of a logged step or an explanation (both carry `maps` and `gradnorm_maps`)."""
+    return logged.maps if kind == "gradcam" else logged.gradnorm_maps
+
+
 def run_figures(run_dir: Path, image_size: int = task.TaskConfig().image_size) -> dict[str, Any]:
-    """Success rate (from the demo's episode file) and the pointing game over every logged step."""
+    """Success rate (from the demo's episode file) and, per map kind, the pointing game over every logged step."""
     from openpi_cam.cam.reader import load_run
     from openpi_cam.demo.demo_cmd import EPISODES_FILE
 
     run = load_run(run_dir)
-    hit, cell_chance, area_chance, on_block, block_chance = [], [], [], [], []
-    for step in run.steps:
-        extra = step.meta.get("extra") or {}
-        box = extra.get("target_box")
-        maps = step.maps
-        if box is None or BASE_CAMERA not in maps:
-            continue
-        cam_map = maps[BASE_CAMERA]
-        hit.append(hits(cam_map, tuple(box), image_size))
-        cell_chance.append(cells_overlapping(tuple(box), np.shape(cam_map)[-2:], image_size).mean())
-        area_chance.append((box[2] - box[0]) * (box[3] - box[1]) / image_size**2)
-        if extra.get("block_boxes") is not None:
-            hit_any, chance = object_pointing(cam_map, [tuple(b) for b in extra["block_boxes"]], image_size)
-            on_block.append(hit_any)
-            block_chance.append(chance)
+    labelled = [s for s in run.steps if (s.meta.get("extra") or {}).get("target_box") is not None]
+    per_kind = {}
+    for kind in MAP_KINDS:
+        hit, cell_chance, area_chance, on_block, block_chance = [], [], [], [], []
+        for step in labelled:
+            extra = step.meta["extra"]
+            box = tuple(extra["target_box"])
+            cam_map = maps_of(step, kind).get(BASE_CAMERA)
+            if cam_map is None:
+                continue
+            hit.append(hits(cam_map, box, image_size))
+            cell_chance.append(cells_overlapping(box, np.shape(cam_map)[-2:], image_size).mean())
+            area_chance.append((box[2] - box[0]) * (box[3] - box[1]) / image_size**2)
+            if extra.get("block_boxes") is not None:
+                hit_any, chance = object_pointing(cam_map, [tuple(b) for b in extra["block_boxes"]], image_size)
+                on_block.append(hit_any)
+                block_chance.append(chance)
+        per_kind[kind] = {
+            "steps": len(hit),
+            "pointing_game": _mean(hit),
+            "pointing_chance": _mean(cell_chance),
+            "pointing_chance_area": _mean(area_chance),
+            "object_pointing": _mean(on_block),
+            "object_pointing_chance": _mean(block_chance),
+        }
     episodes_path = Path(run_dir) / EPISODES_FILE
     episodes = json.loads(episodes_path.read_text()) if episodes_path.exists() else []
     return {
         "episodes": len(episodes),
-        "success_rate": float(np.mean([e["success"] for e in episodes])) if episodes else float("nan"),
-        "steps": len(hit),
-        "pointing_game": float(np.mean(hit)) if hit else float("nan"),
-        "pointing_chance": float(np.mean(cell_chance)) if hit else float("nan"),
-        "pointing_chance_area": float(np.mean(area_chance)) if hit else float("nan"),
-        "object_pointing": float(np.mean(on_block)) if on_block else float("nan"),
-        "object_pointing_chance": float(np.mean(block_chance)) if on_block else float("nan"),
+        "success_rate": _mean([e["success"] for e in episodes]),
+        "steps": len(labelled),
+        "maps": per_kind,
     }
+
+
+def _mean(values: list[Any]) -> float:
+    return float(np.mean(values)) if len(values) else float("nan")
 
 
 def binding_pairs(samples: int, seed: int) -> tuple[list[task.Sample], list[task.Sample]]:
@@ -188,55 +209,72 @@ def spearman(a: np.ndarray, b: np.ndarray) -> float:
     return float(spearmanr(a, b).statistic)
 
 
-def offline_figures(samples: int = 30, seed: int = 1234, target: str = "chunk") -> dict[str, Any]:
-    """Randomisation check, prompt swap, binding probe and camera occlusion on fresh scenes."""
+def map_figures(policy: Any, samples: int = 30, seed: int = 1234, target: str = "chunk") -> dict[str, dict[str, Any]]:
+    """Per map kind, on `samples` fresh scenes: pointing game, object pointing, the randomisation check (against a
+    copy of the model re-initialised with `seed`) and the prompt swap."""
     import jax
 
+    from openpi_cam.cam.engine import explain
     from openpi_cam.model.pi0_fast import Pi0FAST, init_params
 
-    policy = bundled.create_demo_policy()
     model = policy.model
     random_model = Pi0FAST(model.config, init_params(model.config, jax.random.key(seed)))
     rng = np.random.default_rng(seed)
     size = task.TaskConfig().image_size
-    rhos, kept, moved, on_block, block_chance, swaps = [], [], [], [], [], 0
-    while swaps < samples:
+    fields = ("rho", "kept", "chance", "moved", "on_block", "block_chance")
+    figures = {k: {field: [] for field in fields} for k in MAP_KINDS}
+    scenes = 0
+    while scenes < samples:
         scene = task.random_scene(rng)
         state = task.random_start(rng, scene)
         obs = bundled.client_observation(task.observe(scene, state))
         trace, trained = _explain(model, policy, obs, target)
         if trained is None:
             continue
-        from openpi_cam.cam.engine import explain
-
         randomised = explain(random_model, policy.tokenizer, trace.observation, trace.generated_tokens, target=target)
-        rhos.append(spearman(trained.maps[BASE_CAMERA], randomised.maps[BASE_CAMERA]))
-        kept.append(hits(trained.maps[BASE_CAMERA], scene.target_block.box, size))
-        hit_any, chance = object_pointing(trained.maps[BASE_CAMERA], [b.box for b in scene.blocks], size)
-        on_block.append(hit_any)
-        block_chance.append(chance)
         other = scene.with_target(next(b.color for i, b in enumerate(scene.blocks) if i != scene.target))
         _, swapped = _explain(model, policy, bundled.client_observation(task.observe(other, state)), target)
-        if swapped is not None:
-            moved.append(hits(swapped.maps[BASE_CAMERA], other.target_block.box, size))
-        swaps += 1
-    finite = [r for r in rhos if np.isfinite(r)]
+        for kind, f in figures.items():
+            own = maps_of(trained, kind)[BASE_CAMERA]
+            f["rho"].append(spearman(own, maps_of(randomised, kind)[BASE_CAMERA]))
+            f["kept"].append(hits(own, scene.target_block.box, size))
+            f["chance"].append(cells_overlapping(scene.target_block.box, np.shape(own)[-2:], size).mean())
+            hit_any, chance = object_pointing(own, [b.box for b in scene.blocks], size)
+            f["on_block"].append(hit_any)
+            f["block_chance"].append(chance)
+            if swapped is not None:
+                f["moved"].append(hits(maps_of(swapped, kind)[BASE_CAMERA], other.target_block.box, size))
+        scenes += 1
+    maps = {}
+    for kind, f in figures.items():
+        finite = [r for r in f["rho"] if np.isfinite(r)]
+        maps[kind] = {
+            "pointing_game_fresh": _mean(f["kept"]),
+            "pointing_chance_fresh": _mean(f["chance"]),
+            "object_pointing_fresh": _mean(f["on_block"]),
+            "object_pointing_chance": _mean(f["block_chance"]),
+            "randomisation_spearman_mean": _mean(finite),
+            "randomisation_spearman_abs_mean": _mean(np.abs(finite).tolist()),
+            "prompt_swap_peak_moves": _mean(f["moved"]),
+            "prompt_swap_samples": len(f["moved"]),
+        }
+    return maps
+
+
+def offline_figures(samples: int = 30, seed: int = 1234, target: str = "chunk") -> dict[str, Any]:
+    """The map figures, the binding probe and camera occlusion, on fresh scenes."""
     from openpi_cam.demo.train import Batches, load_normalize
 
+    policy = bundled.create_demo_policy()
     batches = Batches(bundled.ASSETS, load_normalize(bundled.ASSETS), 1, seed)
     # At the positions the decoder serves the action tokens at.
-    probe = binding_probe(lambda samples: np.asarray(model.compute_loss(batches.observation(samples), decode_offset=1)))
+    loss = lambda samples: np.asarray(policy.model.compute_loss(batches.observation(samples), decode_offset=1))  # noqa: E731
     return {
-        "binding_probe": probe,
+        "samples": samples,
+        "target": target,
+        "maps": map_figures(policy, samples, seed, target),
+        "binding_probe": binding_probe(loss),
         "occlusion": occlusion_figures(policy, samples, seed),
-        "samples": swaps,
-        "pointing_game_fresh": float(np.mean(kept)),
-        "object_pointing_fresh": float(np.mean(on_block)),
-        "object_pointing_chance": float(np.mean(block_chance)),
-        "randomisation_spearman_mean": float(np.mean(finite)) if finite else float("nan"),
-        "randomisation_spearman_abs_mean": float(np.mean(np.abs(finite))) if finite else float("nan"),
-        "prompt_swap_peak_moves": float(np.mean(moved)) if moved else float("nan"),
-        "prompt_swap_samples": len(moved),
     }
 
 

@@ -6,6 +6,11 @@ prefill, its RoPE positions and its contiguous decode window, g_0..g_{k-1} fed b
 are the image tokens after SigLIP's head (no gradient through SigLIP). Per camera c:
 alpha_c = mean over its N tokens of G_c [D];  map_c = ReLU(E_c @ alpha_c) reshaped to the patch grid (row-major).
 
+The same backward pass also gives a gradient-norm map per camera, ||G_c[n]|| per token (a token-level saliency map,
+Simonyan et al. 2014): Grad-CAM's mean over tokens assumes, as in a CNN's last conv layer, that a channel means the
+same thing at every position and that activations are non-negative; neither holds for transformer tokens, and on the
+bundled demo model Grad-CAM peaks on the named block at chance while the gradient norm finds it (README).
+
 Every entry point takes the generated sequence at its full decode length S (which sizes upstream's KV cache) and the
 steps to explain as traced values, so explaining step 0, 5 or 9 of a request reuses one compilation.
 """
@@ -39,6 +44,7 @@ class GradCamResult:
     maps: dict[str, np.ndarray]  # camera -> float32 [B, Hp, Wp] or [B, T, Hp, Wp]
     alphas: dict[str, np.ndarray]  # camera -> float32 [B, D] or [B, T, D]
     grad_norms: dict[str, np.ndarray]  # camera -> float32 [B] or [B, T] (Frobenius norm of G over N x D)
+    gradnorm_maps: dict[str, np.ndarray]  # camera -> like `maps`: ||G[n]|| per token (its squares sum to grad_norm**2)
     spans: dict[str, tuple[int, int]]  # camera -> [start, end) of its tokens in the (unaligned) prefix
     valid: dict[str, np.ndarray]  # camera -> bool [B]; a masked camera is invalid (its map is still reported)
     score: np.ndarray  # [B] or [B, T]
@@ -52,11 +58,13 @@ class GradCamResult:
 
 
 def _reduce(E: jax.Array, G: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """E [B, C, N, D], G [..., B, C, N, D] -> alpha [..., B, C, D], cam [..., B, C, N], grad_norm [..., B, C]."""
+    """E [B, C, N, D], G [..., B, C, N, D] -> alpha [..., B, C, D], cam [..., B, C, N], token_norm [..., B, C, N].
+
+    The per-camera Frobenius norm is derived from token_norm outside the jit (`_result`)."""
     E, G = E.astype(jnp.float32), G.astype(jnp.float32)
     alpha = jnp.mean(G, axis=-2)
     cam = jax.nn.relu(jnp.einsum("bcnd,...bcd->...bcn", E, alpha))
-    return alpha, cam, jnp.sqrt(jnp.sum(jnp.square(G), axis=(-2, -1)))
+    return alpha, cam, jnp.sqrt(jnp.sum(jnp.square(G), axis=-1))
 
 
 def _gathered_logits(params: dict, pre: jax.Array, targets: jax.Array) -> jax.Array:
@@ -81,12 +89,12 @@ def _token_cams(params, obs, fed, targets, steps, *, cfg: Pi0FASTConfig):
     scores, vjp_fn, pre = jax.vjp(scores_fn, E, has_aux=True)
     cotangents = jax.nn.one_hot(steps, fed.shape[1], dtype=scores.dtype)  # [T, B, S]
     G = jax.lax.map(lambda cot: vjp_fn(cot)[0], cotangents)  # [T, B, C, N, D]
-    alpha, cam, grad_norm = _reduce(E, G)
+    alpha, cam, token_norm = _reduce(E, G)
     rows = jnp.arange(fed.shape[0])
     explained_pre = pre[rows[None, :], steps]  # [T, B, D]
     logits = gemma.logits_from_prelogits(params["PaliGemma"]["llm"], explained_pre).astype(jnp.float32)
     score = scores[rows[None, :], steps]  # [T, B]
-    return score.astype(jnp.float32), alpha, cam, grad_norm, logits
+    return score.astype(jnp.float32), alpha, cam, token_norm, logits
 
 
 @functools.partial(jax.jit, static_argnames=("cfg",))
@@ -102,8 +110,8 @@ def _chunk_cam(params, obs, fed, weights, *, cfg: Pi0FASTConfig):
 
     score, vjp_fn = jax.vjp(score_fn, E)
     (G,) = vjp_fn(jnp.ones_like(score))
-    alpha, cam, grad_norm = _reduce(E, G)
-    return score, alpha, cam, grad_norm
+    alpha, cam, token_norm = _reduce(E, G)
+    return score, alpha, cam, token_norm
 
 
 def _prepare(model: Pi0FAST, obs: Observation, generated: Any) -> tuple[Observation, jax.Array, np.ndarray]:
@@ -141,17 +149,19 @@ def _bucket(n: int) -> int:
     return 1 << max(0, (n - 1).bit_length())
 
 
-def _result(model, obs, target, alpha, cam, grad_norm, score, token_ids, steps, positions, logits) -> GradCamResult:
+def _result(model, obs, target, alpha, cam, token_norm, score, token_ids, steps, positions, logits) -> GradCamResult:
     cams = tuple(obs.images)
     n = model.config.siglip.num_tokens
     grid = model.config.siglip.grid
-    cam = np.asarray(cam)
+    cam, token_norm = np.asarray(cam), np.asarray(token_norm)
+    grad_norm = np.sqrt(np.sum(np.square(token_norm.astype(np.float64)), axis=-1)).astype(np.float32)  # [..., C]
     return GradCamResult(
         target=target,
         cameras=cams,
         maps={c: cam[..., i, :].reshape(*cam.shape[:-2], *grid) for i, c in enumerate(cams)},
         alphas={c: np.asarray(alpha)[..., i, :] for i, c in enumerate(cams)},
-        grad_norms={c: np.asarray(grad_norm)[..., i] for i, c in enumerate(cams)},
+        grad_norms={c: grad_norm[..., i] for i, c in enumerate(cams)},
+        gradnorm_maps={c: token_norm[..., i, :].reshape(*token_norm.shape[:-2], *grid) for i, c in enumerate(cams)},
         spans={c: (i * n, (i + 1) * n) for i, c in enumerate(cams)},
         valid={c: np.asarray(obs.image_masks[c], bool).reshape(-1) for c in cams},
         score=np.asarray(score),
@@ -215,7 +225,7 @@ def _explain_tokens(model, obs, fed, targets, steps, prefill_len, squeeze) -> Gr
         raise ValueError(f"decode steps {steps.tolist()} outside [0, {fed.shape[1]})")
     t = steps.shape[1]
     padded = np.concatenate([steps, np.repeat(steps[:, :1], _bucket(t) - t, axis=1)], axis=1)  # [B, T_pad]
-    score, alpha, cam, grad_norm, logits = _token_cams(
+    score, alpha, cam, token_norm, logits = _token_cams(
         model.params, obs, fed, targets, jnp.asarray(padded.T), cfg=model.config
     )
 
@@ -230,7 +240,7 @@ def _explain_tokens(model, obs, fed, targets, steps, prefill_len, squeeze) -> Gr
         "token" if squeeze else "tokens",
         batch_first(alpha),
         batch_first(cam),
-        batch_first(grad_norm),
+        batch_first(token_norm),
         batch_first(score),
         token_ids,
         steps[0] if shared else steps,
@@ -256,10 +266,10 @@ def gradcam_for_chunk(model: Pi0FAST, obs: Observation, generated_ids: Any, step
     for b, r in enumerate(rows):
         padded[b, : r.size] = r
         weights[b, r] = 1.0
-    score, alpha, cam, grad_norm = _chunk_cam(model.params, obs, fed, jnp.asarray(weights), cfg=model.config)
+    score, alpha, cam, token_norm = _chunk_cam(model.params, obs, fed, jnp.asarray(weights), cfg=model.config)
     valid = padded >= 0
     token_ids = np.where(valid, np.take_along_axis(np.asarray(fed), np.maximum(padded, 0), axis=1), -1)
     positions = np.where(valid, _positions(prefill_len, np.maximum(padded, 0)), -1)
     return _result(
-        model, obs, "chunk", alpha, cam, grad_norm, score, token_ids, rows[0] if shared else padded, positions, None
+        model, obs, "chunk", alpha, cam, token_norm, score, token_ids, rows[0] if shared else padded, positions, None
     )

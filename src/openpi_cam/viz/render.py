@@ -18,7 +18,7 @@ from openpi_cam.image_tools import LetterboxGeometry
 from openpi_cam.viz.colormap import LUT
 from openpi_cam.viz.overlay import blend, map_for_frame, reduce_tokens
 from openpi_cam.viz.progress import progress
-from openpi_cam.viz.stats import StepStats, compute_stats, transient
+from openpi_cam.viz.stats import MAP_LABELS, MapKind, StepStats, compute_stats, transient, with_map_kind
 
 Norm = Literal["step", "run"]
 
@@ -41,6 +41,7 @@ class StepView(Protocol):
 
 @dataclasses.dataclass(frozen=True)
 class RenderOptions:
+    map: MapKind = "gradcam"  # only labels the pictures; the caller picks the steps' map kind (`with_map_kind`)
     norm: Norm = "step"
     alpha: float = 0.5
     tile_height: int = 240
@@ -255,7 +256,7 @@ def render_run(steps: Sequence[StepView], out_dir: pathlib.Path, opts: RenderOpt
     assets: dict[int, StepAssets] = {}
     for step, st in progress(zip(map(transient, steps), stats, strict=True), len(steps), "render", opts.progress):
         scale = run_max if opts.norm == "run" else step_scale(st)
-        norm_label = f"normalised per {opts.norm} (max {scale:.3g})"
+        norm_label = f"{MAP_LABELS[opts.map]}, normalised per {opts.norm} (max {scale:.3g})"
         cameras = list(step.meta.get("cameras", {})) or list(step.maps)
         overlays = {c: camera_overlay(step, c, scale, opts.alpha) for c in cameras}
         name = f"{st.seq:08d}"
@@ -290,6 +291,7 @@ def render_cmd(
     run_dir: Annotated[pathlib.Path, tyro.conf.arg(metavar="RUN_DIR")],
     /,
     out: pathlib.Path | None = None,
+    map: MapKind = "gradcam",
     norm: Norm = "step",
     alpha: float = 0.5,
     tile_height: int = 240,
@@ -303,7 +305,8 @@ def render_cmd(
 
     Args:
         run_dir: a CAM run directory (holds run.json and steps/).
-        out: output directory; defaults to RUN_DIR/render.
+        out: output directory; defaults to RUN_DIR/render (RUN_DIR/render-gradnorm for `--map gradnorm`).
+        map: which map to draw: Grad-CAM (`cam/`) or the per-token gradient norm (`gradnorm/`) of the same gradient.
         norm: divide maps by the step's maximum over cameras ("step") or by the whole run's maximum ("run").
         alpha: opacity of the heatmap over the image.
         tile_height: height in pixels of each camera tile in the panels and videos.
@@ -316,11 +319,17 @@ def render_cmd(
     from openpi_cam.cam.reader import load_run
 
     run = load_run(run_dir, load_arrays=False)
-    out_dir = pathlib.Path(out) if out is not None else pathlib.Path(run_dir) / "render"
+    try:
+        steps = with_map_kind(run.steps, map)
+    except ValueError as e:
+        print(f"openpi-cam render: {e}", file=sys.stderr)
+        return 2
+    default_out = "render" if map == "gradcam" else f"render-{map}"
+    out_dir = pathlib.Path(out) if out is not None else pathlib.Path(run_dir) / default_out
     opts = RenderOptions(
-        norm=norm, alpha=alpha, tile_height=tile_height, fps=fps, videos=videos, html=html, progress=progress
+        map=map, norm=norm, alpha=alpha, tile_height=tile_height, fps=fps, videos=videos, html=html, progress=progress
     )
-    result = render_run(run.steps, out_dir, opts)
+    result = render_run(steps, out_dir, opts)
     if html:
         from openpi_cam.viz.report import write_report
 
@@ -331,7 +340,7 @@ def render_cmd(
         from openpi_cam.viz.rerun_sink import write_rrd
 
         try:
-            write_rrd(run_dir, rerun, norm=norm, alpha=alpha)
+            write_rrd(run_dir, rerun, norm=norm, alpha=alpha, map_kind=map)
         except ImportError as e:
             print(f"openpi-cam render: {e}", file=sys.stderr)
             return 1

@@ -10,7 +10,7 @@ from collections import Counter
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
-from openpi_cam.viz.stats import StepStats, aggregate, camera_names
+from openpi_cam.viz.stats import MAP_LABELS, StepStats, aggregate, camera_names
 
 if TYPE_CHECKING:
     from openpi_cam.viz.render import RenderOptions, RenderResult
@@ -284,7 +284,7 @@ def write_report(
     doc = (
         f'<!doctype html><html lang="en"><head><meta charset="utf-8"><title>CAM run {_e(run_id)}</title>'
         f"<style>{_STYLE}</style></head><body>"
-        f"<h1>CAM run {_e(run_id)}</h1>"
+        f"<h1>CAM run {_e(run_id)}: {_e(MAP_LABELS[opts.map])} maps</h1>"
         f"<dl>{info_html}</dl>"
         "<table><tr><th>camera</th><th>valid steps</th><th>mean share</th><th>mean entropy (norm.)</th>"
         f"<th>peak stayed</th><th>mean peak shift (cells)</th><th>dominant in</th></tr>{cam_rows}</table>"

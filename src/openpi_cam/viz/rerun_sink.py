@@ -45,15 +45,16 @@ def write_rrd(
     *,
     norm: Literal["step", "run"] = "step",
     alpha: float = 0.5,
+    map_kind: Literal["gradcam", "gradnorm"] = "gradcam",
 ) -> pathlib.Path:
-    """Writes the run's frames, overlays and per-camera attention shares to `out_path`; returns it."""
+    """Writes the run's frames, overlays (of `map_kind` maps) and per-camera attention shares to `out_path`."""
     rr = _import_rerun()
     from openpi_cam.cam.reader import load_run
     from openpi_cam.viz.render import camera_image, camera_overlay, step_scale
-    from openpi_cam.viz.stats import compute_stats, transient
+    from openpi_cam.viz.stats import compute_stats, transient, with_map_kind
 
     run = load_run(run_dir, load_arrays=False)
-    steps = sorted(run.steps, key=lambda s: s.seq)
+    steps = with_map_kind(sorted(run.steps, key=lambda s: s.seq), map_kind)
     stats = compute_stats(steps)
     run_max = max((step_scale(st) for st in stats), default=0.0)
     out_path = pathlib.Path(out_path)

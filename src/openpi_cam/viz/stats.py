@@ -96,11 +96,46 @@ def _camera_stats(m: np.ndarray | None, valid: bool, total: float) -> CameraStat
     )
 
 
+MapKind = Literal["gradcam", "gradnorm"]
+MAP_LABELS: dict[str, str] = {"gradcam": "Grad-CAM", "gradnorm": "gradient norm"}
+
+
+class GradnormView:
+    """A logged step whose `maps` are its per-token gradient-norm maps (`gradnorm/<camera>`), so that every renderer
+    and statistic written for Grad-CAM maps works on them unchanged."""
+
+    def __init__(self, step: Any) -> None:
+        self.step = step
+        self.seq = step.seq
+        self.meta = step.meta
+
+    @property
+    def maps(self) -> Mapping[str, np.ndarray]:
+        return self.step.gradnorm_maps
+
+    def __getattr__(self, name: str) -> Any:  # frames, model_frames, file
+        return getattr(self.step, name)
+
+
+def with_map_kind(steps: Iterable[Any], kind: MapKind) -> list[Any]:
+    """The steps as seen through the chosen map kind; a run logged without gradient-norm maps is refused up front."""
+    steps = list(steps)
+    if kind == "gradcam":
+        return steps
+    if kind != "gradnorm":
+        raise ValueError(f"unknown map kind {kind!r}; expected one of {sorted(MAP_LABELS)}")
+    if steps and not steps[0].gradnorm_maps:
+        raise ValueError("this run has no gradient-norm maps (gradnorm/<camera>); it predates them")
+    return [GradnormView(s) for s in steps]
+
+
 def transient(step: StepLike) -> StepLike:
     """A copy of a reader step that reads its arrays on use and drops them afterwards, so that walking a long run
     does not keep every map and frame in memory; other step objects are returned as they are."""
     from openpi_cam.cam.reader import CAMStep
 
+    if isinstance(step, GradnormView):
+        return GradnormView(transient(step.step))  # type: ignore[return-value]
     return CAMStep(step.seq, dict(step.meta), step.file) if isinstance(step, CAMStep) else step
 
 
@@ -243,6 +278,7 @@ def stats_cmd(
     /,
     format: Literal["csv", "json", "parquet"] = "csv",
     out: pathlib.Path | None = None,
+    map: MapKind = "gradcam",
 ) -> int:
     """Per-step, per-camera attention statistics of a CAM run (one row per step, `<camera>/<field>` columns).
 
@@ -250,10 +286,16 @@ def stats_cmd(
         run_dir: a CAM run directory (holds run.json and steps/).
         format: csv, json (rows plus a run summary) or parquet (needs pyarrow; summary in the file metadata).
         out: output file; defaults to stdout for csv/json and RUN_DIR/stats.parquet for parquet.
+        map: which map the statistics describe: Grad-CAM (`cam/`) or the per-token gradient norm (`gradnorm/`).
     """
     from openpi_cam.cam.reader import load_run
 
-    stats = compute_stats(load_run(run_dir, load_arrays=False).steps)
+    try:
+        steps = with_map_kind(load_run(run_dir, load_arrays=False).steps, map)
+    except ValueError as e:
+        print(f"openpi-cam stats: {e}", file=sys.stderr)
+        return 2
+    stats = compute_stats(steps)
     summary = aggregate(stats)
     data = write_table(to_rows(stats), format, summary)
     if out is None and format == "parquet":
