@@ -14,7 +14,7 @@ from typing import Literal
 
 from openpi_cam.demo import bundled, sim
 from openpi_cam.demo.client import PolicyClient
-from openpi_cam.viz.stats import MAP_LABELS
+from openpi_cam.viz.stats import MAP_KINDS, MAP_LABELS
 
 EPISODES_FILE = "demo_episodes.json"
 
@@ -87,11 +87,11 @@ def demo(
     (run_dir / EPISODES_FILE).write_text(json.dumps(results, indent=2))
     reports = {}
     if render:
-        from openpi_cam.viz.render import render_cmd
+        from openpi_cam.viz.render import default_render_dir, render_cmd
 
-        for kind in quality.MAP_KINDS:
+        for kind in MAP_KINDS:
             render_cmd(run_dir, map=kind, videos=videos, progress=False)
-            reports[kind] = run_dir / ("render" if kind == "gradcam" else f"render-{kind}") / "index.html"
+            reports[kind] = default_render_dir(run_dir, kind) / "index.html"
     figures = quality.run_figures(run_dir)
     wins = sum(r["success"] for r in results)
     print(f"\nopenpi-cam demo: {wins}/{len(results)} episodes reached their block in {time.time() - t0:.0f}s")

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from openpi_cam.demo import bundled, task
+from openpi_cam.viz.stats import MAP_KINDS, maps_of
 
 BASE_CAMERA = "base_0_rgb"
 
@@ -64,14 +65,6 @@ def object_pointing(cam_map: np.ndarray, boxes: list[tuple[int, ...]], image_siz
     grid = np.shape(cam_map)[-2:]
     any_block = np.logical_or.reduce([cells_overlapping(b, grid, image_size) for b in boxes])
     return peak_in(cam_map, any_block), float(any_block.mean())
-
-
-MAP_KINDS = ("gradcam", "gradnorm")  # Grad-CAM (`cam/`) and the per-token gradient norm (`gradnorm/`)
-
-
-def maps_of(logged: Any, kind: str) -> dict[str, np.ndarray]:
-    """The maps of one kind of a logged step or an explanation (both carry `maps` and `gradnorm_maps`)."""
-    return logged.maps if kind == "gradcam" else logged.gradnorm_maps
 
 
 def run_figures(run_dir: Path, image_size: int = task.TaskConfig().image_size) -> dict[str, Any]:
@@ -267,8 +260,10 @@ def offline_figures(samples: int = 30, seed: int = 1234, target: str = "chunk") 
 
     policy = bundled.create_demo_policy()
     batches = Batches(bundled.ASSETS, load_normalize(bundled.ASSETS), 1, seed)
-    # At the positions the decoder serves the action tokens at.
-    loss = lambda samples: np.asarray(policy.model.compute_loss(batches.observation(samples), decode_offset=1))  # noqa: E731
+
+    def loss(pairs: list[task.Sample]) -> np.ndarray:  # at the positions the decoder serves the action tokens at
+        return np.asarray(policy.model.compute_loss(batches.observation(pairs), decode_offset=1))
+
     return {
         "samples": samples,
         "target": target,

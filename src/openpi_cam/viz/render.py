@@ -287,6 +287,11 @@ def render_run(steps: Sequence[StepView], out_dir: pathlib.Path, opts: RenderOpt
     return RenderResult(out_dir, assets, video_paths, stats)
 
 
+def default_render_dir(run_dir: pathlib.Path, map_kind: MapKind = "gradcam") -> pathlib.Path:
+    """RUN_DIR/render for Grad-CAM, RUN_DIR/render-<kind> for another map kind."""
+    return pathlib.Path(run_dir) / ("render" if map_kind == "gradcam" else f"render-{map_kind}")
+
+
 def render_cmd(
     run_dir: Annotated[pathlib.Path, tyro.conf.arg(metavar="RUN_DIR")],
     /,
@@ -324,8 +329,7 @@ def render_cmd(
     except ValueError as e:
         print(f"openpi-cam render: {e}", file=sys.stderr)
         return 2
-    default_out = "render" if map == "gradcam" else f"render-{map}"
-    out_dir = pathlib.Path(out) if out is not None else pathlib.Path(run_dir) / default_out
+    out_dir = pathlib.Path(out) if out is not None else default_render_dir(run_dir, map)
     opts = RenderOptions(
         map=map, norm=norm, alpha=alpha, tile_height=tile_height, fps=fps, videos=videos, html=html, progress=progress
     )

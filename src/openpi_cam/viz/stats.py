@@ -96,8 +96,16 @@ def _camera_stats(m: np.ndarray | None, valid: bool, total: float) -> CameraStat
     )
 
 
+# The maps a logged step carries, both from one gradient: Grad-CAM (`cam/`) and the per-token gradient norm
+# (`gradnorm/`).
 MapKind = Literal["gradcam", "gradnorm"]
 MAP_LABELS: dict[str, str] = {"gradcam": "Grad-CAM", "gradnorm": "gradient norm"}
+MAP_KINDS: tuple[str, ...] = tuple(MAP_LABELS)
+
+
+def maps_of(logged: Any, kind: str) -> Mapping[str, np.ndarray]:
+    """The maps of one kind of a logged step or an explanation (both carry `maps` and `gradnorm_maps`)."""
+    return logged.maps if kind == "gradcam" else logged.gradnorm_maps
 
 
 class GradnormView:
@@ -111,7 +119,7 @@ class GradnormView:
 
     @property
     def maps(self) -> Mapping[str, np.ndarray]:
-        return self.step.gradnorm_maps
+        return maps_of(self.step, "gradnorm")
 
     def __getattr__(self, name: str) -> Any:  # frames, model_frames, file
         return getattr(self.step, name)
