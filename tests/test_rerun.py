@@ -25,8 +25,9 @@ GEOMETRY = {  # a 90 x 160 client frame letterboxed into 224 x 224
 }
 
 
-def _run(tmp_path) -> CAMLogger:
-    """Two connections (one with a name that needs escaping), a masked camera, a multi-token map."""
+def _run(tmp_path, *, gradnorm: bool = False) -> CAMLogger:
+    """Two connections (one with a name that needs escaping), a masked camera, a multi-token map; with `gradnorm`,
+    gradient-norm maps unlike the Grad-CAM ones."""
     rng = np.random.default_rng(0)
     cam_logger = CAMLogger(tmp_path / "cam", run_config={}, checkpoint="ck", options={})
     for i, (conn, step) in enumerate([("ep 1/a", 0), ("ep 1/a", 1), ("c2", 0)]):
@@ -42,7 +43,8 @@ def _run(tmp_path) -> CAMLogger:
         }
         frames = {CAMERAS[0]: rng.integers(0, 256, (90, 160, 3), dtype=np.uint8)}
         model_frames = {CAMERAS[1]: rng.integers(0, 256, (224, 224, 3), dtype=np.uint8)}
-        assert cam_logger.log_step(StepRecord(conn, step, time.time(), maps, frames, model_frames, meta))
+        norms = {c: np.flip(m, -1) ** 3 for c, m in maps.items()} if gradnorm else {}
+        assert cam_logger.log_step(StepRecord(conn, step, time.time(), maps, frames, model_frames, meta, norms))
     cam_logger.close()
     return cam_logger
 
@@ -111,6 +113,32 @@ def test_write_rrd_logs_frames_overlays_and_shares(tmp_path):
     assert masked["value"][masked["seq"].index(1)][0] == 0.0
     frame, overlay = cols[r"/ep\ 1\/a/left_wrist_0_rgb/frame"], cols[r"/ep\ 1\/a/left_wrist_0_rgb/overlay"]
     assert frame["value"][frame["seq"].index(1)] == overlay["value"][overlay["seq"].index(1)]
+
+
+def test_write_rrd_can_draw_the_gradient_norm_maps(tmp_path):
+    pytest.importorskip("rerun")
+    from openpi_cam.viz.render import camera_overlay, step_scale
+    from openpi_cam.viz.rerun_sink import write_rrd
+    from openpi_cam.viz.stats import compute_stats, with_map_kind
+
+    with pytest.raises(ValueError, match="no gradient-norm maps"):
+        write_rrd(_run(tmp_path / "old").run_dir, tmp_path / "old.rrd", map_kind="gradnorm")
+    run_dir = _run(tmp_path, gradnorm=True).run_dir
+    path = write_rrd(run_dir, tmp_path / "gradnorm.rrd", map_kind="gradnorm")
+    try:
+        from rerun.chunk import RrdReader  # noqa: F401
+    except ImportError:
+        pytest.skip("this rerun-sdk cannot read recordings back (rerun.chunk.RrdReader)")
+    cols = _columns(path)
+    steps = load_run(run_dir).steps
+    views = with_map_kind(steps, "gradnorm")
+    for step, view, st in zip(steps, views, compute_stats(views), strict=True):
+        conn = r"ep\ 1\/a" if st.connection == "ep 1/a" else "c2"
+        logged = cols[f"/{conn}/{CAMERAS[0]}/overlay"]
+        drawn = np.asarray(logged["value"][logged["seq"].index(st.seq)][0], np.uint8)
+        want = camera_overlay(view, CAMERAS[0], step_scale(st), 0.5)
+        assert np.array_equal(drawn.reshape(want.shape), want)
+        assert not np.array_equal(want, camera_overlay(step, CAMERAS[0], step_scale(st), 0.5))
 
 
 def test_render_cli_writes_a_recording(tmp_path):
