@@ -18,7 +18,7 @@ from openpi_cam.image_tools import LetterboxGeometry
 from openpi_cam.viz.colormap import LUT
 from openpi_cam.viz.overlay import blend, map_for_frame, reduce_tokens
 from openpi_cam.viz.progress import progress
-from openpi_cam.viz.stats import MAP_LABELS, MapKind, StepStats, compute_stats, transient, with_map_kind
+from openpi_cam.viz.stats import MAP_LABELS, MapKind, MissingMaps, StepStats, compute_stats, transient, with_map_kind
 
 Norm = Literal["step", "run"]
 
@@ -41,7 +41,7 @@ class StepView(Protocol):
 
 @dataclasses.dataclass(frozen=True)
 class RenderOptions:
-    map: MapKind = "gradcam"  # only labels the pictures; the caller picks the steps' map kind (`with_map_kind`)
+    map: MapKind = "gradcam"  # which of the steps' maps to draw (Grad-CAM or gradient norm)
     norm: Norm = "step"
     alpha: float = 0.5
     tile_height: int = 240
@@ -242,8 +242,9 @@ def _videos_available() -> bool:
 
 
 def render_run(steps: Sequence[StepView], out_dir: pathlib.Path, opts: RenderOptions) -> RenderResult:
-    """Writes overlays, panels, thumbnails and per-connection videos for `steps` under `out_dir`."""
-    steps = sorted(steps, key=lambda s: s.seq)
+    """Writes overlays, panels, thumbnails and per-connection videos for `steps` under `out_dir` (`MissingMaps`,
+    before anything is written, when the steps lack the `opts.map` maps)."""
+    steps = with_map_kind(sorted(steps, key=lambda s: s.seq), opts.map)
     stats = compute_stats(steps)
     for sub in ("panels", "thumbs", "overlays", "videos"):
         (out_dir / sub).mkdir(parents=True, exist_ok=True)
@@ -324,16 +325,15 @@ def render_cmd(
     from openpi_cam.cam.reader import load_run
 
     run = load_run(run_dir, load_arrays=False)
-    try:
-        steps = with_map_kind(run.steps, map)
-    except ValueError as e:
-        print(f"openpi-cam render: {e}", file=sys.stderr)
-        return 2
     out_dir = pathlib.Path(out) if out is not None else default_render_dir(run_dir, map)
     opts = RenderOptions(
         map=map, norm=norm, alpha=alpha, tile_height=tile_height, fps=fps, videos=videos, html=html, progress=progress
     )
-    result = render_run(steps, out_dir, opts)
+    try:
+        result = render_run(run.steps, out_dir, opts)
+    except MissingMaps as e:
+        print(f"openpi-cam render: {e}", file=sys.stderr)
+        return 2
     if html:
         from openpi_cam.viz.report import write_report
 

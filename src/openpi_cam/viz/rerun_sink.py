@@ -17,6 +17,8 @@ import os
 import pathlib
 from typing import Any, Literal
 
+from openpi_cam.viz.stats import MapKind
+
 RERUN_MISSING = 'writing a Rerun recording needs rerun-sdk: pip install "openpi-cam[rerun]"'
 
 
@@ -45,7 +47,7 @@ def write_rrd(
     *,
     norm: Literal["step", "run"] = "step",
     alpha: float = 0.5,
-    map_kind: Literal["gradcam", "gradnorm"] = "gradcam",
+    map_kind: MapKind = "gradcam",
 ) -> pathlib.Path:
     """Writes the run's frames, overlays (of `map_kind` maps) and per-camera attention shares to `out_path`."""
     rr = _import_rerun()

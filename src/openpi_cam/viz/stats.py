@@ -125,6 +125,10 @@ class GradnormView:
         return getattr(self.step, name)
 
 
+class MissingMaps(ValueError):
+    """The run holds no maps of the requested kind."""
+
+
 def with_map_kind(steps: Iterable[Any], kind: MapKind) -> list[Any]:
     """The steps as seen through the chosen map kind; a run logged without gradient-norm maps is refused up front."""
     steps = list(steps)
@@ -133,7 +137,7 @@ def with_map_kind(steps: Iterable[Any], kind: MapKind) -> list[Any]:
     if kind != "gradnorm":
         raise ValueError(f"unknown map kind {kind!r}; expected one of {sorted(MAP_LABELS)}")
     if steps and not steps[0].gradnorm_maps:
-        raise ValueError("this run has no gradient-norm maps (gradnorm/<camera>); it predates them")
+        raise MissingMaps("this run has no gradient-norm maps (gradnorm/<camera>); it predates them")
     return [GradnormView(s) for s in steps]
 
 
@@ -300,7 +304,7 @@ def stats_cmd(
 
     try:
         steps = with_map_kind(load_run(run_dir, load_arrays=False).steps, map)
-    except ValueError as e:
+    except MissingMaps as e:
         print(f"openpi-cam stats: {e}", file=sys.stderr)
         return 2
     stats = compute_stats(steps)
