@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from openpi_cam import golden
+from openpi_cam.model import config as model_config
 from openpi_cam.model.checkpoint import flatten, load_params, read_param_shapes, save_params, unflatten
 from openpi_cam.model.config import architecture_from_params, param_shapes, pi0_fast_config
 from openpi_cam.model.pi0_fast import Pi0FAST, init_params
@@ -118,9 +119,18 @@ def test_missing_checkpoint_names_the_path(tmp_path):
         read_param_shapes(tmp_path / "empty")
 
 
-@pytest.fixture(scope="module")
-def golden_results() -> list[golden.Comparison]:
-    return golden.run_golden(TINY, verbose=False)
+@pytest.fixture(scope="module", params=["unrolled", "scanned"])
+def golden_results(request) -> list[golden.Comparison]:
+    """The golden model is 2 layers deep, so it runs unrolled; forced to scan, it runs the layout that real
+    checkpoints (18 / 27 layers) use, which must match the same goldens."""
+    with pytest.MonkeyPatch.context() as mp:
+        if request.param == "scanned":
+            mp.setattr(model_config, "UNROLL_MAX_DEPTH", 0)
+        jax.clear_caches()  # traces are cached per function: the layout is read when tracing
+        try:
+            return golden.run_golden(TINY, verbose=False)
+        finally:
+            jax.clear_caches()
 
 
 def test_golden_parity_every_case(golden_results):
@@ -185,6 +195,7 @@ def test_temperature_sampling_is_seeded(model: Pi0FAST):
 
 LOAD_MEMORY_SCRIPT = r"""
 import sys
+from openpi_cam.model import config as model_config
 from openpi_cam.model.checkpoint import load_params
 
 def status(field):  # bytes; VmHWM is this process's peak resident set (reset at exec, unlike ru_maxrss)

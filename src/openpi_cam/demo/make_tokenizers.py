@@ -27,6 +27,7 @@ TEXT_VOCAB = 320  # 4 specials + 256 byte pieces + merges over the task's few wo
 MERGES = 32
 FAST_VOCAB = 256  # the <loc> region, like PaliGemma: the most FAST ids the vocabulary can hold
 SEG_PIECES = 128  # the skipped tail
+VOCAB_SIZE = TEXT_VOCAB + FAST_VOCAB + SEG_PIECES  # the model's embedding rows
 FAST_SCALE = 10.0
 
 

@@ -254,12 +254,14 @@ def map_figures(policy: Any, samples: int = 30, seed: int = 1234, target: str = 
     return maps
 
 
-def offline_figures(samples: int = 30, seed: int = 1234, target: str = "chunk") -> dict[str, Any]:
+def offline_figures(
+    samples: int = 30, seed: int = 1234, target: str = "chunk", assets: Path = bundled.ASSETS
+) -> dict[str, Any]:
     """The map figures, the binding probe and camera occlusion, on fresh scenes."""
     from openpi_cam.demo.train import Batches, load_normalize
 
-    policy = bundled.create_demo_policy()
-    batches = Batches(bundled.ASSETS, load_normalize(bundled.ASSETS), 1, seed)
+    policy = bundled.create_demo_policy(assets=assets)
+    batches = Batches(assets, load_normalize(assets), 1, seed)
 
     def loss(pairs: list[task.Sample]) -> np.ndarray:  # at the positions the decoder serves the action tokens at
         return np.asarray(policy.model.compute_loss(batches.observation(pairs), decode_offset=1))
@@ -279,6 +281,7 @@ class Args:
     samples: int = 30
     seed: int = 1234
     target: str = "chunk"  # what Grad-CAM explains in the offline checks (as `openpi-cam demo --target`)
+    assets: Path = bundled.ASSETS  # the model judged offline (as `openpi-cam demo --assets`; a training run's --out)
 
 
 def main(args: Args) -> dict[str, Any]:
@@ -286,7 +289,7 @@ def main(args: Args) -> dict[str, Any]:
     if args.run_dir is not None:
         figures["run"] = run_figures(args.run_dir)
     if args.samples:
-        figures["offline"] = offline_figures(args.samples, args.seed, args.target)
+        figures["offline"] = offline_figures(args.samples, args.seed, args.target, args.assets)
     print(json.dumps(figures, indent=2))
     return figures
 

@@ -12,6 +12,16 @@ EOS_TOKEN = 1
 PAD_TOKEN = 0
 
 
+# Layer stacks at most this deep are unrolled rather than scanned. Differentiating a scan, XLA:CPU slices every
+# stacked activation and copies it transposed; the demo model (depth 2) trains faster unrolled
+# (`benchmarks/bench_train.py`). Deep stacks (real checkpoints) stay scanned: one compiled layer keeps compiling cheap.
+UNROLL_MAX_DEPTH = 2
+
+
+def unroll_layers(depth: int) -> bool:
+    return depth <= UNROLL_MAX_DEPTH
+
+
 @dataclasses.dataclass(frozen=True)
 class GemmaConfig:
     width: int = 2048

@@ -1,0 +1,91 @@
+"""Training-step timings of the bundled demo model, layer stacks scanned vs unrolled, side by side in one run.
+
+    python benchmarks/bench_train.py [--batch-size 32 --repeats 20]
+
+One step is what `openpi_cam.demo.train` runs: forward, backward and the AdamW update on a real batch of the reaching
+task (tokenized with the shipped tokenizers). Prints the median step time of each layout, their ratio, the time to
+build one batch in Python, and what a 10,000-step training run costs at the measured rate.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import functools
+import platform
+import statistics
+import time
+from collections.abc import Iterator
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from openpi_cam.demo import bundled, make_tokenizers
+from openpi_cam.demo.train import Batches, load_normalize
+from openpi_cam.model import config
+from openpi_cam.model.pi0_fast import compute_loss, init_params
+
+
+@contextlib.contextmanager
+def layer_stacks(unrolled: bool) -> Iterator[None]:
+    """Force one layout (the model picks it from the depth when a function is traced)."""
+    saved = config.UNROLL_MAX_DEPTH
+    config.UNROLL_MAX_DEPTH = 1_000 if unrolled else 0
+    try:
+        yield
+    finally:
+        config.UNROLL_MAX_DEPTH = saved
+
+
+def step_seconds(batch, repeats: int) -> float:
+    """Median time of one compiled training step (fresh params and optimizer state, compiled before timing)."""
+    cfg = bundled.model_config(make_tokenizers.VOCAB_SIZE)
+    params = init_params(cfg, jax.random.key(0))
+    optimizer = optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(1e-3, weight_decay=1e-4))
+    opt_state = optimizer.init(params)
+
+    @functools.partial(jax.jit, donate_argnums=(0, 1))
+    def step(params, opt_state, obs):
+        loss, grads = jax.value_and_grad(lambda p: jnp.mean(compute_loss(p, obs, cfg, decode_offset=1)))(params)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, loss
+
+    params, opt_state, loss = step(params, opt_state, batch)
+    jax.block_until_ready(loss)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        params, opt_state, loss = step(params, opt_state, batch)
+        jax.block_until_ready(loss)
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--batch-size", type=int, default=32)
+    ap.add_argument("--repeats", type=int, default=20)
+    args = ap.parse_args()
+
+    batches = Batches(bundled.ASSETS, load_normalize(bundled.ASSETS), args.batch_size, seed=0, contrast_pairs=True)
+    t0 = time.perf_counter()
+    batch = [batches() for _ in range(args.repeats)][-1]
+    batch_s = (time.perf_counter() - t0) / args.repeats
+    timings = {}
+    for unrolled in (False, True):
+        with layer_stacks(unrolled):
+            timings[unrolled] = step_seconds(batch, args.repeats)
+
+    print(f"machine: {platform.machine()} {platform.processor() or ''}, {jax.device_count()} x {jax.devices()[0]}")
+    print(f"demo model, batch {args.batch_size}, median of {args.repeats} steps")
+    print("| | seconds per step | 10,000 steps |")
+    print("| --- | --- | --- |")
+    for unrolled, label in ((False, "layers scanned"), (True, "layers unrolled (served layout)")):
+        print(f"| {label} | {timings[unrolled]:.3f} | {timings[unrolled] * 10_000 / 60:.0f} min |")
+    print(f"| building one batch (Python) | {batch_s:.3f} | {batch_s * 10_000 / 60:.0f} min |")
+    print(f"unrolled / scanned: {timings[True] / timings[False]:.2f}x the time")
+
+
+if __name__ == "__main__":
+    main()
