@@ -11,20 +11,17 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import functools
 import platform
 import statistics
 import time
 from collections.abc import Iterator
 
 import jax
-import jax.numpy as jnp
-import optax
 
 from openpi_cam.demo import bundled, make_tokenizers
-from openpi_cam.demo.train import Batches, load_normalize
+from openpi_cam.demo.train import Batches, adamw, load_normalize, training_step
 from openpi_cam.model import config
-from openpi_cam.model.pi0_fast import compute_loss, init_params
+from openpi_cam.model.pi0_fast import init_params
 
 
 @contextlib.contextmanager
@@ -42,14 +39,9 @@ def step_seconds(batch, repeats: int) -> float:
     """Median time of one compiled training step (fresh params and optimizer state, compiled before timing)."""
     cfg = bundled.model_config(make_tokenizers.VOCAB_SIZE)
     params = init_params(cfg, jax.random.key(0))
-    optimizer = optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(1e-3, weight_decay=1e-4))
+    optimizer = adamw(1e-3)
     opt_state = optimizer.init(params)
-
-    @functools.partial(jax.jit, donate_argnums=(0, 1))
-    def step(params, opt_state, obs):
-        loss, grads = jax.value_and_grad(lambda p: jnp.mean(compute_loss(p, obs, cfg, decode_offset=1)))(params)
-        updates, opt_state = optimizer.update(grads, opt_state, params)
-        return optax.apply_updates(params, updates), opt_state, loss
+    step = training_step(cfg, optimizer, decode_offset=1)
 
     params, opt_state, loss = step(params, opt_state, batch)
     jax.block_until_ready(loss)

@@ -195,7 +195,6 @@ def test_temperature_sampling_is_seeded(model: Pi0FAST):
 
 LOAD_MEMORY_SCRIPT = r"""
 import sys
-from openpi_cam.model import config as model_config
 from openpi_cam.model.checkpoint import load_params
 
 def status(field):  # bytes; VmHWM is this process's peak resident set (reset at exec, unlike ru_maxrss)

@@ -13,6 +13,7 @@ import functools
 import json
 import shutil
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import jax
@@ -187,6 +188,24 @@ def train(args: TrainArgs) -> dict:
     return summary
 
 
+def adamw(lr: float | optax.Schedule) -> optax.GradientTransformation:
+    """The demo's optimizer: global-norm clipping, then AdamW."""
+    return optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(lr, weight_decay=1e-4))
+
+
+def training_step(cfg: Pi0FASTConfig, optimizer: optax.GradientTransformation, decode_offset: int) -> Callable:
+    """`step(params, opt_state, obs) -> (params, opt_state, loss)`, jitted; params and optimizer state are donated."""
+
+    @functools.partial(jax.jit, donate_argnums=(0, 1))
+    def step(params, opt_state, obs):
+        mean_loss = lambda p: jnp.mean(compute_loss(p, obs, cfg, decode_offset=decode_offset))  # noqa: E731
+        loss, grads = jax.value_and_grad(mean_loss)(params)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, loss
+
+    return step
+
+
 def train_phase(
     params: dict, cfg: Pi0FASTConfig, batches: Batches, phase: Phase, args: TrainArgs
 ) -> tuple[dict, float]:
@@ -194,19 +213,10 @@ def train_phase(
     schedule = optax.warmup_cosine_decay_schedule(
         0.0, phase.lr, min(phase.warmup, phase.steps // 2), phase.steps, 0.05 * phase.lr
     )
-    optimizer = optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(schedule, weight_decay=1e-4))
+    optimizer = adamw(schedule)
     opt_state = optimizer.init(params)
-
-    def example_losses(params, obs):
-        return compute_loss(params, obs, cfg, decode_offset=phase.decode_offset)
-
-    @functools.partial(jax.jit, donate_argnums=(0, 1))
-    def step(params, opt_state, obs):
-        loss, grads = jax.value_and_grad(lambda p: jnp.mean(example_losses(p, obs)))(params)
-        updates, opt_state = optimizer.update(grads, opt_state, params)
-        return optax.apply_updates(params, updates), opt_state, loss
-
-    probe_losses = jax.jit(example_losses)
+    step = training_step(cfg, optimizer, phase.decode_offset)
+    probe_losses = jax.jit(functools.partial(compute_loss, cfg=cfg, decode_offset=phase.decode_offset))
     t0, losses = time.time(), []
     for i in range(phase.steps):
         params, opt_state, loss = step(params, opt_state, batches())
