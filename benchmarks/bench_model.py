@@ -19,10 +19,10 @@ import time
 import jax
 import numpy as np
 
-from openpi_cam.model import gradcam
+from openpi_cam.model import pi0_fast_maps as maps
 from openpi_cam.model.config import GemmaConfig, Pi0FASTConfig, SiglipConfig
 from openpi_cam.model.observation import Observation
-from openpi_cam.model.pi0_fast import Pi0FAST, embed_images, embed_prefix, init_params, prefill
+from openpi_cam.model.pi0_fast import Pi0FAST, embed_images, embed_prefix, init_params, prefill, sample_tokens_jit
 
 
 def timed(fn, repeats: int) -> float:
@@ -81,27 +81,29 @@ def main() -> None:
 
     t_prefill = timed(lambda: prefill_only(model.params, obs, args.steps), args.repeats)
     t_infer = timed(lambda: model.sample_actions(key, obs, max_decoding_steps=args.steps), args.repeats)
-    tokens, n_run, _ = model.decode(key, obs, max_decoding_steps=args.steps)
+    tokens, n_run, _ = sample_tokens_jit(
+        model.params, obs, key, cfg=cfg, max_decoding_steps=args.steps, temperature=0.0
+    )
     n_run = int(n_run)
-    compiles_before = model._sample._cache_size()
+    compiles_before = sample_tokens_jit._cache_size()
     for seed in range(3):  # new inputs of the same shape must reuse the compiled decode loop
         jax.block_until_ready(
             model.sample_actions(key, make_observation(cfg, args.cameras, 30, seed + 1), max_decoding_steps=args.steps)
         )
-    decode_compiles = model._sample._cache_size() - compiles_before
+    decode_compiles = sample_tokens_jit._cache_size() - compiles_before
     per_token = (t_infer - t_prefill) / max(n_run, 1)
 
     steps = list(range(min(args.tokens, n_run)))
-    t_one = timed(lambda: model.gradcam_for_action_token(obs, tokens, steps[-1]).score, args.repeats)
-    t_all = timed(lambda: model.gradcam_for_steps(obs, tokens, steps).score, args.repeats)
+    t_one = timed(lambda: maps.gradcam_for_action_token(model, obs, tokens, steps[-1]).score, args.repeats)
+    t_all = timed(lambda: maps.gradcam_for_steps(model, obs, tokens, steps).score, args.repeats)
     t_loop = timed(
-        lambda: [model.gradcam_for_action_token(obs, tokens, k).score for k in steps], max(1, args.repeats // 2)
+        lambda: [maps.gradcam_for_action_token(model, obs, tokens, k).score for k in steps], max(1, args.repeats // 2)
     )
-    t_chunk = timed(lambda: model.gradcam_for_chunk(obs, tokens, steps).score, args.repeats)
-    cam_before = gradcam._token_cams._cache_size()
+    t_chunk = timed(lambda: maps.gradcam_for_chunk(model, obs, tokens, steps).score, args.repeats)
+    cam_before = maps._token_cams._cache_size()
     for k in range(n_run):  # every step of the request: no new compilation
-        model.gradcam_for_action_token(obs, tokens, k)
-    cam_compiles = gradcam._token_cams._cache_size() - cam_before
+        maps.gradcam_for_action_token(model, obs, tokens, k)
+    cam_compiles = maps._token_cams._cache_size() - cam_before
 
     prefix = args.cameras * siglip.num_tokens + 48
     print(

@@ -10,34 +10,20 @@ build one batch in Python, and what a 10,000-step training run costs at the meas
 from __future__ import annotations
 
 import argparse
-import contextlib
 import platform
 import statistics
 import time
-from collections.abc import Iterator
 
 import jax
 
 from openpi_cam.demo import bundled, make_tokenizers
 from openpi_cam.demo.train import Batches, adamw, load_normalize, training_step
-from openpi_cam.model import config
 from openpi_cam.model.pi0_fast import init_params
 
 
-@contextlib.contextmanager
-def layer_stacks(unrolled: bool) -> Iterator[None]:
-    """Force one layout (the model picks it from the depth when a function is traced)."""
-    saved = config.UNROLL_MAX_DEPTH
-    config.UNROLL_MAX_DEPTH = 1_000 if unrolled else 0
-    try:
-        yield
-    finally:
-        config.UNROLL_MAX_DEPTH = saved
-
-
-def step_seconds(batch, repeats: int) -> float:
+def step_seconds(batch, repeats: int, *, scan: bool) -> float:
     """Median time of one compiled training step (fresh params and optimizer state, compiled before timing)."""
-    cfg = bundled.model_config(make_tokenizers.VOCAB_SIZE)
+    cfg = bundled.model_config(make_tokenizers.VOCAB_SIZE, scan=scan)
     params = init_params(cfg, jax.random.key(0))
     optimizer = adamw(1e-3)
     opt_state = optimizer.init(params)
@@ -66,8 +52,7 @@ def main() -> None:
     batch_s = (time.perf_counter() - t0) / args.repeats
     timings = {}
     for unrolled in (False, True):
-        with layer_stacks(unrolled):
-            timings[unrolled] = step_seconds(batch, args.repeats)
+        timings[unrolled] = step_seconds(batch, args.repeats, scan=not unrolled)
 
     print(f"machine: {platform.machine()} {platform.processor() or ''}, {jax.device_count()} x {jax.devices()[0]}")
     print(f"demo model, batch {args.batch_size}, median of {args.repeats} steps")

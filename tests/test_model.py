@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 
 from openpi_cam import golden
-from openpi_cam.model import config as model_config
-from openpi_cam.model.checkpoint import flatten, load_params, read_param_shapes, save_params, unflatten
+from openpi_cam.model.checkpoint import load_params, read_param_shapes, save_params
 from openpi_cam.model.config import architecture_from_params, param_shapes, pi0_fast_config
-from openpi_cam.model.pi0_fast import Pi0FAST, init_params
+from openpi_cam.model.pi0_fast import Pi0FAST, init_params, sample_tokens_jit
+from openpi_cam.nested import flatten_dict as flatten
+from openpi_cam.nested import unflatten_dict as unflatten
 
 GOLDEN = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "golden"
 TINY = GOLDEN / "tiny_pi0_fast"
@@ -123,14 +124,7 @@ def test_missing_checkpoint_names_the_path(tmp_path):
 def golden_results(request) -> list[golden.Comparison]:
     """The golden model is 2 layers deep, so it runs unrolled; forced to scan, it runs the layout that real
     checkpoints (18 / 27 layers) use, which must match the same goldens."""
-    with pytest.MonkeyPatch.context() as mp:
-        if request.param == "scanned":
-            mp.setattr(model_config, "UNROLL_MAX_DEPTH", 0)
-        jax.clear_caches()  # traces are cached per function: the layout is read when tracing
-        try:
-            return golden.run_golden(TINY, verbose=False)
-        finally:
-            jax.clear_caches()
+    return golden.run_golden(TINY, verbose=False, scan=request.param == "scanned")
 
 
 def test_golden_parity_every_case(golden_results):
@@ -169,11 +163,11 @@ def test_golden_command_fails_on_mismatch_and_bad_input(tmp_path, capsys):
 def test_decode_compiles_once_per_shape_and_stops_on_stop_tokens(model: Pi0FAST):
     case = load_case("case_a")
     obs = golden.load_observation(case, CAMERAS)
-    before = model._sample._cache_size()
+    before = sample_tokens_jit._cache_size()
     t1 = np.asarray(model.sample_actions(jax.random.key(0), obs, max_decoding_steps=16))
     shifted = golden.load_observation({**case, "state": case["state"] + 0.5}, CAMERAS)
     model.sample_actions(jax.random.key(1), shifted, max_decoding_steps=16)
-    assert model._sample._cache_size() - before == 1
+    assert sample_tokens_jit._cache_size() - before == 1
     np.testing.assert_array_equal(t1, case["output_tokens"])
     # Opt-in stop: decoding ends right after the first stop token; what came before is unchanged.
     stop = int(case["output_tokens"][0, 4])

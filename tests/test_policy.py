@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from openpi_cam.errors import InvalidRequest
-from openpi_cam.model.checkpoint import save_params, unflatten
+from openpi_cam.model.checkpoint import save_params
 from openpi_cam.model.config import GemmaConfig, SiglipConfig, param_shapes
+from openpi_cam.nested import unflatten_dict as unflatten
 from openpi_cam.normalize import NormStats, save_norm_stats
 from openpi_cam.policies import (
     GenericInputs,

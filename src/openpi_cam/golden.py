@@ -20,9 +20,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from openpi_cam.model import gemma
+from openpi_cam.model import gemma, pi0_fast_maps
 from openpi_cam.model.observation import Observation
-from openpi_cam.model.pi0_fast import Pi0FAST, embed_prefix, make_attn_mask
+from openpi_cam.model.pi0_fast import Pi0FAST, embed_prefix, make_attn_mask, sample_tokens_jit
 
 ATOL = {"siglip": 1e-4, "embeddings": 1e-4, "logits": 2e-3, "score": 2e-3}
 REL_TO_MAX = 1e-3
@@ -100,8 +100,14 @@ def check_case(model: Pi0FAST, name: str, case: dict, cameras: list[str], max_st
         out.append(
             compare(name, "prompt_logits", plain_prompt_logits(model, obs), case["prompt_logits"], atol=ATOL["logits"])
         )
-    tokens, n_steps, step_logits = model.decode(
-        jax.random.key(0), obs, max_decoding_steps=max_steps, temperature=0.0, record_logits=True
+    tokens, n_steps, step_logits = sample_tokens_jit(
+        model.params,
+        obs,
+        jax.random.key(0),
+        cfg=model.config,
+        max_decoding_steps=max_steps,
+        temperature=0.0,
+        record_logits=True,
     )
     step_logits = np.asarray(step_logits)
     if "output_tokens" in case:
@@ -134,7 +140,7 @@ def check_gradcam(model: Pi0FAST, name: str, case: dict, obs: Observation, camer
     steps = sorted(int(k.split("_")[2][1:]) for k in case if k.startswith("gc_replay_k") and k.endswith("_score"))
     for k in steps:
         prefix = f"gc_replay_k{k}"
-        res = model.gradcam_for_action_token(obs, generated, k)
+        res = pi0_fast_maps.gradcam_for_action_token(model, obs, generated, k)
         out.append(compare(name, f"{prefix}_logits", res.logits, case[f"{prefix}_logits"], atol=ATOL["logits"]))
         out.append(compare(name, f"{prefix}_score", res.score, case[f"{prefix}_score"], atol=ATOL["score"]))
         for field, key in (("alphas", "alpha"), ("maps", "cam"), ("grad_norms", "grad_norm")):
@@ -145,7 +151,7 @@ def check_gradcam(model: Pi0FAST, name: str, case: dict, obs: Observation, camer
             )
     if "gc_replay_chunk_score" in case:
         n = int(case.get("num_decoded_steps", generated.shape[1]))
-        res = model.gradcam_for_chunk(obs, generated, list(range(n)))
+        res = pi0_fast_maps.gradcam_for_chunk(model, obs, generated, list(range(n)))
         out.append(compare(name, "gc_replay_chunk_score", res.score, case["gc_replay_chunk_score"], atol=ATOL["score"]))
         for field, key in (("alphas", "alpha"), ("maps", "cam"), ("grad_norms", "grad_norm")):
             out.append(
@@ -160,13 +166,15 @@ def check_gradcam(model: Pi0FAST, name: str, case: dict, obs: Observation, camer
     return out
 
 
-def run_golden(folder: str | pathlib.Path, *, verbose: bool = True) -> list[Comparison]:
+def run_golden(folder: str | pathlib.Path, *, verbose: bool = True, scan: bool | None = None) -> list[Comparison]:
+    """Every comparison of a golden folder; `scan` forces the layer-stack layout (None: the read-back default)."""
     folder = pathlib.Path(folder)
     config = json.loads((folder / "config.json").read_text())
     data_cfg = config.get("pi0_fast_config", {})
     model = Pi0FAST.from_checkpoint(
         folder / "checkpoint" / "params",
         dtype=data_cfg.get("dtype", "float32"),
+        scan=scan,
         action_dim=data_cfg.get("action_dim", 32),
         action_horizon=data_cfg.get("action_horizon", 32),
         max_token_len=data_cfg.get("max_token_len", 250),

@@ -21,6 +21,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from openpi_cam.cam.engine import TARGETS, CamSkipped, Explanation
+from openpi_cam.model import pi0_fast_maps
 from openpi_cam.model.observation import Observation
 
 BATCH_AXIS = "batch"
@@ -114,7 +115,7 @@ def explain_batch(
     if target == "chunk":
         # Ragged lists are native to the chunk target; skipped and padding rows explain step 0 and are dropped.
         lists = [s if isinstance(s, np.ndarray) else np.zeros(1, np.int32) for s in per_row]
-        result = model.gradcam_for_chunk(obs, fed, lists + [lists[-1]] * (padded - rows))
+        result = pi0_fast_maps.gradcam_for_chunk(model, obs, fed, lists + [lists[-1]] * (padded - rows))
     else:
         # One [B, T] step matrix: rows with fewer action tokens repeat their first step (the model already pads T to
         # a power of two the same way), so one forward pass and one compilation serve the whole batch.
@@ -124,7 +125,7 @@ def explain_batch(
             own = per_row[min(b, rows - 1)]
             if isinstance(own, np.ndarray):
                 steps[b] = np.concatenate([own, np.repeat(own[:1], width - own.size)])
-        result = model.gradcam_for_steps(obs, fed, steps)
+        result = pi0_fast_maps.gradcam_for_steps(model, obs, fed, steps)
 
     grid = list(model.config.siglip.grid)
     token_ids, positions, score = (np.asarray(a) for a in (result.token_ids, result.positions, result.score))

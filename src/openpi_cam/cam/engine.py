@@ -14,6 +14,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from openpi_cam.model import pi0_fast_maps
 from openpi_cam.model.observation import Observation
 
 Target = Literal["action-token", "all-action-tokens", "chunk"]
@@ -57,11 +58,11 @@ def explain(
                 "action_index_out_of_range", f"action token {action_index} requested, generation has {len(steps)}"
             )
         steps, indices = steps[[action_index]], [action_index]
-        result = model.gradcam_for_action_token(observation, generated, int(steps[0]))
+        result = pi0_fast_maps.gradcam_for_action_token(model, observation, generated, int(steps[0]))
     elif target == "all-action-tokens":
-        result = model.gradcam_for_steps(observation, generated, steps)
+        result = pi0_fast_maps.gradcam_for_steps(model, observation, generated, steps)
     elif target == "chunk":
-        result = model.gradcam_for_chunk(observation, generated, steps)
+        result = pi0_fast_maps.gradcam_for_chunk(model, observation, generated, steps)
     else:
         raise ValueError(f"unknown Grad-CAM target {target!r}; expected one of {TARGETS}")
     score = np.asarray(result.score)[0]

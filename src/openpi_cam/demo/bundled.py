@@ -9,7 +9,7 @@ import numpy as np
 
 from openpi_cam.cam.records import EXTRA_PREFIX, split_extra
 from openpi_cam.demo import task
-from openpi_cam.model.config import GemmaConfig, Pi0FASTConfig, SiglipConfig
+from openpi_cam.model.config import GemmaConfig, Pi0FASTConfig, SiglipConfig, scan_by_default
 from openpi_cam.policies.config import PolicyConfig, register_config
 from openpi_cam.policies.robot import GenericInputs, GenericOutputs
 
@@ -45,12 +45,27 @@ DEMO_CONFIG = register_config(
 
 
 def model_config(
-    vocab_size: int, *, width: int = 128, depth: int = 2, vit_width: int = 64, patch_size: int = PATCH_SIZE
+    vocab_size: int,
+    *,
+    width: int = 128,
+    depth: int = 2,
+    vit_width: int = 64,
+    patch_size: int = PATCH_SIZE,
+    scan: bool | None = None,
 ) -> Pi0FASTConfig:
     """pi0-FAST's architecture scaled down. 16 px patches rather than 8: each block then covers a larger share of the
-    image tokens (1-4 of 16), and colour binding is learned within the CPU budget (8 px patches: no binding seen)."""
+    image tokens (1-4 of 16), and colour binding is learned within the CPU budget (8 px patches: no binding seen).
+    `scan` None: the layout a checkpoint of this depth is served with (`scan_by_default`)."""
+    scan = scan_by_default(depth) if scan is None else scan
     gemma = GemmaConfig(
-        width=width, depth=depth, mlp_dim=2 * width, num_heads=4, num_kv_heads=1, head_dim=32, vocab_size=vocab_size
+        width=width,
+        depth=depth,
+        mlp_dim=2 * width,
+        num_heads=4,
+        num_kv_heads=1,
+        head_dim=32,
+        vocab_size=vocab_size,
+        scan=scan,
     )
     siglip = SiglipConfig(
         width=vit_width,
@@ -60,6 +75,7 @@ def model_config(
         patch_size=patch_size,
         image_size=task.TaskConfig().image_size,
         out_dim=width,
+        scan=scan,
     )
     cfg = DEMO_CONFIG
     return Pi0FASTConfig(

@@ -13,17 +13,10 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+import orbax.checkpoint as ocp
 
 from openpi_cam.model.config import architecture_from_params, check_param_tree, param_shapes
 from openpi_cam.nested import flatten_dict, unflatten_dict
-
-
-def flatten(tree: Mapping[str, Any]) -> dict[str, Any]:
-    return flatten_dict(tree)
-
-
-def unflatten(flat: Mapping[str, Any]) -> dict[str, Any]:
-    return unflatten_dict(flat)
 
 
 def _strip_value_suffix(flat: dict[str, Any]) -> dict[str, Any]:
@@ -32,9 +25,7 @@ def _strip_value_suffix(flat: dict[str, Any]) -> dict[str, Any]:
     return flat
 
 
-def _checkpointer():
-    import orbax.checkpoint as ocp
-
+def _checkpointer() -> ocp.PyTreeCheckpointer:
     return ocp.PyTreeCheckpointer()
 
 
@@ -46,7 +37,7 @@ def read_param_shapes(params_dir: str | pathlib.Path) -> dict[str, tuple[int, ..
     tree = getattr(tree, "tree", tree)
     if "params" not in tree:
         raise ValueError(f"{params_dir} is not an OpenPI params checkpoint: no top-level 'params' item")
-    return _strip_value_suffix({p: tuple(m.shape) for p, m in flatten(tree["params"]).items()})
+    return _strip_value_suffix({p: tuple(m.shape) for p, m in flatten_dict(tree["params"]).items()})
 
 
 def _resolve(params_dir: str | pathlib.Path) -> pathlib.Path:
@@ -67,8 +58,6 @@ def load_params(params_dir: str | pathlib.Path, *, dtype: str | None = None, che
     to the device one leaf at a time, so host memory holds one copy of the params plus orbax's transient read
     buffers. With `check`, the tree must be exactly the pi0-FAST tree of the architecture its shapes describe.
     """
-    import orbax.checkpoint as ocp
-
     params_dir = _resolve(params_dir)
     shapes = read_param_shapes(params_dir)
     if check:
@@ -81,14 +70,14 @@ def load_params(params_dir: str | pathlib.Path, *, dtype: str | None = None, che
     np_dtype = None if dtype is None else jnp.dtype(dtype)
     restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray, dtype=np_dtype), item)
     restored = ckptr.restore(params_dir, args=ocp.args.PyTreeRestore(item=item, restore_args=restore_args))["params"]
-    flat = _strip_value_suffix(flatten(restored))
+    flat = _strip_value_suffix(flatten_dict(restored))
     del restored  # `flat` now holds the only references to the host buffers
     device_flat = {}
     for path in list(flat):
         # On a CPU backend the device array may alias the host buffer instead of copying it; on an accelerator the
         # host copy is dropped as soon as it is on the device.
         device_flat[path] = jax.device_put(flat.pop(path), may_alias=True)
-    return unflatten(device_flat)
+    return unflatten_dict(device_flat)
 
 
 def save_params(params_dir: str | pathlib.Path, params: Mapping[str, Any]) -> pathlib.Path:

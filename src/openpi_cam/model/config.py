@@ -7,19 +7,17 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-# Upstream's PaliGemma tokenizer ids that the model itself cares about.
+# Upstream's PaliGemma tokenizer id that ends a generation.
 EOS_TOKEN = 1
-PAD_TOKEN = 0
+# Upstream's default decoding budget (`Pi0FAST.sample_actions(max_decoding_steps=256)`).
+MAX_DECODING_STEPS = 256
 
 
-# Layer stacks at most this deep are unrolled rather than scanned. Differentiating a scan, XLA:CPU slices every
-# stacked activation and copies it transposed; the demo model (depth 2) trains faster unrolled
-# (`benchmarks/bench_train.py`). Deep stacks (real checkpoints) stay scanned: one compiled layer keeps compiling cheap.
-UNROLL_MAX_DEPTH = 2
-
-
-def unroll_layers(depth: int) -> bool:
-    return depth <= UNROLL_MAX_DEPTH
+def scan_by_default(depth: int) -> bool:
+    """Read-back rule for the `scan` field: deep stacks (real checkpoints, 18 / 27 layers) run as one scanned layer,
+    which keeps compilation cheap; stacks of at most 2 layers are unrolled, because differentiating a scan on
+    XLA:CPU slices and transposes every stacked activation (`benchmarks/bench_train.py`)."""
+    return depth > 2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,6 +33,7 @@ class GemmaConfig:
     # not store alpha: read-back assumes upstream's alpha = rank.
     lora_rank: int = 0
     lora_alpha: float = 0.0
+    scan: bool = True  # run the layer stack as `lax.scan` (False: unrolled), as upstream's `scan` option
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,6 +45,7 @@ class SiglipConfig:
     patch_size: int = 14
     image_size: int = 224  # square images, as upstream's pi0-FAST (224 x 224)
     out_dim: int = 2048  # the linear head projects onto the LLM width
+    scan: bool = True  # run the encoder blocks as `lax.scan` (False: unrolled)
 
     @property
     def grid(self) -> tuple[int, int]:
@@ -112,10 +112,11 @@ def _leaf(flat: Mapping[str, Any], path: str) -> tuple[int, ...]:
     return tuple(value) if isinstance(value, tuple) else tuple(value.shape)
 
 
-def architecture_from_params(flat: Mapping[str, Any]) -> tuple[GemmaConfig, SiglipConfig]:
+def architecture_from_params(flat: Mapping[str, Any], *, scan: bool | None = None) -> tuple[GemmaConfig, SiglipConfig]:
     """Reads every size from the parameter shapes, so a tiny test checkpoint and the 3B one load the same way.
 
     `flat` maps '/'-joined upstream paths (e.g. 'PaliGemma/llm/embedder/input_embedding') to arrays or shape tuples.
+    `scan` sets both stacks' layout; None applies `scan_by_default` to each stack's depth.
     """
     llm, img = "PaliGemma/llm/", "PaliGemma/img/"
     vocab, width = _leaf(flat, llm + "embedder/input_embedding")
@@ -124,7 +125,10 @@ def architecture_from_params(flat: Mapping[str, Any]) -> tuple[GemmaConfig, Sigl
     mlp_dim = _leaf(flat, llm + "layers/mlp/linear")[1]
     lora_key = llm + "layers/attn/q_einsum/lora_a"
     lora_rank = _leaf(flat, lora_key)[-1] if lora_key in flat else 0
-    gemma = GemmaConfig(width, depth, mlp_dim, num_heads, num_kv_heads, head_dim, vocab, lora_rank, float(lora_rank))
+    gemma_scan = scan_by_default(depth) if scan is None else scan
+    gemma = GemmaConfig(
+        width, depth, mlp_dim, num_heads, num_kv_heads, head_dim, vocab, lora_rank, float(lora_rank), gemma_scan
+    )
 
     patch, _, _, v_width = _leaf(flat, img + "embedding/kernel")
     v_depth = _leaf(flat, img + "Transformer/encoderblock/LayerNorm_0/scale")[0]
@@ -135,7 +139,8 @@ def architecture_from_params(flat: Mapping[str, Any]) -> tuple[GemmaConfig, Sigl
     if side * side != n_tokens:
         raise ValueError(f"SigLIP pos_embedding has {n_tokens} tokens: not a square patch grid")
     out_dim = _leaf(flat, img + "head/kernel")[1]
-    siglip = SiglipConfig(v_width, v_depth, v_mlp, v_heads, patch, side * patch, out_dim)
+    siglip_scan = scan_by_default(v_depth) if scan is None else scan
+    siglip = SiglipConfig(v_width, v_depth, v_mlp, v_heads, patch, side * patch, out_dim, siglip_scan)
     return gemma, siglip
 
 

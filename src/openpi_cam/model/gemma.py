@@ -12,7 +12,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from openpi_cam.model.config import GemmaConfig, unroll_layers
+from openpi_cam.model.config import GemmaConfig
 
 # Upstream masks attention logits with this constant rather than -inf, so fully masked rows get a uniform softmax.
 BIG_NEG = -2.3819763e38
@@ -130,5 +130,5 @@ def forward(
         h = h + _mlp(rms_norm(h, p["pre_ffw_norm"]["scale"]), p["mlp"])
         return h, (k_cache, v_cache)
 
-    x, (k, v) = jax.lax.scan(layer, x, (params["layers"], cache.k, cache.v), unroll=unroll_layers(cfg.depth))
+    x, (k, v) = jax.lax.scan(layer, x, (params["layers"], cache.k, cache.v), unroll=not cfg.scan)
     return rms_norm(x, params["final_norm"]["scale"]), KVCache(k, v, cache.idx + t)

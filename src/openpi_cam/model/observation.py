@@ -11,6 +11,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from openpi_cam.image_tools import resize_with_pad
+
 logger = logging.getLogger(__name__)
 
 
@@ -58,8 +60,6 @@ def preprocess_observation(obs: Observation, image_resolution: tuple[int, int]) 
     images, masks = {}, {}
     for name, image in obs.images.items():
         if tuple(image.shape[-3:-1]) != tuple(image_resolution):
-            from openpi_cam.image_tools import resize_with_pad
-
             logger.info("Resizing image %s from %s to %s", name, image.shape[-3:-1], image_resolution)
             image = resize_with_pad(image, *image_resolution)
         images[name] = image

@@ -14,11 +14,18 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from openpi_cam.model import gemma, siglip
-from openpi_cam.model.config import EOS_TOKEN, Pi0FASTConfig, architecture_from_params
+from openpi_cam.model.checkpoint import load_params
+from openpi_cam.model.config import (
+    EOS_TOKEN,
+    MAX_DECODING_STEPS,
+    Pi0FASTConfig,
+    architecture_from_params,
+    param_shapes,
+)
 from openpi_cam.model.observation import Observation, preprocess_observation
+from openpi_cam.nested import flatten_dict, unflatten_dict
 
 
 def make_attn_mask(input_mask: jax.Array, ar_mask: jax.Array) -> jax.Array:
@@ -160,6 +167,12 @@ def sample_tokens(
     return out[2], out[6], out[7]
 
 
+# One compiled program per (shape, config, decoding settings); shared by every model object.
+sample_tokens_jit = jax.jit(
+    sample_tokens, static_argnames=("cfg", "max_decoding_steps", "temperature", "stop_token_ids", "record_logits")
+)
+
+
 def replay_prelogits(
     params: dict, image_tokens: jax.Array, obs: Observation, generated: jax.Array, cfg: Pi0FASTConfig
 ) -> jax.Array:
@@ -204,36 +217,33 @@ def compute_loss(params: dict, obs: Observation, cfg: Pi0FASTConfig, *, decode_o
 
 
 class Pi0FAST:
-    """A config, its params, and the compiled entry points (each compiles once per input shape)."""
+    """A config, its params, and the compiled sampling and loss (each compiles once per input shape).
+
+    The maps over its image tokens are free functions of this object (`openpi_cam.model.pi0_fast_maps`)."""
+
+    family = "pi0_fast"
 
     def __init__(self, config: Pi0FASTConfig, params: dict):
         self.config = config
         self.params = params
-        self._sample = jax.jit(
-            sample_tokens,
-            static_argnames=("cfg", "max_decoding_steps", "temperature", "stop_token_ids", "record_logits"),
-        )
         self._embed_images = jax.jit(functools.partial(embed_images, cfg=config))
         self._loss = jax.jit(functools.partial(compute_loss, cfg=config), static_argnames="decode_offset")
 
     @classmethod
-    def from_params(cls, params: dict, **data_config: Any) -> Pi0FAST:
-        """Architecture from the parameter shapes; `data_config` sets action_dim, action_horizon, max_token_len,
-        dtype (compute dtype, default bfloat16 like upstream)."""
-        from openpi_cam.model.checkpoint import flatten
-
-        gemma_cfg, siglip_cfg = architecture_from_params({k: v for k, v in flatten(params).items()})
-        config = Pi0FASTConfig(gemma=gemma_cfg, siglip=siglip_cfg, **data_config)
-        return cls(config, params)
+    def from_params(cls, params: dict, *, scan: bool | None = None, **data_config: Any) -> Pi0FAST:
+        """Architecture from the parameter shapes (`scan`: see `architecture_from_params`); `data_config` sets
+        action_dim, action_horizon, max_token_len, dtype (compute dtype, default bfloat16 like upstream)."""
+        gemma_cfg, siglip_cfg = architecture_from_params(flatten_dict(params), scan=scan)
+        return cls(Pi0FASTConfig(gemma=gemma_cfg, siglip=siglip_cfg, **data_config), params)
 
     @classmethod
-    def from_checkpoint(cls, params_dir: str | pathlib.Path, *, dtype: str = "bfloat16", **data_config: Any) -> Pi0FAST:
+    def from_checkpoint(
+        cls, params_dir: str | pathlib.Path, *, dtype: str = "bfloat16", scan: bool | None = None, **data_config: Any
+    ) -> Pi0FAST:
         """Loads an OpenPI `<checkpoint>/params` directory. In bfloat16 the weights are restored as bfloat16, like
         upstream's `create_trained_policy`; in float32 they are kept at their stored precision."""
-        from openpi_cam.model.checkpoint import load_params
-
         params = load_params(params_dir, dtype=None if dtype == "float32" else dtype)
-        return cls.from_params(params, dtype=dtype, **data_config)
+        return cls.from_params(params, scan=scan, dtype=dtype, **data_config)
 
     @property
     def camera_grid(self) -> tuple[int, int]:
@@ -244,31 +254,12 @@ class Pi0FAST:
         rng: jax.Array,
         observation: Observation,
         *,
-        max_decoding_steps: int = 256,
+        max_decoding_steps: int = MAX_DECODING_STEPS,
         temperature: float = 0.0,
         stop_token_ids: Sequence[int] = (),
     ) -> jax.Array:
-        """Generated token ids, int32 [B, max_decoding_steps] (zeros after the loop stopped)."""
-        return self.decode(
-            rng,
-            observation,
-            max_decoding_steps=max_decoding_steps,
-            temperature=temperature,
-            stop_token_ids=stop_token_ids,
-        )[0]
-
-    def decode(
-        self,
-        rng: jax.Array,
-        observation: Observation,
-        *,
-        max_decoding_steps: int = 256,
-        temperature: float = 0.0,
-        stop_token_ids: Sequence[int] = (),
-        record_logits: bool = False,
-    ) -> tuple[jax.Array, jax.Array, jax.Array | None]:
-        """`sample_tokens` compiled: (tokens [B, S], loop iterations run, step logits [B, S, V] if recorded)."""
-        return self._sample(
+        """Generated token ids, int32 [B, max_decoding_steps] (zeros after the loop stopped), as upstream."""
+        return sample_tokens_jit(
             self.params,
             observation,
             rng,
@@ -276,37 +267,13 @@ class Pi0FAST:
             max_decoding_steps=int(max_decoding_steps),
             temperature=float(temperature),
             stop_token_ids=tuple(int(t) for t in stop_token_ids),
-            record_logits=record_logits,
-        )
+        )[0]
 
     def embed_images(self, observation: Observation) -> jax.Array:
         return self._embed_images(self.params, preprocess_observation(observation, self.config.image_resolution))
 
     def compute_loss(self, observation: Observation, *, decode_offset: int = 0) -> jax.Array:
         return self._loss(self.params, observation, decode_offset=decode_offset)
-
-    # Grad-CAM entry points live in openpi_cam.model.gradcam; bound here so the model "knows how to explain".
-    def gradcam_for_token(self, observation: Observation, **kwargs: Any):
-        from openpi_cam.model import gradcam
-
-        return gradcam.gradcam_for_token(self, observation, **kwargs)
-
-    def gradcam_for_action_token(self, observation: Observation, generated_ids: Any, step: int | Sequence[int]):
-        from openpi_cam.model import gradcam
-
-        return gradcam.gradcam_for_steps(
-            self, observation, generated_ids, np.atleast_1d(step), squeeze=np.ndim(step) == 0
-        )
-
-    def gradcam_for_steps(self, observation: Observation, generated_ids: Any, steps: Sequence[int]):
-        from openpi_cam.model import gradcam
-
-        return gradcam.gradcam_for_steps(self, observation, generated_ids, steps)
-
-    def gradcam_for_chunk(self, observation: Observation, generated_ids: Any, steps: Sequence[int]):
-        from openpi_cam.model import gradcam
-
-        return gradcam.gradcam_for_chunk(self, observation, generated_ids, steps)
 
 
 def _fan_in(path: str, shape: tuple[int, ...]) -> int:
@@ -324,9 +291,6 @@ def init_params(config: Pi0FASTConfig, rng: jax.Array) -> dict:
 
     Weights are LeCun-normal, biases and LoRA `b` factors zero, LayerNorm scales one, RMSNorm scales zero (they act
     as 1 + scale), embeddings N(0, 1/width)."""
-    from openpi_cam.model.checkpoint import unflatten
-    from openpi_cam.model.config import param_shapes
-
     shapes = param_shapes(config.gemma, config.siglip)
     leaves = {}
     for (path, shape), key in zip(shapes.items(), jax.random.split(rng, len(shapes)), strict=True):
@@ -339,4 +303,4 @@ def init_params(config: Pi0FASTConfig, rng: jax.Array) -> dict:
             leaves[path] = jax.random.normal(key, shape) * shape[-1] ** -0.5
         else:
             leaves[path] = jax.random.normal(key, shape) * _fan_in(path, shape) ** -0.5
-    return unflatten(leaves)
+    return unflatten_dict(leaves)

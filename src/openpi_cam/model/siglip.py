@@ -10,7 +10,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from openpi_cam.model.config import SiglipConfig, unroll_layers
+from openpi_cam.model.config import SiglipConfig
 
 LN_EPS = 1e-6
 
@@ -61,6 +61,6 @@ def encode_images(params: dict, images: jax.Array, cfg: SiglipConfig, dtype) -> 
     def body(h, layer_params):
         return _encoder_block(h, layer_params, cfg.num_heads), None
 
-    x, _ = jax.lax.scan(body, x, params["Transformer"]["encoderblock"], unroll=unroll_layers(cfg.depth))
+    x, _ = jax.lax.scan(body, x, params["Transformer"]["encoderblock"], unroll=not cfg.scan)
     x = layer_norm(x, params["Transformer"]["encoder_norm"], dtype)
     return _dense(x, params["head"], "btw,wo->bto")

@@ -1,4 +1,4 @@
-"""Grad-CAM over the SigLIP tokens the LLM sees, explaining the logits upstream's decoding really used.
+"""Maps over pi0-FAST's SigLIP tokens, explaining the logits upstream's decoding really used.
 
 Definition (README, "Grad-CAM"): to explain generated step k the score is the pre-softmax logit of the explained
 token at the output that predicted step k in the *decoding* computation (`pi0_fast.replay_prelogits`: upstream's
@@ -20,19 +20,17 @@ from __future__ import annotations
 import dataclasses
 import functools
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from openpi_cam.model import gemma
-from openpi_cam.model.config import Pi0FASTConfig
+from openpi_cam.model.attribution import gradcam_reduce
+from openpi_cam.model.config import MAX_DECODING_STEPS, Pi0FASTConfig
 from openpi_cam.model.observation import Observation, preprocess_observation
-from openpi_cam.model.pi0_fast import embed_images, replay_prelogits
-
-if TYPE_CHECKING:
-    from openpi_cam.model.pi0_fast import Pi0FAST
+from openpi_cam.model.pi0_fast import Pi0FAST, embed_images, replay_prelogits
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,19 +50,6 @@ class GradCamResult:
     decode_steps: np.ndarray  # int32 [T] (or [B, T] when rows explain different steps): the decode steps explained
     positions: np.ndarray  # int32 [B, T]: RoPE position of the output that predicted each explained token
     logits: np.ndarray | None  # float32 [B, V] or [B, T, V]: the full logit vector at that output (token targets)
-
-    def row(self, b: int = 0) -> dict[str, np.ndarray]:
-        return {c: m[b] for c, m in self.maps.items()}
-
-
-def _reduce(E: jax.Array, G: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """E [B, C, N, D], G [..., B, C, N, D] -> alpha [..., B, C, D], cam [..., B, C, N], token_norm [..., B, C, N].
-
-    The per-camera Frobenius norm is derived from token_norm outside the jit (`_result`)."""
-    E, G = E.astype(jnp.float32), G.astype(jnp.float32)
-    alpha = jnp.mean(G, axis=-2)
-    cam = jax.nn.relu(jnp.einsum("bcnd,...bcd->...bcn", E, alpha))
-    return alpha, cam, jnp.sqrt(jnp.sum(jnp.square(G), axis=-1))
 
 
 def _gathered_logits(params: dict, pre: jax.Array, targets: jax.Array) -> jax.Array:
@@ -89,7 +74,7 @@ def _token_cams(params, obs, fed, targets, steps, *, cfg: Pi0FASTConfig):
     scores, vjp_fn, pre = jax.vjp(scores_fn, E, has_aux=True)
     cotangents = jax.nn.one_hot(steps, fed.shape[1], dtype=scores.dtype)  # [T, B, S]
     G = jax.lax.map(lambda cot: vjp_fn(cot)[0], cotangents)  # [T, B, C, N, D]
-    alpha, cam, token_norm = _reduce(E, G)
+    alpha, cam, token_norm = gradcam_reduce(E, G)
     rows = jnp.arange(fed.shape[0])
     explained_pre = pre[rows[None, :], steps]  # [T, B, D]
     logits = gemma.logits_from_prelogits(params["PaliGemma"]["llm"], explained_pre).astype(jnp.float32)
@@ -110,7 +95,7 @@ def _chunk_cam(params, obs, fed, weights, *, cfg: Pi0FASTConfig):
 
     score, vjp_fn = jax.vjp(score_fn, E)
     (G,) = vjp_fn(jnp.ones_like(score))
-    alpha, cam, token_norm = _reduce(E, G)
+    alpha, cam, token_norm = gradcam_reduce(E, G)
     return score, alpha, cam, token_norm
 
 
@@ -172,13 +157,17 @@ def _result(model, obs, target, alpha, cam, token_norm, score, token_ids, steps,
     )
 
 
-def gradcam_for_steps(
-    model: Pi0FAST, obs: Observation, generated_ids: Any, steps: Any, *, squeeze: bool = False
-) -> GradCamResult:
+def gradcam_for_steps(model: Pi0FAST, obs: Observation, generated_ids: Any, steps: Any) -> GradCamResult:
     """Explains the generated tokens at `steps` ([T] for every row, or [B, T] per row; one map stack per camera),
     with one forward pass shared by all of them."""
     obs, fed, prefill_len = _prepare(model, obs, generated_ids)
-    return _explain_tokens(model, obs, fed, fed, steps, prefill_len, squeeze)
+    return _explain_tokens(model, obs, fed, fed, steps, prefill_len, False)
+
+
+def gradcam_for_action_token(model: Pi0FAST, obs: Observation, generated_ids: Any, step: int) -> GradCamResult:
+    """Explains the generated token at decode `step` (one map per camera, no token axis)."""
+    obs, fed, prefill_len = _prepare(model, obs, generated_ids)
+    return _explain_tokens(model, obs, fed, fed, [int(step)], prefill_len, True)
 
 
 def gradcam_for_token(
@@ -189,7 +178,7 @@ def gradcam_for_token(
     step: int | None = None,
     position: int | None = None,
     generated_prefix: Any = None,
-    max_decoding_steps: int = 256,
+    max_decoding_steps: int = MAX_DECODING_STEPS,
 ) -> GradCamResult:
     """Explains the logit of `token_id` at decode step `step` (or at the output with RoPE `position`), with
     `generated_prefix` = g_0 .. g_{step-1} fed back. `token_id` need not be the generated token (counterfactuals).
