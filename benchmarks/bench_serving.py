@@ -22,6 +22,7 @@ import numpy as np
 from websockets.sync.client import connect
 
 from openpi_cam.cam.wrapper import CAMOptions, wrap_policy_with_cam
+from openpi_cam.policies import demo_reach
 from openpi_cam.serving import msgpack_numpy
 from openpi_cam.serving.server import start_server_in_thread
 
@@ -65,7 +66,7 @@ def demo_setup(n: int, seed: int = 0):
     for _ in range(n):
         scene = task.random_scene(rng)
         observations.append(bundled.client_observation(task.observe(scene, task.random_start(rng, scene)), scene))
-    return bundled.create_demo_policy(), observations
+    return demo_reach.create_demo_policy(), observations
 
 
 def main() -> None:

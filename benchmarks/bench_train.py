@@ -19,6 +19,7 @@ import jax
 from openpi_cam.demo import bundled, make_tokenizers
 from openpi_cam.demo.train import Batches, adamw, load_normalize, training_step
 from openpi_cam.model.pi0_fast import init_params
+from openpi_cam.policies import demo_reach
 
 
 def step_seconds(batch, repeats: int, *, scan: bool) -> float:
@@ -46,7 +47,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=20)
     args = ap.parse_args()
 
-    batches = Batches(bundled.ASSETS, load_normalize(bundled.ASSETS), args.batch_size, seed=0, contrast_pairs=True)
+    batches = Batches(
+        demo_reach.ASSETS, load_normalize(demo_reach.ASSETS), args.batch_size, seed=0, contrast_pairs=True
+    )
     t0 = time.perf_counter()
     batch = [batches() for _ in range(args.repeats)][-1]
     batch_s = (time.perf_counter() - t0) / args.repeats

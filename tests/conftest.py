@@ -12,8 +12,7 @@ import dataclasses
 from pathlib import Path
 
 import pytest
-
-SHARED_DIR = Path(__file__).resolve().parents[1].parent / "shared"
+from paths import SHARED_DIR
 
 
 @dataclasses.dataclass(frozen=True)

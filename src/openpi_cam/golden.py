@@ -195,8 +195,9 @@ def run_golden(folder: str | pathlib.Path, *, verbose: bool = True, scan: bool |
     return results
 
 
-def golden_cmd(folder: pathlib.Path, /) -> int:
-    """Checks our model against an upstream golden folder (config.json, checkpoint/params, case_*.npz)."""
+def check_folder(folder: pathlib.Path) -> int:
+    """Prints every comparison of a golden folder and a verdict line; the exit status (1 on any mismatch or
+    unreadable input)."""
     try:
         results = run_golden(folder)
     except Exception as e:  # unreadable input is a failure of the check, reported in one line
@@ -211,4 +212,4 @@ if __name__ == "__main__":
     if len(sys.argv) != 2:
         print("usage: python -m openpi_cam.golden DIR", file=sys.stderr)
         raise SystemExit(2)
-    raise SystemExit(golden_cmd(pathlib.Path(sys.argv[1])))
+    raise SystemExit(check_folder(pathlib.Path(sys.argv[1])))

@@ -92,10 +92,6 @@ class LetterboxGeometry:
         x1, y1 = self.model_to_original(box[2], box[3], clip=clip)
         return x0, y0, x1, y1
 
-    def content_box_model(self) -> tuple[int, int, int, int]:
-        """The ``(x0, y0, x1, y1)`` region of the model image that holds image content (not padding)."""
-        return self.pad_left, self.pad_top, self.pad_left + self.resized_w, self.pad_top + self.resized_h
-
     def as_dict(self) -> dict[str, int]:
         return dataclasses.asdict(self)
 

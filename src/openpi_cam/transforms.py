@@ -148,26 +148,6 @@ def compose(transforms: Sequence[Transform]) -> CompositeTransform:
 
 
 @dataclasses.dataclass(frozen=True)
-class RepackTransform:
-    """Build a new dict whose leaves are taken from flattened ``a/b`` paths of the input.
-
-    Upstream applies repacking only to training data; its inference pipelines (and ours) use none.
-    """
-
-    structure: Mapping[str, Any]
-
-    def __call__(self, data: DataDict) -> DataDict:
-        flat = flatten_dict(data)
-
-        def pick(node: Any) -> Any:
-            if isinstance(node, Mapping):
-                return {k: pick(v) for k, v in node.items()}
-            return require(flat, node)
-
-        return pick(self.structure)
-
-
-@dataclasses.dataclass(frozen=True)
 class InjectDefaultPrompt:
     prompt: str | None
 

@@ -8,10 +8,8 @@ from __future__ import annotations
 
 import contextlib
 import copy
-import dataclasses
 import datetime as dt
 import errno
-import io
 import logging
 import os
 import pathlib
@@ -19,37 +17,30 @@ import secrets
 import threading
 from typing import Any
 
-import numpy as np
-
-from openpi_cam.cam.reader import (
-    FRAME_PREFIX,
-    GRADNORM_PREFIX,
+from openpi_cam.cam.runfmt import (
     INDEX_JSONL,
     MANIFEST_JSON,
-    MAP_PREFIX,
-    META_KEY,
-    MODEL_FRAME_PREFIX,
     RUN_JSON,
     SCHEMA_VERSION,
     STEPS_DIR,
-    _read_json,
-    _read_run_info,
-    _scan,
-    _step_files,
+    StepRecord,
     build_manifest,
     dumps,
+    encode_step,
     index_entry,
+    read_json,
+    read_run_info,
+    record_arrays,
+    scan_steps,
     step_file,
-    summarize_maps,
+    step_files,
     utc_now_iso,
     write_bytes_atomic,
     write_json_atomic,
 )
+from openpi_cam.counters import WarnOnceCounter
 
 log = logging.getLogger(__name__)
-
-# Fields of the step JSON that the logger owns; StepRecord.meta must not set them.
-_RESERVED_META = ("schema_version", "run_id", "seq", "connection", "step", "timestamp")
 
 _ERRNO_KINDS = {
     errno.ENOSPC: "disk_full",
@@ -71,59 +62,6 @@ def io_error_kind(e: OSError) -> str:
     if e.errno in _ERRNO_KINDS:
         return _ERRNO_KINDS[e.errno]
     return errno.errorcode.get(e.errno, "unknown").lower() if e.errno else type(e).__name__
-
-
-@dataclasses.dataclass
-class StepRecord:
-    """One step of the side channel; `meta` holds the step JSON fields other than those the logger fills."""
-
-    connection: str
-    step: int
-    timestamp: float
-    maps: dict[str, np.ndarray]
-    frames: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
-    model_frames: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
-    meta: dict[str, Any] = dataclasses.field(default_factory=dict)
-    gradnorm_maps: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
-
-
-def _check_maps(maps: Any, what: str) -> dict[str, np.ndarray]:
-    if not isinstance(maps, dict):
-        raise TypeError(f"StepRecord.{what} must be a dict, got {type(maps).__name__}")
-    checked = {}
-    for camera, cam_map in maps.items():
-        arr = np.asarray(cam_map, dtype=np.float32)
-        if arr.ndim not in (2, 3):
-            raise ValueError(f"{what} {camera!r} must be (Hp, Wp) or (T, Hp, Wp), got shape {arr.shape}")
-        checked[camera] = arr
-    return checked
-
-
-def _check_images(images: Any, what: str) -> dict[str, np.ndarray]:
-    if not isinstance(images, dict):
-        raise TypeError(f"StepRecord.{what} must be a dict, got {type(images).__name__}")
-    checked = {}
-    for camera, image in images.items():
-        arr = np.asarray(image)
-        if arr.dtype != np.uint8 or arr.ndim != 3 or arr.shape[-1] != 3:
-            raise TypeError(f"StepRecord.{what}[{camera!r}] must be uint8 (H, W, 3), got {arr.dtype} {arr.shape}")
-        checked[camera] = arr
-    return checked
-
-
-def _record_arrays(record: StepRecord) -> dict[str, np.ndarray]:
-    """Validates a record and returns its npz members except meta."""
-    if not isinstance(record, StepRecord):
-        raise TypeError(f"expected a StepRecord, got {type(record).__name__}")
-    if not isinstance(record.meta, dict):
-        raise TypeError("StepRecord.meta must be a dict")
-    if clash := [k for k in _RESERVED_META if k in record.meta]:
-        raise ValueError(f"StepRecord.meta must not set {clash}: the logger fills them")
-    arrays = {MAP_PREFIX + c: a for c, a in _check_maps(record.maps, "maps").items()}
-    arrays |= {GRADNORM_PREFIX + c: a for c, a in _check_maps(record.gradnorm_maps, "gradnorm_maps").items()}
-    arrays |= {FRAME_PREFIX + c: a for c, a in _check_images(record.frames, "frames").items()}
-    arrays |= {MODEL_FRAME_PREFIX + c: a for c, a in _check_images(record.model_frames, "model_frames").items()}
-    return arrays
 
 
 def _create_run_dir(cam_dir: pathlib.Path) -> pathlib.Path:
@@ -201,8 +139,8 @@ class CAMLogger:
             "steps_skipped_io": 0,
             "steps_skipped_closed": 0,
             "bytes_written": 0,
-            "io_errors": {},
         }
+        self._io_errors = WarnOnceCounter(log, "CAM logger: I/O error")  # by kind, e.g. disk_full
         self._cap_reached = False
         self._closed = False
         self._index_fd: int | None = None
@@ -227,25 +165,29 @@ class CAMLogger:
         included. run.json is left as it was; each resumption is recorded in the manifest's `resumed_at`.
         """
         run_dir = pathlib.Path(run_dir)
-        run_info = _read_run_info(run_dir)  # raises FileNotFoundError for a directory that is not a run
+        run_info = read_run_info(run_dir)  # raises FileNotFoundError for a directory that is not a run
         if not (run_dir / STEPS_DIR).is_dir():
             raise FileNotFoundError(f"{run_dir} has no {STEPS_DIR}/ directory")
         self = cls.__new__(cls)
         self._setup(max_steps, max_bytes, manifest_every, compress)
         self._run_dir = run_dir
         self._run_info = run_info
-        steps, entries, problems = _scan(run_dir, load_arrays=False)
+        steps, entries, problems = scan_steps(run_dir, load_arrays=False)
         if problems:
             log.warning("CAM logger (%s): resuming past unreadable step files: %s", run_dir, problems)
         # Unreadable step files keep their seq too: appending must never overwrite a file already on disk.
-        self._next_seq = max(_step_files(run_dir), default=-1) + 1
+        self._next_seq = max(step_files(run_dir), default=-1) + 1
         self._entries = [entries[s.seq] for s in steps]
-        old = _read_json(run_dir / MANIFEST_JSON) or {}
+        old = read_json(run_dir / MANIFEST_JSON) or {}
         old_counters = old.get("counters") if isinstance(old.get("counters"), dict) else {}
         logger_counters = old_counters.get("logger") if isinstance(old_counters.get("logger"), dict) else {}
         for key, value in logger_counters.items():
             if key in self._counters and isinstance(value, type(self._counters[key])):
                 self._counters[key] = copy.deepcopy(value)
+        old_errors = logger_counters.get("io_errors")
+        for kind, n in (old_errors if isinstance(old_errors, dict) else {}).items():
+            if isinstance(n, int):
+                self._io_errors.count(str(kind), n=n)
         # What is on disk wins over a stale manifest for the counts caps are checked against.
         self._counters["steps_logged"] = len(steps)
         on_disk = sum(s.file.stat().st_size for s in steps)
@@ -276,7 +218,7 @@ class CAMLogger:
     @property
     def counters(self) -> dict[str, Any]:
         with self._lock:
-            return copy.deepcopy(self._counters)
+            return self._counters_locked()
 
     def set_external_counters(self, counters: dict[str, Any]) -> None:
         """The wrapper's own counters, stored under counters.external in the manifest."""
@@ -285,7 +227,7 @@ class CAMLogger:
 
     def log_step(self, record: StepRecord) -> bool:
         """Writes one step; False if it was skipped (cap reached, logger closed, or an I/O error, all counted)."""
-        arrays = _record_arrays(record)
+        arrays = record_arrays(record)
         base = {
             "schema_version": SCHEMA_VERSION,
             "run_id": self.run_id,
@@ -294,7 +236,6 @@ class CAMLogger:
             "step": int(record.step),
             "timestamp": float(record.timestamp),
         }
-        summary = summarize_maps(record.maps)
         with self._lock:
             # Everything below is serialised so that seq order, file names and index order always agree.
             if self._closed:
@@ -307,10 +248,8 @@ class CAMLogger:
                 return False
             seq = self._next_seq
             meta = base | {"seq": seq} | record.meta
-            buf = io.BytesIO()
-            (np.savez_compressed if self._compress else np.savez)(buf, **arrays, **{META_KEY: np.array(dumps(meta))})
-            data = buf.getvalue()
-            entry = index_entry(seq, meta, summary)
+            data = encode_step(arrays, meta, compress=self._compress)
+            entry = index_entry(seq, meta, record.maps)
             line = (dumps(entry) + "\n").encode()
             size = len(data) + len(line)
             if self._max_bytes is not None and self._counters["bytes_written"] + size > self._max_bytes:
@@ -332,10 +271,6 @@ class CAMLogger:
             if self._counters["steps_logged"] % self._manifest_every == 0:
                 self._write_manifest_locked()
             return True
-
-    def write_manifest(self) -> bool:
-        with self._lock:
-            return self._write_manifest_locked()
 
     def close(self) -> None:
         """Writes the final manifest; later log_step calls are skipped. Idempotent."""
@@ -379,7 +314,7 @@ class CAMLogger:
         return len(line)
 
     def _write_manifest_locked(self) -> bool:
-        counters = {"logger": copy.deepcopy(self._counters), "external": copy.deepcopy(self._external)}
+        counters = {"logger": self._counters_locked(), "external": copy.deepcopy(self._external)}
         extra = {"resumed_at": self._resumed_at} if self._resumed_at else {}
         manifest = build_manifest(self._run_info, counters, self._entries, closed=self._closed, **extra)
         try:
@@ -389,16 +324,8 @@ class CAMLogger:
             return False
         return True
 
+    def _counters_locked(self) -> dict[str, Any]:
+        return copy.deepcopy(self._counters) | {"io_errors": self._io_errors.snapshot()}
+
     def _count_io_error(self, e: OSError, what: str) -> None:
-        kind = io_error_kind(e)
-        errors = self._counters["io_errors"]
-        if kind not in errors:
-            log.warning(
-                "CAM logger (%s): %s while writing %s: %s; further %s errors are only counted",
-                self._run_dir,
-                kind,
-                what,
-                e,
-                kind,
-            )
-        errors[kind] = errors.get(kind, 0) + 1
+        self._io_errors.count(io_error_kind(e), f"{self._run_dir}: {what}: {e}")

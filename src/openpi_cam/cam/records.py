@@ -1,4 +1,4 @@
-"""The logger record of one explained inference, shared by the live side channel and offline explanation."""
+"""What one explained inference becomes on disk, shared by the live side channel and offline explanation."""
 
 from __future__ import annotations
 
@@ -6,10 +6,12 @@ from typing import Any, Literal
 
 import numpy as np
 
-from openpi_cam.cam.engine import Explanation
-from openpi_cam.cam.logger import StepRecord
+from openpi_cam.cam.runfmt import StepRecord
+from openpi_cam.policies.family import Explanation
+from openpi_cam.policies.policy import InferenceTrace
 
 SaveFrames = Literal["none", "raw", "model", "both"]
+SAVE_FRAMES: tuple[str, ...] = ("none", "raw", "model", "both")
 # Observation keys with this prefix are not passed to the policy; their values go into the step's `extra` metadata
 # (e.g. the demo's ground-truth target box).
 EXTRA_PREFIX = "cam_extra/"
@@ -46,8 +48,20 @@ def client_frame_uint8(image: Any) -> np.ndarray:
     return np.ascontiguousarray(x)
 
 
+def model_inputs(trace: InferenceTrace) -> dict[str, np.ndarray]:
+    """The explained call's non-image model inputs and raw output (batch row 0): with the model frames they are what
+    re-running the explained score needs (`openpi-cam faithfulness`)."""
+    obs = trace.observation
+    inputs = {"output": np.asarray(trace.output)}
+    for name in ("state", "tokenized_prompt", "tokenized_prompt_mask", "token_ar_mask"):
+        value = getattr(obs, name)
+        if value is not None:
+            inputs[name] = np.asarray(value)[0]
+    return inputs
+
+
 def step_record(
-    trace: Any,
+    trace: InferenceTrace,
     exp: Explanation,
     *,
     connection: str,
@@ -55,9 +69,9 @@ def step_record(
     timestamp: float,
     save_frames: SaveFrames,
     extra: dict[str, Any],
-    gradcam_ms: float,
+    explain_ms: float,
 ) -> StepRecord:
-    """The logger record of one explained inference, in the layout the side channel writes (docs/FORMAT.md)."""
+    """The logger record of one explained inference, in the layout docs/FORMAT.md describes."""
     frames = {}
     if save_frames in ("raw", "both"):
         frames = {c: client_frame_uint8(im) for c, im in trace.raw_images.items() if im is not None}
@@ -74,15 +88,13 @@ def step_record(
     }
     meta = {
         "target": exp.target,
-        "token_ids": exp.token_ids,
-        "decode_steps": exp.decode_steps,
-        "positions": exp.positions,
-        "action_indices": exp.action_indices,
+        **exp.details,
         "score": exp.score,
+        "map_kinds": list(exp.maps),
         "prompt": trace.prompt,
         "cameras": cameras,
-        "malformed_reason": trace.malformed_reason,
-        "gradcam_ms": round(gradcam_ms, 3),
+        "malformed": trace.malformed_reason,
+        "explain_ms": round(explain_ms, 3),
         "extra": extra,
     }
-    return StepRecord(connection, step, timestamp, exp.maps, frames, model_frames, meta, exp.gradnorm_maps)
+    return StepRecord(connection, step, timestamp, exp.maps, frames, model_frames, model_inputs(trace), meta)

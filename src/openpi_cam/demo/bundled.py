@@ -1,8 +1,8 @@
-"""The bundled demo model: artefact locations, its robot's policy config, and the client-side observation format."""
+"""The demo model's architecture and what the demo robot sends (its artefacts and policy config live in
+`openpi_cam.policies.demo_reach`)."""
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -10,38 +10,9 @@ import numpy as np
 from openpi_cam.cam.records import EXTRA_PREFIX, split_extra
 from openpi_cam.demo import task
 from openpi_cam.model.config import GemmaConfig, Pi0FASTConfig, SiglipConfig, scan_by_default
-from openpi_cam.policies.config import PolicyConfig, register_config
-from openpi_cam.policies.robot import GenericInputs, GenericOutputs
+from openpi_cam.policies.demo_reach import DEMO_CONFIG, IMAGE_KEY, STATE_KEY, WRIST_KEY
 
-ASSETS = Path(__file__).resolve().parents[1] / "assets" / "demo"
-CHECKPOINT = ASSETS / "checkpoint"  # OpenPI layout: params/ and assets/<ASSET_ID>/norm_stats.json
-PALIGEMMA_TOKENIZER = ASSETS / "paligemma_tokenizer.model"
-FAST_TOKENIZER = ASSETS / "fast_tokenizer"
-
-IMAGE_KEY = "observation/image"
-WRIST_KEY = "observation/wrist_image"
-STATE_KEY = "observation/state"
-
-ASSET_ID = "demo_reach"
-PATCH_SIZE = 16  # 64 px images -> a 4 x 4 Grad-CAM grid per camera
-# An expert postfix is 27 tokens (`Action: ` in 5, 20 FAST ids, `|`, EOS); a short cap keeps a broken model cheap.
-MAX_DECODING_STEPS = 32
-
-DEMO_CONFIG = register_config(
-    PolicyConfig(
-        name="demo_reach",
-        inputs=(
-            GenericInputs(
-                cameras={"base_0_rgb": IMAGE_KEY, "wrist_0_rgb": WRIST_KEY}, state_key=STATE_KEY, state_dim=2
-            ),
-        ),
-        outputs=(GenericOutputs(action_dim=2),),
-        asset_id=ASSET_ID,
-        action_dim=2,
-        action_horizon=task.TaskConfig().action_horizon,
-        max_token_len=56,  # the longest training sequence is 47 tokens
-    )
-)
+PATCH_SIZE = 16  # 64 px images -> a 4 x 4 map grid per camera
 
 
 def model_config(
@@ -77,29 +48,13 @@ def model_config(
         out_dim=width,
         scan=scan,
     )
-    cfg = DEMO_CONFIG
     return Pi0FASTConfig(
         gemma=gemma,
         siglip=siglip,
-        action_dim=cfg.action_dim,
-        action_horizon=cfg.action_horizon,
-        max_token_len=cfg.max_token_len,
+        action_dim=DEMO_CONFIG.action_dim,
+        action_horizon=DEMO_CONFIG.action_horizon,
+        max_token_len=DEMO_CONFIG.max_token_len,
         dtype="float32",
-    )
-
-
-def create_demo_policy(*, assets: Path = ASSETS, dtype: str = "float32", **kwargs: Any):
-    """The bundled model served through the same `create_policy` as any OpenPI checkpoint."""
-    from openpi_cam.policies.policy import create_policy
-
-    return create_policy(
-        DEMO_CONFIG,
-        assets / CHECKPOINT.name,
-        paligemma_tokenizer=assets / PALIGEMMA_TOKENIZER.name,
-        fast_tokenizer=assets / FAST_TOKENIZER.name,
-        dtype=dtype,
-        max_decoding_steps=MAX_DECODING_STEPS,
-        **kwargs,
     )
 
 

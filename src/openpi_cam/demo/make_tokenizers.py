@@ -19,8 +19,9 @@ import numpy as np
 import sentencepiece as spm
 from sentencepiece import sentencepiece_model_pb2
 
-from openpi_cam.demo import bundled, task
+from openpi_cam.demo import task
 from openpi_cam.normalize import compute_norm_stats
+from openpi_cam.policies import demo_reach
 from openpi_cam.tokenizers.fast import FastActionTokenizer, dct_coefficients
 
 TEXT_VOCAB = 320  # 4 specials + 256 byte pieces + merges over the task's few words
@@ -75,7 +76,7 @@ def sentencepiece_model(seed: int = 0) -> bytes:
 
 
 def train_sentencepiece(out: Path, *, seed: int = 0) -> Path:
-    path = out / bundled.PALIGEMMA_TOKENIZER.name
+    path = out / demo_reach.PALIGEMMA_TOKENIZER.name
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_bytes(sentencepiece_model(seed))
     return path
@@ -102,7 +103,7 @@ def fit_fast(
     fast = FastActionTokenizer.fit(
         chunks, scale=FAST_SCALE, vocab_size=alphabet + MERGES, action_dim=2, time_horizon=cfg.action_horizon
     )
-    fast.save(out / bundled.FAST_TOKENIZER.name)
+    fast.save(out / demo_reach.FAST_TOKENIZER.name)
     return fast
 
 

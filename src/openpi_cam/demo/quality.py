@@ -26,12 +26,23 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import jax
 import numpy as np
+from scipy.stats import spearmanr
 
+from openpi_cam.cam.batching import explain_traces
+from openpi_cam.cam.runfmt import load_run
 from openpi_cam.demo import bundled, task
-from openpi_cam.viz.stats import MAP_KINDS, maps_of
+from openpi_cam.demo.data import Batches, load_normalize
+from openpi_cam.model.attribution import MAP_KINDS
+from openpi_cam.model.pi0_fast import Pi0FAST, init_params
+from openpi_cam.policies import demo_reach
+from openpi_cam.policies.family import Explainer, ExplainRequest, Explanation
+from openpi_cam.policies.pi0_fast_family import FastExplainer
+from openpi_cam.policies.policy import InferenceTrace, Policy
 
 BASE_CAMERA = "base_0_rgb"
+EPISODES_FILE = "demo_episodes.json"  # the demo's episode outcomes, written beside the run's steps
 
 
 def peak_cell(cam_map: np.ndarray) -> tuple[int, int]:
@@ -69,9 +80,6 @@ def object_pointing(cam_map: np.ndarray, boxes: list[tuple[int, ...]], image_siz
 
 def run_figures(run_dir: Path, image_size: int = task.TaskConfig().image_size) -> dict[str, Any]:
     """Success rate (from the demo's episode file) and, per map kind, the pointing game over every logged step."""
-    from openpi_cam.cam.reader import load_run
-    from openpi_cam.demo.demo_cmd import EPISODES_FILE
-
     run = load_run(run_dir)
     labelled = [s for s in run.steps if (s.meta.get("extra") or {}).get("target_box") is not None]
     per_kind = {}
@@ -80,7 +88,7 @@ def run_figures(run_dir: Path, image_size: int = task.TaskConfig().image_size) -
         for step in labelled:
             extra = step.meta["extra"]
             box = tuple(extra["target_box"])
-            cam_map = maps_of(step, kind).get(BASE_CAMERA)
+            cam_map = step.maps_of(kind).get(BASE_CAMERA)
             if cam_map is None:
                 continue
             hit.append(hits(cam_map, box, image_size))
@@ -153,7 +161,7 @@ def heads_for(
 OCCLUSIONS = ("none", "base", "wrist")
 
 
-def occlusion_figures(policy: Any, samples: int = 40, seed: int = 4321) -> dict[str, dict[str, float]]:
+def occlusion_figures(policy: Policy, samples: int = 40, seed: int = 4321) -> dict[str, dict[str, float]]:
     """Which camera drives the policy? Per occlusion (the blocks erased from no view, from the base view, from the wrist
     view; the end-effector marker stays), the share of fresh rollout starts whose executed chunk heads for the named
     block, and for any block. A causal counterpart to the maps: a camera the policy does not use cannot be where its
@@ -183,35 +191,32 @@ def occlusion_figures(policy: Any, samples: int = 40, seed: int = 4321) -> dict[
     }
 
 
-def _explain(model: Any, policy: Any, obs: dict[str, Any], target: str):
-    from openpi_cam.cam.engine import CamSkipped, explain
+def _explain(explainer: Explainer, trace: InferenceTrace, target: str) -> Explanation | None:
+    (exp,) = explain_traces(explainer, [trace], ExplainRequest(target))  # type: ignore[arg-type]
+    return exp if isinstance(exp, Explanation) and exp.target == target else None
 
-    _, trace = policy.infer_traced(bundled.policy_input(obs))
-    try:
-        return trace, explain(model, policy.tokenizer, trace.observation, trace.generated_tokens, target=target)
-    except CamSkipped:
-        return trace, None
+
+def _trace(policy: Policy, obs: dict[str, Any]) -> InferenceTrace:
+    return policy.infer_traced(bundled.policy_input(obs))[1]
 
 
 def spearman(a: np.ndarray, b: np.ndarray) -> float:
-    from scipy.stats import spearmanr
-
     a, b = np.ravel(a), np.ravel(b)
     if np.ptp(a) == 0 or np.ptp(b) == 0:
         return float("nan")
     return float(spearmanr(a, b).statistic)
 
 
-def map_figures(policy: Any, samples: int = 30, seed: int = 1234, target: str = "chunk") -> dict[str, dict[str, Any]]:
+def map_figures(
+    policy: Policy, samples: int = 30, seed: int = 1234, target: str = "chunk"
+) -> dict[str, dict[str, Any]]:
     """Per map kind, on `samples` fresh scenes: pointing game, object pointing, the randomisation check (against a
     copy of the model re-initialised with `seed`) and the prompt swap."""
-    import jax
-
-    from openpi_cam.cam.engine import explain
-    from openpi_cam.model.pi0_fast import Pi0FAST, init_params
-
-    model = policy.model
-    random_model = Pi0FAST(model.config, init_params(model.config, jax.random.key(seed)))
+    explainer = policy.explainer
+    model = explainer.model
+    random_explainer = FastExplainer(
+        Pi0FAST(model.config, init_params(model.config, jax.random.key(seed))), explainer.tokenizer
+    )
     rng = np.random.default_rng(seed)
     size = task.TaskConfig().image_size
     fields = ("rho", "kept", "chance", "moved", "on_block", "block_chance")
@@ -221,22 +226,23 @@ def map_figures(policy: Any, samples: int = 30, seed: int = 1234, target: str = 
         scene = task.random_scene(rng)
         state = task.random_start(rng, scene)
         obs = bundled.client_observation(task.observe(scene, state))
-        trace, trained = _explain(model, policy, obs, target)
+        trace = _trace(policy, obs)
+        trained = _explain(explainer, trace, target)
         if trained is None:
             continue
-        randomised = explain(random_model, policy.tokenizer, trace.observation, trace.generated_tokens, target=target)
+        randomised = _explain(random_explainer, trace, target)
         other = scene.with_target(next(b.color for i, b in enumerate(scene.blocks) if i != scene.target))
-        _, swapped = _explain(model, policy, bundled.client_observation(task.observe(other, state)), target)
+        swapped = _explain(explainer, _trace(policy, bundled.client_observation(task.observe(other, state))), target)
         for kind, f in figures.items():
-            own = maps_of(trained, kind)[BASE_CAMERA]
-            f["rho"].append(spearman(own, maps_of(randomised, kind)[BASE_CAMERA]))
+            own = trained.maps[kind][BASE_CAMERA]
+            f["rho"].append(spearman(own, randomised.maps[kind][BASE_CAMERA]) if randomised else float("nan"))
             f["kept"].append(hits(own, scene.target_block.box, size))
             f["chance"].append(cells_overlapping(scene.target_block.box, np.shape(own)[-2:], size).mean())
             hit_any, chance = object_pointing(own, [b.box for b in scene.blocks], size)
             f["on_block"].append(hit_any)
             f["block_chance"].append(chance)
             if swapped is not None:
-                f["moved"].append(hits(maps_of(swapped, kind)[BASE_CAMERA], other.target_block.box, size))
+                f["moved"].append(hits(swapped.maps[kind][BASE_CAMERA], other.target_block.box, size))
         scenes += 1
     maps = {}
     for kind, f in figures.items():
@@ -255,12 +261,10 @@ def map_figures(policy: Any, samples: int = 30, seed: int = 1234, target: str = 
 
 
 def offline_figures(
-    samples: int = 30, seed: int = 1234, target: str = "chunk", assets: Path = bundled.ASSETS
+    samples: int = 30, seed: int = 1234, target: str = "chunk", assets: Path = demo_reach.ASSETS
 ) -> dict[str, Any]:
     """The map figures, the binding probe and camera occlusion, on fresh scenes."""
-    from openpi_cam.demo.train import Batches, load_normalize
-
-    policy = bundled.create_demo_policy(assets=assets)
+    policy = demo_reach.create_demo_policy(assets=assets)
     batches = Batches(assets, load_normalize(assets), 1, seed)
 
     def loss(pairs: list[task.Sample]) -> np.ndarray:  # at the positions the decoder serves the action tokens at
@@ -281,7 +285,7 @@ class Args:
     samples: int = 30
     seed: int = 1234
     target: str = "chunk"  # what Grad-CAM explains in the offline checks (as `openpi-cam demo --target`)
-    assets: Path = bundled.ASSETS  # the model judged offline (as `openpi-cam demo --assets`; a training run's --out)
+    assets: Path = demo_reach.ASSETS  # the model judged offline (as `openpi-cam demo --assets`; a training run's --out)
 
 
 def main(args: Args) -> dict[str, Any]:

@@ -11,6 +11,8 @@ import dataclasses
 
 import numpy as np
 
+from openpi_cam.policies.demo_reach import ACTION_HORIZON
+
 COLORS: dict[str, tuple[int, int, int]] = {
     "red": (220, 40, 40),
     "green": (40, 200, 60),
@@ -29,7 +31,7 @@ class TaskConfig:
     min_blocks: int = 2
     max_blocks: int = 3
     wrist_crop: int = 32  # pixels of the base view around the end effector, upsampled to image_size
-    action_horizon: int = 10
+    action_horizon: int = ACTION_HORIZON
     max_speed: float = 0.12  # largest displacement per step
     success_radius: float = 0.12
     near_fraction: float = 0.3  # share of training states sampled close to the target (decelerating chunks)

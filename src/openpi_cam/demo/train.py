@@ -21,14 +21,13 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from openpi_cam.demo import bundled, make_tokenizers, sim, task
+from openpi_cam.demo import bundled, make_tokenizers, sim
+from openpi_cam.demo.data import Batches, write_norm_stats
 from openpi_cam.demo.quality import binding_probe
 from openpi_cam.model.checkpoint import load_params, save_params
 from openpi_cam.model.config import Pi0FASTConfig
-from openpi_cam.model.observation import Observation
 from openpi_cam.model.pi0_fast import compute_loss, init_params
-from openpi_cam.normalize import compute_norm_stats, load_norm_stats, save_norm_stats
-from openpi_cam.transforms import Normalize
+from openpi_cam.policies import demo_reach
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,7 +36,7 @@ class TrainArgs:
     (about 22 minutes on 2 CPU cores). The shipped model is the longer recipe `--steps 10000 --finetune-steps 0`,
     then `--steps 0 --init-from <params> --finetune-steps 800` (README, "The bundled demo")."""
 
-    out: Path = bundled.ASSETS
+    out: Path = demo_reach.ASSETS
     steps: int = 5000
     batch_size: int = 32
     lr: float = 2e-3
@@ -74,71 +73,6 @@ class Phase:
     decode_offset: int
 
 
-def norm_stats_dir(out: Path) -> Path:
-    return out / bundled.CHECKPOINT.name / "assets" / bundled.ASSET_ID
-
-
-def load_normalize(out: Path) -> Normalize:
-    """The checkpoint's normalisation, as the policy applies it (quantiles, like upstream's pi0-FAST configs)."""
-    return Normalize(load_norm_stats(norm_stats_dir(out)), use_quantiles=True)
-
-
-def write_norm_stats(out: Path, *, seed: int = 2, n: int = 20000) -> Normalize:
-    data = task.make_dataset(seed, n)
-    stats = {"state": compute_norm_stats(data["state"]), "actions": compute_norm_stats(data["actions"])}
-    save_norm_stats(norm_stats_dir(out), stats)
-    return load_normalize(out)
-
-
-class Batches:
-    """Fresh procedural samples every step, in the format the policy's input transforms produce."""
-
-    def __init__(self, out: Path, normalize: Normalize, batch_size: int, seed: int, *, contrast_pairs: bool = False):
-        from openpi_cam.tokenizers.pi0_fast import Pi0FastTokenizer
-
-        self.tokenizer = Pi0FastTokenizer.from_files(
-            out / bundled.PALIGEMMA_TOKENIZER.name,
-            out / bundled.FAST_TOKENIZER.name,
-            max_len=bundled.DEMO_CONFIG.max_token_len,
-        )
-        self.normalize = normalize
-        self.rng = np.random.default_rng(seed)
-        self.batch_size = batch_size
-        self.contrast_pairs = contrast_pairs
-
-    def __call__(self) -> Observation:
-        if self.contrast_pairs:
-            pairs = [task.contrast_pair(self.rng) for _ in range((self.batch_size + 1) // 2)]
-            samples = [s for pair in pairs for s in pair][: self.batch_size]
-        else:
-            samples = [task.training_sample(self.rng) for _ in range(self.batch_size)]
-        return self.observation(samples)
-
-    def observation(self, samples: list[task.Sample]) -> Observation:
-        """Training format: the prompt, state and expert chunk tokenized together, loss on the postfix."""
-        states, rows = [], []
-        for s in samples:
-            norm = self.normalize({"state": s.state.astype(np.float64), "actions": s.actions.astype(np.float64)})
-            states.append(norm["state"])
-            rows.append(self.tokenizer.tokenize(s.prompt, norm["state"], norm["actions"]))
-        tokens, mask, ar, loss = (np.stack(x) for x in zip(*rows, strict=True))
-        images = {
-            "base_0_rgb": np.stack([s.base_image for s in samples]),
-            "wrist_0_rgb": np.stack([s.wrist_image for s in samples]),
-        }
-        return Observation.from_dict(
-            {
-                "image": images,
-                "image_mask": {k: np.ones(len(samples), bool) for k in images},
-                "state": np.stack(states).astype(np.float32),
-                "tokenized_prompt": tokens,
-                "tokenized_prompt_mask": mask,
-                "token_ar_mask": ar,
-                "token_loss_mask": loss,
-            }
-        )
-
-
 def run_episode(policy, seed: int, *, max_calls: int = 8, execute: int = 5) -> tuple[bool, int]:
     """Closed loop: infer a chunk, execute its first `execute` actions, repeat until success or `max_calls`."""
     episode = sim.new_episode(seed)
@@ -150,7 +84,7 @@ def run_episode(policy, seed: int, *, max_calls: int = 8, execute: int = 5) -> t
 
 
 def evaluate(out: Path, episodes: int, seed: int = 10_000) -> float:
-    policy = bundled.create_demo_policy(assets=out)
+    policy = demo_reach.create_demo_policy(assets=out)
     return float(np.mean([run_episode(policy, seed + e)[0] for e in range(episodes)]))
 
 
@@ -178,7 +112,7 @@ def train(args: TrainArgs) -> dict:
     t0, summary = time.time(), {}
     for phase in phases(args):
         params, summary[f"{phase.name}_loss"] = train_phase(params, cfg, batches, phase, args)
-    params_dir = args.out / bundled.CHECKPOINT.name / "params"
+    params_dir = args.out / demo_reach.CHECKPOINT.name / "params"
     shutil.rmtree(params_dir, ignore_errors=True)
     save_params(params_dir, params)
     summary["train_seconds"] = round(time.time() - t0)

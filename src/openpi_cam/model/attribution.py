@@ -6,8 +6,15 @@ with respect to them ([..., B, C, N, D]; leading axes for several scores at once
 
 from __future__ import annotations
 
+from typing import Literal, get_args
+
 import jax
 import jax.numpy as jnp
+
+# The maps the model layer computes: Grad-CAM as the founding spec defines it, and the per-token gradient norm from
+# the same backward pass.
+MapKind = Literal["gradcam", "gradnorm"]
+MAP_KINDS: tuple[str, ...] = get_args(MapKind)
 
 
 def gradcam_reduce(E: jax.Array, G: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:

@@ -20,11 +20,11 @@ from __future__ import annotations
 import dataclasses
 import functools
 from collections.abc import Sequence
-from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from numpy.typing import ArrayLike
 
 from openpi_cam.model import gemma
 from openpi_cam.model.attribution import gradcam_reduce
@@ -99,7 +99,7 @@ def _chunk_cam(params, obs, fed, weights, *, cfg: Pi0FASTConfig):
     return score, alpha, cam, token_norm
 
 
-def _prepare(model: Pi0FAST, obs: Observation, generated: Any) -> tuple[Observation, jax.Array, np.ndarray]:
+def _prepare(model: Pi0FAST, obs: Observation, generated: ArrayLike) -> tuple[Observation, jax.Array, np.ndarray]:
     obs = preprocess_observation(obs, model.config.image_resolution)
     fed = np.asarray(generated).astype(np.int32)
     if fed.ndim == 1:
@@ -119,7 +119,7 @@ def _positions(prefill_len: np.ndarray, steps: np.ndarray) -> np.ndarray:
     return np.where(steps == 0, prefill_len[:, None] - 1, prefill_len[:, None] + steps).astype(np.int32)
 
 
-def _per_row(steps: Any, batch: int) -> tuple[np.ndarray, bool]:
+def _per_row(steps: ArrayLike, batch: int) -> tuple[np.ndarray, bool]:
     """Steps shared by every row ([T]) or given per row ([B, T]) -> ([B, T], whether they were shared)."""
     steps = np.asarray(steps, np.int32)
     if steps.ndim == 1:
@@ -157,14 +157,14 @@ def _result(model, obs, target, alpha, cam, token_norm, score, token_ids, steps,
     )
 
 
-def gradcam_for_steps(model: Pi0FAST, obs: Observation, generated_ids: Any, steps: Any) -> GradCamResult:
+def gradcam_for_steps(model: Pi0FAST, obs: Observation, generated_ids: ArrayLike, steps: ArrayLike) -> GradCamResult:
     """Explains the generated tokens at `steps` ([T] for every row, or [B, T] per row; one map stack per camera),
     with one forward pass shared by all of them."""
     obs, fed, prefill_len = _prepare(model, obs, generated_ids)
     return _explain_tokens(model, obs, fed, fed, steps, prefill_len, False)
 
 
-def gradcam_for_action_token(model: Pi0FAST, obs: Observation, generated_ids: Any, step: int) -> GradCamResult:
+def gradcam_for_action_token(model: Pi0FAST, obs: Observation, generated_ids: ArrayLike, step: int) -> GradCamResult:
     """Explains the generated token at decode `step` (one map per camera, no token axis)."""
     obs, fed, prefill_len = _prepare(model, obs, generated_ids)
     return _explain_tokens(model, obs, fed, fed, [int(step)], prefill_len, True)
@@ -177,7 +177,7 @@ def gradcam_for_token(
     token_id: int | Sequence[int],
     step: int | None = None,
     position: int | None = None,
-    generated_prefix: Any = None,
+    generated_prefix: ArrayLike | None = None,
     max_decoding_steps: int = MAX_DECODING_STEPS,
 ) -> GradCamResult:
     """Explains the logit of `token_id` at decode step `step` (or at the output with RoPE `position`), with
@@ -238,7 +238,9 @@ def _explain_tokens(model, obs, fed, targets, steps, prefill_len, squeeze) -> Gr
     )
 
 
-def gradcam_for_chunk(model: Pi0FAST, obs: Observation, generated_ids: Any, steps: Any) -> GradCamResult:
+def gradcam_for_chunk(
+    model: Pi0FAST, obs: Observation, generated_ids: ArrayLike, steps: ArrayLike | Sequence[ArrayLike]
+) -> GradCamResult:
     """Whole-chunk target: score = sum over `steps` of log p(g_k); one backward pass, one map per camera.
 
     `steps` is one list for every row, or one list per row (lengths may differ: per-row `token_ids`,

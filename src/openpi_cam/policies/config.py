@@ -31,7 +31,9 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
-from openpi_cam.policies import aloha, droid, libero
+import openpi_cam.policies.aloha as aloha
+import openpi_cam.policies.droid as droid
+import openpi_cam.policies.libero as libero
 from openpi_cam.policies.robot import RobotInputs
 from openpi_cam.transforms import AbsoluteActions, DeltaActions, Transform, make_bool_mask
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping
-from typing import Any
 
 import numpy as np
 
@@ -51,15 +50,3 @@ class DroidInputs(FixedCameraSources):
 class DroidOutputs:
     def __call__(self, data: DataDict) -> DataDict:
         return {"actions": np.asarray(data["actions"][..., :ACTION_DIM])}
-
-
-def make_droid_example(height: int = 224, width: int = 224, seed: int = 0) -> dict[str, Any]:
-    """A random observation shaped like what upstream's DROID client sends."""
-    rng = np.random.default_rng(seed)
-    return {
-        EXTERIOR_IMAGE_KEY: rng.integers(256, size=(height, width, 3), dtype=np.uint8),
-        WRIST_IMAGE_KEY: rng.integers(256, size=(height, width, 3), dtype=np.uint8),
-        JOINT_POSITION_KEY: rng.random(JOINT_DIM),
-        GRIPPER_POSITION_KEY: rng.random(1),
-        "prompt": "do something",
-    }

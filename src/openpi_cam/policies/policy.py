@@ -1,4 +1,4 @@
-"""`Policy`: upstream's `Policy.infer` for pi0-FAST, plus a trace of exactly what the model saw and produced."""
+"""`Policy`: upstream's `Policy.infer`, plus a trace of exactly what the model saw and produced."""
 
 from __future__ import annotations
 
@@ -6,28 +6,31 @@ import dataclasses
 import logging
 import threading
 import time
-from collections import Counter
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import sentencepiece
 
+from openpi_cam.counters import WarnOnceCounter
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.image_tools import LetterboxGeometry, letterbox_geometry
+from openpi_cam.model.config import MAX_DECODING_STEPS
 from openpi_cam.model.observation import Observation
 from openpi_cam.normalize import load_checkpoint_norm_stats
 from openpi_cam.policies.config import PolicyConfig, resolve_config
+from openpi_cam.policies.family import Explainer, OutputDecoder, SamplingModel
+from openpi_cam.policies.pi0_fast_family import build_pi0_fast
 from openpi_cam.policies.robot import RobotInputs
+from openpi_cam.tokenizers.fast import FastActionTokenizer
 from openpi_cam.transforms import (
     DataDict,
-    ExtractFASTActions,
     InjectDefaultPrompt,
     Normalize,
     ResizeImages,
-    TokenizeFASTInputs,
     Transform,
     Unnormalize,
     compose,
@@ -35,12 +38,7 @@ from openpi_cam.transforms import (
 )
 
 logger = logging.getLogger(__name__)
-
-
-class SamplingModel(Protocol):
-    """What `Policy` needs from `openpi_cam.model.pi0_fast.Pi0FAST`."""
-
-    def sample_actions(self, rng: jax.Array, observation: Observation, **kwargs: Any) -> jax.Array: ...
+_REQUESTS = "requests"  # counted beside the malformed reasons
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,7 +46,7 @@ class InferenceTrace:
     """One `infer` call as the model saw it. Per-camera dicts follow the model's camera order."""
 
     observation: Observation  # batched (B=1) model input, images float32 in [-1, 1]
-    generated_tokens: np.ndarray  # int32 [max_decoding_steps], 0 after the decode loop stopped
+    output: np.ndarray  # the model's raw output (pi0-FAST: generated ids, int32 [max_decoding_steps], 0 after EOS)
     raw_images: dict[str, np.ndarray | None]  # uint8 [H, W, 3] as the client sent it; None for synthesised cameras
     camera_sources: dict[str, str | None]  # client observation key per camera (None: synthesised)
     geometry: dict[str, LetterboxGeometry]  # where each client image sits inside the model image
@@ -70,28 +68,29 @@ def _copy_containers(tree: Any) -> Any:
 
 
 class Policy:
-    """Input transforms -> batched `Observation` -> `sample_actions` -> output transforms, as upstream's `Policy`.
+    """Input transforms -> batched `Observation` -> the model's sampler -> output transforms, as upstream's `Policy`.
 
-    ``output_transforms`` are those after FAST action extraction (``extract``), which runs first, as in upstream's
-    output chain; keeping it separate lets the policy report malformed generations.
+    `decoder` turns the model's raw output into normalised actions (pi0-FAST: FAST action extraction, the first of
+    upstream's output transforms); keeping it apart from `output_transforms` lets the policy report malformed
+    outputs. `explainer` is the family's map computation, used by the side channel, never by `infer`.
     """
 
     def __init__(
         self,
         model: SamplingModel,
         *,
-        tokenizer: Any,
         transforms: Sequence[Transform],
-        extract: ExtractFASTActions,
+        decoder: OutputDecoder,
+        explainer: Explainer,
         output_transforms: Sequence[Transform] = (),
         rng: jax.Array | None = None,
         sample_kwargs: Mapping[str, Any] | None = None,
         metadata: Mapping[str, Any] | None = None,
     ) -> None:
         self._model = model
-        self._tokenizer = tokenizer
         self._transforms = tuple(transforms)
-        self._extract = extract
+        self._decoder = decoder
+        self._explainer = explainer
         self._output_transform = compose(output_transforms)
         self._sample_kwargs = dict(sample_kwargs or {})
         self._metadata = dict(metadata or {})
@@ -103,17 +102,15 @@ class Policy:
         self._robot_inputs: RobotInputs = robot[0]
         self._resolution = (resize[0].height, resize[0].width)
         self._lock = threading.Lock()
-        self._requests = 0
-        self._malformed: Counter[str] = Counter()
+        self._malformed = WarnOnceCounter(logger, "Malformed generation, upstream's zero-action fallback returned")
 
     @property
     def model(self) -> SamplingModel:
         return self._model
 
     @property
-    def tokenizer(self) -> Any:
-        """The `Pi0FastTokenizer` (e.g. for `action_token_steps`)."""
-        return self._tokenizer
+    def explainer(self) -> Explainer:
+        return self._explainer
 
     @property
     def metadata(self) -> dict[str, Any]:
@@ -127,18 +124,15 @@ class Policy:
     def camera_sources(self) -> Mapping[str, str | None]:
         return self._robot_inputs.camera_sources
 
-    @property
-    def sample_kwargs(self) -> dict[str, Any]:
-        return dict(self._sample_kwargs)
-
     def stats(self) -> dict[str, Any]:
-        with self._lock:
-            return {"requests": self._requests, "malformed": dict(self._malformed)}
+        malformed = self._malformed.snapshot()
+        requests = malformed.pop(_REQUESTS, 0)
+        return {"requests": requests, "malformed": malformed}
 
     def close(self, timeout: float | None = None) -> None:
         """Nothing to release; present so every served object has the same interface."""
 
-    def infer(self, obs: Mapping[str, Any], context: Any = None) -> dict[str, Any]:
+    def infer(self, obs: Mapping[str, Any], context: object = None) -> dict[str, Any]:
         return self.infer_traced(obs)[0]
 
     def infer_traced(self, obs: Mapping[str, Any]) -> tuple[dict[str, Any], InferenceTrace]:
@@ -158,20 +152,22 @@ class Policy:
         observation = Observation.from_dict(batched)
 
         start = time.monotonic()
-        tokens = jax.block_until_ready(self._model.sample_actions(sample_rng, observation, **self._sample_kwargs))
+        raw = jax.block_until_ready(self._model.sample_actions(sample_rng, observation, **self._sample_kwargs))
         model_time = time.monotonic() - start
 
-        generated = np.asarray(tokens[0]).astype(np.int32)
+        output = np.asarray(raw[0])
         state = np.asarray(batched["state"][0])
-        actions, reason = self._extract.extract(generated)
+        actions, reason = self._decoder.extract(output)
         outputs = self._output_transform({"state": state, "actions": actions})
         outputs["policy_timing"] = {"infer_ms": model_time * 1000}
-        self._count(reason)
+        self._malformed.count(_REQUESTS)
+        if reason is not None:
+            self._malformed.count(reason, "the model's output decodes to no actions")
 
         cameras = observation.camera_names
         trace = InferenceTrace(
             observation=observation,
-            generated_tokens=generated,
+            output=output,
             raw_images={c: None if camera_sources.get(c) is None else pre_resize_images[c] for c in cameras},
             camera_sources={c: camera_sources.get(c) for c in cameras},
             geometry={c: letterbox_geometry(*pre_resize_images[c].shape[-3:-1], *self._resolution) for c in cameras},
@@ -181,67 +177,54 @@ class Policy:
         return outputs, trace
 
     def _apply_inputs(self, data: DataDict) -> tuple[DataDict, dict[str, np.ndarray], str]:
-        """Run the input transforms, keeping the images just before resizing and the prompt just before tokenising."""
+        """Run the input transforms, keeping the images just before resizing and the prompt just before it is
+        tokenised (the last value it has before a transform consumes it)."""
         images: dict[str, np.ndarray] = {}
         prompt = ""
         for transform in self._transforms:
             if isinstance(transform, ResizeImages):
                 images = dict(data["image"])
-            if isinstance(transform, TokenizeFASTInputs) and data.get("prompt") is not None:
+            if data.get("prompt") is not None:
                 prompt = parse_prompt(data["prompt"])
             data = transform(data)
         return data, images, prompt
-
-    def _count(self, reason: str | None) -> None:
-        with self._lock:
-            self._requests += 1
-            if reason is None:
-                return
-            self._malformed[reason] += 1
-            first = self._malformed[reason] == 1
-        if first:
-            logger.warning(
-                "Malformed generation (%s): returning upstream's zero-action fallback; further ones are "
-                "only counted (see stats())",
-                reason,
-            )
 
 
 def build_transforms(
     config: PolicyConfig,
     norm_stats: Mapping[str, Any],
-    tokenizer: Any,
+    tokenize: Transform,
     image_resolution: tuple[int, int],
     *,
     default_prompt: str | None = None,
-) -> tuple[list[Transform], ExtractFASTActions, list[Transform]]:
-    """Upstream `create_trained_policy`'s chains: (input transforms, FAST extraction, remaining output transforms)."""
+) -> tuple[list[Transform], list[Transform]]:
+    """Upstream `create_trained_policy`'s chains around the family's own steps: (input transforms ending in the
+    family's `tokenize`, output transforms after the family's output decoder)."""
     inputs: list[Transform] = [
         InjectDefaultPrompt(default_prompt),
         *config.inputs,
         Normalize(norm_stats, use_quantiles=config.use_quantile_norm),
         InjectDefaultPrompt(config.default_prompt),
         ResizeImages(*image_resolution),
-        TokenizeFASTInputs(tokenizer),
+        tokenize,
     ]
-    extract = ExtractFASTActions(tokenizer, action_horizon=config.action_horizon, action_dim=config.action_dim)
     outputs: list[Transform] = [
         Unnormalize(norm_stats, use_quantiles=config.use_quantile_norm),
         *config.outputs,
     ]
-    return inputs, extract, outputs
+    return inputs, outputs
 
 
 def create_policy(
     config: str | PolicyConfig,
     checkpoint_dir: str | Path,
     *,
-    paligemma_tokenizer: Any = None,
-    fast_tokenizer: Any = None,
+    paligemma_tokenizer: str | Path | sentencepiece.SentencePieceProcessor | None = None,
+    fast_tokenizer: str | Path | FastActionTokenizer | None = None,
     dtype: str = "bfloat16",
     default_prompt: str | None = None,
     stop_at_action_end: bool = False,
-    max_decoding_steps: int = 256,
+    max_decoding_steps: int = MAX_DECODING_STEPS,
     rng: jax.Array | None = None,
 ) -> Policy:
     """A served policy from ``<checkpoint_dir>/params`` and ``<checkpoint_dir>/assets/<asset_id>/norm_stats.json``.
@@ -251,44 +234,31 @@ def create_policy(
     ``stop_at_action_end`` ends decoding at the first token containing "|" (upstream decodes to EOS; what follows
     "|" is ignored by action extraction, so actions are unchanged, only the generation is shorter).
     """
-    from openpi_cam.model.pi0_fast import Pi0FAST
-    from openpi_cam.tokenizers.fast import FastActionTokenizer, resolve_fast_tokenizer_dir
-    from openpi_cam.tokenizers.paligemma import load_paligemma_tokenizer
-    from openpi_cam.tokenizers.pi0_fast import Pi0FastTokenizer
-
     cfg = resolve_config(config)
     checkpoint_dir = Path(checkpoint_dir)
     params_dir = checkpoint_dir / "params"
     if not params_dir.is_dir():
         raise FileNotFoundError(f"model params not found: expected an orbax checkpoint directory at {params_dir}")
     norm_stats = load_checkpoint_norm_stats(checkpoint_dir, cfg.asset_id)
-
-    if isinstance(paligemma_tokenizer, str | Path | None):
-        paligemma_tokenizer = load_paligemma_tokenizer(paligemma_tokenizer)
-    if not isinstance(fast_tokenizer, FastActionTokenizer):
-        fast_tokenizer = FastActionTokenizer.load(resolve_fast_tokenizer_dir(fast_tokenizer))
-    tokenizer = Pi0FastTokenizer(paligemma_tokenizer, fast_tokenizer, cfg.max_token_len)
-
-    model = Pi0FAST.from_checkpoint(
+    parts = build_pi0_fast(
+        cfg,
         params_dir,
-        action_dim=cfg.action_dim,
-        action_horizon=cfg.action_horizon,
-        max_token_len=cfg.max_token_len,
+        paligemma_tokenizer=paligemma_tokenizer,
+        fast_tokenizer=fast_tokenizer,
         dtype=dtype,
+        max_decoding_steps=max_decoding_steps,
+        stop_at_action_end=stop_at_action_end,
     )
-    inputs, extract, outputs = build_transforms(
-        cfg, norm_stats, tokenizer, model.config.image_resolution, default_prompt=default_prompt
+    inputs, outputs = build_transforms(
+        cfg, norm_stats, parts.tokenize, parts.model.config.image_resolution, default_prompt=default_prompt
     )
-    sample_kwargs: dict[str, Any] = {"max_decoding_steps": max_decoding_steps}
-    if stop_at_action_end:
-        sample_kwargs["stop_token_ids"] = tuple(tokenizer.end_of_action_token_ids)
     return Policy(
-        model,
-        tokenizer=tokenizer,
+        parts.model,
         transforms=inputs,
-        extract=extract,
+        decoder=parts.decoder,
+        explainer=parts.explainer,
         output_transforms=outputs,
         rng=rng,
-        sample_kwargs=sample_kwargs,
+        sample_kwargs=parts.sample_kwargs,
         metadata=cfg.policy_metadata,
     )

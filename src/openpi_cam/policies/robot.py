@@ -59,14 +59,6 @@ def lookup(data: Mapping[str, Any], key: str) -> Any:
     return node
 
 
-def has_key(data: Mapping[str, Any], key: str) -> bool:
-    try:
-        lookup(data, key)
-    except ValueError:
-        return False
-    return True
-
-
 def pass_prompt(data: Mapping[str, Any], inputs: DataDict) -> DataDict:
     """Carry the prompt over (bytes decoded), leaving its absence to the default-prompt / tokenizer steps."""
     if data.get("prompt") is not None:

@@ -1,4 +1,4 @@
-"""Placing a Grad-CAM patch grid on an image: bilinear upsampling, letterbox inversion, colour blending.
+"""Placing a map's patch grid on an image: bilinear upsampling, letterbox inversion, colour blending.
 
 Coordinates are continuous with pixel i covering [i, i + 1); a grid cell's value sits at its centre, so a map is
 sampled at grid coordinate `pos * Hp / extent - 0.5` and clamped at the borders.
@@ -6,10 +6,24 @@ sampled at grid coordinate `pos * Hp / extent - 0.5` and clamped at the borders.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any, Protocol
+
 import numpy as np
 
 from openpi_cam.image_tools import LetterboxGeometry
 from openpi_cam.viz.colormap import colorize
+
+
+class StepView(Protocol):
+    """One logged step as every renderer and statistic sees it: the maps of one kind, its frames and metadata
+    (`viz.stats.MapView` over a run's steps)."""
+
+    seq: int
+    meta: Mapping[str, Any]
+    maps: Mapping[str, np.ndarray]
+    frames: Mapping[str, np.ndarray]
+    model_frames: Mapping[str, np.ndarray]
 
 
 def reduce_tokens(cam: np.ndarray) -> np.ndarray:
@@ -73,3 +87,31 @@ def blend(frame: np.ndarray, heat: np.ndarray, alpha: float = 0.5) -> np.ndarray
     color = colorize(heat).astype(np.float64)
     out = (1.0 - alpha) * base[..., :3] + alpha * color
     return np.clip(np.round(out), 0, 255).astype(np.uint8)
+
+
+def camera_image(step: StepView, camera: str) -> tuple[np.ndarray, LetterboxGeometry | None]:
+    """The image a camera's map is drawn on, with the letterbox to invert (None: stretch the grid over it).
+
+    Prefers the client's original frame; falls back to the model frame, then to a blank model-sized canvas.
+    """
+    cam_meta = step.meta.get("cameras", {}).get(camera, {})
+    geometry = cam_meta.get("geometry")
+    box = LetterboxGeometry.from_dict(geometry) if geometry else None
+    if camera in step.frames:
+        return np.asarray(step.frames[camera], dtype=np.uint8), box
+    if camera in step.model_frames:
+        return np.asarray(step.model_frames[camera], dtype=np.uint8), None
+    hp, wp = cam_meta.get("grid") or np.shape(step.maps[camera])[-2:]
+    h, w = (box.model_h, box.model_w) if box else (hp * 14, wp * 14)
+    return np.zeros((h, w, 3), np.uint8), None
+
+
+def camera_overlay(step: StepView, camera: str, scale: float, alpha: float) -> np.ndarray:
+    """The camera's map, divided by `scale` and colour-blended over its image; masked cameras stay plain."""
+    image, box = camera_image(step, camera)
+    valid = bool(step.meta.get("cameras", {}).get(camera, {}).get("valid", True))
+    if camera not in step.maps or not valid:
+        return image
+    heat = map_for_frame(reduce_tokens(step.maps[camera]), image.shape[:2], box)
+    heat = heat / scale if scale > 0 else np.zeros_like(heat)
+    return blend(image, heat, alpha)

@@ -1,4 +1,4 @@
-"""`openpi-cam render`: per-camera overlays, per-step panels, a video per connection and an HTML report."""
+"""Rendering a CAM run: per-camera overlays, per-step panels, a video per connection, and the HTML report."""
 
 from __future__ import annotations
 
@@ -7,18 +7,18 @@ import math
 import pathlib
 import re
 import sys
-from collections.abc import Mapping, Sequence
-from typing import Annotated, Any, Literal, Protocol
+from collections.abc import Mapping
+from typing import Any, Literal
 
 import numpy as np
-import tyro
 from PIL import Image, ImageDraw, ImageFont
 
-from openpi_cam.image_tools import LetterboxGeometry
+from openpi_cam.cam.runfmt import CAMRun
 from openpi_cam.viz.colormap import LUT
-from openpi_cam.viz.overlay import blend, map_for_frame, reduce_tokens
+from openpi_cam.viz.overlay import StepView, camera_overlay
 from openpi_cam.viz.progress import progress
-from openpi_cam.viz.stats import MAP_LABELS, MapKind, MissingMaps, StepStats, compute_stats, transient, with_map_kind
+from openpi_cam.viz.report import RenderResult, StepAssets, write_report
+from openpi_cam.viz.stats import DEFAULT_MAP_KIND, MAP_LABELS, StepStats, compute_stats, step_scale, view_steps
 
 Norm = Literal["step", "run"]
 
@@ -29,19 +29,9 @@ _PAD = 8
 _LINE = 18
 
 
-class StepView(Protocol):
-    """What rendering needs from a logged step (satisfied by the CAM reader's steps)."""
-
-    seq: int
-    meta: Mapping[str, Any]
-    maps: Mapping[str, np.ndarray]
-    frames: Mapping[str, np.ndarray]
-    model_frames: Mapping[str, np.ndarray]
-
-
 @dataclasses.dataclass(frozen=True)
 class RenderOptions:
-    map: MapKind = "gradcam"  # which of the steps' maps to draw (Grad-CAM or gradient norm)
+    map: str = DEFAULT_MAP_KIND  # which kind of the steps' maps to draw
     norm: Norm = "step"
     alpha: float = 0.5
     tile_height: int = 240
@@ -54,24 +44,6 @@ class RenderOptions:
     progress: bool = True
 
 
-@dataclasses.dataclass(frozen=True)
-class StepAssets:
-    """Paths relative to the output directory."""
-
-    panel: str
-    thumb: str
-    overlays: dict[str, str]
-
-
-@dataclasses.dataclass
-class RenderResult:
-    out_dir: pathlib.Path
-    steps: dict[int, StepAssets]
-    videos: dict[str, dict[str, str]]  # connection -> {"mp4": path, "gif": path}
-    stats: list[StepStats]
-    report: pathlib.Path | None = None
-
-
 def slug(name: str) -> str:
     """A file-name-safe version of a connection or camera name."""
     return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._") or "_"
@@ -82,40 +54,6 @@ def _font(size: int = 13) -> ImageFont.ImageFont | ImageFont.FreeTypeFont:
         return ImageFont.load_default(size=size)
     except (TypeError, OSError):  # Pillow without FreeType: fixed bitmap font
         return ImageFont.load_default()
-
-
-def step_scale(st: StepStats) -> float:
-    """The per-step normaliser: the largest value over the step's valid cameras."""
-    values = [cs.peak_value for cs in st.cameras.values() if cs.valid and not math.isnan(cs.peak_value)]
-    return max(values, default=0.0)
-
-
-def camera_image(step: StepView, camera: str) -> tuple[np.ndarray, LetterboxGeometry | None]:
-    """The image a camera's map is drawn on, with the letterbox to invert (None: stretch the grid over it).
-
-    Prefers the client's original frame; falls back to the model frame, then to a blank model-sized canvas.
-    """
-    cam_meta = step.meta.get("cameras", {}).get(camera, {})
-    geometry = cam_meta.get("geometry")
-    box = LetterboxGeometry.from_dict(geometry) if geometry else None
-    if camera in step.frames:
-        return np.asarray(step.frames[camera], dtype=np.uint8), box
-    if camera in step.model_frames:
-        return np.asarray(step.model_frames[camera], dtype=np.uint8), None
-    hp, wp = cam_meta.get("grid") or np.shape(step.maps[camera])[-2:]
-    h, w = (box.model_h, box.model_w) if box else (hp * 14, wp * 14)
-    return np.zeros((h, w, 3), np.uint8), None
-
-
-def camera_overlay(step: StepView, camera: str, scale: float, alpha: float) -> np.ndarray:
-    """The camera's map, divided by `scale` and colour-blended over its image; masked cameras stay plain."""
-    image, box = camera_image(step, camera)
-    valid = bool(step.meta.get("cameras", {}).get(camera, {}).get("valid", True))
-    if camera not in step.maps or not valid:
-        return image
-    heat = map_for_frame(reduce_tokens(step.maps[camera]), image.shape[:2], box)
-    heat = heat / scale if scale > 0 else np.zeros_like(heat)
-    return blend(image, heat, alpha)
 
 
 def _fmt_list(values: Any, limit: int = 8) -> str:
@@ -241,10 +179,10 @@ def _videos_available() -> bool:
     return True
 
 
-def render_run(steps: Sequence[StepView], out_dir: pathlib.Path, opts: RenderOptions) -> RenderResult:
-    """Writes overlays, panels, thumbnails and per-connection videos for `steps` under `out_dir` (`MissingMaps`,
-    before anything is written, when the steps lack the `opts.map` maps)."""
-    steps = with_map_kind(sorted(steps, key=lambda s: s.seq), opts.map)
+def render_run(run: CAMRun, out_dir: pathlib.Path, opts: RenderOptions) -> RenderResult:
+    """Writes overlays, panels, thumbnails, per-connection videos and (with `opts.html`) index.html for a run under
+    `out_dir` (`MissingMaps`, before anything is written, when the run has no `opts.map` maps)."""
+    steps = view_steps(run.steps, opts.map)
     stats = compute_stats(steps)
     for sub in ("panels", "thumbs", "overlays", "videos"):
         (out_dir / sub).mkdir(parents=True, exist_ok=True)
@@ -255,7 +193,8 @@ def render_run(steps: Sequence[StepView], out_dir: pathlib.Path, opts: RenderOpt
     make_videos = opts.videos and _videos_available()
     videos: dict[str, _ConnectionVideo] = {}
     assets: dict[int, StepAssets] = {}
-    for step, st in progress(zip(map(transient, steps), stats, strict=True), len(steps), "render", opts.progress):
+    for view, st in progress(zip(steps, stats, strict=True), len(steps), "render", opts.progress):
+        step = view.loaded()
         scale = run_max if opts.norm == "run" else step_scale(st)
         norm_label = f"{MAP_LABELS[opts.map]}, normalised per {opts.norm} (max {scale:.3g})"
         cameras = list(step.meta.get("cameras", {})) or list(step.maps)
@@ -285,68 +224,12 @@ def render_run(steps: Sequence[StepView], out_dir: pathlib.Path, opts: RenderOpt
         conn: {"mp4": v.mp4.relative_to(out_dir).as_posix(), "gif": v.gif.relative_to(out_dir).as_posix()}
         for conn, v in videos.items()
     }
-    return RenderResult(out_dir, assets, video_paths, stats)
+    result = RenderResult(out_dir, assets, video_paths, stats)
+    if opts.html:
+        result.report = write_report(result, dict(run.manifest), map_label=MAP_LABELS[opts.map], norm=opts.norm)
+    return result
 
 
-def default_render_dir(run_dir: pathlib.Path, map_kind: MapKind = "gradcam") -> pathlib.Path:
-    """RUN_DIR/render for Grad-CAM, RUN_DIR/render-<kind> for another map kind."""
-    return pathlib.Path(run_dir) / ("render" if map_kind == "gradcam" else f"render-{map_kind}")
-
-
-def render_cmd(
-    run_dir: Annotated[pathlib.Path, tyro.conf.arg(metavar="RUN_DIR")],
-    /,
-    out: pathlib.Path | None = None,
-    map: MapKind = "gradcam",
-    norm: Norm = "step",
-    alpha: float = 0.5,
-    tile_height: int = 240,
-    fps: float = 5.0,
-    videos: bool = True,
-    html: bool = True,
-    progress: bool = True,
-    rerun: pathlib.Path | None = None,
-) -> int:
-    """Overlays, per-step panels, an MP4 and a GIF per connection, and a static HTML report for a CAM run.
-
-    Args:
-        run_dir: a CAM run directory (holds run.json and steps/).
-        out: output directory; defaults to RUN_DIR/render (RUN_DIR/render-gradnorm for `--map gradnorm`).
-        map: which map to draw: Grad-CAM (`cam/`) or the per-token gradient norm (`gradnorm/`) of the same gradient.
-        norm: divide maps by the step's maximum over cameras ("step") or by the whole run's maximum ("run").
-        alpha: opacity of the heatmap over the image.
-        tile_height: height in pixels of each camera tile in the panels and videos.
-        fps: frames (steps) per second of the videos.
-        videos: write the MP4 and GIF per connection.
-        html: write index.html (self-contained, opens from disk).
-        progress: show progress on stderr.
-        rerun: also write the run as a Rerun recording to this .rrd file (needs the `rerun` extra).
-    """
-    from openpi_cam.cam.reader import load_run
-
-    run = load_run(run_dir, load_arrays=False)
-    out_dir = pathlib.Path(out) if out is not None else default_render_dir(run_dir, map)
-    opts = RenderOptions(
-        map=map, norm=norm, alpha=alpha, tile_height=tile_height, fps=fps, videos=videos, html=html, progress=progress
-    )
-    try:
-        result = render_run(run.steps, out_dir, opts)
-    except MissingMaps as e:
-        print(f"openpi-cam render: {e}", file=sys.stderr)
-        return 2
-    if html:
-        from openpi_cam.viz.report import write_report
-
-        result.report = write_report(result, dict(run.manifest), opts)
-    where = result.report or out_dir
-    print(f"rendered {len(result.steps)} steps to {where}", file=sys.stderr)
-    if rerun is not None:
-        from openpi_cam.viz.rerun_sink import write_rrd
-
-        try:
-            write_rrd(run_dir, rerun, norm=norm, alpha=alpha, map_kind=map)
-        except ImportError as e:
-            print(f"openpi-cam render: {e}", file=sys.stderr)
-            return 1
-        print(f"wrote Rerun recording {rerun}", file=sys.stderr)
-    return 0
+def default_render_dir(run_dir: pathlib.Path, map_kind: str) -> pathlib.Path:
+    """RUN_DIR/render-<kind>: each map kind renders into its own directory."""
+    return pathlib.Path(run_dir) / f"render-{map_kind}"

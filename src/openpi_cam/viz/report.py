@@ -8,14 +8,29 @@ import math
 import pathlib
 from collections import Counter
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-from openpi_cam.viz.stats import MAP_LABELS, StepStats, aggregate, camera_names
-
-if TYPE_CHECKING:
-    from openpi_cam.viz.render import RenderOptions, RenderResult
+from openpi_cam.viz.stats import StepStats, aggregate, camera_names
 
 _PALETTE = ("#4e9af1", "#f28e2b", "#59a14f", "#e15759", "#b07aa1", "#76b7b2", "#edc948", "#ff9da7")
+
+
+@dataclasses.dataclass(frozen=True)
+class StepAssets:
+    """Paths relative to the output directory."""
+
+    panel: str
+    thumb: str
+    overlays: dict[str, str]
+
+
+@dataclasses.dataclass
+class RenderResult:
+    out_dir: pathlib.Path
+    steps: dict[int, StepAssets]
+    videos: dict[str, dict[str, str]]  # connection -> {"mp4": path, "gif": path}
+    stats: list[StepStats]
+    report: pathlib.Path | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -249,7 +264,7 @@ document.body.setAttribute('data-rendered-steps',String(n));});
 
 
 def write_report(
-    result: RenderResult, manifest: Mapping[str, Any], opts: RenderOptions, score_drop: float = 0.3
+    result: RenderResult, manifest: Mapping[str, Any], *, map_label: str, norm: str, score_drop: float = 0.3
 ) -> pathlib.Path:
     """Writes `index.html` into the render directory and returns its path."""
     stats = result.stats
@@ -263,7 +278,7 @@ def write_report(
         "started": manifest.get("started_at"),
         "checkpoint": manifest.get("checkpoint"),
         "steps": f"{summary['steps']} on {summary['connections']} connection(s)",
-        "normalisation": f"per {opts.norm}",
+        "normalisation": f"per {norm}",
         "flagged": f"attention left the connection's usual camera, or the score fell by more than "
         f"{100 * score_drop:.0f}% from the previous step",
     }
@@ -284,7 +299,7 @@ def write_report(
     doc = (
         f'<!doctype html><html lang="en"><head><meta charset="utf-8"><title>CAM run {_e(run_id)}</title>'
         f"<style>{_STYLE}</style></head><body>"
-        f"<h1>CAM run {_e(run_id)}: {_e(MAP_LABELS[opts.map])} maps</h1>"
+        f"<h1>CAM run {_e(run_id)}: {_e(map_label)} maps</h1>"
         f"<dl>{info_html}</dl>"
         "<table><tr><th>camera</th><th>valid steps</th><th>mean share</th><th>mean entropy (norm.)</th>"
         f"<th>peak stayed</th><th>mean peak shift (cells)</th><th>dominant in</th></tr>{cam_rows}</table>"

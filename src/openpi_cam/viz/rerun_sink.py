@@ -17,7 +17,9 @@ import os
 import pathlib
 from typing import Any, Literal
 
-from openpi_cam.viz.stats import MapKind
+from openpi_cam.cam.runfmt import load_run
+from openpi_cam.viz.overlay import camera_image, camera_overlay
+from openpi_cam.viz.stats import DEFAULT_MAP_KIND, compute_stats, step_scale, view_steps
 
 RERUN_MISSING = 'writing a Rerun recording needs rerun-sdk: pip install "openpi-cam[rerun]"'
 
@@ -47,16 +49,12 @@ def write_rrd(
     *,
     norm: Literal["step", "run"] = "step",
     alpha: float = 0.5,
-    map_kind: MapKind = "gradcam",
+    map_kind: str = DEFAULT_MAP_KIND,
 ) -> pathlib.Path:
     """Writes the run's frames, overlays (of `map_kind` maps) and per-camera attention shares to `out_path`."""
     rr = _import_rerun()
-    from openpi_cam.cam.reader import load_run
-    from openpi_cam.viz.render import camera_image, camera_overlay, step_scale
-    from openpi_cam.viz.stats import compute_stats, transient, with_map_kind
-
     run = load_run(run_dir, load_arrays=False)
-    steps = with_map_kind(sorted(run.steps, key=lambda s: s.seq), map_kind)
+    steps = view_steps(run.steps, map_kind)
     stats = compute_stats(steps)
     run_max = max((step_scale(st) for st in stats), default=0.0)
     out_path = pathlib.Path(out_path)
@@ -64,7 +62,8 @@ def write_rrd(
     rec = rr.RecordingStream("openpi-cam", recording_id=str(run.run_info.get("run_id", run.run_dir.name)))
     rec.save(out_path)
     try:
-        for step, st in zip(map(transient, steps), stats, strict=True):
+        for view, st in zip(steps, stats, strict=True):
+            step = view.loaded()
             rec.set_time("step", sequence=st.step)
             rec.set_time("seq", sequence=st.seq)
             if math.isfinite(st.timestamp):

@@ -1,4 +1,5 @@
-"""Per-step, per-camera attention statistics of a CAM run, and `openpi-cam stats`.
+"""Per-step, per-camera statistics of one kind of map in a CAM run (`openpi-cam stats`), and the step view every
+renderer draws from.
 
 Every number is computed on the same displayable map the renderer draws (`reduce_tokens`: multi-token maps are
 averaged, negatives clipped). Cameras the model masked out (`valid: false`) carry no mass.
@@ -11,22 +12,80 @@ import dataclasses
 import io
 import json
 import math
-import pathlib
-import sys
 from collections.abc import Iterable, Mapping, Sequence
-from typing import Any, Literal, Protocol
+from typing import Any, Literal
 
 import numpy as np
 
-from openpi_cam.viz.overlay import reduce_tokens
+from openpi_cam.cam.runfmt import MAP_PREFIXES, CAMStep
+from openpi_cam.viz.overlay import StepView, reduce_tokens
+
+# What render, the report and the demo draw unless told otherwise: the map that measured most faithful on the demo
+# model at the cost of one backward pass (README, "Which map to trust").
+DEFAULT_MAP_KIND = "gradnorm"
+# Display names of the map kinds (what each one is, in a figure's words).
+MAP_LABELS: dict[str, str] = {
+    "gradcam": "Grad-CAM",
+    "gradnorm": "gradient norm (unsigned sensitivity)",
+}
 
 
-class StepLike(Protocol):
-    """What the statistics need from a logged step (satisfied by the CAM reader's steps)."""
+@dataclasses.dataclass(frozen=True)
+class LoadedView:
+    """A step's arrays of one kind, read once (what one rendering iteration needs)."""
 
     seq: int
     meta: Mapping[str, Any]
     maps: Mapping[str, np.ndarray]
+    frames: Mapping[str, np.ndarray]
+    model_frames: Mapping[str, np.ndarray]
+
+
+class MapView:
+    """A logged step seen through one map kind. It keeps no arrays: each access reads the step file, and `loaded()`
+    reads it once for a stretch of work, so walking a long run never holds every map and frame in memory."""
+
+    def __init__(self, step: CAMStep, kind: str) -> None:
+        self._step = step
+        self.kind = kind
+        self.seq = step.seq
+        self.meta = step.meta
+
+    def loaded(self) -> LoadedView:
+        arrays = self._step.lazy().arrays()
+        return LoadedView(self.seq, self.meta, arrays.maps.get(self.kind, {}), arrays.frames, arrays.model_frames)
+
+    @property
+    def maps(self) -> Mapping[str, np.ndarray]:
+        return self._step.lazy().maps_of(self.kind)
+
+    @property
+    def frames(self) -> Mapping[str, np.ndarray]:
+        return self._step.lazy().frames
+
+    @property
+    def model_frames(self) -> Mapping[str, np.ndarray]:
+        return self._step.lazy().model_frames
+
+
+class MissingMaps(ValueError):
+    """The run holds no maps of the requested kind."""
+
+
+def view_steps(steps: Iterable[CAMStep], kind: str) -> list[MapView]:
+    """The steps in logging order, seen through `kind`; a run without any map of that kind is refused up front."""
+    if kind not in MAP_LABELS:
+        raise ValueError(f"unknown map kind {kind!r}; expected one of {sorted(MAP_LABELS)}")
+    steps = sorted(steps, key=lambda s: s.seq)
+    if steps and not any(kind in step_kinds(s) for s in steps):
+        raise MissingMaps(f"this run has no {MAP_LABELS[kind]} maps ({MAP_PREFIXES[kind]}<camera>)")
+    return [MapView(s, kind) for s in steps]
+
+
+def step_kinds(step: CAMStep) -> tuple[str, ...]:
+    """The map kinds a step carries, from its metadata when it lists them (no array read), else from its file."""
+    listed = step.meta.get("map_kinds")
+    return tuple(listed) if isinstance(listed, list) else step.map_kinds
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,66 +155,11 @@ def _camera_stats(m: np.ndarray | None, valid: bool, total: float) -> CameraStat
     )
 
 
-# The maps a logged step carries, both from one gradient: Grad-CAM (`cam/`) and the per-token gradient norm
-# (`gradnorm/`).
-MapKind = Literal["gradcam", "gradnorm"]
-MAP_LABELS: dict[str, str] = {"gradcam": "Grad-CAM", "gradnorm": "gradient norm"}
-MAP_KINDS: tuple[str, ...] = tuple(MAP_LABELS)
-
-
-def maps_of(logged: Any, kind: str) -> Mapping[str, np.ndarray]:
-    """The maps of one kind of a logged step or an explanation (both carry `maps` and `gradnorm_maps`)."""
-    return logged.maps if kind == "gradcam" else logged.gradnorm_maps
-
-
-class GradnormView:
-    """A logged step whose `maps` are its per-token gradient-norm maps (`gradnorm/<camera>`), so that every renderer
-    and statistic written for Grad-CAM maps works on them unchanged."""
-
-    def __init__(self, step: Any) -> None:
-        self.step = step
-        self.seq = step.seq
-        self.meta = step.meta
-
-    @property
-    def maps(self) -> Mapping[str, np.ndarray]:
-        return maps_of(self.step, "gradnorm")
-
-    def __getattr__(self, name: str) -> Any:  # frames, model_frames, file
-        return getattr(self.step, name)
-
-
-class MissingMaps(ValueError):
-    """The run holds no maps of the requested kind."""
-
-
-def with_map_kind(steps: Iterable[Any], kind: MapKind) -> list[Any]:
-    """The steps as seen through the chosen map kind; a run logged without gradient-norm maps is refused up front."""
-    steps = list(steps)
-    if kind == "gradcam":
-        return steps
-    if kind != "gradnorm":
-        raise ValueError(f"unknown map kind {kind!r}; expected one of {sorted(MAP_LABELS)}")
-    if steps and not steps[0].gradnorm_maps:
-        raise MissingMaps("this run has no gradient-norm maps (gradnorm/<camera>); it predates them")
-    return [GradnormView(s) for s in steps]
-
-
-def transient(step: StepLike) -> StepLike:
-    """A copy of a reader step that reads its arrays on use and drops them afterwards, so that walking a long run
-    does not keep every map and frame in memory; other step objects are returned as they are."""
-    from openpi_cam.cam.reader import CAMStep
-
-    if isinstance(step, GradnormView):
-        return GradnormView(transient(step.step))  # type: ignore[return-value]
-    return CAMStep(step.seq, dict(step.meta), step.file) if isinstance(step, CAMStep) else step
-
-
-def compute_stats(steps: Iterable[StepLike]) -> list[StepStats]:
+def compute_stats(steps: Iterable[StepView]) -> list[StepStats]:
     """Statistics for every step in logging order; peak stability links consecutive steps of one connection."""
     out: list[StepStats] = []
     last_peak: dict[tuple[str, str], tuple[int, int] | None] = {}
-    for s in map(transient, sorted(steps, key=lambda s: s.seq)):
+    for s in sorted(steps, key=lambda s: s.seq):
         meta = s.meta
         cams_meta: Mapping[str, Any] = meta.get("cameras", {})
         names = list(cams_meta) + [c for c in s.maps if c not in cams_meta]
@@ -285,38 +289,7 @@ def write_table(rows: list[dict[str, Any]], fmt: Literal["csv", "json", "parquet
     return sink.getvalue().to_pybytes()
 
 
-def stats_cmd(
-    run_dir: pathlib.Path,
-    /,
-    format: Literal["csv", "json", "parquet"] = "csv",
-    out: pathlib.Path | None = None,
-    map: MapKind = "gradcam",
-) -> int:
-    """Per-step, per-camera attention statistics of a CAM run (one row per step, `<camera>/<field>` columns).
-
-    Args:
-        run_dir: a CAM run directory (holds run.json and steps/).
-        format: csv, json (rows plus a run summary) or parquet (needs pyarrow; summary in the file metadata).
-        out: output file; defaults to stdout for csv/json and RUN_DIR/stats.parquet for parquet.
-        map: which map the statistics describe: Grad-CAM (`cam/`) or the per-token gradient norm (`gradnorm/`).
-    """
-    from openpi_cam.cam.reader import load_run
-
-    try:
-        steps = with_map_kind(load_run(run_dir, load_arrays=False).steps, map)
-    except MissingMaps as e:
-        print(f"openpi-cam stats: {e}", file=sys.stderr)
-        return 2
-    stats = compute_stats(steps)
-    summary = aggregate(stats)
-    data = write_table(to_rows(stats), format, summary)
-    if out is None and format == "parquet":
-        out = pathlib.Path(run_dir) / "stats.parquet"
-    if out is None:
-        sys.stdout.buffer.write(data)
-        sys.stdout.flush()
-    else:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_bytes(data)
-        print(f"wrote {len(stats)} steps to {out}", file=sys.stderr)
-    return 0
+def step_scale(st: StepStats) -> float:
+    """The per-step normaliser: the largest value over the step's valid cameras."""
+    values = [cs.peak_value for cs in st.cameras.values() if cs.valid and not math.isnan(cs.peak_value)]
+    return max(values, default=0.0)

@@ -16,13 +16,14 @@ import time
 
 import numpy as np
 import pytest
+from openpi_cam.cam.reader import cam_index_cmd, list_runs, load_run, map_summary, rebuild_manifest
+from paths import REPO_ROOT
 
 from openpi_cam import cli
 from openpi_cam.cam import logger as logger_mod
 from openpi_cam.cam.logger import CAMLogger, StepRecord
-from openpi_cam.cam.reader import cam_index_cmd, list_runs, load_run, map_summary, rebuild_manifest
 
-REPO = pathlib.Path(__file__).resolve().parents[1]
+REPO = REPO_ROOT
 CAMERAS = ("base_0_rgb", "left_wrist_0_rgb")
 GEOMETRY = {
     "orig_h": 100,

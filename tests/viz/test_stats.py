@@ -12,9 +12,9 @@ import sys
 import numpy as np
 import pytest
 import scipy.stats
+from openpi_cam.cam.reader import load_run
 
 from openpi_cam.cam.logger import CAMLogger, StepRecord
-from openpi_cam.cam.reader import load_run
 from openpi_cam.cli import main as cli_main
 from openpi_cam.viz.stats import aggregate, compute_stats, to_rows, write_table
 

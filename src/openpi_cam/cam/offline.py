@@ -1,4 +1,4 @@
-"""`openpi-cam explain`: Grad-CAM computed offline for recorded observations, written as a normal CAM run.
+"""Offline explanation: maps computed for recorded observations, written as a normal CAM run (`openpi-cam explain`).
 
 Sources:
   * upstream `PolicyRecorder` output: a folder of `step_N.npy` files, each a pickled dict with flattened
@@ -8,7 +8,7 @@ Sources:
     the non-image observation, e.g. `cam_extra/observation/joint_position`, to make a run replayable).
 
 Inference stays per observation, exactly as served (`Policy.infer_traced`); Grad-CAM is then computed for a whole
-chunk of `batch_size` inferences in one model call, sharded over all local devices (`cam.batch_engine`). Every step
+chunk of `batch_size` inferences in one model call, sharded over all local devices (`cam.batching`). Every step
 records its source id in `meta["extra"]["source"]`, so a run can be resumed: sources already in it are skipped and
 new steps are appended with the following seqs.
 """
@@ -21,18 +21,21 @@ import itertools
 import logging
 import pathlib
 import re
-import sys
 import time
-from collections.abc import Iterable, Iterator, Mapping
-from typing import Annotated, Any, Literal
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from typing import Any, Literal
 
 import numpy as np
-import tyro
+from jax.sharding import Mesh
 
-from openpi_cam.cam.engine import CamSkipped
-from openpi_cam.cam.records import EXTRA_PREFIX, SaveFrames, jsonable, split_extra
-from openpi_cam.errors import InvalidRequest
+from openpi_cam.cam.batching import data_mesh, explain_traces
+from openpi_cam.cam.logger import CAMLogger
+from openpi_cam.cam.records import EXTRA_PREFIX, SaveFrames, jsonable, split_extra, step_record
+from openpi_cam.cam.runfmt import RUN_JSON, load_run
+from openpi_cam.cam.side_channel import TracedPolicy
+from openpi_cam.model.attribution import MapKind
 from openpi_cam.nested import unflatten_dict
+from openpi_cam.policies.family import ExplainRequest, ExplainSkipped, Target
 
 log = logging.getLogger(__name__)
 
@@ -40,7 +43,10 @@ _RECORD_RE = re.compile(r"^step_(\d+)\.npy$")
 SOURCE_KEY = "source"  # meta["extra"] key holding the id of the record a step explains
 # run.json fields that must match for a resumed run to stay one consistent explanation of one source.
 _RESUME_CONFIG_KEYS = ("config", "checkpoint_dir", "dtype", "source")
-_RESUME_OPTION_KEYS = ("target", "action_index")
+_RESUME_OPTION_KEYS = ("target", "action_index", "maps")
+
+# Wraps the replays with a progress display: (replays, how many) -> the same replays.
+Progress = Callable[[Iterator["Replay"], int], Iterator["Replay"]]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,16 +64,21 @@ class Replay:
 
 @dataclasses.dataclass(frozen=True)
 class ExplainOptions:
-    target: Literal["action-token", "all-action-tokens", "chunk"] = "action-token"
+    target: Target = "action-token"
     action_index: int = 0
+    maps: tuple[MapKind, ...] = ("gradcam", "gradnorm")
     save_frames: SaveFrames = "both"
-    batch_size: int = 8  # observations per Grad-CAM call (padded to a multiple of the device count)
+    batch_size: int = 8  # observations per explainer call (padded to a multiple of the device count)
     limit: int | None = None  # explain at most this many new observations
-    progress: bool = False
 
-    def __post_init__(self):
-        if self.batch_size < 1 or self.action_index < 0 or (self.limit is not None and self.limit < 0):
-            raise ValueError("batch_size >= 1, action_index >= 0 and limit >= 0 are required")
+    def __post_init__(self) -> None:
+        if self.batch_size < 1 or (self.limit is not None and self.limit < 0):
+            raise ValueError("batch_size >= 1 and limit >= 0 are required")
+        self.request  # noqa: B018  (validates target, action_index and map kinds at construction)
+
+    @property
+    def request(self) -> ExplainRequest:
+        return ExplainRequest(self.target, self.action_index, tuple(self.maps))
 
 
 def split_extra_json(obs: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -102,8 +113,6 @@ def iter_policy_records(folder: pathlib.Path, nested: bool) -> Iterator[Replay]:
 
 
 def iter_run_steps(run_dir: pathlib.Path) -> Iterator[Replay]:
-    from openpi_cam.cam.reader import load_run
-
     run = load_run(run_dir, load_arrays=False)
     for step in run.steps:
         meta = step.meta
@@ -129,8 +138,6 @@ def iter_run_steps(run_dir: pathlib.Path) -> Iterator[Replay]:
 
 def explained_sources(run_dir: pathlib.Path) -> set[str]:
     """Source ids already explained in a run (complete step files only)."""
-    from openpi_cam.cam.reader import load_run
-
     run = load_run(run_dir, load_arrays=False)
     return {str(s.meta["extra"][SOURCE_KEY]) for s in run.steps if SOURCE_KEY in (s.meta.get("extra") or {})}
 
@@ -141,24 +148,21 @@ def _actions_match(ours: Any, recorded: np.ndarray) -> bool:
 
 
 def explain_replays(
-    policy: Any,
+    policy: TracedPolicy,
     replays: Iterable[Replay],
     options: ExplainOptions,
-    cam_logger: Any,
+    cam_logger: CAMLogger,
     *,
-    mesh: Any = "auto",
+    mesh: Mesh | Literal["auto"] | None = "auto",
     total: int = 0,
+    progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Explains every replay whose source is not yet in `cam_logger`'s run and logs it there (the caller closes the
     logger). `mesh`: "auto" shards over all local devices, None keeps one device; `total`: the number of replays,
-    for progress only. Returns a summary of counts; observations the target cannot explain (e.g. no action tokens)
-    are counted, not logged, and are tried again on resume."""
-    from openpi_cam.cam.batch_engine import data_mesh, explain_batch, replicate_model, stack_observations
-    from openpi_cam.cam.records import step_record
-    from openpi_cam.viz.progress import progress
-
+    for `progress` only. Returns a summary of counts; observations that cannot be explained are counted, not logged,
+    and are tried again on resume."""
     mesh = data_mesh() if mesh == "auto" else mesh
-    model = replicate_model(policy.model, mesh)
+    explainer = policy.explainer.on_mesh(mesh)
     done = explained_sources(cam_logger.run_dir)
     counts: collections.Counter[str] = collections.Counter()
 
@@ -173,7 +177,8 @@ def explain_replays(
 
     todo: Iterator[Replay] = pending() if options.limit is None else itertools.islice(pending(), options.limit)
     left = max(0, total - len(done)) if options.limit is None else min(options.limit, max(0, total - len(done)))
-    todo = progress(todo, left, "explain", options.progress)
+    if progress is not None:
+        todo = progress(todo, left)
     for chunk in iter(lambda: list(itertools.islice(todo, options.batch_size)), []):
         traces, stamps = [], []
         for r in chunk:
@@ -185,23 +190,16 @@ def explain_replays(
                 counts["actions_compared"] += 1
                 counts["actions_mismatched"] += not _actions_match(response["actions"], r.recorded_actions)
         t0 = time.perf_counter()
-        results = explain_batch(
-            model,
-            policy.tokenizer,
-            stack_observations([t.observation for t in traces]),
-            np.stack([np.asarray(t.generated_tokens, np.int32) for t in traces]),
-            target=options.target,
-            action_index=options.action_index,
-            mesh=mesh,
-            pad_to=options.batch_size,  # a short last batch reuses the compiled program
-        )
+        # a short last batch is padded to batch_size so that it reuses the compiled program
+        results = explain_traces(explainer, traces, options.request, mesh=mesh, pad_to=options.batch_size)
         per_row_ms = (time.perf_counter() - t0) * 1000.0 / len(chunk)
         for r, trace, stamp, exp in zip(chunk, traces, stamps, results, strict=True):
-            if isinstance(exp, CamSkipped):
+            if isinstance(exp, ExplainSkipped):
                 counts[f"skipped_{exp.kind}"] += 1
                 if counts[f"skipped_{exp.kind}"] == 1:
                     log.warning("explain: %s: %s (further ones are only counted)", r.source, exp)
                 continue
+            counts["explained_malformed"] += trace.malformed_reason is not None
             record = step_record(
                 trace,
                 exp,
@@ -210,7 +208,7 @@ def explain_replays(
                 timestamp=stamp,
                 save_frames=options.save_frames,
                 extra={**r.extra, SOURCE_KEY: r.source},
-                gradcam_ms=per_row_ms,
+                explain_ms=per_row_ms,
             )
             counts["completed" if cam_logger.log_step(record) else "not_logged"] += 1
     summary = {k: counts[k] for k in ("observations", "completed", "actions_compared", "actions_mismatched")}
@@ -220,7 +218,7 @@ def explain_replays(
     return summary
 
 
-def _resume_mismatch(run_info: Mapping[str, Any], run_config: dict[str, Any], options: dict[str, Any]) -> list[str]:
+def resume_mismatch(run_info: Mapping[str, Any], run_config: dict[str, Any], options: dict[str, Any]) -> list[str]:
     """Settings of this invocation that differ from the run being resumed."""
     old_config, old_options = run_info.get("config") or {}, run_info.get("options") or {}
     diffs = [
@@ -235,103 +233,10 @@ def _resume_mismatch(run_info: Mapping[str, Any], run_config: dict[str, Any], op
     ]
 
 
-def explain_cmd(
-    source: Annotated[pathlib.Path, tyro.conf.arg(metavar="SOURCE")],
-    /,
-    checkpoint_dir: pathlib.Path,
-    config: str = "pi0_fast_droid",
-    out: pathlib.Path = pathlib.Path("cam_runs"),
-    resume: pathlib.Path | None = None,
-    target: Literal["action-token", "all-action-tokens", "chunk"] = "action-token",
-    action_index: int = 0,
-    save_frames: SaveFrames = "both",
-    batch_size: int = 8,
-    limit: int | None = None,
-    nested_keys: bool = False,
-    paligemma_tokenizer: pathlib.Path | None = None,
-    fast_tokenizer: pathlib.Path | None = None,
-    dtype: Literal["bfloat16", "float32"] = "bfloat16",
-    default_prompt: str | None = None,
-    rerun: pathlib.Path | None = None,
-    progress: bool = True,
-) -> int:
-    """Compute Grad-CAM offline for recorded observations and write a CAM run directory (same format as serving).
-
-    Args:
-        source: an upstream PolicyRecorder folder (step_N.npy files) or a CAM run directory with raw frames.
-        checkpoint_dir: checkpoint folder with `params/` and `assets/<asset_id>/norm_stats.json`.
-        config: named policy config (e.g. pi0_fast_droid, pi0_fast_libero, pi0_fast_aloha).
-        out: folder in which a new run directory is created; if OUT is itself a run directory, it is resumed.
-        resume: a run directory to resume: observations already explained in it are skipped, new steps appended.
-        target: which score Grad-CAM explains.
-        action_index: which action token for `action-token`.
-        save_frames: which camera frames to store next to the maps (`raw`/`both` keep the run re-explainable).
-        batch_size: observations explained per Grad-CAM call, split over all local devices.
-        limit: explain at most this many observations not yet in the run (resume later for the rest).
-        nested_keys: read PolicyRecorder keys `a/b` as nested dicts (ALOHA's `images/...`) instead of flat keys.
-        paligemma_tokenizer: PaliGemma SentencePiece model; default: the policy factory's standard location.
-        fast_tokenizer: FAST action tokenizer folder; default: the policy factory's standard location.
-        dtype: parameter dtype; upstream serves bfloat16.
-        default_prompt: prompt used when a record has none.
-        rerun: also write the finished run as a Rerun recording (.rrd; needs the `rerun` extra).
-        progress: show progress on stderr.
-    """
-    from openpi_cam.cam.logger import CAMLogger
-    from openpi_cam.cam.reader import RUN_JSON
-    from openpi_cam.policies.policy import create_policy
-
-    source = pathlib.Path(source)
+def open_source(source: pathlib.Path, *, nested_keys: bool = False) -> tuple[Iterator[Replay], int]:
+    """The replays of a CAM run directory (with raw frames) or an upstream PolicyRecorder folder, and their number."""
     if (source / RUN_JSON).is_file():
-        replays: Iterator[Replay] = iter_run_steps(source)
-        total = sum(1 for _ in (source / "steps").glob("*.npz"))
-    elif source.is_dir():
-        replays = iter_policy_records(source, nested_keys)
-        total = sum(1 for p in source.iterdir() if _RECORD_RE.match(p.name))
-    else:
-        print(f"openpi-cam explain: {source} is neither a CAM run nor a policy-record folder", file=sys.stderr)
-        return 2
-    resume_dir = resume if resume is not None else (out if (out / RUN_JSON).is_file() else None)
-    if resume_dir is not None and not (resume_dir / RUN_JSON).is_file():
-        print(f"openpi-cam explain: --resume {resume_dir} is not a CAM run directory", file=sys.stderr)
-        return 2
-    run_config = {
-        "command": "explain",
-        "config": config,
-        "checkpoint_dir": str(pathlib.Path(checkpoint_dir).resolve()),
-        "dtype": dtype,
-        "source": str(source.resolve()),
-    }
-    cam_options = {"target": target, "action_index": action_index, "save_frames": save_frames}
-    try:
-        options = ExplainOptions(target, action_index, save_frames, batch_size, limit, progress)
-        if resume_dir is not None:
-            from openpi_cam.cam.reader import load_run
-
-            if diffs := _resume_mismatch(load_run(resume_dir, load_arrays=False).run_info, run_config, cam_options):
-                print(f"openpi-cam explain: cannot resume {resume_dir}, settings differ: {diffs}", file=sys.stderr)
-                return 2
-        policy = create_policy(
-            config,
-            checkpoint_dir,
-            paligemma_tokenizer=paligemma_tokenizer,
-            fast_tokenizer=fast_tokenizer,
-            dtype=dtype,
-            default_prompt=default_prompt,
-        )
-        if resume_dir is not None:
-            cam_logger = CAMLogger.resume(resume_dir)
-        else:
-            cam_logger = CAMLogger(out, run_config=run_config, checkpoint=str(checkpoint_dir), options=cam_options)
-        try:
-            summary = explain_replays(policy, replays, options, cam_logger, total=total)
-        finally:
-            cam_logger.close()
-        if rerun is not None:
-            from openpi_cam.viz.rerun_sink import write_rrd
-
-            write_rrd(cam_logger.run_dir, rerun)
-    except (FileNotFoundError, ValueError, InvalidRequest, OSError, ImportError) as e:
-        print(f"openpi-cam explain: {e}", file=sys.stderr)
-        return 1
-    print(f"openpi-cam explain: wrote {cam_logger.run_dir}: {summary}", file=sys.stderr)
-    return 0 if summary["actions_mismatched"] == 0 else 3
+        return iter_run_steps(source), sum(1 for _ in (source / "steps").glob("*.npz"))
+    if source.is_dir():
+        return iter_policy_records(source, nested_keys), sum(1 for p in source.iterdir() if _RECORD_RE.match(p.name))
+    raise FileNotFoundError(f"{source} is neither a CAM run nor a policy-record folder")

@@ -20,6 +20,7 @@ from openpi_cam.policies import (
     GenericOutputs,
     PolicyConfig,
     create_policy,
+    demo_reach,
     droid,
     register_config,
 )
@@ -224,8 +225,8 @@ def test_stop_at_action_end_keeps_well_formed_actions_and_saves_steps():
     """On the bundled demo model, whose generations are well formed, stopping at `|` returns identical actions."""
     from openpi_cam.demo import bundled, task
 
-    plain = bundled.create_demo_policy()
-    stopping = bundled.create_demo_policy(stop_at_action_end=True)
+    plain = demo_reach.create_demo_policy()
+    stopping = demo_reach.create_demo_policy(stop_at_action_end=True)
     rng = np.random.default_rng(7)
     saved = []
     for _ in range(4):

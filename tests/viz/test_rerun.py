@@ -7,10 +7,10 @@ import time
 
 import numpy as np
 import pytest
+from openpi_cam.cam.reader import load_run
 
 from openpi_cam import cli
 from openpi_cam.cam.logger import CAMLogger, StepRecord
-from openpi_cam.cam.reader import load_run
 
 CAMERAS = ("base_0_rgb", "left_wrist_0_rgb")
 GEOMETRY = {  # a 90 x 160 client frame letterboxed into 224 x 224

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from openpi_cam.demo import bundled, quality, sim, task
+from openpi_cam.policies import demo_reach
 
 
 def test_task_is_deterministic_per_seed():
@@ -87,8 +88,8 @@ def test_contrast_batches_pair_each_scene_with_two_prompts():
     from openpi_cam.normalize import load_checkpoint_norm_stats
     from openpi_cam.transforms import Normalize
 
-    normalize = Normalize(load_checkpoint_norm_stats(bundled.CHECKPOINT, bundled.ASSET_ID), use_quantiles=True)
-    obs = Batches(bundled.ASSETS, normalize, 6, seed=0, contrast_pairs=True)()
+    normalize = Normalize(load_checkpoint_norm_stats(demo_reach.CHECKPOINT, demo_reach.ASSET_ID), use_quantiles=True)
+    obs = Batches(demo_reach.ASSETS, normalize, 6, seed=0, contrast_pairs=True)()
     images = np.asarray(obs.images["base_0_rgb"])
     tokens = np.asarray(obs.tokenized_prompt)
     for i in range(0, 6, 2):
@@ -103,8 +104,8 @@ def _shipped_tokenizer_rows(seed: int, n: int):
     from openpi_cam.tokenizers.pi0_fast import Pi0FastTokenizer
     from openpi_cam.transforms import Normalize
 
-    tok = Pi0FastTokenizer.from_files(bundled.PALIGEMMA_TOKENIZER, bundled.FAST_TOKENIZER, max_len=56)
-    normalize = Normalize(load_checkpoint_norm_stats(bundled.CHECKPOINT, bundled.ASSET_ID), use_quantiles=True)
+    tok = Pi0FastTokenizer.from_files(demo_reach.PALIGEMMA_TOKENIZER, demo_reach.FAST_TOKENIZER, max_len=56)
+    normalize = Normalize(load_checkpoint_norm_stats(demo_reach.CHECKPOINT, demo_reach.ASSET_ID), use_quantiles=True)
     data = task.make_dataset(seed, n)
     rows = []
     for prompt, state, actions in zip(data["prompt"], data["state"], data["actions"], strict=True):
@@ -132,19 +133,19 @@ def test_expert_postfix_fits_the_decoding_cap():
     lengths = {int(((ar == 1) & mask).sum()) for _, (_, mask, ar, _) in rows}
     # The shipped FAST fit has no merges (its 97-id budget is below the 256 byte symbols): 20 ids per chunk.
     assert lengths == {27}
-    assert max(lengths) <= bundled.MAX_DECODING_STEPS
+    assert max(lengths) <= demo_reach.MAX_DECODING_STEPS
 
 
 def test_shipped_checkpoint_loads_through_the_normal_loader():
     from openpi_cam.model.checkpoint import load_params
     from openpi_cam.model.pi0_fast import Pi0FAST
 
-    params = load_params(bundled.CHECKPOINT / "params")
+    params = load_params(demo_reach.CHECKPOINT / "params")
     model = Pi0FAST.from_params(params, action_dim=2, action_horizon=10, max_token_len=56, dtype="float32")
     grid = task.TaskConfig().image_size // bundled.PATCH_SIZE
     assert model.camera_grid == (grid, grid) == (4, 4)
     assert model.config.image_resolution == (64, 64)
-    assert model.config.gemma.vocab_size == bundled.create_demo_policy().tokenizer.vocab_size
+    assert model.config.gemma.vocab_size == demo_reach.create_demo_policy().tokenizer.vocab_size
 
 
 def test_pointing_game_geometry():
@@ -185,8 +186,8 @@ def test_heads_for_measures_the_executed_heading():
 def test_shipped_model_scores_expert_chunks_and_occlusion_runs():
     from openpi_cam.demo.train import Batches, load_normalize
 
-    policy = bundled.create_demo_policy()
-    batches = Batches(bundled.ASSETS, load_normalize(bundled.ASSETS), 1, seed=0)
+    policy = demo_reach.create_demo_policy()
+    batches = Batches(demo_reach.ASSETS, load_normalize(demo_reach.ASSETS), 1, seed=0)
     named, _ = quality.binding_pairs(8, seed=3)
     rng = np.random.default_rng(0)
     aimless = [dataclasses.replace(s, actions=np.tile(rng.uniform(-0.1, 0.1, 2), (10, 1))) for s in named]
@@ -212,7 +213,7 @@ def test_shipped_model_gradient_norm_map_points_at_the_named_block():
     8/10 (the misses: a near tie, 0.96 vs 1.0, and a peak on a distractor), prompt swap 9/10, peak on some block 9/10;
     29/30 and 29/30 on the README's 30 scenes. Grad-CAM here: 1/10 and 0/10 (not asserted; README, "The bundled
     demo"). The bound 7/10 is far above a map at chance (the named block's cells: 17% of the grid)."""
-    figures = quality.map_figures(bundled.create_demo_policy(), samples=10, seed=7)
+    figures = quality.map_figures(demo_reach.create_demo_policy(), samples=10, seed=7)
     gradnorm = figures["gradnorm"]
     assert gradnorm["pointing_game_fresh"] >= 0.7 and gradnorm["pointing_chance_fresh"] < 0.25
     assert gradnorm["prompt_swap_samples"] == 10 and gradnorm["prompt_swap_peak_moves"] >= 0.7
@@ -229,7 +230,7 @@ def test_decode_offset_trains_the_positions_the_decoder_serves():
     from openpi_cam.model.observation import Observation
     from openpi_cam.model.pi0_fast import EOS_TOKEN, compute_loss, embed_images, replay_prelogits
 
-    policy = bundled.create_demo_policy()
+    policy = demo_reach.create_demo_policy()
     model = policy.model
     rng = np.random.default_rng(2)
     scene = task.random_scene(rng)
@@ -286,11 +287,11 @@ def test_training_command_writes_a_servable_model(tmp_path):
     assert summary["main_loss"] < 0.25 * math.log(VOCAB_SIZE)
     assert summary["finetune_loss"] < 0.25 * math.log(VOCAB_SIZE)
     assert summary["success_rate"] in (0.0, 1.0)
-    policy = bundled.create_demo_policy(assets=tmp_path)
+    policy = demo_reach.create_demo_policy(assets=tmp_path)
     rng = np.random.default_rng(0)
     scene = task.random_scene(rng)
     obs = bundled.policy_input(bundled.client_observation(task.observe(scene, task.random_start(rng, scene))))
-    assert np.asarray(policy.infer(obs)["actions"]).shape == (bundled.DEMO_CONFIG.action_horizon, 2)
+    assert np.asarray(policy.infer(obs)["actions"]).shape == (demo_reach.DEMO_CONFIG.action_horizon, 2)
 
 
 @pytest.mark.slow

@@ -1,38 +1,42 @@
-"""Reading CAM run directories, and the format definitions the logger shares (see docs/FORMAT.md).
+"""The CAM run-directory format, both directions (docs/FORMAT.md): names, schema, step-file encoding, atomic
+writes, index and manifest records, and reading runs back.
 
 The step files are the source of truth. `index.jsonl` and `manifest.json` are conveniences that may be stale or
-damaged after a crash; everything here copes with that by falling back to the step files.
+damaged after a crash; everything here copes with that by falling back to the step files. The stateful writer
+(caps, counters, one run at a time) is `cam.logger.CAMLogger`, built on these functions.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import datetime as dt
+import io
 import json
 import logging
 import os
 import pathlib
 import re
 import secrets
-import sys
 import zipfile
 from collections.abc import Iterable, Mapping
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
-import tyro
 
 log = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 1
+# 2: maps of several kinds (`<kind prefix><camera>`), the model inputs (`input/`), target `generated-tokens` and
+# `malformed` in meta. Version 1 runs (only `cam/` and `gradnorm/` maps) read unchanged.
+SCHEMA_VERSION = 2
 RUN_JSON = "run.json"
 INDEX_JSONL = "index.jsonl"
 MANIFEST_JSON = "manifest.json"
 STEPS_DIR = "steps"
-MAP_PREFIX = "cam/"
-GRADNORM_PREFIX = "gradnorm/"
+# Step-file key prefix of each map kind, followed by the camera name.
+MAP_PREFIXES: dict[str, str] = {"gradcam": "cam/", "gradnorm": "gradnorm/"}
 FRAME_PREFIX = "frame/"
 MODEL_FRAME_PREFIX = "frame_model/"
+INPUT_PREFIX = "input/"  # the explained call's non-image model inputs (token ids, masks, generated output)
 META_KEY = "meta"
 
 _STEP_FILE_RE = re.compile(r"^(\d{8,})\.npz$")
@@ -98,12 +102,10 @@ def map_summary(cam_map: np.ndarray) -> dict[str, Any]:
     return {"max": float(masked[row, col]), "mean": float(m[finite].mean()), "argmax": [int(row), int(col)]}
 
 
-def summarize_maps(maps: Mapping[str, np.ndarray]) -> dict[str, dict[str, Any]]:
-    return {camera: map_summary(m) for camera, m in maps.items()}
-
-
-def index_entry(seq: int, meta: Mapping[str, Any], summary: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """One line of index.jsonl (also one element of the manifest's "steps")."""
+def index_entry(seq: int, meta: Mapping[str, Any], maps: Mapping[str, Mapping[str, np.ndarray]]) -> dict[str, Any]:
+    """One line of index.jsonl (also one element of the manifest's "steps"); `summary` describes the maps of
+    `summary_kind` (Grad-CAM when logged)."""
+    kind = summary_kind(maps)
     return {
         "seq": seq,
         "file": step_file(seq),
@@ -111,7 +113,9 @@ def index_entry(seq: int, meta: Mapping[str, Any], summary: dict[str, dict[str, 
         "step": meta.get("step"),
         "timestamp": meta.get("timestamp"),
         "target": meta.get("target"),
-        "summary": summary,
+        "malformed": meta.get("malformed"),
+        "summary_kind": kind,
+        "summary": {} if kind is None else {camera: map_summary(m) for camera, m in maps[kind].items()},
     }
 
 
@@ -123,22 +127,99 @@ def build_manifest(
     return head | {"counters": counters, "steps": steps}
 
 
-class StepArrays(NamedTuple):
-    maps: dict[str, np.ndarray]
+@dataclasses.dataclass
+class StepRecord:
+    """One step to write; `meta` holds the step JSON fields other than those the logger fills (`RESERVED_META`)."""
+
+    connection: str
+    step: int
+    timestamp: float
+    maps: dict[str, dict[str, np.ndarray]]  # kind -> camera -> float32 (Hp, Wp) or (T, Hp, Wp)
+    frames: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    model_frames: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    inputs: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    meta: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+
+# Fields of the step JSON that the writer owns; StepRecord.meta must not set them.
+RESERVED_META = ("schema_version", "run_id", "seq", "connection", "step", "timestamp")
+
+
+def _checked_maps(kind: str, maps: Any) -> dict[str, np.ndarray]:
+    if kind not in MAP_PREFIXES:
+        raise ValueError(f"unknown map kind {kind!r}; the format knows {sorted(MAP_PREFIXES)}")
+    if not isinstance(maps, dict):
+        raise TypeError(f"StepRecord.maps[{kind!r}] must be a dict, got {type(maps).__name__}")
+    checked = {}
+    for camera, cam_map in maps.items():
+        arr = np.asarray(cam_map, dtype=np.float32)
+        if arr.ndim not in (2, 3):
+            raise ValueError(f"{kind} map {camera!r} must be (Hp, Wp) or (T, Hp, Wp), got shape {arr.shape}")
+        checked[camera] = arr
+    return checked
+
+
+def _checked_images(images: Any, what: str) -> dict[str, np.ndarray]:
+    if not isinstance(images, dict):
+        raise TypeError(f"StepRecord.{what} must be a dict, got {type(images).__name__}")
+    checked = {}
+    for camera, image in images.items():
+        arr = np.asarray(image)
+        if arr.dtype != np.uint8 or arr.ndim != 3 or arr.shape[-1] != 3:
+            raise TypeError(f"StepRecord.{what}[{camera!r}] must be uint8 (H, W, 3), got {arr.dtype} {arr.shape}")
+        checked[camera] = arr
+    return checked
+
+
+def record_arrays(record: StepRecord) -> dict[str, np.ndarray]:
+    """Validates a record and returns its npz members except meta (wrong types raise: those are bugs)."""
+    if not isinstance(record, StepRecord):
+        raise TypeError(f"expected a StepRecord, got {type(record).__name__}")
+    if not isinstance(record.meta, dict):
+        raise TypeError("StepRecord.meta must be a dict")
+    if clash := [k for k in RESERVED_META if k in record.meta]:
+        raise ValueError(f"StepRecord.meta must not set {clash}: the logger fills them")
+    arrays = {}
+    for kind, maps in record.maps.items():
+        arrays |= {MAP_PREFIXES[kind] + c: a for c, a in _checked_maps(kind, maps).items()}
+    arrays |= {FRAME_PREFIX + c: a for c, a in _checked_images(record.frames, "frames").items()}
+    arrays |= {MODEL_FRAME_PREFIX + c: a for c, a in _checked_images(record.model_frames, "model_frames").items()}
+    arrays |= {INPUT_PREFIX + k: np.asarray(v) for k, v in record.inputs.items()}
+    return arrays
+
+
+def summary_kind(maps: Mapping[str, Mapping[str, np.ndarray]]) -> str | None:
+    """The kind `index.jsonl` summarises: Grad-CAM when logged (as in version 1), else the first kind."""
+    return "gradcam" if maps.get("gradcam") else next((k for k, m in maps.items() if m), None)
+
+
+def encode_step(arrays: Mapping[str, np.ndarray], meta: Mapping[str, Any], *, compress: bool) -> bytes:
+    buf = io.BytesIO()
+    (np.savez_compressed if compress else np.savez)(buf, **arrays, **{META_KEY: np.array(dumps(meta))})
+    return buf.getvalue()
+
+
+@dataclasses.dataclass
+class StepArrays:
+    maps: dict[str, dict[str, np.ndarray]]  # kind -> camera -> map (kinds a step lacks are absent)
     frames: dict[str, np.ndarray]
     model_frames: dict[str, np.ndarray]
-    gradnorm_maps: dict[str, np.ndarray]  # empty for steps written before the key existed
-
-
-_ARRAY_PREFIXES = (MAP_PREFIX, FRAME_PREFIX, MODEL_FRAME_PREFIX, GRADNORM_PREFIX)  # StepArrays' field order
+    inputs: dict[str, np.ndarray]
 
 
 def _split_arrays(npz: Any) -> StepArrays:
     arrays = StepArrays({}, {}, {}, {})
+    prefixes = [(p, arrays.maps.setdefault(k, {})) for k, p in MAP_PREFIXES.items()]
+    prefixes += [
+        (FRAME_PREFIX, arrays.frames),
+        (MODEL_FRAME_PREFIX, arrays.model_frames),
+        (INPUT_PREFIX, arrays.inputs),
+    ]
     for key in npz.files:
-        for prefix, target in zip(_ARRAY_PREFIXES, arrays, strict=True):
+        for prefix, target in prefixes:
             if key.startswith(prefix):
                 target[key[len(prefix) :]] = npz[key]
+    arrays.maps = {k: m for k, m in arrays.maps.items() if m}
     return arrays
 
 
@@ -161,13 +242,18 @@ class CAMStep:
                 self._arrays = _split_arrays(npz)
         return self._arrays
 
-    @property
-    def maps(self) -> dict[str, np.ndarray]:
-        return self.arrays().maps
+    def lazy(self) -> CAMStep:
+        """A copy that reads its arrays on use and drops them with itself, so that walking a long run does not keep
+        every map and frame in memory."""
+        return CAMStep(self.seq, self.meta, self.file)
 
     @property
-    def gradnorm_maps(self) -> dict[str, np.ndarray]:
-        return self.arrays().gradnorm_maps
+    def map_kinds(self) -> tuple[str, ...]:
+        return tuple(self.arrays().maps)
+
+    def maps_of(self, kind: str) -> dict[str, np.ndarray]:
+        """camera -> map of one kind; empty when the step has none of that kind."""
+        return self.arrays().maps.get(kind, {})
 
     @property
     def frames(self) -> dict[str, np.ndarray]:
@@ -176,6 +262,10 @@ class CAMStep:
     @property
     def model_frames(self) -> dict[str, np.ndarray]:
         return self.arrays().model_frames
+
+    @property
+    def inputs(self) -> dict[str, np.ndarray]:
+        return self.arrays().inputs
 
     def __repr__(self) -> str:
         return f"CAMStep(seq={self.seq}, file={str(self.file)!r})"
@@ -191,7 +281,8 @@ class CAMRun:
     problems: list[str] = dataclasses.field(default_factory=list)
 
 
-def _read_json(path: pathlib.Path) -> dict[str, Any] | None:
+def read_json(path: pathlib.Path) -> dict[str, Any] | None:
+    """A JSON object file, or None when it is missing, unreadable or not an object."""
     try:
         value = json.loads(path.read_text())
     except (OSError, ValueError):
@@ -216,7 +307,7 @@ def _read_index(run_dir: pathlib.Path) -> dict[int, dict[str, Any]]:
     return entries
 
 
-def _step_files(run_dir: pathlib.Path) -> dict[int, pathlib.Path]:
+def step_files(run_dir: pathlib.Path) -> dict[int, pathlib.Path]:
     steps_dir = run_dir / STEPS_DIR
     if not steps_dir.is_dir():
         return {}
@@ -228,11 +319,13 @@ def _step_files(run_dir: pathlib.Path) -> dict[int, pathlib.Path]:
     return dict(sorted(found.items()))
 
 
-def _scan(run_dir: pathlib.Path, *, load_arrays: bool) -> tuple[list[CAMStep], dict[int, dict[str, Any]], list[str]]:
+def scan_steps(
+    run_dir: pathlib.Path, *, load_arrays: bool
+) -> tuple[list[CAMStep], dict[int, dict[str, Any]], list[str]]:
     """Reads every step file; returns the steps, an index entry per step, and the files that failed to read."""
     index = _read_index(run_dir)
     steps, entries, problems = [], {}, []
-    for seq, path in _step_files(run_dir).items():
+    for seq, path in step_files(run_dir).items():
         try:
             with np.load(path, allow_pickle=False) as npz:
                 meta = _read_meta(npz)
@@ -242,7 +335,7 @@ def _scan(run_dir: pathlib.Path, *, load_arrays: bool) -> tuple[list[CAMStep], d
             continue
         steps.append(CAMStep(seq, meta, path, arrays if load_arrays else None))
         # arrays were read above whenever the index lacks this step
-        entries[seq] = index[seq] if seq in index else index_entry(seq, meta, summarize_maps(arrays.maps))
+        entries[seq] = index[seq] if seq in index else index_entry(seq, meta, arrays.maps)
     return steps, entries, problems
 
 
@@ -260,8 +353,8 @@ def _rebuilt_manifest(
     return build_manifest(run_info, counters, entries.values(), closed=closed, rebuilt_at=utc_now_iso())
 
 
-def _read_run_info(run_dir: pathlib.Path) -> dict[str, Any]:
-    run_info = _read_json(run_dir / RUN_JSON)
+def read_run_info(run_dir: pathlib.Path) -> dict[str, Any]:
+    run_info = read_json(run_dir / RUN_JSON)
     if run_info is None:
         raise FileNotFoundError(f"{run_dir} is not a CAM run directory (no readable {RUN_JSON})")
     version = run_info.get("schema_version")
@@ -276,9 +369,9 @@ def load_run(run_dir: str | os.PathLike[str], *, load_arrays: bool = True) -> CA
     `manifest` is manifest.json when it lists exactly the step files present, otherwise one rebuilt in memory.
     """
     run_dir = pathlib.Path(run_dir)
-    run_info = _read_run_info(run_dir)
-    steps, entries, problems = _scan(run_dir, load_arrays=load_arrays)
-    manifest = _read_json(run_dir / MANIFEST_JSON)
+    run_info = read_run_info(run_dir)
+    steps, entries, problems = scan_steps(run_dir, load_arrays=load_arrays)
+    manifest = read_json(run_dir / MANIFEST_JSON)
     if not _manifest_is_current(manifest, [s.seq for s in steps]):
         manifest = _rebuilt_manifest(run_info, manifest, entries)
     return CAMRun(run_dir, run_info, manifest, steps, problems)
@@ -287,9 +380,9 @@ def load_run(run_dir: str | os.PathLike[str], *, load_arrays: bool = True) -> CA
 def rebuild_manifest(run_dir: str | os.PathLike[str]) -> dict[str, Any]:
     """Rewrites manifest.json from the step files (and index.jsonl summaries), keeping an old manifest's counters."""
     run_dir = pathlib.Path(run_dir)
-    run_info = _read_run_info(run_dir)
-    _, entries, problems = _scan(run_dir, load_arrays=False)
-    manifest = _rebuilt_manifest(run_info, _read_json(run_dir / MANIFEST_JSON), entries)
+    run_info = read_run_info(run_dir)
+    _, entries, problems = scan_steps(run_dir, load_arrays=False)
+    manifest = _rebuilt_manifest(run_info, read_json(run_dir / MANIFEST_JSON), entries)
     if problems:
         manifest["unreadable_files"] = problems
     write_json_atomic(run_dir / MANIFEST_JSON, manifest)
@@ -302,26 +395,3 @@ def list_runs(cam_dir: str | os.PathLike[str]) -> list[pathlib.Path]:
     if not cam_dir.is_dir():
         return []
     return sorted(p for p in cam_dir.iterdir() if p.is_dir() and (p / RUN_JSON).is_file())
-
-
-def cam_index_cmd(run_dir: tyro.conf.Positional[pathlib.Path]) -> int:
-    """Rebuild a CAM run's manifest.json from its step files (e.g. after the server was killed).
-
-    Args:
-        run_dir: the run directory (contains run.json and steps/).
-    """
-    try:
-        manifest = rebuild_manifest(run_dir)
-    except OSError as e:
-        print(f"cam-index: {e}", file=sys.stderr)
-        return 1
-    seqs = [e["seq"] for e in manifest["steps"]]
-    cameras = sorted({c for e in manifest["steps"] for c in (e.get("summary") or {})})
-    span = f"seq {seqs[0]}..{seqs[-1]}" if seqs else "no steps"
-    gaps = "" if not seqs or seqs == list(range(seqs[0], seqs[0] + len(seqs))) else ", with gaps"
-    unreadable = len(manifest.get("unreadable_files", []))
-    print(
-        f"{run_dir}: {len(seqs)} steps ({span}{gaps}), cameras {cameras}, "
-        f"{unreadable} unreadable step files; wrote {MANIFEST_JSON}"
-    )
-    return 0

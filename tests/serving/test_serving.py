@@ -21,12 +21,11 @@ from typing import Any
 import numpy as np
 import pytest
 from client_env import collect, run_client, spawn_client
+from paths import REPO_ROOT
 
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.serving import RequestContext, msgpack_numpy
 from openpi_cam.serving.server import start_server_in_thread
-
-REPO_ROOT = Path(__file__).resolve().parents[1]
 
 # Runs in the client venv (numpy 1.x, openpi_client 0.1.x). argv[1] is a JSON object of arguments.
 CLIENT_PRELUDE = r"""

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import functools
 import json
-import pathlib
 import re
 import shutil
 
 import jax
 import numpy as np
 import pytest
+from paths import GOLDEN_DIR
 
 from openpi_cam import golden
 from openpi_cam.model.checkpoint import load_params, read_param_shapes, save_params
@@ -19,7 +19,7 @@ from openpi_cam.model.pi0_fast import Pi0FAST, init_params, sample_tokens_jit
 from openpi_cam.nested import flatten_dict as flatten
 from openpi_cam.nested import unflatten_dict as unflatten
 
-GOLDEN = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "golden"
+GOLDEN = GOLDEN_DIR
 TINY = GOLDEN / "tiny_pi0_fast"
 CAMERAS = ["base_0_rgb", "base_1_rgb", "wrist_0_rgb"]
 

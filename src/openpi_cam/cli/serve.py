@@ -1,7 +1,7 @@
 """`openpi-cam serve`: load a pi0-FAST checkpoint and serve it like upstream's `scripts/serve_policy.py`.
 
-With `--cam-every-k K > 0` every K-th request per connection also gets a Grad-CAM record written to `--cam-dir`
-(off the request path; see docs/FORMAT.md).
+With `--cam-every-k K > 0` every K-th request per connection also gets its maps written to `--cam-dir` (off the
+request path; see docs/FORMAT.md).
 """
 
 from __future__ import annotations
@@ -11,14 +11,19 @@ import sys
 from pathlib import Path
 from typing import Literal
 
-from openpi_cam.serving.server import PolicyServer, RunningServer, start_server_in_thread
-
-__all__ = ["RunningServer", "serve", "start_server_in_thread"]
+from openpi_cam.cam.records import SaveFrames
+from openpi_cam.cam.side_channel import CAMOptions, CAMPolicy, wrap_policy_with_cam
+from openpi_cam.model.attribution import MapKind
+from openpi_cam.model.config import MAX_DECODING_STEPS
+from openpi_cam.policies import demo_reach
+from openpi_cam.policies.family import Target
+from openpi_cam.policies.policy import Policy, create_policy
+from openpi_cam.serving.server import PolicyServer
 
 logger = logging.getLogger(__name__)
 
 
-def serve(
+def main(
     checkpoint_dir: Path | None = None,
     config: str | None = None,
     paligemma_tokenizer: Path | None = None,
@@ -33,9 +38,10 @@ def serve(
     stop_at_action_end: bool = False,
     cam_every_k: int = 0,
     cam_dir: Path = Path("cam_runs"),
-    cam_save_frames: Literal["none", "raw", "model", "both"] = "model",
-    cam_target: Literal["action-token", "all-action-tokens", "chunk"] = "action-token",
+    cam_save_frames: SaveFrames = "model",
+    cam_target: Target = "action-token",
     cam_action_index: int = 0,
+    cam_maps: tuple[MapKind, ...] = ("gradcam", "gradnorm"),
     cam_queue_size: int = 8,
     cam_max_steps: int | None = None,
     cam_max_mb: float | None = None,
@@ -59,8 +65,10 @@ def serve(
         cam_every_k: record Grad-CAM for every k-th request (0 = off).
         cam_dir: where Grad-CAM runs are written.
         cam_save_frames: which camera frames to store next to the maps.
-        cam_target: which score Grad-CAM explains.
+        cam_target: which score the maps explain (a generation without action tokens is explained with
+            `generated-tokens` whatever this says).
         cam_action_index: which action token for `action-token`.
+        cam_maps: which kinds of map each explained step carries (README, "Which map to trust").
         cam_queue_size: pending Grad-CAM jobs before new ones are dropped (inference never waits).
         cam_max_steps: stop recording after this many steps (None = no limit).
         cam_max_mb: stop recording once the run directory holds this many MB (None = no limit).
@@ -72,17 +80,14 @@ def serve(
     if cam_every_k < 0:
         print(f"openpi-cam serve: --cam-every-k must be >= 0, got {cam_every_k}", file=sys.stderr)
         return 2
-    from openpi_cam.policies.policy import create_policy
 
-    max_decoding_steps = 256  # upstream's default
+    max_decoding_steps = MAX_DECODING_STEPS
     if checkpoint_dir is None:  # the bundled default: a tiny pi0-FAST trained on the demo task
-        from openpi_cam.demo import bundled
-
-        max_decoding_steps = bundled.MAX_DECODING_STEPS
-        checkpoint_dir = bundled.CHECKPOINT
-        config = config or bundled.DEMO_CONFIG.name
-        paligemma_tokenizer = paligemma_tokenizer or bundled.PALIGEMMA_TOKENIZER
-        fast_tokenizer = fast_tokenizer or bundled.FAST_TOKENIZER
+        max_decoding_steps = demo_reach.MAX_DECODING_STEPS
+        checkpoint_dir = demo_reach.CHECKPOINT
+        config = config or demo_reach.DEMO_CONFIG.name
+        paligemma_tokenizer = paligemma_tokenizer or demo_reach.PALIGEMMA_TOKENIZER
+        fast_tokenizer = fast_tokenizer or demo_reach.FAST_TOKENIZER
         dtype = dtype or "float32"
     config = config or "pi0_fast_droid"
     dtype = dtype or "bfloat16"
@@ -101,17 +106,17 @@ def serve(
         # Missing files are an operator problem, not a bug: the message says what is missing and where.
         print(f"openpi-cam serve: {e}", file=sys.stderr)
         return 1
-    metadata = dict(getattr(policy, "metadata", None) or {})
+    metadata = dict(policy.metadata)
 
+    served: Policy | CAMPolicy = policy
     if cam_every_k > 0:
-        from openpi_cam.cam.wrapper import CAMOptions, wrap_policy_with_cam
-
         options = CAMOptions(
             every_k=cam_every_k,
             cam_dir=cam_dir,
             save_frames=cam_save_frames,
             target=cam_target,
             action_index=cam_action_index,
+            maps=cam_maps,
             queue_size=cam_queue_size,
             max_steps=cam_max_steps,
             max_bytes=None if cam_max_mb is None else int(cam_max_mb * 1024 * 1024),
@@ -125,11 +130,11 @@ def serve(
             "default_prompt": default_prompt,
             "stop_at_action_end": stop_at_action_end,
         }
-        policy = wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=str(checkpoint_dir))
+        served = wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=str(checkpoint_dir))
         logger.info("Grad-CAM on: every %d requests, target %s, writing to %s", cam_every_k, cam_target, cam_dir)
 
     server = PolicyServer(
-        policy,
+        served,
         host=host,
         port=port,
         metadata=metadata,

@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 OPENPI_CLIENT_VERSION = "0.1.2"  # newest release on PyPI; its WebsocketClientPolicy matches upstream 15a9616's
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 CLIENT_VENV = REPO_ROOT / ".venv-client"
 _STAMP = CLIENT_VENV / "openpi-client-version.txt"
 _PROBE = "import numpy, msgpack, websockets, openpi_client.websocket_client_policy as w; print(numpy.__version__)"

@@ -12,10 +12,10 @@ import urllib.parse
 
 import numpy as np
 import pytest
+from openpi_cam.cam.reader import load_run
 from PIL import Image
 
 from openpi_cam.cam.logger import CAMLogger, StepRecord
-from openpi_cam.cam.reader import load_run
 from openpi_cam.cli import main as cli_main
 from openpi_cam.image_tools import letterbox_geometry
 from openpi_cam.viz.colormap import LUT, colorize

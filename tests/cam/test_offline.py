@@ -21,7 +21,6 @@ from typing import Any
 import numpy as np
 import pytest
 from fixed_generation import FixedGeneration
-
 from openpi_cam.cam.batch_engine import explain_batch, stack_observations
 from openpi_cam.cam.engine import CamSkipped, explain
 from openpi_cam.cam.explain import (
@@ -33,12 +32,14 @@ from openpi_cam.cam.explain import (
     iter_run_steps,
     record_observation,
 )
-from openpi_cam.cam.logger import CAMLogger, StepRecord
 from openpi_cam.cam.reader import load_run
 from openpi_cam.cam.wrapper import CAMOptions, wrap_policy_with_cam
+from paths import REPO_ROOT
+
+from openpi_cam.cam.logger import CAMLogger, StepRecord
 from openpi_cam.serving import RequestContext
 
-REPO = pathlib.Path(__file__).resolve().parents[1]
+REPO = REPO_ROOT
 BATCH = 2
 
 

@@ -2,19 +2,18 @@
 
 from __future__ import annotations
 
-import pathlib
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from paths import GOLDEN_DIR
 
 from openpi_cam import golden
 from openpi_cam.model import pi0_fast_maps as maps
 from openpi_cam.model.observation import preprocess_observation
 from openpi_cam.model.pi0_fast import Pi0FAST, embed_images, replay_prelogits, sample_tokens_jit
 
-TINY = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "golden" / "tiny_pi0_fast"
+TINY = GOLDEN_DIR / "tiny_pi0_fast"
 CAMERAS = ["base_0_rgb", "base_1_rgb", "wrist_0_rgb"]
 # Logit tolerance: upstream's own float32 evaluations of these logits differ by up to 5.4e-4 (golden README).
 LOGIT_ATOL = 2e-3

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from paths import GOLDEN_DIR
 
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.tokenizers.fast import (
@@ -21,7 +22,7 @@ from openpi_cam.tokenizers.fast import (
 from openpi_cam.tokenizers.paligemma import load_paligemma_tokenizer, resolve_paligemma_tokenizer_path
 from openpi_cam.tokenizers.pi0_fast import NO_ACTION_PREFIX, Pi0FastTokenizer, discretize_state
 
-GOLDEN = Path(__file__).resolve().parents[1].parent / "shared" / "golden" / "tiny_policy_droid"
+GOLDEN = GOLDEN_DIR / "tiny_policy_droid"
 pytestmark = pytest.mark.skipif(not GOLDEN.is_dir(), reason=f"golden data not found at {GOLDEN}")
 
 HORIZON, ACTION_DIM, MAX_LEN = 10, 8, 250  # the golden's Pi0FASTConfig

@@ -20,16 +20,15 @@ import numpy as np
 import pytest
 from client_env import collect, spawn_client
 from fixed_generation import FixedGeneration
-from test_serving import CLIENT_PRELUDE, get_stats, read_packed
-
 from openpi_cam.cam.engine import explain
 from openpi_cam.cam.reader import load_run
-from openpi_cam.cam.records import model_frame_uint8
 from openpi_cam.cam.wrapper import CAMOptions, wrap_policy_with_cam
+from paths import REPO_ROOT
+from test_serving import CLIENT_PRELUDE, get_stats, read_packed
+
+from openpi_cam.cam.records import model_frame_uint8
 from openpi_cam.serving import RequestContext, msgpack_numpy
 from openpi_cam.serving.server import start_server_in_thread
-
-REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
 class GatedModel:
@@ -282,7 +281,7 @@ def test_kill_9_mid_run_leaves_every_completed_step_readable(golden_dir, tmp_pat
             KILL_SCRIPT,
             str(golden_dir / "tiny_policy_droid"),
             str(tmp_path),
-            str(REPO_ROOT / "tests"),
+            str(REPO_ROOT / "tests" / "support"),
         ],
         stdout=subprocess.PIPE,
         text=True,

@@ -1,0 +1,43 @@
+"""`openpi-cam` command line: one subcommand per module of this package, each a tyro-parsed function.
+
+Subcommand modules are imported only when chosen, so that `openpi-cam --help` stays fast.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+import tyro
+
+# name -> (module, one-line help). Each module defines `main`, a function with tyro-parsable arguments.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "serve": ("openpi_cam.cli.serve", "serve an OpenPI pi0-FAST checkpoint over websockets"),
+    "demo": ("openpi_cam.cli.demo", "run the bundled tiny model end to end with the side channel on"),
+    "golden": ("openpi_cam.cli.golden", "check the model against an upstream golden folder"),
+    "explain": ("openpi_cam.cli.explain", "compute maps offline for recorded observations"),
+    "render": ("openpi_cam.cli.render", "overlays, videos and an HTML report for a CAM run"),
+    "stats": ("openpi_cam.cli.stats", "per-step, per-camera map statistics of a CAM run"),
+    "cam-index": ("openpi_cam.cli.cam_index", "rebuild a CAM run's manifest from its step files"),
+}
+
+
+def _usage() -> str:
+    lines = ["usage: openpi-cam COMMAND [--help] [ARGS...]", "", "commands:"]
+    lines += [f"  {name:<13} {help_}" for name, (_, help_) in COMMANDS.items()]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(_usage())
+        return
+    name, rest = argv[0], argv[1:]
+    if name not in COMMANDS:
+        print(f"openpi-cam: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
+        raise SystemExit(2)
+    command = importlib.import_module(COMMANDS[name][0]).main
+    result = tyro.cli(command, args=rest, prog=f"openpi-cam {name}")
+    if isinstance(result, int) and result != 0:
+        raise SystemExit(result)

@@ -1,0 +1,95 @@
+"""The whole system on the bundled tiny model: serve it on loopback with the side channel explaining every
+inference, drive simulated reaching episodes through a websocket client exactly as a robot would, render the maps
+and score them against the ground-truth boxes the client sent along (`cam_extra/target_box`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import pathlib
+import time
+from typing import Any
+
+from openpi_cam.cam.runfmt import load_run
+from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
+from openpi_cam.demo import bundled, quality, sim
+from openpi_cam.demo.client import PolicyClient
+from openpi_cam.policies import demo_reach
+from openpi_cam.policies.family import Target
+from openpi_cam.serving.server import start_server_in_thread
+from openpi_cam.viz.render import RenderOptions, default_render_dir, render_run
+
+
+def run_episodes(url: str, episodes: int, *, seed: int, max_calls: int, execute: int) -> list[dict[str, Any]]:
+    """Closed loop over the server: observe, infer a chunk, execute its first `execute` actions, repeat."""
+    results = []
+    with PolicyClient(url) as client:
+        for e in range(episodes):
+            episode = sim.new_episode(seed + e)
+            calls = 0
+            while calls < max_calls and not episode.success:
+                reply = client.infer(bundled.client_observation(episode.observe(), episode.scene))
+                calls += 1
+                episode.execute(reply["actions"], execute)
+            results.append(
+                {
+                    "seed": seed + e,
+                    "prompt": episode.observe().prompt,
+                    "success": bool(episode.success),
+                    "calls": calls,
+                    "final_distance": float(((episode.state - episode.goal) ** 2).sum() ** 0.5),
+                }
+            )
+    return results
+
+
+@dataclasses.dataclass(frozen=True)
+class DemoOptions:
+    out: pathlib.Path = pathlib.Path("demo_runs")
+    episodes: int = 3
+    max_calls: int = 6
+    execute: int = 5
+    seed: int = 0
+    target: Target = "chunk"
+    render: bool = True
+    videos: bool = False
+    assets: pathlib.Path = demo_reach.ASSETS
+
+
+@dataclasses.dataclass
+class DemoResult:
+    run_dir: pathlib.Path
+    episodes: list[dict[str, Any]]
+    figures: dict[str, Any]
+    reports: dict[str, pathlib.Path]
+    seconds: float
+
+
+def run_demo(opts: DemoOptions) -> DemoResult:
+    """Serves, drives, renders and scores; raises OSError when the side channel cannot create its run directory."""
+    t0 = time.time()
+    policy = demo_reach.create_demo_policy(assets=opts.assets)
+    options = CAMOptions(every_k=1, cam_dir=opts.out, save_frames="both", target=opts.target, queue_size=64)
+    run_config = {"config": demo_reach.DEMO_CONFIG.name, "demo": {"episodes": opts.episodes, "seed": opts.seed}}
+    checkpoint = str(opts.assets / demo_reach.CHECKPOINT.name)
+    cam = wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=checkpoint)
+    server = start_server_in_thread(cam, metadata=policy.metadata)
+    try:
+        episodes = run_episodes(
+            server.url, opts.episodes, seed=opts.seed, max_calls=opts.max_calls, execute=opts.execute
+        )
+    finally:
+        server.stop()  # closes the side channel too, which drains its queue
+    if cam.run_dir is None:
+        raise OSError(f"the side channel could not create a run directory under {opts.out}; see the log")
+    run_dir = cam.run_dir
+    (run_dir / quality.EPISODES_FILE).write_text(json.dumps(episodes, indent=2))
+    reports = {}
+    if opts.render:
+        run = load_run(run_dir, load_arrays=False)
+        for kind in options.maps:
+            render_opts = RenderOptions(map=kind, videos=opts.videos, progress=False)
+            result = render_run(run, default_render_dir(run_dir, kind), render_opts)
+            if result.report is not None:
+                reports[kind] = result.report
+    return DemoResult(run_dir, episodes, quality.run_figures(run_dir), reports, time.time() - t0)

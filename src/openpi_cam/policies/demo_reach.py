@@ -1,0 +1,62 @@
+"""The bundled demo robot ("demo_reach"): where its model and tokenizers ship, and its policy config.
+
+It sits in the policies layer like DROID or LIBERO, so that the server and the demo both find the bundled default
+without depending on each other. The task itself (scenes, expert, simulator) lives in `openpi_cam.demo`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+
+from openpi_cam.policies.config import PolicyConfig, register_config
+from openpi_cam.policies.policy import Policy, create_policy
+from openpi_cam.policies.robot import GenericInputs, GenericOutputs
+
+ASSETS = Path(__file__).resolve().parents[1] / "assets" / "demo"
+CHECKPOINT = ASSETS / "checkpoint"  # OpenPI layout: params/ and assets/<ASSET_ID>/norm_stats.json
+PALIGEMMA_TOKENIZER = ASSETS / "paligemma_tokenizer.model"
+FAST_TOKENIZER = ASSETS / "fast_tokenizer"
+
+IMAGE_KEY = "observation/image"
+WRIST_KEY = "observation/wrist_image"
+STATE_KEY = "observation/state"
+
+ASSET_ID = "demo_reach"
+ACTION_HORIZON = 10
+# An expert postfix is 27 tokens (`Action: ` in 5, 20 FAST ids, `|`, EOS); a short cap keeps a broken model cheap.
+MAX_DECODING_STEPS = 32
+
+DEMO_CONFIG = register_config(
+    PolicyConfig(
+        name="demo_reach",
+        inputs=(
+            GenericInputs(
+                cameras={"base_0_rgb": IMAGE_KEY, "wrist_0_rgb": WRIST_KEY}, state_key=STATE_KEY, state_dim=2
+            ),
+        ),
+        outputs=(GenericOutputs(action_dim=2),),
+        asset_id=ASSET_ID,
+        action_dim=2,
+        action_horizon=ACTION_HORIZON,
+        max_token_len=56,  # the longest training sequence is 47 tokens
+    )
+)
+
+
+def create_demo_policy(
+    *, assets: Path = ASSETS, dtype: str = "float32", stop_at_action_end: bool = False, rng: jax.Array | None = None
+) -> Policy:
+    """The bundled model (or one trained into `assets` by `python -m openpi_cam.demo.train`) served through the
+    same `create_policy` as any OpenPI checkpoint."""
+    return create_policy(
+        DEMO_CONFIG,
+        assets / CHECKPOINT.name,
+        paligemma_tokenizer=assets / PALIGEMMA_TOKENIZER.name,
+        fast_tokenizer=assets / FAST_TOKENIZER.name,
+        dtype=dtype,
+        max_decoding_steps=MAX_DECODING_STEPS,
+        stop_at_action_end=stop_at_action_end,
+        rng=rng,
+    )

@@ -1,0 +1,91 @@
+"""The seam between a model family and everything above it.
+
+`Policy`, the Grad-CAM side channel and offline explanation see a family only through these types: a `Policy` holds
+the family's model, its output decoder and its `Explainer`; the side channel hands the explainer the exact model
+inputs and outputs of a served call and gets one `Explanation` (or `ExplainSkipped`) per batch row. pi0-FAST is
+`policies.pi0_fast_family`; the flow-matching families (pi0, pi0.5) plug in the same way.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Literal, Protocol, get_args
+
+import jax
+import numpy as np
+from jax.sharding import Mesh
+
+from openpi_cam.model.attribution import MAP_KINDS, MapKind
+from openpi_cam.model.observation import Observation
+
+# What a map explains (the `--cam-target` values). `generated-tokens` is also what a malformed generation (no action
+# tokens to explain) falls back to, so that failures leave maps too.
+Target = Literal["action-token", "all-action-tokens", "chunk", "generated-tokens"]
+TARGETS: tuple[str, ...] = get_args(Target)
+FALLBACK_TARGET: Target = "generated-tokens"
+
+
+@dataclasses.dataclass(frozen=True)
+class ExplainRequest:
+    target: Target = "action-token"
+    action_index: int = 0  # which action token, for target "action-token"
+    kinds: tuple[MapKind, ...] = MAP_KINDS
+
+    def __post_init__(self) -> None:
+        if self.target not in TARGETS:
+            raise ValueError(f"unknown target {self.target!r}; expected one of {TARGETS}")
+        if self.action_index < 0:
+            raise ValueError(f"action_index must be >= 0, got {self.action_index}")
+        if unknown := [k for k in self.kinds if k not in MAP_KINDS]:
+            raise ValueError(f"unknown map kinds {unknown}; expected some of {MAP_KINDS}")
+
+
+@dataclasses.dataclass(frozen=True)
+class Explanation:
+    """The maps of one explained inference (one batch row), ready to be logged."""
+
+    target: str  # the target actually explained (the fallback for a malformed generation)
+    maps: dict[str, dict[str, np.ndarray]]  # kind -> camera -> float32 (Hp, Wp), or (T, Hp, Wp) for T scores
+    score: float | list[float]  # the differentiated score(s)
+    cameras: dict[str, dict[str, Any]]  # camera -> {"valid", "grid", "span"}, in the model's camera order
+    details: dict[str, Any]  # family-specific JSON fields (pi0-FAST: token_ids, decode_steps, positions, ...)
+
+
+class ExplainSkipped(Exception):
+    """This row cannot be explained with the request; `kind` names why (counted, not an error)."""
+
+    def __init__(self, kind: str, message: str):
+        super().__init__(message)
+        self.kind = kind
+
+
+class Explainer(Protocol):
+    """Computes maps for a family's inferences from their exact model inputs and outputs."""
+
+    @property
+    def camera_grid(self) -> tuple[int, int]: ...
+
+    def explain(
+        self, observation: Observation, outputs: np.ndarray, request: ExplainRequest
+    ) -> list[Explanation | ExplainSkipped]:
+        """`observation` [B, ...] and `outputs` [B, ...] (the model's raw outputs, e.g. generated token ids) of B
+        inferences -> one result per row, in row order."""
+        ...
+
+    def on_mesh(self, mesh: Mesh | None) -> Explainer:
+        """The same explainer with its parameters placed on every device of `mesh` (itself for None)."""
+        ...
+
+
+class OutputDecoder(Protocol):
+    """Turns the model's raw output of one inference into a normalised action chunk."""
+
+    def extract(self, output: np.ndarray) -> tuple[np.ndarray, str | None]:
+        """(actions [horizon, action_dim], why the output was malformed or None)."""
+        ...
+
+
+class SamplingModel(Protocol):
+    """What `Policy` needs from a family's model."""
+
+    def sample_actions(self, rng: jax.Array, observation: Observation, **kwargs: Any) -> jax.Array: ...

@@ -1,0 +1,194 @@
+"""pi0-FAST behind the family seam: its model, tokenizer, input/output transforms, and its `Explainer`.
+
+Targets map onto decode steps of the generation: the FAST action tokens are the generated tokens after `Action: `
+and before `|` / EOS (found by the tokenizer). A generation without action tokens (upstream then returns zero
+actions) is explained with the `generated-tokens` target instead of being skipped: score = sum of the
+log-probabilities of every token the model emitted, up to and including EOS.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+import sentencepiece
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from openpi_cam.model import pi0_fast_maps
+from openpi_cam.model.config import EOS_TOKEN
+from openpi_cam.model.observation import Observation
+from openpi_cam.model.pi0_fast import Pi0FAST
+from openpi_cam.model.pi0_fast_maps import GradCamResult
+from openpi_cam.policies.config import PolicyConfig
+from openpi_cam.policies.family import FALLBACK_TARGET, ExplainRequest, ExplainSkipped, Explanation
+from openpi_cam.tokenizers.fast import FastActionTokenizer, resolve_fast_tokenizer_dir
+from openpi_cam.tokenizers.paligemma import load_paligemma_tokenizer
+from openpi_cam.tokenizers.pi0_fast import Pi0FastTokenizer
+from openpi_cam.transforms import ExtractFASTActions, TokenizeFASTInputs
+
+TOKEN_TARGETS = ("action-token", "all-action-tokens")  # one score per explained token
+SEQUENCE_TARGETS = ("chunk", FALLBACK_TARGET)  # one score: a sum of log-probabilities
+
+
+def generated_steps(tokens: np.ndarray) -> np.ndarray:
+    """Decode steps of every token the model emitted: up to and including the first EOS (all steps without one)."""
+    tokens = np.asarray(tokens).reshape(-1)
+    eos = np.flatnonzero(tokens == EOS_TOKEN)
+    return np.arange(eos[0] + 1 if eos.size else tokens.size, dtype=np.int32)
+
+
+@dataclasses.dataclass(frozen=True)
+class _RowPlan:
+    target: str  # the target this row is explained with
+    steps: np.ndarray  # int32 decode steps of its score(s)
+    action_indices: list[int] | None  # which action tokens, when the target is made of them
+
+
+def _plan(tokenizer: Pi0FastTokenizer, tokens: np.ndarray, request: ExplainRequest) -> _RowPlan | ExplainSkipped:
+    """What one row's request explains, or why it cannot."""
+    if request.target == FALLBACK_TARGET:
+        return _RowPlan(FALLBACK_TARGET, generated_steps(tokens), None)
+    steps = np.asarray(tokenizer.action_token_steps(tokens), np.int32)
+    if steps.size == 0:
+        return _RowPlan(FALLBACK_TARGET, generated_steps(tokens), None)
+    if request.target == "action-token":
+        if request.action_index >= steps.size:
+            return ExplainSkipped(
+                "action_index_out_of_range",
+                f"action token {request.action_index} requested, generation has {steps.size}",
+            )
+        return _RowPlan("action-token", steps[[request.action_index]], [request.action_index])
+    return _RowPlan(request.target, steps, list(range(steps.size)))
+
+
+class FastExplainer:
+    """Explains pi0-FAST generations; every call explains a whole batch (a single inference is a batch of one)."""
+
+    def __init__(self, model: Pi0FAST, tokenizer: Pi0FastTokenizer) -> None:
+        self.model = model
+        self.tokenizer = tokenizer
+
+    @property
+    def camera_grid(self) -> tuple[int, int]:
+        return self.model.camera_grid
+
+    def on_mesh(self, mesh: Mesh | None) -> FastExplainer:
+        if mesh is None:
+            return self
+        model = copy.copy(self.model)
+        model.params = jax.device_put(self.model.params, NamedSharding(mesh, PartitionSpec()))
+        return FastExplainer(model, self.tokenizer)
+
+    def explain(
+        self, observation: Observation, outputs: np.ndarray, request: ExplainRequest
+    ) -> list[Explanation | ExplainSkipped]:
+        generated = np.asarray(outputs, np.int32)
+        rows = int(np.shape(observation.state)[0])
+        if generated.ndim != 2 or generated.shape[0] != rows:
+            raise ValueError(f"outputs must be generated token ids [B, S] with B = {rows}, got {generated.shape}")
+        plans = [_plan(self.tokenizer, row, request) for row in generated]
+        results: list[Explanation | ExplainSkipped | None] = [
+            p if isinstance(p, ExplainSkipped) else None for p in plans
+        ]
+        token_rows = [b for b, p in enumerate(plans) if isinstance(p, _RowPlan) and p.target in TOKEN_TARGETS]
+        sequence_rows = [b for b, p in enumerate(plans) if isinstance(p, _RowPlan) and p.target in SEQUENCE_TARGETS]
+        # Each group is one model call over the whole batch (rows outside it ride along on a harmless step), so that
+        # every batch of one size shares one compilation per group.
+        if token_rows:
+            res = pi0_fast_maps.gradcam_for_steps(self.model, observation, generated, _step_matrix(plans, token_rows))
+            for b in token_rows:
+                results[b] = self._row(res, b, plans[b], request)  # type: ignore[arg-type]
+        if sequence_rows:
+            lists = [p.steps if b in sequence_rows else np.zeros(1, np.int32) for b, p in enumerate(plans)]
+            res = pi0_fast_maps.gradcam_for_chunk(self.model, observation, generated, lists)
+            for b in sequence_rows:
+                results[b] = self._row(res, b, plans[b], request)  # type: ignore[arg-type]
+        return [r for r in results if r is not None]
+
+    def _row(self, res: GradCamResult, b: int, plan: _RowPlan, request: ExplainRequest) -> Explanation:
+        t = plan.steps.size
+        if plan.target in SEQUENCE_TARGETS:
+            index: Any = b
+            score: float | list[float] = float(res.score[b])
+        elif plan.target == "action-token":
+            index = (b, 0)
+            score = float(res.score[b, 0])
+        else:
+            index = (b, slice(0, t))
+            score = [float(s) for s in res.score[b, :t]]
+        by_kind = {"gradcam": res.maps, "gradnorm": res.gradnorm_maps}
+        grid = list(self.camera_grid)
+        return Explanation(
+            target=plan.target,
+            maps={k: {c: np.asarray(m[index], np.float32) for c, m in by_kind[k].items()} for k in request.kinds},
+            score=score,
+            cameras={
+                c: {"valid": bool(res.valid[c][b]), "grid": grid, "span": list(res.spans[c])} for c in res.cameras
+            },
+            details={
+                "token_ids": [int(x) for x in np.asarray(res.token_ids)[b, :t]],
+                "decode_steps": [int(s) for s in plan.steps],
+                "positions": [int(p) for p in np.asarray(res.positions)[b, :t]],
+                "action_indices": plan.action_indices,
+            },
+        )
+
+
+def _step_matrix(plans: Sequence[_RowPlan | ExplainSkipped], rows: Sequence[int]) -> np.ndarray:
+    """[B, T] decode steps for a token-target call: a row with fewer steps repeats its first one (the model pads T
+    the same way), rows outside `rows` explain step 0."""
+    width = max(plans[b].steps.size for b in rows)  # type: ignore[union-attr]
+    steps = np.zeros((len(plans), width), np.int32)
+    for b in rows:
+        own = plans[b].steps  # type: ignore[union-attr]
+        steps[b] = np.concatenate([own, np.repeat(own[:1], width - own.size)])
+    return steps
+
+
+@dataclasses.dataclass(frozen=True)
+class FastParts:
+    """What `create_policy` needs from the family, built from local files only."""
+
+    model: Pi0FAST
+    tokenizer: Pi0FastTokenizer
+    tokenize: TokenizeFASTInputs  # the last input transform
+    decoder: ExtractFASTActions  # the first output step
+    explainer: FastExplainer
+    sample_kwargs: dict[str, Any]
+
+
+def build_pi0_fast(
+    config: PolicyConfig,
+    params_dir: Path,
+    *,
+    paligemma_tokenizer: str | Path | sentencepiece.SentencePieceProcessor | None,
+    fast_tokenizer: str | Path | FastActionTokenizer | None,
+    dtype: str,
+    max_decoding_steps: int,
+    stop_at_action_end: bool,
+) -> FastParts:
+    """The model restored from `params_dir` and both tokenizers (None: upstream's cache locations)."""
+    if not isinstance(paligemma_tokenizer, sentencepiece.SentencePieceProcessor):
+        paligemma_tokenizer = load_paligemma_tokenizer(paligemma_tokenizer)
+    if not isinstance(fast_tokenizer, FastActionTokenizer):
+        fast_tokenizer = FastActionTokenizer.load(resolve_fast_tokenizer_dir(fast_tokenizer))
+    tokenizer = Pi0FastTokenizer(paligemma_tokenizer, fast_tokenizer, config.max_token_len)
+    model = Pi0FAST.from_checkpoint(
+        params_dir,
+        action_dim=config.action_dim,
+        action_horizon=config.action_horizon,
+        max_token_len=config.max_token_len,
+        dtype=dtype,
+    )
+    sample_kwargs: dict[str, Any] = {"max_decoding_steps": max_decoding_steps}
+    if stop_at_action_end:
+        sample_kwargs["stop_token_ids"] = tuple(tokenizer.end_of_action_token_ids)
+    decoder = ExtractFASTActions(tokenizer, action_horizon=config.action_horizon, action_dim=config.action_dim)
+    return FastParts(
+        model, tokenizer, TokenizeFASTInputs(tokenizer), decoder, FastExplainer(model, tokenizer), sample_kwargs
+    )

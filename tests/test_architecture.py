@@ -1,0 +1,78 @@
+"""The package's layers, drawn from its imports (function-local ones included), point one way: down.
+
+cli > demo > viz > cam > serving > policies > {model, tokenizers, transforms and the package-root utilities}.
+A function-local import is allowed only for an optional heavy dependency (not a module of this package)."""
+
+from __future__ import annotations
+
+import ast
+import pathlib
+import subprocess
+import sys
+
+from paths import REPO_ROOT
+
+SRC = REPO_ROOT / "src"
+LAYERS = ("cli", "demo", "viz", "cam", "serving", "policies", "base")
+BASE_PACKAGES = ("model", "tokenizers")  # the lowest layer, beside transforms.py and the other root modules
+
+
+def _module(path: pathlib.Path) -> str:
+    parts = path.relative_to(SRC).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _layer(module: str) -> str:
+    parts = module.split(".")
+    if len(parts) > 1 and parts[1] == "__main__":
+        return "cli"  # `python -m openpi_cam` is the command line
+    return parts[1] if len(parts) > 1 and parts[1] in LAYERS else "base"
+
+
+def _imports(path: pathlib.Path) -> list[tuple[str, bool]]:
+    """(imported module, whether the import sits inside a function) for every import of the package's modules."""
+    tree = ast.parse(path.read_text())
+    local = {
+        id(node)
+        for fn in ast.walk(tree)
+        if isinstance(fn, ast.FunctionDef | ast.AsyncFunctionDef)
+        for node in ast.walk(fn)
+        if isinstance(node, ast.Import | ast.ImportFrom)
+    }
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out += [(a.name, id(node) in local) for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out.append((node.module, id(node) in local))
+    return out
+
+
+def test_every_import_points_down_the_layers():
+    upward, local = [], []
+    for path in sorted(SRC.rglob("*.py")):
+        module = _module(path)
+        for target, in_function in _imports(path):
+            if not target.startswith("openpi_cam"):
+                continue
+            if in_function:
+                local.append(f"{module} imports {target} inside a function")
+            if LAYERS.index(_layer(target)) < LAYERS.index(_layer(module)):
+                upward.append(f"{module} ({_layer(module)}) imports {target} ({_layer(target)})")
+    assert not upward, "imports that run up the layers:\n" + "\n".join(upward)
+    assert not local, "function-local imports of the package:\n" + "\n".join(local)
+
+
+def test_the_checker_sees_an_upward_import(tmp_path):
+    """The rule above would catch a policies module importing the side channel, even from inside a function."""
+    bad = tmp_path / "bad.py"
+    bad.write_text("def f():\n    from openpi_cam.cam.side_channel import CAMPolicy\n")
+    ((target, in_function),) = _imports(bad)
+    assert in_function and LAYERS.index(_layer(target)) < LAYERS.index(_layer("openpi_cam.policies.policy"))
+
+
+def test_no_import_cycles_among_files_or_subpackages():
+    """The shared checker (`../shared/tools/import_cycles.py`) finds no cycle among files or sub-packages."""
+    checker = REPO_ROOT.parent / "shared" / "tools" / "import_cycles.py"
+    result = subprocess.run([sys.executable, str(checker), str(SRC)], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stdout + result.stderr
