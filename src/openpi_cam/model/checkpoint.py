@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 
-from openpi_cam.model.config import architecture_from_params, check_param_tree, param_shapes
+from openpi_cam.model.config import check_param_tree, expected_param_shapes
 from openpi_cam.nested import flatten_dict, unflatten_dict
 
 
@@ -56,12 +56,13 @@ def load_params(params_dir: str | pathlib.Path, *, dtype: str | None = None, che
 
     Arrays are restored straight into host numpy buffers (cast to `dtype` by orbax while reading, if given) and moved
     to the device one leaf at a time, so host memory holds one copy of the params plus orbax's transient read
-    buffers. With `check`, the tree must be exactly the pi0-FAST tree of the architecture its shapes describe.
+    buffers. With `check`, the tree must be exactly the tree upstream builds for the family and architecture its shapes
+    describe (pi0-FAST, pi0 or pi0.5).
     """
     params_dir = _resolve(params_dir)
     shapes = read_param_shapes(params_dir)
     if check:
-        check_param_tree(shapes, param_shapes(*architecture_from_params(shapes)))
+        check_param_tree(shapes, expected_param_shapes(shapes))
     ckptr = _checkpointer()
     meta = ckptr.metadata(params_dir)
     tree = getattr(meta, "item_metadata", meta)

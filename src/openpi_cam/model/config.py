@@ -73,9 +73,32 @@ class Pi0FASTConfig:
         return (self.siglip.image_size, self.siglip.image_size)
 
 
+@dataclasses.dataclass(frozen=True)
+class Pi0Config:
+    """pi0 / pi0.5: the PaliGemma backbone (`gemma`, `siglip`) plus a flow-matching action expert (`expert`, the
+    `_1` weights). pi0.5 (`pi05`) conditions the expert's norms on the time (adaRMS) and reads the state as prompt
+    text; pi0 feeds the state as one token through `state_proj`."""
+
+    gemma: GemmaConfig = GemmaConfig()
+    expert: GemmaConfig = GemmaConfig(width=1024, mlp_dim=4096, vocab_size=0)
+    siglip: SiglipConfig = SiglipConfig()
+    pi05: bool = False
+    action_dim: int = 32
+    action_horizon: int = 50
+    max_token_len: int = 48  # upstream: 48 for pi0, 200 for pi0.5
+    dtype: str = "bfloat16"
+    num_steps: int = 10  # Euler steps of `sample_actions`, upstream's default
+
+    @property
+    def image_resolution(self) -> tuple[int, int]:
+        return (self.siglip.image_size, self.siglip.image_size)
+
+
 GEMMA_VARIANTS: dict[str, GemmaConfig] = {
     "gemma_2b": GemmaConfig(),
     "gemma_2b_lora": GemmaConfig(lora_rank=16, lora_alpha=16.0),
+    "gemma_300m": GemmaConfig(width=1024, mlp_dim=4096, vocab_size=0),
+    "gemma_300m_lora": GemmaConfig(width=1024, mlp_dim=4096, vocab_size=0, lora_rank=32, lora_alpha=32.0),
 }
 
 # Widths/depths/mlp/heads of big_vision's ViT family that PaliGemma uses; "/N" gives the patch size.
@@ -107,66 +130,80 @@ def pi0_fast_config(paligemma_variant: str = "gemma_2b", siglip: str = "So400m/1
 
 def _leaf(flat: Mapping[str, Any], path: str) -> tuple[int, ...]:
     if path not in flat:
-        raise ValueError(f"checkpoint has no parameter {path!r}: not a pi0-FAST (PaliGemma) params tree")
+        raise ValueError(f"checkpoint has no parameter {path!r}: not an OpenPI PaliGemma params tree")
     value = flat[path]
     return tuple(value) if isinstance(value, tuple) else tuple(value.shape)
 
 
+LLM = "PaliGemma/llm/"
+IMG = "PaliGemma/img/"
+
+
+def family_of(flat: Mapping[str, Any]) -> str:
+    """ "pi0_fast", "pi0" or "pi05", from which leaves the tree has (the action expert's projections, its
+    time MLP)."""
+    if "action_in_proj/kernel" not in flat:
+        return "pi0_fast"
+    return "pi05" if "time_mlp_in/kernel" in flat else "pi0"
+
+
+def _gemma_from(flat: Mapping[str, Any], suffix: str, vocab: int, scan: bool | None) -> GemmaConfig:
+    """One Gemma stack's sizes from its weights (`suffix` "" for the PaliGemma LLM, "_1" for the action expert)."""
+    depth, num_heads, width, head_dim = _leaf(flat, LLM + f"layers/attn/q_einsum{suffix}/w")
+    num_kv_heads = _leaf(flat, LLM + f"layers/attn/kv_einsum{suffix}/w")[2]
+    mlp_dim = _leaf(flat, LLM + f"layers/mlp{suffix}/linear")[1]
+    lora_key = LLM + f"layers/attn/q_einsum{suffix}/lora_a"
+    # A checkpoint does not store LoRA's alpha: upstream's variants all use alpha = rank.
+    lora_rank = _leaf(flat, lora_key)[-1] if lora_key in flat else 0
+    scan = scan_by_default(depth) if scan is None else scan
+    return GemmaConfig(width, depth, mlp_dim, num_heads, num_kv_heads, head_dim, vocab, lora_rank, lora_rank, scan)
+
+
+def _siglip_from(flat: Mapping[str, Any], scan: bool | None) -> SiglipConfig:
+    patch, _, _, width = _leaf(flat, IMG + "embedding/kernel")
+    depth = _leaf(flat, IMG + "Transformer/encoderblock/LayerNorm_0/scale")[0]
+    heads = _leaf(flat, IMG + "Transformer/encoderblock/MultiHeadDotProductAttention_0/query/kernel")[2]
+    mlp = _leaf(flat, IMG + "Transformer/encoderblock/MlpBlock_0/Dense_0/kernel")[-1]
+    n_tokens = _leaf(flat, IMG + "pos_embedding")[1]
+    side = math.isqrt(n_tokens)
+    if side * side != n_tokens:
+        raise ValueError(f"SigLIP pos_embedding has {n_tokens} tokens: not a square patch grid")
+    out_dim = _leaf(flat, IMG + "head/kernel")[1]
+    scan = scan_by_default(depth) if scan is None else scan
+    return SiglipConfig(width, depth, mlp, heads, patch, side * patch, out_dim, scan)
+
+
 def architecture_from_params(flat: Mapping[str, Any], *, scan: bool | None = None) -> tuple[GemmaConfig, SiglipConfig]:
-    """Reads every size from the parameter shapes, so a tiny test checkpoint and the 3B one load the same way.
+    """Reads every size of the PaliGemma backbone from the parameter shapes, so a tiny test checkpoint and the 3B one
+    load the same way.
 
     `flat` maps '/'-joined upstream paths (e.g. 'PaliGemma/llm/embedder/input_embedding') to arrays or shape tuples.
     `scan` sets both stacks' layout; None applies `scan_by_default` to each stack's depth.
     """
-    llm, img = "PaliGemma/llm/", "PaliGemma/img/"
-    vocab, width = _leaf(flat, llm + "embedder/input_embedding")
-    depth, num_heads, _, head_dim = _leaf(flat, llm + "layers/attn/q_einsum/w")
-    num_kv_heads = _leaf(flat, llm + "layers/attn/kv_einsum/w")[2]
-    mlp_dim = _leaf(flat, llm + "layers/mlp/linear")[1]
-    lora_key = llm + "layers/attn/q_einsum/lora_a"
-    lora_rank = _leaf(flat, lora_key)[-1] if lora_key in flat else 0
-    gemma_scan = scan_by_default(depth) if scan is None else scan
-    gemma = GemmaConfig(
-        width, depth, mlp_dim, num_heads, num_kv_heads, head_dim, vocab, lora_rank, float(lora_rank), gemma_scan
-    )
-
-    patch, _, _, v_width = _leaf(flat, img + "embedding/kernel")
-    v_depth = _leaf(flat, img + "Transformer/encoderblock/LayerNorm_0/scale")[0]
-    v_heads = _leaf(flat, img + "Transformer/encoderblock/MultiHeadDotProductAttention_0/query/kernel")[2]
-    v_mlp = _leaf(flat, img + "Transformer/encoderblock/MlpBlock_0/Dense_0/kernel")[-1]
-    n_tokens = _leaf(flat, img + "pos_embedding")[1]
-    side = math.isqrt(n_tokens)
-    if side * side != n_tokens:
-        raise ValueError(f"SigLIP pos_embedding has {n_tokens} tokens: not a square patch grid")
-    out_dim = _leaf(flat, img + "head/kernel")[1]
-    siglip_scan = scan_by_default(v_depth) if scan is None else scan
-    siglip = SiglipConfig(v_width, v_depth, v_mlp, v_heads, patch, side * patch, out_dim, siglip_scan)
-    return gemma, siglip
+    vocab = _leaf(flat, LLM + "embedder/input_embedding")[0]
+    return _gemma_from(flat, "", vocab, scan), _siglip_from(flat, scan)
 
 
-def param_shapes(gemma: GemmaConfig, siglip: SiglipConfig) -> dict[str, tuple[int, ...]]:
-    """The parameter tree (paths and shapes) upstream's Pi0FAST has for this architecture."""
-    D, W, M, N, K, H = gemma.depth, gemma.width, gemma.mlp_dim, gemma.num_heads, gemma.num_kv_heads, gemma.head_dim
+def pi0_architecture_from_params(
+    flat: Mapping[str, Any], *, scan: bool | None = None
+) -> tuple[GemmaConfig, GemmaConfig, SiglipConfig, bool]:
+    """(LLM, action expert, SigLIP, pi05) of a pi0 / pi0.5 tree, from its parameter shapes."""
+    gemma, siglip = architecture_from_params(flat, scan=scan)
+    return gemma, _gemma_from(flat, "_1", 0, scan), siglip, family_of(flat) == "pi05"
+
+
+def _siglip_shapes(siglip: SiglipConfig) -> dict[str, tuple[int, ...]]:
     d, w, m, n, p = siglip.depth, siglip.width, siglip.mlp_dim, siglip.num_heads, siglip.patch_size
     hd = w // n
-    llm, blk = "PaliGemma/llm/", "PaliGemma/img/Transformer/encoderblock/"
+    blk = IMG + "Transformer/encoderblock/"
     shapes = {
-        llm + "embedder/input_embedding": (gemma.vocab_size, W),
-        llm + "final_norm/scale": (W,),
-        llm + "layers/pre_attention_norm/scale": (D, W),
-        llm + "layers/pre_ffw_norm/scale": (D, W),
-        llm + "layers/attn/q_einsum/w": (D, N, W, H),
-        llm + "layers/attn/kv_einsum/w": (D, 2, K, W, H),
-        llm + "layers/attn/attn_vec_einsum/w": (D, N, H, W),
-        llm + "layers/mlp/gating_einsum": (D, 2, W, M),
-        llm + "layers/mlp/linear": (D, M, W),
-        "PaliGemma/img/embedding/kernel": (p, p, 3, w),
-        "PaliGemma/img/embedding/bias": (w,),
-        "PaliGemma/img/pos_embedding": (1, siglip.num_tokens, w),
-        "PaliGemma/img/Transformer/encoder_norm/scale": (w,),
-        "PaliGemma/img/Transformer/encoder_norm/bias": (w,),
-        "PaliGemma/img/head/kernel": (w, siglip.out_dim),
-        "PaliGemma/img/head/bias": (siglip.out_dim,),
+        IMG + "embedding/kernel": (p, p, 3, w),
+        IMG + "embedding/bias": (w,),
+        IMG + "pos_embedding": (1, siglip.num_tokens, w),
+        IMG + "Transformer/encoder_norm/scale": (w,),
+        IMG + "Transformer/encoder_norm/bias": (w,),
+        IMG + "head/kernel": (w, siglip.out_dim),
+        IMG + "head/bias": (siglip.out_dim,),
     }
     for ln in ("LayerNorm_0", "LayerNorm_1"):
         shapes[blk + f"{ln}/scale"] = shapes[blk + f"{ln}/bias"] = (d, w)
@@ -180,21 +217,77 @@ def param_shapes(gemma: GemmaConfig, siglip: SiglipConfig) -> dict[str, tuple[in
     shapes[blk + "MlpBlock_0/Dense_0/bias"] = (d, m)
     shapes[blk + "MlpBlock_0/Dense_1/kernel"] = (d, m, w)
     shapes[blk + "MlpBlock_0/Dense_1/bias"] = (d, w)
+    return shapes
+
+
+def _gemma_shapes(gemma: GemmaConfig, suffix: str = "", *, adarms: bool = False) -> dict[str, tuple[int, ...]]:
+    """One Gemma stack's layer and final-norm leaves under `suffix`; adaRMS norms carry a `Dense_0` instead of a
+    scale (pi0.5's action expert)."""
+    D, W, M, N, K, H = gemma.depth, gemma.width, gemma.mlp_dim, gemma.num_heads, gemma.num_kv_heads, gemma.head_dim
+    a, mlp = LLM + "layers/attn/", LLM + f"layers/mlp{suffix}/"
+    shapes = {
+        a + f"q_einsum{suffix}/w": (D, N, W, H),
+        a + f"kv_einsum{suffix}/w": (D, 2, K, W, H),
+        a + f"attn_vec_einsum{suffix}/w": (D, N, H, W),
+        mlp + "gating_einsum": (D, 2, W, M),
+        mlp + "linear": (D, M, W),
+    }
+    for norm in ("pre_attention_norm", "pre_ffw_norm"):
+        if adarms:
+            shapes[LLM + f"layers/{norm}{suffix}/Dense_0/kernel"] = (D, W, 3 * W)
+            shapes[LLM + f"layers/{norm}{suffix}/Dense_0/bias"] = (D, 3 * W)
+        else:
+            shapes[LLM + f"layers/{norm}{suffix}/scale"] = (D, W)
+    if adarms:
+        shapes[LLM + f"final_norm{suffix}/Dense_0/kernel"] = (W, 3 * W)
+        shapes[LLM + f"final_norm{suffix}/Dense_0/bias"] = (3 * W,)
+    else:
+        shapes[LLM + f"final_norm{suffix}/scale"] = (W,)
     if r := gemma.lora_rank:
-        a = llm + "layers/attn/"
         shapes |= {
-            a + "q_einsum/lora_a": (D, N, W, r),
-            a + "q_einsum/lora_b": (D, N, r, H),
-            a + "kv_einsum/lora_a": (D, 2, K, W, r),
-            a + "kv_einsum/lora_b": (D, 2, K, r, H),
-            a + "attn_vec_einsum/lora_a": (D, N, H, r),
-            a + "attn_vec_einsum/lora_b": (D, N, r, W),
-            llm + "layers/mlp/gating_einsum_lora_a": (D, 2, W, r),
-            llm + "layers/mlp/gating_einsum_lora_b": (D, 2, r, M),
-            llm + "layers/mlp/linear_lora_a": (D, M, r),
-            llm + "layers/mlp/linear_lora_b": (D, r, W),
+            a + f"q_einsum{suffix}/lora_a": (D, N, W, r),
+            a + f"q_einsum{suffix}/lora_b": (D, N, r, H),
+            a + f"kv_einsum{suffix}/lora_a": (D, 2, K, W, r),
+            a + f"kv_einsum{suffix}/lora_b": (D, 2, K, r, H),
+            a + f"attn_vec_einsum{suffix}/lora_a": (D, N, H, r),
+            a + f"attn_vec_einsum{suffix}/lora_b": (D, N, r, W),
+            mlp + "gating_einsum_lora_a": (D, 2, W, r),
+            mlp + "gating_einsum_lora_b": (D, 2, r, M),
+            mlp + "linear_lora_a": (D, M, r),
+            mlp + "linear_lora_b": (D, r, W),
         }
+    return shapes
+
+
+def param_shapes(gemma: GemmaConfig, siglip: SiglipConfig) -> dict[str, tuple[int, ...]]:
+    """The parameter tree (paths and shapes) upstream's Pi0FAST has for this architecture."""
+    shapes = _siglip_shapes(siglip) | _gemma_shapes(gemma)
+    shapes[LLM + "embedder/input_embedding"] = (gemma.vocab_size, gemma.width)
     return dict(sorted(shapes.items()))
+
+
+def pi0_param_shapes(cfg: Pi0Config) -> dict[str, tuple[int, ...]]:
+    """The parameter tree upstream's Pi0 (pi05 False / True) has for this architecture."""
+    shapes = param_shapes(cfg.gemma, cfg.siglip) | _gemma_shapes(cfg.expert, "_1", adarms=cfg.pi05)
+    we, a = cfg.expert.width, cfg.action_dim
+    linears = {"action_in_proj": (a, we), "action_out_proj": (we, a)}
+    if cfg.pi05:
+        linears |= {"time_mlp_in": (we, we), "time_mlp_out": (we, we)}
+    else:
+        linears |= {"state_proj": (a, we), "action_time_mlp_in": (2 * we, we), "action_time_mlp_out": (we, we)}
+    for name, (fan_in, fan_out) in linears.items():
+        shapes[f"{name}/kernel"] = (fan_in, fan_out)
+        shapes[f"{name}/bias"] = (fan_out,)
+    return dict(sorted(shapes.items()))
+
+
+def expected_param_shapes(flat: Mapping[str, Any]) -> dict[str, tuple[int, ...]]:
+    """The tree upstream builds for the family and architecture that `flat`'s shapes describe."""
+    if family_of(flat) == "pi0_fast":
+        return param_shapes(*architecture_from_params(flat))
+    gemma, expert, siglip, pi05 = pi0_architecture_from_params(flat)
+    action_dim = _leaf(flat, "action_in_proj/kernel")[0]
+    return pi0_param_shapes(Pi0Config(gemma, expert, siglip, pi05, action_dim=action_dim))
 
 
 def check_param_tree(flat_shapes: Mapping[str, tuple[int, ...]], expected: Mapping[str, tuple[int, ...]]) -> None:

@@ -51,7 +51,7 @@ def apply_rope(x: jax.Array, positions: jax.Array, max_wavelength: float = 10_00
     return jnp.concatenate([x1 * cos - x2 * sin, x2 * cos + x1 * sin], axis=-1)
 
 
-def _einsum(eq: str, x: jax.Array, p: dict, name: str, lora_scale: float) -> jax.Array:
+def einsum_lora(eq: str, x: jax.Array, p: dict, name: str, lora_scale: float) -> jax.Array:
     """`x @ w` plus, for a LoRA checkpoint, the low-rank update `x @ a @ b * alpha / rank` (upstream's lora.Einsum)."""
     y = jnp.einsum(eq, x, p[name]["w"].astype(x.dtype))
     if "lora_a" in p[name]:
@@ -66,7 +66,7 @@ def _einsum(eq: str, x: jax.Array, p: dict, name: str, lora_scale: float) -> jax
     return y
 
 
-def _mlp(x: jax.Array, p: dict) -> jax.Array:
+def feed_forward(x: jax.Array, p: dict) -> jax.Array:
     def dot(h, name, idx=None):
         w = p[name] if idx is None else p[name][idx]
         y = jnp.dot(h, w.astype(h.dtype))
@@ -85,8 +85,8 @@ def _attention(x, p, positions, mask, k_cache, v_cache, idx, cfg: GemmaConfig):
     cache slot allowed by `mask` [B, T, S]."""
     dtype = x.dtype
     scale = cfg.lora_alpha / cfg.lora_rank if cfg.lora_rank else 1.0
-    q = _einsum("BTD,NDH->BTNH", x, p, "q_einsum", scale)
-    k, v = _einsum("BSD,CKDH->CBSKH", x, p, "kv_einsum", scale)
+    q = einsum_lora("BTD,NDH->BTNH", x, p, "q_einsum", scale)
+    k, v = einsum_lora("BSD,CKDH->CBSKH", x, p, "kv_einsum", scale)
     q = apply_rope(q, positions) * cfg.head_dim**-0.5  # float32 from here on, as upstream
     k = apply_rope(k, positions)
     k_cache = jax.lax.dynamic_update_slice(k_cache, k.astype(k_cache.dtype), (0, idx, 0, 0))
@@ -98,7 +98,7 @@ def _attention(x, p, positions, mask, k_cache, v_cache, idx, cfg: GemmaConfig):
     logits = jnp.where(mask[:, None, None, :, :], logits, BIG_NEG)
     probs = jax.nn.softmax(logits, axis=-1).astype(dtype)
     encoded = jnp.einsum("BKGTS,BSKH->BTKGH", probs, v_cache).reshape(b, t, n, h)
-    return _einsum("BTNH,NHD->BTD", encoded, p, "attn_vec_einsum", scale), k_cache, v_cache
+    return einsum_lora("BTNH,NHD->BTD", encoded, p, "attn_vec_einsum", scale), k_cache, v_cache
 
 
 def forward(
@@ -127,7 +127,7 @@ def forward(
             rms_norm(h, p["pre_attention_norm"]["scale"]), p["attn"], positions, mask, k_cache, v_cache, cache.idx, cfg
         )
         h = h + attn
-        h = h + _mlp(rms_norm(h, p["pre_ffw_norm"]["scale"]), p["mlp"])
+        h = h + feed_forward(rms_norm(h, p["pre_ffw_norm"]["scale"]), p["mlp"])
         return h, (k_cache, v_cache)
 
     x, (k, v) = jax.lax.scan(layer, x, (params["layers"], cache.k, cache.v), unroll=not cfg.scan)

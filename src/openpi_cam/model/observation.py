@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import jax
@@ -53,12 +53,18 @@ class Observation:
         )
 
 
-def preprocess_observation(obs: Observation, image_resolution: tuple[int, int]) -> Observation:
+def preprocess_observation(
+    obs: Observation, image_resolution: tuple[int, int], image_keys: Sequence[str] | None = None
+) -> Observation:
     """Inference-time preprocessing as upstream: resize-with-pad images that are not at the model resolution and
-    default missing image masks to True."""
+    default missing image masks to True. `image_keys` (upstream's pi0 / pi0.5 pass `IMAGE_KEYS`) fixes which cameras
+    the model sees and in which order; None keeps the observation's own (pi0-FAST passes its dict order)."""
     batch_shape = obs.state.shape[:-1]
+    if image_keys is not None and (missing := [k for k in image_keys if k not in obs.images]):
+        raise ValueError(f"the observation lacks the camera(s) {missing}; this model reads {list(image_keys)}")
     images, masks = {}, {}
-    for name, image in obs.images.items():
+    for name in obs.images if image_keys is None else image_keys:
+        image = obs.images[name]
         if tuple(image.shape[-3:-1]) != tuple(image_resolution):
             logger.info("Resizing image %s from %s to %s", name, image.shape[-3:-1], image_resolution)
             image = resize_with_pad(image, *image_resolution)

@@ -15,7 +15,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from openpi_cam.model import gemma, siglip
+from openpi_cam.model import gemma
 from openpi_cam.model.checkpoint import load_params
 from openpi_cam.model.config import (
     EOS_TOKEN,
@@ -25,16 +25,8 @@ from openpi_cam.model.config import (
     param_shapes,
 )
 from openpi_cam.model.observation import Observation, preprocess_observation
+from openpi_cam.model.paligemma import embed_images, embed_prefix, make_attn_mask
 from openpi_cam.nested import flatten_dict, unflatten_dict
-
-
-def make_attn_mask(input_mask: jax.Array, ar_mask: jax.Array) -> jax.Array:
-    """big_vision's prefix-LM rule: token i sees valid token j iff cumsum(ar)[j] <= cumsum(ar)[i]. -> [B, T, T]"""
-    ar_mask = jnp.broadcast_to(ar_mask, input_mask.shape)
-    cumsum = jnp.cumsum(ar_mask, axis=1)
-    allowed = cumsum[:, None, :] <= cumsum[:, :, None]
-    valid = input_mask[:, None, :] & input_mask[:, :, None]
-    return allowed & valid
 
 
 @jax.vmap
@@ -48,26 +40,6 @@ def left_to_right_align(x: jax.Array, input_mask: jax.Array, attn_mask: jax.Arra
         jnp.roll(input_mask, -seqlen, axis=0),
         jnp.roll(attn_mask, -seqlen, axis=(0, 1)),
     )
-
-
-def embed_images(params: dict, obs: Observation, cfg: Pi0FASTConfig) -> jax.Array:
-    """SigLIP tokens of every camera, in camera order -> [B, C, N, D] (what the LLM sees; Grad-CAM's input)."""
-    dtype = jnp.dtype(cfg.dtype)
-    img_params = params["PaliGemma"]["img"]
-    return jnp.stack([siglip.encode_images(img_params, im, cfg.siglip, dtype) for im in obs.images.values()], axis=1)
-
-
-def embed_prefix(params: dict, image_tokens: jax.Array, obs: Observation, cfg: Pi0FASTConfig):
-    """[image tokens of every camera | prompt tokens] with input and AR masks, as upstream's `embed_inputs`."""
-    b, c, n, d = image_tokens.shape
-    dtype = jnp.dtype(cfg.dtype)
-    prompt = gemma.embed_tokens(params["PaliGemma"]["llm"], obs.tokenized_prompt, dtype)
-    x = jnp.concatenate([image_tokens.reshape(b, c * n, d).astype(dtype), prompt], axis=1)
-    cam_mask = jnp.stack([jnp.asarray(obs.image_masks[k], bool) for k in obs.images], axis=1)  # [B, C]
-    input_mask = jnp.concatenate([jnp.repeat(cam_mask, n, axis=1), jnp.asarray(obs.tokenized_prompt_mask, bool)], 1)
-    ar = obs.token_ar_mask if obs.token_ar_mask is not None else jnp.zeros_like(obs.tokenized_prompt)
-    ar_mask = jnp.concatenate([jnp.zeros((b, c * n), jnp.int32), jnp.asarray(ar, jnp.int32)], axis=1)
-    return x, input_mask, ar_mask
 
 
 def prefill(params: dict, x: jax.Array, input_mask: jax.Array, ar_mask: jax.Array, cfg: Pi0FASTConfig, steps: int):
