@@ -335,3 +335,45 @@ class AbsoluteActions(DeltaActions):
     """Inverse of `DeltaActions`: add the state back on the masked dims."""
 
     sign = 1.0
+
+
+class PromptTokenizer(Protocol):
+    """What `TokenizePrompt` needs from `openpi_cam.tokenizers.pi0.Pi0PromptTokenizer`."""
+
+    def tokenize(self, prompt: str, state: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+@dataclasses.dataclass(frozen=True)
+class TokenizePrompt:
+    """pi0 / pi0.5: the prompt (and with `discrete_state_input` the normalised state) -> `tokenized_prompt`."""
+
+    tokenizer: PromptTokenizer
+    discrete_state_input: bool = False
+
+    def __call__(self, data: DataDict) -> DataDict:
+        if data.get("prompt") is None:
+            raise InvalidRequest("missing 'prompt' (and no default prompt is configured)")
+        prompt = parse_prompt(data.pop("prompt"))
+        tokens, mask = self.tokenizer.tokenize(prompt, data["state"] if self.discrete_state_input else None)
+        return {**data, "tokenized_prompt": tokens, "tokenized_prompt_mask": mask}
+
+
+@dataclasses.dataclass(frozen=True)
+class PadStatesAndActions:
+    """Zero-pads the state (and actions, when training) to the model's action dim, after the prompt saw the state."""
+
+    model_action_dim: int
+
+    def __call__(self, data: DataDict) -> DataDict:
+        out = {**data, "state": pad_to_dim(np.asarray(data["state"]), self.model_action_dim)}
+        if "actions" in data:
+            out["actions"] = pad_to_dim(np.asarray(data["actions"]), self.model_action_dim)
+        return out
+
+
+@dataclasses.dataclass(frozen=True)
+class PassActions:
+    """The output decoder of the flow-matching families: the model's output already is the action chunk."""
+
+    def extract(self, output: np.ndarray) -> tuple[np.ndarray, str | None]:
+        return np.asarray(output), None

@@ -67,4 +67,5 @@ def explain_traces(
         return []
     observation, padded = shard_batch(stack_observations([t.observation for t in traces]), mesh, pad_to)
     outputs = pad_rows(np.stack([np.asarray(t.output) for t in traces]), padded)
-    return explainer.explain(observation, outputs, request)[: len(traces)]
+    drawn = {k: pad_rows(np.stack([t.sample_inputs[k] for t in traces]), padded) for k in traces[0].sample_inputs}
+    return explainer.explain(observation, outputs, request, drawn)[: len(traces)]

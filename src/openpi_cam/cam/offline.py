@@ -43,7 +43,7 @@ _RECORD_RE = re.compile(r"^step_(\d+)\.npy$")
 SOURCE_KEY = "source"  # meta["extra"] key holding the id of the record a step explains
 # run.json fields that must match for a resumed run to stay one consistent explanation of one source.
 _RESUME_CONFIG_KEYS = ("config", "checkpoint_dir", "dtype", "source")
-_RESUME_OPTION_KEYS = ("target", "action_index", "maps")
+_RESUME_OPTION_KEYS = ("target", "action_index", "action_dim_index", "maps")
 
 # Wraps the replays with a progress display: (replays, how many) -> the same replays.
 Progress = Callable[[Iterator["Replay"], int], Iterator["Replay"]]
@@ -66,6 +66,7 @@ class Replay:
 class ExplainOptions:
     target: Target = "action-token"
     action_index: int = 0
+    action_dim_index: int = 0
     maps: tuple[MapKind, ...] = ("gradcam", "gradnorm")
     save_frames: SaveFrames = "both"
     batch_size: int = 8  # observations per explainer call (padded to a multiple of the device count)
@@ -78,7 +79,7 @@ class ExplainOptions:
 
     @property
     def request(self) -> ExplainRequest:
-        return ExplainRequest(self.target, self.action_index, tuple(self.maps))
+        return ExplainRequest(self.target, self.action_index, self.action_dim_index, tuple(self.maps))
 
 
 def split_extra_json(obs: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:

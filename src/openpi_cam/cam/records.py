@@ -52,7 +52,7 @@ def model_inputs(trace: InferenceTrace) -> dict[str, np.ndarray]:
     """The explained call's non-image model inputs and raw output (batch row 0): with the model frames they are what
     re-running the explained score needs (`openpi-cam faithfulness`)."""
     obs = trace.observation
-    inputs = {"output": np.asarray(trace.output)}
+    inputs = {"output": np.asarray(trace.output), **{k: np.asarray(v) for k, v in trace.sample_inputs.items()}}
     for name in ("state", "tokenized_prompt", "tokenized_prompt_mask", "token_ar_mask"):
         value = getattr(obs, name)
         if value is not None:

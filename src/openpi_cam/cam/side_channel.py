@@ -53,7 +53,8 @@ class CAMOptions:
     cam_dir: str | pathlib.Path = "cam_runs"
     save_frames: SaveFrames = "model"
     target: Target = "action-token"
-    action_index: int = 0  # which FAST action token, for target "action-token"
+    action_index: int = 0  # pi0-FAST: which action token ("action-token"); pi0 / pi0.5: horizon step ("action")
+    action_dim_index: int = 0  # pi0 / pi0.5: which action dimension ("action")
     maps: tuple[MapKind, ...] = ("gradcam", "gradnorm")  # which map kinds each explained step carries
     queue_size: int = 8
     max_steps: int | None = None
@@ -69,7 +70,7 @@ class CAMOptions:
 
     @property
     def request(self) -> ExplainRequest:
-        return ExplainRequest(self.target, self.action_index, tuple(self.maps))
+        return ExplainRequest(self.target, self.action_index, self.action_dim_index, tuple(self.maps))
 
 
 @dataclasses.dataclass

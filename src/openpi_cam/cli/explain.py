@@ -11,6 +11,7 @@ from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.offline import ExplainOptions, Replay, explain_replays, open_source, resume_mismatch
 from openpi_cam.cam.records import SaveFrames
 from openpi_cam.cam.runfmt import RUN_JSON, load_run
+from openpi_cam.cli.options import parse_action_index
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.model.attribution import MapKind
 from openpi_cam.policies.family import Target
@@ -26,7 +27,7 @@ def main(
     out: pathlib.Path = pathlib.Path("cam_runs"),
     resume: pathlib.Path | None = None,
     target: Target = "action-token",
-    action_index: int = 0,
+    action_index: str = "0",
     maps: tuple[MapKind, ...] = ("gradcam", "gradnorm"),
     save_frames: SaveFrames = "both",
     batch_size: int = 8,
@@ -49,7 +50,8 @@ def main(
         out: folder in which a new run directory is created; if OUT is itself a run directory, it is resumed.
         resume: a run directory to resume: observations already explained in it are skipped, new steps appended.
         target: which score the maps explain (generations without action tokens: `generated-tokens`).
-        action_index: which action token for `action-token`.
+        action_index: pi0-FAST: which action token (`action-token`); pi0 / pi0.5: `H,D`, dimension D at horizon
+            step H (`action`).
         maps: which kinds of map to compute (README, "Which map to trust").
         save_frames: which camera frames to store next to the maps (`raw`/`both` keep the run re-explainable).
         batch_size: observations explained per model call, split over all local devices.
@@ -73,10 +75,17 @@ def main(
         "dtype": dtype,
         "source": str(source.resolve()),
     }
-    run_options = {"target": target, "action_index": action_index, "maps": list(maps), "save_frames": save_frames}
     try:
+        index, dim_index = parse_action_index(action_index)
+        run_options = {
+            "target": target,
+            "action_index": index,
+            "action_dim_index": dim_index,
+            "maps": list(maps),
+            "save_frames": save_frames,
+        }
         replays, total = open_source(source, nested_keys=nested_keys)
-        options = ExplainOptions(target, action_index, tuple(maps), save_frames, batch_size, limit)
+        options = ExplainOptions(target, index, dim_index, tuple(maps), save_frames, batch_size, limit)
         if resume_dir is not None:
             run_info = load_run(resume_dir, load_arrays=False).run_info
             if diffs := resume_mismatch(run_info, run_config, run_options):

@@ -13,6 +13,7 @@ from typing import Literal
 
 from openpi_cam.cam.records import SaveFrames
 from openpi_cam.cam.side_channel import CAMOptions, CAMPolicy, wrap_policy_with_cam
+from openpi_cam.cli.options import parse_action_index
 from openpi_cam.model.attribution import MapKind
 from openpi_cam.model.config import MAX_DECODING_STEPS
 from openpi_cam.policies import demo_reach
@@ -40,7 +41,7 @@ def main(
     cam_dir: Path = Path("cam_runs"),
     cam_save_frames: SaveFrames = "model",
     cam_target: Target = "action-token",
-    cam_action_index: int = 0,
+    cam_action_index: str = "0",
     cam_maps: tuple[MapKind, ...] = ("gradcam", "gradnorm"),
     cam_queue_size: int = 8,
     cam_max_steps: int | None = None,
@@ -67,7 +68,8 @@ def main(
         cam_save_frames: which camera frames to store next to the maps.
         cam_target: which score the maps explain (a generation without action tokens is explained with
             `generated-tokens` whatever this says).
-        cam_action_index: which action token for `action-token`.
+        cam_action_index: pi0-FAST: which action token (`action-token`); pi0 / pi0.5: `H,D`, dimension D at horizon
+            step H (`action`).
         cam_maps: which kinds of map each explained step carries (README, "Which map to trust").
         cam_queue_size: pending Grad-CAM jobs before new ones are dropped (inference never waits).
         cam_max_steps: stop recording after this many steps (None = no limit).
@@ -79,6 +81,11 @@ def main(
         return 2
     if cam_every_k < 0:
         print(f"openpi-cam serve: --cam-every-k must be >= 0, got {cam_every_k}", file=sys.stderr)
+        return 2
+    try:
+        action_index, action_dim_index = parse_action_index(cam_action_index)
+    except ValueError as e:
+        print(f"openpi-cam serve: --cam-action-index: {e}", file=sys.stderr)
         return 2
 
     max_decoding_steps = MAX_DECODING_STEPS
@@ -102,8 +109,9 @@ def main(
             stop_at_action_end=stop_at_action_end,
             max_decoding_steps=max_decoding_steps,
         )
-    except FileNotFoundError as e:
-        # Missing files are an operator problem, not a bug: the message says what is missing and where.
+    except (FileNotFoundError, ValueError) as e:
+        # Missing files or a checkpoint that is not the config's family are operator problems, not bugs: the message
+        # says what is wrong and where.
         print(f"openpi-cam serve: {e}", file=sys.stderr)
         return 1
     metadata = dict(policy.metadata)
@@ -115,7 +123,8 @@ def main(
             cam_dir=cam_dir,
             save_frames=cam_save_frames,
             target=cam_target,
-            action_index=cam_action_index,
+            action_index=action_index,
+            action_dim_index=action_dim_index,
             maps=cam_maps,
             queue_size=cam_queue_size,
             max_steps=cam_max_steps,

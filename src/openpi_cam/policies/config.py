@@ -34,13 +34,14 @@ from typing import Any
 import openpi_cam.policies.aloha as aloha
 import openpi_cam.policies.droid as droid
 import openpi_cam.policies.libero as libero
-from openpi_cam.policies.robot import RobotInputs
+from openpi_cam.policies.robot import Family, RobotInputs
 from openpi_cam.transforms import AbsoluteActions, DeltaActions, Transform, make_bool_mask
 
 
 @dataclasses.dataclass(frozen=True)
 class PolicyConfig:
     name: str
+    # Which model family the checkpoint must be: "pi0_fast", "pi0" or "pi05" (checked when the policy loads).
     # Robot transforms (upstream's `data_transforms`): the first `RobotInputs` among `inputs` names the cameras.
     inputs: tuple[Transform, ...]
     outputs: tuple[Transform, ...]
@@ -55,6 +56,10 @@ class PolicyConfig:
     use_quantile_norm: bool = True
     # Returned to clients as the policy's metadata (upstream's `policy_metadata`).
     policy_metadata: Mapping[str, Any] | None = None
+    family: Family = "pi0_fast"
+    # pi0.5 only: the normalised state goes into the prompt as text (upstream `discrete_state_input`, default True for
+    # pi0.5; `pi05_libero` turns it off).
+    discrete_state_input: bool = False
 
     def __post_init__(self) -> None:
         for field in ("action_dim", "action_horizon", "max_token_len"):
@@ -64,6 +69,10 @@ class PolicyConfig:
             raise ValueError("PolicyConfig needs a name")
         if not self.asset_id:
             raise ValueError(f"PolicyConfig {self.name!r}: asset_id is empty")
+        if self.family not in ("pi0_fast", "pi0", "pi05"):
+            raise ValueError(f"PolicyConfig {self.name!r}: unknown family {self.family!r}")
+        if self.discrete_state_input and self.family != "pi05":
+            raise ValueError(f"PolicyConfig {self.name!r}: only pi0.5 reads the state as prompt text")
         self.robot_inputs  # noqa: B018  (fail at declaration, not at first request)
 
     @property
@@ -115,6 +124,64 @@ PI0_FAST_ALOHA = PolicyConfig(
     policy_metadata={"reset_pose": list(aloha.RESET_POSE)},
 )
 
+# pi0 and pi0.5 (upstream's `Pi0Config`): the model's action dim is 32 (states and actions are zero-padded to it), the
+# horizon and prompt length follow upstream's train configs; pi0 normalises with mean/std, the others with quantiles.
+_PI0 = {"family": "pi0", "action_dim": 32, "max_token_len": 48, "use_quantile_norm": False}
+_PI05 = {"family": "pi05", "action_dim": 32, "max_token_len": 200, "use_quantile_norm": True}
+PI0_DROID = PolicyConfig(
+    name="pi0_droid",
+    inputs=(droid.DroidInputs("pi0"),),
+    outputs=(droid.DroidOutputs(),),
+    asset_id="droid",
+    action_horizon=10,
+    **_PI0,
+)
+PI05_DROID = PolicyConfig(
+    name="pi05_droid",
+    inputs=(droid.DroidInputs("pi05"),),
+    outputs=(droid.DroidOutputs(),),
+    asset_id="droid",
+    action_horizon=15,
+    discrete_state_input=True,
+    **_PI05,
+)
+PI0_LIBERO = PolicyConfig(
+    name="pi0_libero",
+    inputs=(libero.LiberoInputs("pi0"), DeltaActions(_LIBERO_DELTA_MASK)),
+    outputs=(AbsoluteActions(_LIBERO_DELTA_MASK), libero.LiberoOutputs()),
+    asset_id="physical-intelligence/libero",
+    action_horizon=50,
+    **_PI0,
+)
+# Upstream's pi05_libero: no delta-action transform and no state in the prompt.
+PI05_LIBERO = PolicyConfig(
+    name="pi05_libero",
+    inputs=(libero.LiberoInputs("pi05"),),
+    outputs=(libero.LiberoOutputs(),),
+    asset_id="physical-intelligence/libero",
+    action_horizon=10,
+    **_PI05,
+)
+PI0_ALOHA = PolicyConfig(
+    name="pi0_aloha",
+    inputs=(aloha.AlohaInputs(adapt_to_pi=True), DeltaActions(aloha.DELTA_ACTION_MASK)),
+    outputs=(AbsoluteActions(aloha.DELTA_ACTION_MASK), aloha.AlohaOutputs(adapt_to_pi=True)),
+    asset_id="trossen",
+    action_horizon=50,
+    policy_metadata={"reset_pose": list(aloha.RESET_POSE)},
+    **_PI0,
+)
+PI05_ALOHA = PolicyConfig(
+    name="pi05_aloha",
+    inputs=(aloha.AlohaInputs(adapt_to_pi=True), DeltaActions(aloha.DELTA_ACTION_MASK)),
+    outputs=(AbsoluteActions(aloha.DELTA_ACTION_MASK), aloha.AlohaOutputs(adapt_to_pi=True)),
+    asset_id="trossen",
+    action_horizon=50,
+    discrete_state_input=True,
+    policy_metadata={"reset_pose": list(aloha.RESET_POSE)},
+    **_PI05,
+)
+
 _REGISTRY: dict[str, PolicyConfig] = {}
 
 
@@ -142,5 +209,15 @@ def resolve_config(config: str | PolicyConfig) -> PolicyConfig:
     return config if isinstance(config, PolicyConfig) else get_config(config)
 
 
-for _config in (PI0_FAST_DROID, PI0_FAST_LIBERO, PI0_FAST_ALOHA):
+for _config in (
+    PI0_FAST_DROID,
+    PI0_FAST_LIBERO,
+    PI0_FAST_ALOHA,
+    PI0_DROID,
+    PI05_DROID,
+    PI0_LIBERO,
+    PI05_LIBERO,
+    PI0_ALOHA,
+    PI05_ALOHA,
+):
     register_config(_config)

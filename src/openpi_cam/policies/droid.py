@@ -1,4 +1,8 @@
-"""DROID pipeline for pi0-FAST (upstream `DroidInputs(PI0_FAST)` / `DroidOutputs`)."""
+"""DROID pipeline (upstream `DroidInputs(model_type)` / `DroidOutputs`).
+
+The camera layout follows the model family, as upstream's: pi0-FAST sees (base_0_rgb, a blank base_1_rgb, wrist_0_rgb)
+with every mask True; pi0 / pi0.5 see (base_0_rgb, left_wrist_0_rgb, a blank right_wrist_0_rgb) with the blank one
+masked."""
 
 from __future__ import annotations
 
@@ -7,7 +11,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from openpi_cam.policies.robot import FixedCameraSources, pass_prompt
+from openpi_cam.policies.robot import Family, pass_prompt
 from openpi_cam.transforms import DataDict, parse_image, parse_vector, require
 
 EXTERIOR_IMAGE_KEY = "observation/exterior_image_1_left"
@@ -17,17 +21,22 @@ GRIPPER_POSITION_KEY = "observation/gripper_position"
 JOINT_DIM = 7
 ACTION_DIM = 8  # 7 joint velocities + gripper
 
-# pi0-FAST's DROID camera layout: the second exterior slot is a blank image (unmasked for FAST models).
-CAMERA_SOURCES: Mapping[str, str | None] = {
-    "base_0_rgb": EXTERIOR_IMAGE_KEY,
-    "base_1_rgb": None,
-    "wrist_0_rgb": WRIST_IMAGE_KEY,
+CAMERA_SOURCES: Mapping[str, Mapping[str, str | None]] = {
+    "pi0_fast": {"base_0_rgb": EXTERIOR_IMAGE_KEY, "base_1_rgb": None, "wrist_0_rgb": WRIST_IMAGE_KEY},
+    "pi0": {"base_0_rgb": EXTERIOR_IMAGE_KEY, "left_wrist_0_rgb": WRIST_IMAGE_KEY, "right_wrist_0_rgb": None},
 }
 
 
 @dataclasses.dataclass(frozen=True)
-class DroidInputs(FixedCameraSources):
-    CAMERA_SOURCES = CAMERA_SOURCES
+class DroidInputs:
+    family: Family = "pi0_fast"
+
+    @property
+    def camera_sources(self) -> Mapping[str, str | None]:
+        return dict(CAMERA_SOURCES["pi0_fast" if self.family == "pi0_fast" else "pi0"])
+
+    def camera_sources_for(self, obs: Mapping[str, object]) -> dict[str, str | None]:
+        return dict(self.camera_sources)
 
     def __call__(self, data: DataDict) -> DataDict:
         joints = parse_vector(require(data, JOINT_POSITION_KEY), JOINT_POSITION_KEY, dim=JOINT_DIM)
@@ -36,10 +45,13 @@ class DroidInputs(FixedCameraSources):
         state = np.concatenate([joints, gripper])
         base = parse_image(require(data, EXTERIOR_IMAGE_KEY), EXTERIOR_IMAGE_KEY)
         wrist = parse_image(require(data, WRIST_IMAGE_KEY), WRIST_IMAGE_KEY)
+        sources = {EXTERIOR_IMAGE_KEY: base, WRIST_IMAGE_KEY: wrist}
+        layout = self.camera_sources
         inputs: DataDict = {
             "state": state,
-            "image": {"base_0_rgb": base, "base_1_rgb": np.zeros_like(base), "wrist_0_rgb": wrist},
-            "image_mask": {"base_0_rgb": np.True_, "base_1_rgb": np.True_, "wrist_0_rgb": np.True_},
+            "image": {c: np.zeros_like(base) if k is None else sources[k] for c, k in layout.items()},
+            # pi0-FAST does not mask the blank camera; pi0 / pi0.5 do.
+            "image_mask": {c: np.bool_(k is not None or self.family == "pi0_fast") for c, k in layout.items()},
         }
         if "actions" in data:
             inputs["actions"] = np.asarray(data["actions"])

@@ -9,6 +9,7 @@ inputs and outputs of a served call and gets one `Explanation` (or `ExplainSkipp
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from typing import Any, Literal, Protocol, get_args
 
 import jax
@@ -18,9 +19,11 @@ from jax.sharding import Mesh
 from openpi_cam.model.attribution import MAP_KINDS, MapKind
 from openpi_cam.model.observation import Observation
 
-# What a map explains (the `--cam-target` values). `generated-tokens` is also what a malformed generation (no action
-# tokens to explain) falls back to, so that failures leave maps too.
-Target = Literal["action-token", "all-action-tokens", "chunk", "generated-tokens"]
+# What a map explains (the `--cam-target` values). pi0-FAST: `action-token`, `all-action-tokens`, `chunk` (sum of the
+# action tokens' log-probabilities), `generated-tokens` (every emitted token; also what a malformed generation without
+# action tokens falls back to, so that failures leave maps too). pi0 / pi0.5: `action` (one dimension at one horizon
+# step) and `chunk` (the whole chunk, weighted by itself).
+Target = Literal["action-token", "all-action-tokens", "chunk", "generated-tokens", "action"]
 TARGETS: tuple[str, ...] = get_args(Target)
 FALLBACK_TARGET: Target = "generated-tokens"
 
@@ -28,14 +31,15 @@ FALLBACK_TARGET: Target = "generated-tokens"
 @dataclasses.dataclass(frozen=True)
 class ExplainRequest:
     target: Target = "action-token"
-    action_index: int = 0  # which action token, for target "action-token"
+    action_index: int = 0  # pi0-FAST: which action token ("action-token"); pi0 / pi0.5: which horizon step ("action")
+    action_dim_index: int = 0  # pi0 / pi0.5: which action dimension ("action")
     kinds: tuple[MapKind, ...] = MAP_KINDS
 
     def __post_init__(self) -> None:
         if self.target not in TARGETS:
             raise ValueError(f"unknown target {self.target!r}; expected one of {TARGETS}")
-        if self.action_index < 0:
-            raise ValueError(f"action_index must be >= 0, got {self.action_index}")
+        if self.action_index < 0 or self.action_dim_index < 0:
+            raise ValueError(f"action indices must be >= 0, got {self.action_index}, {self.action_dim_index}")
         if unknown := [k for k in self.kinds if k not in MAP_KINDS]:
             raise ValueError(f"unknown map kinds {unknown}; expected some of {MAP_KINDS}")
 
@@ -65,11 +69,21 @@ class Explainer(Protocol):
     @property
     def camera_grid(self) -> tuple[int, int]: ...
 
+    @property
+    def targets(self) -> tuple[str, ...]:
+        """The targets this family explains."""
+        ...
+
     def explain(
-        self, observation: Observation, outputs: np.ndarray, request: ExplainRequest
+        self,
+        observation: Observation,
+        outputs: np.ndarray,
+        request: ExplainRequest,
+        sample_inputs: Mapping[str, np.ndarray],
     ) -> list[Explanation | ExplainSkipped]:
-        """`observation` [B, ...] and `outputs` [B, ...] (the model's raw outputs, e.g. generated token ids) of B
-        inferences -> one result per row, in row order."""
+        """`observation` [B, ...], `outputs` [B, ...] (the model's raw outputs: generated token ids, or actions) and
+        `sample_inputs` (what else the sampler drew, each [B, ...]: pi0's noise) of B inferences -> one result per
+        row, in row order."""
         ...
 
     def on_mesh(self, mesh: Mesh | None) -> Explainer:
@@ -85,7 +99,10 @@ class OutputDecoder(Protocol):
         ...
 
 
-class SamplingModel(Protocol):
-    """What `Policy` needs from a family's model."""
+class Sampler(Protocol):
+    """A family's inference: (raw output [B, ...], what else was drawn, e.g. {"noise": [B, H, A]}); `noise` None
+    draws it from `rng` as upstream does."""
 
-    def sample_actions(self, rng: jax.Array, observation: Observation, **kwargs: Any) -> jax.Array: ...
+    def __call__(
+        self, rng: jax.Array, observation: Observation, noise: np.ndarray | None
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]: ...

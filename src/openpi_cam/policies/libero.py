@@ -1,4 +1,5 @@
-"""LIBERO pipeline for pi0-FAST (upstream `LiberoInputs(PI0_FAST)` / `LiberoOutputs`)."""
+"""LIBERO pipeline (upstream `LiberoInputs(model_type)` / `LiberoOutputs`): the blank right-wrist camera is masked for
+pi0 / pi0.5 and not for pi0-FAST, as upstream."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.policies.robot import FixedCameraSources, pass_prompt
+from openpi_cam.policies.robot import Family, FixedCameraSources, pass_prompt
 from openpi_cam.transforms import DataDict, parse_image, parse_vector, require
 
 IMAGE_KEY = "observation/image"
@@ -17,7 +18,7 @@ STATE_KEY = "observation/state"
 STATE_DIM = 8  # end-effector position (3) + axis-angle (3) + gripper joints (2), what the LIBERO client sends
 ACTION_DIM = 7
 
-# The right-wrist slot is a blank image; FAST models do not mask it.
+# The right-wrist slot is a blank image.
 CAMERA_SOURCES: Mapping[str, str | None] = {
     "base_0_rgb": IMAGE_KEY,
     "left_wrist_0_rgb": WRIST_IMAGE_KEY,
@@ -28,6 +29,7 @@ CAMERA_SOURCES: Mapping[str, str | None] = {
 @dataclasses.dataclass(frozen=True)
 class LiberoInputs(FixedCameraSources):
     CAMERA_SOURCES = CAMERA_SOURCES
+    family: Family = "pi0_fast"
 
     def __call__(self, data: DataDict) -> DataDict:
         base = parse_image(require(data, IMAGE_KEY), IMAGE_KEY)
@@ -35,7 +37,11 @@ class LiberoInputs(FixedCameraSources):
         inputs: DataDict = {
             "state": parse_vector(require(data, STATE_KEY), STATE_KEY, dim=STATE_DIM),
             "image": {"base_0_rgb": base, "left_wrist_0_rgb": wrist, "right_wrist_0_rgb": np.zeros_like(base)},
-            "image_mask": {"base_0_rgb": np.True_, "left_wrist_0_rgb": np.True_, "right_wrist_0_rgb": np.True_},
+            "image_mask": {
+                "base_0_rgb": np.True_,
+                "left_wrist_0_rgb": np.True_,
+                "right_wrist_0_rgb": np.bool_(self.family == "pi0_fast"),
+            },
         }
         if "actions" in data:
             inputs["actions"] = data["actions"]

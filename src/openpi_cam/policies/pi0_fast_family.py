@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -19,13 +19,14 @@ import numpy as np
 import sentencepiece
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from openpi_cam.errors import InvalidRequest
 from openpi_cam.model import pi0_fast_maps
 from openpi_cam.model.config import EOS_TOKEN
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.pi0_fast import Pi0FAST
 from openpi_cam.model.pi0_fast_maps import GradCamResult
 from openpi_cam.policies.config import PolicyConfig
-from openpi_cam.policies.family import FALLBACK_TARGET, ExplainRequest, ExplainSkipped, Explanation
+from openpi_cam.policies.family import FALLBACK_TARGET, ExplainRequest, ExplainSkipped, Explanation, Sampler
 from openpi_cam.tokenizers.fast import FastActionTokenizer, resolve_fast_tokenizer_dir
 from openpi_cam.tokenizers.paligemma import load_paligemma_tokenizer
 from openpi_cam.tokenizers.pi0_fast import Pi0FastTokenizer
@@ -69,6 +70,8 @@ def _plan(tokenizer: Pi0FastTokenizer, tokens: np.ndarray, request: ExplainReque
 class FastExplainer:
     """Explains pi0-FAST generations; every call explains a whole batch (a single inference is a batch of one)."""
 
+    targets = (*TOKEN_TARGETS, *SEQUENCE_TARGETS)
+
     def __init__(self, model: Pi0FAST, tokenizer: Pi0FastTokenizer) -> None:
         self.model = model
         self.tokenizer = tokenizer
@@ -85,8 +88,14 @@ class FastExplainer:
         return FastExplainer(model, self.tokenizer)
 
     def explain(
-        self, observation: Observation, outputs: np.ndarray, request: ExplainRequest
+        self,
+        observation: Observation,
+        outputs: np.ndarray,
+        request: ExplainRequest,
+        sample_inputs: Mapping[str, np.ndarray] | None = None,
     ) -> list[Explanation | ExplainSkipped]:
+        if request.target not in self.targets:
+            raise ValueError(f"pi0-FAST explains the targets {self.targets}, not {request.target!r}")
         generated = np.asarray(outputs, np.int32)
         rows = int(np.shape(observation.state)[0])
         if generated.ndim != 2 or generated.shape[0] != rows:
@@ -156,10 +165,10 @@ class FastParts:
 
     model: Pi0FAST
     tokenizer: Pi0FastTokenizer
-    tokenize: TokenizeFASTInputs  # the last input transform
+    tokenize: tuple[TokenizeFASTInputs]  # the last input transform(s)
     decoder: ExtractFASTActions  # the first output step
     explainer: FastExplainer
-    sample_kwargs: dict[str, Any]
+    sample: Sampler
 
 
 def build_pi0_fast(
@@ -185,10 +194,15 @@ def build_pi0_fast(
         max_token_len=config.max_token_len,
         dtype=dtype,
     )
-    sample_kwargs: dict[str, Any] = {"max_decoding_steps": max_decoding_steps}
-    if stop_at_action_end:
-        sample_kwargs["stop_token_ids"] = tuple(tokenizer.end_of_action_token_ids)
+    stop_ids = tuple(tokenizer.end_of_action_token_ids) if stop_at_action_end else ()
+
+    def sample(rng: jax.Array, observation: Observation, noise: np.ndarray | None) -> tuple[np.ndarray, dict]:
+        if noise is not None:
+            raise InvalidRequest("pi0-FAST decodes tokens: it takes no noise")
+        tokens = model.sample_actions(rng, observation, max_decoding_steps=max_decoding_steps, stop_token_ids=stop_ids)
+        return np.asarray(jax.block_until_ready(tokens)).astype(np.int32), {}
+
     decoder = ExtractFASTActions(tokenizer, action_horizon=config.action_horizon, action_dim=config.action_dim)
     return FastParts(
-        model, tokenizer, TokenizeFASTInputs(tokenizer), decoder, FastExplainer(model, tokenizer), sample_kwargs
+        model, tokenizer, (TokenizeFASTInputs(tokenizer),), decoder, FastExplainer(model, tokenizer), sample
     )

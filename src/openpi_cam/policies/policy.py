@@ -18,12 +18,14 @@ import sentencepiece
 from openpi_cam.counters import WarnOnceCounter
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.image_tools import LetterboxGeometry, letterbox_geometry
-from openpi_cam.model.config import MAX_DECODING_STEPS
+from openpi_cam.model.checkpoint import read_param_shapes
+from openpi_cam.model.config import MAX_DECODING_STEPS, family_of
 from openpi_cam.model.observation import Observation
 from openpi_cam.normalize import load_checkpoint_norm_stats
 from openpi_cam.policies.config import PolicyConfig, resolve_config
-from openpi_cam.policies.family import Explainer, OutputDecoder, SamplingModel
-from openpi_cam.policies.pi0_fast_family import build_pi0_fast
+from openpi_cam.policies.family import Explainer, OutputDecoder, Sampler
+from openpi_cam.policies.pi0_family import FlowParts, build_pi0
+from openpi_cam.policies.pi0_fast_family import FastParts, build_pi0_fast
 from openpi_cam.policies.robot import RobotInputs
 from openpi_cam.tokenizers.fast import FastActionTokenizer
 from openpi_cam.transforms import (
@@ -46,7 +48,9 @@ class InferenceTrace:
     """One `infer` call as the model saw it. Per-camera dicts follow the model's camera order."""
 
     observation: Observation  # batched (B=1) model input, images float32 in [-1, 1]
-    output: np.ndarray  # the model's raw output (pi0-FAST: generated ids, int32 [max_decoding_steps], 0 after EOS)
+    output: np.ndarray  # the model's raw output (pi0-FAST: generated ids, int32 [max_decoding_steps], 0 after EOS;
+    # pi0 / pi0.5: the action chunk [horizon, model action dim] before the output transforms)
+    sample_inputs: dict[str, np.ndarray]  # what else the sampler drew (pi0 / pi0.5: "noise" [horizon, action dim])
     raw_images: dict[str, np.ndarray | None]  # uint8 [H, W, 3] as the client sent it; None for synthesised cameras
     camera_sources: dict[str, str | None]  # client observation key per camera (None: synthesised)
     geometry: dict[str, LetterboxGeometry]  # where each client image sits inside the model image
@@ -70,29 +74,30 @@ def _copy_containers(tree: Any) -> Any:
 class Policy:
     """Input transforms -> batched `Observation` -> the model's sampler -> output transforms, as upstream's `Policy`.
 
-    `decoder` turns the model's raw output into normalised actions (pi0-FAST: FAST action extraction, the first of
-    upstream's output transforms); keeping it apart from `output_transforms` lets the policy report malformed
-    outputs. `explainer` is the family's map computation, used by the side channel, never by `infer`.
+    `sample` is the family's inference (it also returns what it drew, e.g. pi0's noise); `decoder` turns the model's
+    raw output into normalised actions (pi0-FAST: FAST action extraction, the first of upstream's output transforms);
+    keeping it apart from `output_transforms` lets the policy report malformed outputs. `explainer` is the family's
+    map computation, used by the side channel, never by `infer`.
     """
 
     def __init__(
         self,
-        model: SamplingModel,
+        model: object,
         *,
         transforms: Sequence[Transform],
+        sample: Sampler,
         decoder: OutputDecoder,
         explainer: Explainer,
         output_transforms: Sequence[Transform] = (),
         rng: jax.Array | None = None,
-        sample_kwargs: Mapping[str, Any] | None = None,
         metadata: Mapping[str, Any] | None = None,
     ) -> None:
         self._model = model
         self._transforms = tuple(transforms)
+        self._sample = sample
         self._decoder = decoder
         self._explainer = explainer
         self._output_transform = compose(output_transforms)
-        self._sample_kwargs = dict(sample_kwargs or {})
         self._metadata = dict(metadata or {})
         self._rng = jax.random.key(0) if rng is None else rng
         robot = [t for t in self._transforms if isinstance(t, RobotInputs)]
@@ -105,7 +110,8 @@ class Policy:
         self._malformed = WarnOnceCounter(logger, "Malformed generation, upstream's zero-action fallback returned")
 
     @property
-    def model(self) -> SamplingModel:
+    def model(self) -> object:
+        """The family's model object (`Pi0FAST` or `Pi0`)."""
         return self._model
 
     @property
@@ -132,10 +138,15 @@ class Policy:
     def close(self, timeout: float | None = None) -> None:
         """Nothing to release; present so every served object has the same interface."""
 
-    def infer(self, obs: Mapping[str, Any], context: object = None) -> dict[str, Any]:
-        return self.infer_traced(obs)[0]
+    def infer(
+        self, obs: Mapping[str, Any], context: object = None, *, noise: np.ndarray | None = None
+    ) -> dict[str, Any]:
+        """Upstream's `Policy.infer`; `noise` [horizon, action dim] fixes a flow-matching policy's noise."""
+        return self.infer_traced(obs, noise=noise)[0]
 
-    def infer_traced(self, obs: Mapping[str, Any]) -> tuple[dict[str, Any], InferenceTrace]:
+    def infer_traced(
+        self, obs: Mapping[str, Any], *, noise: np.ndarray | None = None
+    ) -> tuple[dict[str, Any], InferenceTrace]:
         if not isinstance(obs, Mapping):
             raise InvalidRequest(f"an observation must be a dict, got {type(obs).__name__}")
         if "actions" in obs:
@@ -152,7 +163,7 @@ class Policy:
         observation = Observation.from_dict(batched)
 
         start = time.monotonic()
-        raw = jax.block_until_ready(self._model.sample_actions(sample_rng, observation, **self._sample_kwargs))
+        raw, drawn = self._sample(sample_rng, observation, noise)
         model_time = time.monotonic() - start
 
         output = np.asarray(raw[0])
@@ -168,6 +179,7 @@ class Policy:
         trace = InferenceTrace(
             observation=observation,
             output=output,
+            sample_inputs={k: np.asarray(v)[0] for k, v in drawn.items()},
             raw_images={c: None if camera_sources.get(c) is None else pre_resize_images[c] for c in cameras},
             camera_sources={c: camera_sources.get(c) for c in cameras},
             geometry={c: letterbox_geometry(*pre_resize_images[c].shape[-3:-1], *self._resolution) for c in cameras},
@@ -193,20 +205,20 @@ class Policy:
 def build_transforms(
     config: PolicyConfig,
     norm_stats: Mapping[str, Any],
-    tokenize: Transform,
+    tokenize: Sequence[Transform],
     image_resolution: tuple[int, int],
     *,
     default_prompt: str | None = None,
 ) -> tuple[list[Transform], list[Transform]]:
     """Upstream `create_trained_policy`'s chains around the family's own steps: (input transforms ending in the
-    family's `tokenize`, output transforms after the family's output decoder)."""
+    family's `tokenize` steps, output transforms after the family's output decoder)."""
     inputs: list[Transform] = [
         InjectDefaultPrompt(default_prompt),
         *config.inputs,
         Normalize(norm_stats, use_quantiles=config.use_quantile_norm),
         InjectDefaultPrompt(config.default_prompt),
         ResizeImages(*image_resolution),
-        tokenize,
+        *tokenize,
     ]
     outputs: list[Transform] = [
         Unnormalize(norm_stats, use_quantiles=config.use_quantile_norm),
@@ -240,25 +252,34 @@ def create_policy(
     if not params_dir.is_dir():
         raise FileNotFoundError(f"model params not found: expected an orbax checkpoint directory at {params_dir}")
     norm_stats = load_checkpoint_norm_stats(checkpoint_dir, cfg.asset_id)
-    parts = build_pi0_fast(
-        cfg,
-        params_dir,
-        paligemma_tokenizer=paligemma_tokenizer,
-        fast_tokenizer=fast_tokenizer,
-        dtype=dtype,
-        max_decoding_steps=max_decoding_steps,
-        stop_at_action_end=stop_at_action_end,
-    )
+    checkpoint_family = family_of(read_param_shapes(params_dir))
+    if checkpoint_family != cfg.family:
+        raise ValueError(
+            f"config {cfg.name!r} serves {cfg.family}, the checkpoint at {params_dir} is {checkpoint_family}"
+        )
+    parts: FastParts | FlowParts
+    if cfg.family == "pi0_fast":
+        parts = build_pi0_fast(
+            cfg,
+            params_dir,
+            paligemma_tokenizer=paligemma_tokenizer,
+            fast_tokenizer=fast_tokenizer,
+            dtype=dtype,
+            max_decoding_steps=max_decoding_steps,
+            stop_at_action_end=stop_at_action_end,
+        )
+    else:
+        parts = build_pi0(cfg, params_dir, paligemma_tokenizer=paligemma_tokenizer, dtype=dtype)
     inputs, outputs = build_transforms(
         cfg, norm_stats, parts.tokenize, parts.model.config.image_resolution, default_prompt=default_prompt
     )
     return Policy(
         parts.model,
         transforms=inputs,
+        sample=parts.sample,
         decoder=parts.decoder,
         explainer=parts.explainer,
         output_transforms=outputs,
         rng=rng,
-        sample_kwargs=parts.sample_kwargs,
         metadata=cfg.policy_metadata,
     )

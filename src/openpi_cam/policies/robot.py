@@ -9,11 +9,14 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping
-from typing import Any, ClassVar, Protocol, runtime_checkable
+from typing import Any, ClassVar, Literal, Protocol, runtime_checkable
 
 import numpy as np
 
 from openpi_cam.transforms import DataDict, parse_image, parse_prompt, parse_vector, require
+
+# The model families a robot pipeline may have to lay its cameras out for (upstream's `ModelType`).
+Family = Literal["pi0_fast", "pi0", "pi05"]
 
 
 @runtime_checkable

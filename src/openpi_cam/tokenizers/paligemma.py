@@ -1,16 +1,23 @@
-"""Locating and loading the PaliGemma SentencePiece model without any download."""
+"""Locating and loading the PaliGemma SentencePiece model without any download, and upstream's state bins."""
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
 
+import numpy as np
 import sentencepiece
 
 OPENPI_DATA_HOME_ENV = "OPENPI_DATA_HOME"
 DEFAULT_OPENPI_DATA_HOME = "~/.cache/openpi"
 # Where upstream's `maybe_download("gs://big_vision/paligemma_tokenizer.model")` leaves the file inside its cache.
 PALIGEMMA_TOKENIZER_CACHE_PATH = Path("big_vision") / "paligemma_tokenizer.model"
+STATE_BINS = 256
+
+
+def discretize_state(state: np.ndarray) -> np.ndarray:
+    """Upstream's state bins: 256 equal bins over [-1, 1]; below -1 gives -1, 1 and above give 255 (as upstream)."""
+    return np.digitize(state, bins=np.linspace(-1, 1, STATE_BINS + 1)[:-1]) - 1
 
 
 def openpi_data_home() -> Path:

@@ -12,7 +12,7 @@ import sentencepiece
 
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.tokenizers.fast import FastActionTokenizer, resolve_fast_tokenizer_dir
-from openpi_cam.tokenizers.paligemma import load_paligemma_tokenizer
+from openpi_cam.tokenizers.paligemma import discretize_state, load_paligemma_tokenizer
 
 logger = logging.getLogger(__name__)
 
@@ -22,17 +22,11 @@ END_OF_ACTION: Final = "|"
 NO_ACTION_PREFIX: Final = "no_action_prefix"
 # PaliGemma's last 128 ids are <segNNN> tokens; FAST ids count down from just below them.
 FAST_SKIP_TOKENS: Final = 128
-STATE_BINS: Final = 256
 
 TokenizedInputs = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
-def discretize_state(state: np.ndarray) -> np.ndarray:
-    """Upstream's state bins: 256 equal bins over [-1, 1]; below -1 gives -1, 1 and above give 255 (as upstream)."""
-    return np.digitize(state, bins=np.linspace(-1, 1, STATE_BINS + 1)[:-1]) - 1
-
-
-def _validated_state(state: np.ndarray) -> np.ndarray:
+def validated_state(state: np.ndarray) -> np.ndarray:
     array = np.asarray(state)
     if array.ndim != 1 or not np.issubdtype(array.dtype, np.number):
         raise InvalidRequest(f"state must be a 1-D numeric array, got shape {array.shape} dtype {array.dtype}")
@@ -80,7 +74,7 @@ class Pi0FastTokenizer:
         if not isinstance(prompt, str):
             raise InvalidRequest(f"prompt must be a string, got {type(prompt).__name__}")
         cleaned = prompt.lower().strip().replace("_", " ")
-        state_text = " ".join(map(str, discretize_state(_validated_state(state))))
+        state_text = " ".join(map(str, discretize_state(validated_state(state))))
         prefix = self._sp.encode(f"Task: {cleaned}, State: {state_text};\n", add_bos=True)
         postfix: list[int] = []
         if actions is not None:

@@ -1,0 +1,141 @@
+"""pi0 and pi0.5 behind the family seam: the flow-matching model, its prompt tokenizer and transforms, its sampler
+(which records the noise it used) and its `Explainer`.
+
+The server's noise stream is upstream's: the policy splits its rng once per call and the noise is
+`jax.random.normal(split, (1, action_horizon, action_dim))`, unless the caller passes `noise=` to `Policy.infer`.
+The explainer re-runs the whole denoising from that same noise, so the explained actions are the returned ones (the
+difference is stored per step as `replay_max_abs_diff`).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from collections.abc import Mapping
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import sentencepiece
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from openpi_cam.errors import InvalidRequest
+from openpi_cam.model.observation import Observation
+from openpi_cam.model.pi0 import Pi0
+from openpi_cam.model.pi0_maps import CHUNK, maps_for_actions
+from openpi_cam.policies.config import PolicyConfig
+from openpi_cam.policies.family import ExplainRequest, ExplainSkipped, Explanation, Sampler
+from openpi_cam.tokenizers.paligemma import load_paligemma_tokenizer
+from openpi_cam.tokenizers.pi0 import Pi0PromptTokenizer
+from openpi_cam.transforms import PadStatesAndActions, PassActions, TokenizePrompt
+
+
+class FlowExplainer:
+    """Explains pi0 / pi0.5 action chunks: target `action` (dimension d at horizon step h) or `chunk`."""
+
+    targets = ("action", "chunk")
+
+    def __init__(self, model: Pi0) -> None:
+        self.model = model
+
+    @property
+    def camera_grid(self) -> tuple[int, int]:
+        return self.model.camera_grid
+
+    def on_mesh(self, mesh: Mesh | None) -> FlowExplainer:
+        if mesh is None:
+            return self
+        model = copy.copy(self.model)
+        model.params = jax.device_put(self.model.params, NamedSharding(mesh, PartitionSpec()))
+        return FlowExplainer(model)
+
+    def explain(
+        self,
+        observation: Observation,
+        outputs: np.ndarray,
+        request: ExplainRequest,
+        sample_inputs: Mapping[str, np.ndarray] | None = None,
+    ) -> list[Explanation | ExplainSkipped]:
+        if request.target not in self.targets:
+            raise ValueError(f"{self.model.family} explains the targets {self.targets}, not {request.target!r}")
+        if sample_inputs is None or "noise" not in sample_inputs:
+            raise ValueError("explaining a flow-matching policy needs the served call's noise")
+        cfg = self.model.config
+        target = CHUNK
+        if request.target == "action":
+            target = (request.action_index, request.action_dim_index)
+            if not (target[0] < cfg.action_horizon and target[1] < cfg.action_dim):
+                reason = f"action {target} requested, the chunk is [{cfg.action_horizon}, {cfg.action_dim}]"
+                return [ExplainSkipped("action_index_out_of_range", reason)] * len(outputs)
+        res = maps_for_actions(self.model, observation, sample_inputs["noise"], [target])
+        replay_diff = np.abs(res.actions - np.asarray(outputs, np.float32)).max(axis=(1, 2))
+        grid = list(self.camera_grid)
+        return [
+            Explanation(
+                target=request.target,
+                maps={
+                    k: {c: np.asarray(m[b, 0], np.float32) for c, m in res.by_kind[k].items()} for k in request.kinds
+                },
+                score=float(res.score[b, 0]),
+                cameras={
+                    c: {"valid": bool(res.valid[c][b]), "grid": grid, "span": list(res.spans[c])} for c in res.cameras
+                },
+                details={
+                    "action_index": None if target == CHUNK else list(target),
+                    "replay_max_abs_diff": float(replay_diff[b]),
+                },
+            )
+            for b in range(len(outputs))
+        ]
+
+
+@dataclasses.dataclass(frozen=True)
+class FlowParts:
+    """What `create_policy` needs from the family, built from local files only."""
+
+    model: Pi0
+    tokenizer: Pi0PromptTokenizer
+    tokenize: tuple[TokenizePrompt, PadStatesAndActions]  # the last input transforms
+    decoder: PassActions
+    explainer: FlowExplainer
+    sample: Sampler
+
+
+def build_pi0(
+    config: PolicyConfig,
+    params_dir: Path,
+    *,
+    paligemma_tokenizer: str | Path | sentencepiece.SentencePieceProcessor | None,
+    dtype: str,
+) -> FlowParts:
+    """The model restored from `params_dir` and the PaliGemma tokenizer (None: upstream's cache location)."""
+    if not isinstance(paligemma_tokenizer, sentencepiece.SentencePieceProcessor):
+        paligemma_tokenizer = load_paligemma_tokenizer(paligemma_tokenizer)
+    tokenizer = Pi0PromptTokenizer(paligemma_tokenizer, config.max_token_len)
+    model = Pi0.from_checkpoint(
+        params_dir, action_horizon=config.action_horizon, max_token_len=config.max_token_len, dtype=dtype
+    )
+    if model.family != config.family:
+        raise ValueError(f"config {config.name!r} serves {config.family}, the checkpoint is a {model.family} model")
+    if model.config.action_dim != config.action_dim:
+        raise ValueError(
+            f"config {config.name!r} pads states and actions to {config.action_dim} dims, the checkpoint's "
+            f"action projections have {model.config.action_dim}"
+        )
+
+    def sample(rng: jax.Array, observation: Observation, noise: np.ndarray | None) -> tuple[np.ndarray, dict]:
+        shape = (observation.state.shape[0], model.config.action_horizon, model.config.action_dim)
+        if noise is None:
+            drawn = jax.random.normal(rng, shape)  # what upstream's sample_actions draws from the same key
+        elif np.size(noise) != np.prod(shape):
+            raise InvalidRequest(
+                f"noise must have shape {list(shape[1:])} (horizon, action dim), got {np.shape(noise)}"
+            )
+        else:
+            drawn = jnp.asarray(noise, jnp.float32).reshape(shape)
+        actions = jax.block_until_ready(model.sample_actions(rng, observation, noise=drawn))
+        return np.asarray(actions), {"noise": np.asarray(drawn)}
+
+    tokenize = (TokenizePrompt(tokenizer, config.discrete_state_input), PadStatesAndActions(config.action_dim))
+    return FlowParts(model, tokenizer, tokenize, PassActions(), FlowExplainer(model), sample)
