@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import pathlib
+from typing import Literal
 
 from openpi_cam.demo.run import DemoOptions, run_demo
-from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import Target
 from openpi_cam.viz.stats import MAP_LABELS
 
@@ -19,7 +19,8 @@ def main(
     target: Target = "chunk",
     render: bool = True,
     videos: bool = False,
-    assets: pathlib.Path = demo_reach.ASSETS,
+    model: Literal["pi0_fast", "pi05"] = "pi0_fast",
+    assets: pathlib.Path | None = None,
 ) -> int:
     """Run the bundled model end to end: server + side channel + simulated robot + rendered reports + figures.
 
@@ -32,9 +33,10 @@ def main(
         target: what the maps explain for each inference.
         render: write overlays and the HTML report of each map kind after the run.
         videos: also write MP4/GIF videos (needs the viz extra).
-        assets: directory holding the model (checkpoint/) and its tokenizers (default: the bundled ones).
+        model: which bundled model serves: the tiny pi0-FAST (default) or the tiny pi0.5 trained on the same task.
+        assets: directory holding the model (checkpoint/) and its tokenizers (default: the bundled ones of `model`).
     """
-    opts = DemoOptions(out, episodes, max_calls, execute, seed, target, render, videos, assets)
+    opts = DemoOptions(out, episodes, max_calls, execute, seed, target, render, videos, model, assets)
     try:
         result = run_demo(opts)
     except OSError as e:

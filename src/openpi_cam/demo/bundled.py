@@ -3,14 +3,15 @@
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
 
 from openpi_cam.cam.records import EXTRA_PREFIX, split_extra
 from openpi_cam.demo import task
-from openpi_cam.model.config import GemmaConfig, Pi0FASTConfig, SiglipConfig, scan_by_default
-from openpi_cam.policies.demo_reach import DEMO_CONFIG, IMAGE_KEY, STATE_KEY, WRIST_KEY
+from openpi_cam.model.config import GemmaConfig, Pi0Config, Pi0FASTConfig, SiglipConfig, scan_by_default
+from openpi_cam.policies.demo_reach import DEMO_CONFIG, DEMO_PI05_CONFIG, IMAGE_KEY, STATE_KEY, WRIST_KEY
 
 PATCH_SIZE = 16  # 64 px images -> a 4 x 4 map grid per camera
 
@@ -54,6 +55,33 @@ def model_config(
         action_dim=DEMO_CONFIG.action_dim,
         action_horizon=DEMO_CONFIG.action_horizon,
         max_token_len=DEMO_CONFIG.max_token_len,
+        dtype="float32",
+    )
+
+
+def pi05_model_config(
+    vocab_size: int,
+    *,
+    width: int = 128,
+    depth: int = 2,
+    vit_width: int = 64,
+    patch_size: int = PATCH_SIZE,
+    expert_width: int = 64,
+    scan: bool | None = None,
+) -> Pi0Config:
+    """pi0.5's architecture scaled down like `model_config`'s backbone, with an action expert half as wide (upstream's
+    gemma_300m is half of gemma_2b's width; depth, heads and head dim must equal the LLM's)."""
+    fast = model_config(vocab_size, width=width, depth=depth, vit_width=vit_width, patch_size=patch_size, scan=scan)
+    expert = dataclasses.replace(fast.gemma, width=expert_width, mlp_dim=2 * expert_width, vocab_size=0)
+    cfg = DEMO_PI05_CONFIG
+    return Pi0Config(
+        gemma=fast.gemma,
+        expert=expert,
+        siglip=fast.siglip,
+        pi05=True,
+        action_dim=cfg.action_dim,
+        action_horizon=cfg.action_horizon,
+        max_token_len=cfg.max_token_len,
         dtype="float32",
     )
 

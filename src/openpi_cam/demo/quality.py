@@ -268,7 +268,7 @@ def offline_figures(
     batches = Batches(assets, load_normalize(assets), 1, seed)
 
     def loss(pairs: list[task.Sample]) -> np.ndarray:  # at the positions the decoder serves the action tokens at
-        return np.asarray(policy.model.compute_loss(batches.observation(pairs), decode_offset=1))
+        return np.asarray(policy.model.compute_loss(batches.batch(pairs).obs, decode_offset=1))
 
     return {
         "samples": samples,

@@ -8,7 +8,7 @@ import dataclasses
 import json
 import pathlib
 import time
-from typing import Any
+from typing import Any, Literal
 
 from openpi_cam.cam.runfmt import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
@@ -53,7 +53,8 @@ class DemoOptions:
     target: Target = "chunk"
     render: bool = True
     videos: bool = False
-    assets: pathlib.Path = demo_reach.ASSETS
+    model: Literal["pi0_fast", "pi05"] = "pi0_fast"
+    assets: pathlib.Path | None = None  # None: the bundled model of `model`
 
 
 @dataclasses.dataclass
@@ -68,10 +69,12 @@ class DemoResult:
 def run_demo(opts: DemoOptions) -> DemoResult:
     """Serves, drives, renders and scores; raises OSError when the side channel cannot create its run directory."""
     t0 = time.time()
-    policy = demo_reach.create_demo_policy(assets=opts.assets)
+    assets = demo_reach.DEFAULT_ASSETS[opts.model] if opts.assets is None else opts.assets
+    policy = demo_reach.create_demo_policy(model=opts.model, assets=assets)
     options = CAMOptions(every_k=1, cam_dir=opts.out, save_frames="both", target=opts.target, queue_size=64)
-    run_config = {"config": demo_reach.DEMO_CONFIG.name, "demo": {"episodes": opts.episodes, "seed": opts.seed}}
-    checkpoint = str(opts.assets / demo_reach.CHECKPOINT.name)
+    config = demo_reach.DEMO_CONFIGS[opts.model].name
+    run_config = {"config": config, "demo": {"episodes": opts.episodes, "seed": opts.seed, "model": opts.model}}
+    checkpoint = str(assets / demo_reach.CHECKPOINT.name)
     cam = wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=checkpoint)
     server = start_server_in_thread(cam, metadata=policy.metadata)
     try:

@@ -1,9 +1,11 @@
-"""Train the bundled tiny pi0-FAST on the reaching task: `python -m openpi_cam.demo.train --out DIR`.
+"""Train a bundled tiny model on the reaching task: `python -m openpi_cam.demo.train --out DIR [--model pi05]`.
 
-One reproducible command (fixed seeds, CPU): norm stats from task data (upstream's quantile format) -> the two
-tokenizers -> upstream's FAST training format (prefix `Task: ..., State: ...;\\n`, postfix `Action: ` + FAST ids + `|`
-+ EOS, loss on the postfix) -> AdamW on `compute_loss`, in two phases (`TrainArgs`) ->
+One reproducible command (fixed seeds, CPU): norm stats from task data (upstream's quantile format) -> the tokenizers
+-> the family's training format -> AdamW on the family's loss (`TrainArgs`) ->
 `<out>/checkpoint/{params, assets/demo_reach/norm_stats.json}` -> closed-loop success rate in the simulator.
+pi0-FAST: upstream's FAST format (prefix `Task: ..., State: ...;\\n`, postfix `Action: ` + FAST ids + `|` + EOS, loss on
+the postfix), in two phases. pi0.5: the prompt with the discretised state, and the flow-matching loss at a fresh
+noise and time (t ~ Beta(1.5, 1) * 0.999 + 0.001, as upstream) for every example of every step.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import shutil
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Literal
 
 import jax
 import jax.numpy as jnp
@@ -24,8 +27,9 @@ import optax
 from openpi_cam.demo import bundled, make_tokenizers, sim
 from openpi_cam.demo.data import Batches, write_norm_stats
 from openpi_cam.demo.quality import binding_probe
+from openpi_cam.model import pi0
 from openpi_cam.model.checkpoint import load_params, save_params
-from openpi_cam.model.config import Pi0FASTConfig
+from openpi_cam.model.config import Pi0Config, Pi0FASTConfig
 from openpi_cam.model.pi0_fast import compute_loss, init_params
 from openpi_cam.policies import demo_reach
 
@@ -36,7 +40,8 @@ class TrainArgs:
     (about 22 minutes on 2 CPU cores). The shipped model is the longer recipe `--steps 10000 --finetune-steps 0`,
     then `--steps 0 --init-from <params> --finetune-steps 800` (README, "The bundled demo")."""
 
-    out: Path = demo_reach.ASSETS
+    model: Literal["pi0_fast", "pi05"] = "pi0_fast"
+    out: Path | None = None  # None: the bundled assets of `model`
     steps: int = 5000
     batch_size: int = 32
     lr: float = 2e-3
@@ -55,6 +60,7 @@ class TrainArgs:
     # Second phase: a fresh optimizer trains the action tokens one position on, where upstream's decoder serves them
     # (quirk 1). Trained at upstream's training positions only, the model binds the colour (probe 0.99) yet decodes
     # toward the named block only 60% of the time when served (100% with the decoder's offset removed). 0: no phase.
+    # (pi0-FAST only; the phase is skipped for pi0.5.)
     finetune_steps: int = 400
     finetune_lr: float = 1e-3
     finetune_warmup: int = 20
@@ -83,41 +89,64 @@ def run_episode(policy, seed: int, *, max_calls: int = 8, execute: int = 5) -> t
     return False, max_calls
 
 
-def evaluate(out: Path, episodes: int, seed: int = 10_000) -> float:
-    policy = demo_reach.create_demo_policy(assets=out)
+def evaluate(out: Path, episodes: int, model: str, seed: int = 10_000) -> float:
+    policy = demo_reach.create_demo_policy(model=model, assets=out)
     return float(np.mean([run_episode(policy, seed + e)[0] for e in range(episodes)]))
 
 
 def phases(args: TrainArgs) -> list[Phase]:
     main = Phase("main", args.steps, args.lr, args.warmup, args.decode_offset)
     finetune = Phase("finetune", args.finetune_steps, args.finetune_lr, args.finetune_warmup, 1)
-    return [p for p in (main, finetune) if p.steps > 0]
+    return [p for p in (main, finetune) if p.steps > 0 and (p is main or args.model == "pi0_fast")]
+
+
+ModelConfig = Pi0FASTConfig | Pi0Config
+
+
+def model_config(args: TrainArgs) -> ModelConfig:
+    sizes = {"width": args.width, "depth": args.depth, "vit_width": args.vit_width, "patch_size": args.patch_size}
+    if args.model == "pi05":
+        return bundled.pi05_model_config(make_tokenizers.VOCAB_SIZE, **sizes)
+    return bundled.model_config(make_tokenizers.VOCAB_SIZE, **sizes)
+
+
+def example_losses(cfg: ModelConfig, decode_offset: int) -> Callable:
+    """`losses(params, batch, key) -> [B]`: the family's per-example training loss (pi0.5: at the noise and time
+    `key` draws; the same key gives the same draws, which makes two batches' losses comparable)."""
+    if isinstance(cfg, Pi0FASTConfig):
+        return lambda params, batch, key: compute_loss(params, batch.obs, cfg, decode_offset=decode_offset)
+
+    def flow_losses(params, batch, key):
+        noise_key, time_key = jax.random.split(key)
+        noise = jax.random.normal(noise_key, batch.actions.shape)
+        t = jax.random.beta(time_key, 1.5, 1.0, batch.actions.shape[:1]) * 0.999 + 0.001
+        return jnp.mean(pi0.compute_loss(params, batch.obs, batch.actions, noise, t, cfg=cfg), axis=-1)
+
+    return flow_losses
 
 
 def train(args: TrainArgs) -> dict:
-    args.out.mkdir(parents=True, exist_ok=True)
-    normalize = write_norm_stats(args.out)
-    make_tokenizers.train_sentencepiece(args.out, seed=args.seed)
-    make_tokenizers.fit_fast(args.out, lambda chunks: normalize({"actions": chunks})["actions"])
-
-    cfg = bundled.model_config(
-        make_tokenizers.VOCAB_SIZE,
-        width=args.width,
-        depth=args.depth,
-        vit_width=args.vit_width,
-        patch_size=args.patch_size,
+    out = demo_reach.DEFAULT_ASSETS[args.model] if args.out is None else args.out
+    out.mkdir(parents=True, exist_ok=True)
+    normalize = write_norm_stats(out)
+    make_tokenizers.train_sentencepiece(out, seed=args.seed)
+    if args.model == "pi0_fast":
+        make_tokenizers.fit_fast(out, lambda chunks: normalize({"actions": chunks})["actions"])
+    cfg = model_config(args)
+    init = init_params if args.model == "pi0_fast" else pi0.init_params
+    params = init(cfg, jax.random.key(args.seed)) if args.init_from is None else load_params(args.init_from)
+    batches = Batches(
+        out, normalize, args.batch_size, args.seed + 1, contrast_pairs=args.contrast_pairs, family=args.model
     )
-    params = init_params(cfg, jax.random.key(args.seed)) if args.init_from is None else load_params(args.init_from)
-    batches = Batches(args.out, normalize, args.batch_size, args.seed + 1, contrast_pairs=args.contrast_pairs)
     t0, summary = time.time(), {}
     for phase in phases(args):
         params, summary[f"{phase.name}_loss"] = train_phase(params, cfg, batches, phase, args)
-    params_dir = args.out / demo_reach.CHECKPOINT.name / "params"
+    params_dir = out / demo_reach.CHECKPOINT.name / "params"
     shutil.rmtree(params_dir, ignore_errors=True)
     save_params(params_dir, params)
     summary["train_seconds"] = round(time.time() - t0)
     if args.eval_episodes:
-        summary["success_rate"] = evaluate(args.out, args.eval_episodes)
+        summary["success_rate"] = evaluate(out, args.eval_episodes, args.model)
     print(json.dumps(summary), flush=True)
     return summary
 
@@ -127,12 +156,13 @@ def adamw(lr: float | optax.Schedule) -> optax.GradientTransformation:
     return optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(lr, weight_decay=1e-4))
 
 
-def training_step(cfg: Pi0FASTConfig, optimizer: optax.GradientTransformation, decode_offset: int) -> Callable:
-    """`step(params, opt_state, obs) -> (params, opt_state, loss)`, jitted; params and optimizer state are donated."""
+def training_step(losses: Callable, optimizer: optax.GradientTransformation) -> Callable:
+    """`step(params, opt_state, batch, key) -> (params, opt_state, loss)`, jitted; params and optimizer state are
+    donated. `losses` is `example_losses(...)`."""
 
     @functools.partial(jax.jit, donate_argnums=(0, 1))
-    def step(params, opt_state, obs):
-        mean_loss = lambda p: jnp.mean(compute_loss(p, obs, cfg, decode_offset=decode_offset))  # noqa: E731
+    def step(params, opt_state, batch, key):
+        mean_loss = lambda p: jnp.mean(losses(p, batch, key))  # noqa: E731
         loss, grads = jax.value_and_grad(mean_loss)(params)
         updates, opt_state = optimizer.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, loss
@@ -140,20 +170,21 @@ def training_step(cfg: Pi0FASTConfig, optimizer: optax.GradientTransformation, d
     return step
 
 
-def train_phase(
-    params: dict, cfg: Pi0FASTConfig, batches: Batches, phase: Phase, args: TrainArgs
-) -> tuple[dict, float]:
+def train_phase(params: dict, cfg: ModelConfig, batches: Batches, phase: Phase, args: TrainArgs) -> tuple[dict, float]:
     """AdamW (fresh state) on a warmup-cosine schedule; returns the params and the mean loss of the last log window."""
     schedule = optax.warmup_cosine_decay_schedule(
         0.0, phase.lr, min(phase.warmup, phase.steps // 2), phase.steps, 0.05 * phase.lr
     )
     optimizer = adamw(schedule)
     opt_state = optimizer.init(params)
-    step = training_step(cfg, optimizer, phase.decode_offset)
-    probe_losses = jax.jit(functools.partial(compute_loss, cfg=cfg, decode_offset=phase.decode_offset))
+    losses_fn = example_losses(cfg, phase.decode_offset)
+    step = training_step(losses_fn, optimizer)
+    probe_losses = jax.jit(losses_fn)
+    probe_key = jax.random.key(args.seed + 2)
+    keys = jax.random.split(jax.random.key(args.seed + 3), max(phase.steps, 1))
     t0, losses = time.time(), []
     for i in range(phase.steps):
-        params, opt_state, loss = step(params, opt_state, batches())
+        params, opt_state, loss = step(params, opt_state, batches(), keys[i])
         # Wait for the previous step only, so that Python builds the next batch while XLA runs this one.
         losses[-1:] = [float(x) for x in losses[-1:]]
         losses.append(loss)
@@ -161,7 +192,9 @@ def train_phase(
         if (i + 1) % args.log_every == 0:
             print(f"{where} loss {np.mean(losses[-args.log_every :]):.4f} {time.time() - t0:.0f}s", flush=True)
         if args.probe_every and (i + 1) % args.probe_every == 0:
-            probe = binding_probe(lambda samples, p=params: np.asarray(probe_losses(p, batches.observation(samples))))
+            probe = binding_probe(
+                lambda samples, p=params: np.asarray(probe_losses(p, batches.batch(samples), probe_key))
+            )
             print(f"{where} binding probe {probe:.2f} (chance 0.5)", flush=True)
     losses[-1:] = [float(x) for x in losses[-1:]]
     return params, float(np.mean(losses[-args.log_every :]))

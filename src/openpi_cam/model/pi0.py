@@ -25,7 +25,8 @@ import jax.numpy as jnp
 
 from openpi_cam.model import gemma
 from openpi_cam.model.checkpoint import load_params
-from openpi_cam.model.config import GemmaConfig, Pi0Config, pi0_architecture_from_params
+from openpi_cam.model.config import GemmaConfig, Pi0Config, pi0_architecture_from_params, pi0_param_shapes
+from openpi_cam.model.init import init_from_shapes
 from openpi_cam.model.observation import Observation, preprocess_observation
 from openpi_cam.model.paligemma import embed_images, embed_prefix, make_attn_mask
 from openpi_cam.nested import flatten_dict
@@ -260,6 +261,11 @@ def compute_loss(
 
 
 sample_actions_jit = jax.jit(sample_actions, static_argnames="cfg")
+
+
+def init_params(config: Pi0Config, rng: jax.Array) -> dict:
+    """Fresh parameters with upstream's pi0 / pi0.5 tree, for training from scratch (`model.init.init_from_shapes`)."""
+    return init_from_shapes(pi0_param_shapes(config), rng)
 
 
 class Pi0:

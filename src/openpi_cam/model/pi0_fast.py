@@ -24,9 +24,10 @@ from openpi_cam.model.config import (
     architecture_from_params,
     param_shapes,
 )
+from openpi_cam.model.init import init_from_shapes
 from openpi_cam.model.observation import Observation, preprocess_observation
 from openpi_cam.model.paligemma import embed_images, embed_prefix, make_attn_mask
-from openpi_cam.nested import flatten_dict, unflatten_dict
+from openpi_cam.nested import flatten_dict
 
 
 @jax.vmap
@@ -248,31 +249,6 @@ class Pi0FAST:
         return self._loss(self.params, observation, decode_offset=decode_offset)
 
 
-def _fan_in(path: str, shape: tuple[int, ...]) -> int:
-    if path.endswith("embedding/kernel"):  # [p, p, 3, width]
-        return shape[0] * shape[1] * shape[2]
-    if path.endswith("out/kernel"):  # [depth, heads, head_dim, width]
-        return shape[-3] * shape[-2]
-    if path.endswith(("query/kernel", "key/kernel", "value/kernel")):  # [depth, width, heads, head_dim]
-        return shape[1]
-    return shape[-2]  # every other weight maps its second-to-last axis to its last
-
-
 def init_params(config: Pi0FASTConfig, rng: jax.Array) -> dict:
-    """Fresh parameters with upstream's tree, for training from scratch (`jax.eval_shape` gives the tree cheaply).
-
-    Weights are LeCun-normal, biases and LoRA `b` factors zero, LayerNorm scales one, RMSNorm scales zero (they act
-    as 1 + scale), embeddings N(0, 1/width)."""
-    shapes = param_shapes(config.gemma, config.siglip)
-    leaves = {}
-    for (path, shape), key in zip(shapes.items(), jax.random.split(rng, len(shapes)), strict=True):
-        name = path.rsplit("/", 1)[-1]
-        if name == "bias" or name.endswith("lora_b") or (name == "scale" and "/llm/" in path):
-            leaves[path] = jnp.zeros(shape, jnp.float32)
-        elif name == "scale":
-            leaves[path] = jnp.ones(shape, jnp.float32)
-        elif name in ("input_embedding", "pos_embedding"):
-            leaves[path] = jax.random.normal(key, shape) * shape[-1] ** -0.5
-        else:
-            leaves[path] = jax.random.normal(key, shape) * _fan_in(path, shape) ** -0.5
-    return unflatten_dict(leaves)
+    """Fresh parameters with upstream's tree, for training from scratch (`model.init.init_from_shapes`)."""
+    return init_from_shapes(param_shapes(config.gemma, config.siglip), rng)

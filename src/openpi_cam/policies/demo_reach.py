@@ -15,6 +15,7 @@ from openpi_cam.policies.policy import Policy, create_policy
 from openpi_cam.policies.robot import GenericInputs, GenericOutputs
 
 ASSETS = Path(__file__).resolve().parents[1] / "assets" / "demo"
+ASSETS_PI05 = ASSETS.with_name("demo_pi05")  # the same task learned by a tiny pi0.5 (`openpi-cam demo --model pi05`)
 CHECKPOINT = ASSETS / "checkpoint"  # OpenPI layout: params/ and assets/<ASSET_ID>/norm_stats.json
 PALIGEMMA_TOKENIZER = ASSETS / "paligemma_tokenizer.model"
 FAST_TOKENIZER = ASSETS / "fast_tokenizer"
@@ -45,13 +46,45 @@ DEMO_CONFIG = register_config(
 )
 
 
+# The pi0.5 demo robot: pi0.5 reads the three upstream cameras, so the wrist view is the left wrist and the right
+# wrist a masked blank; states and actions are padded to the model's 32 dims, the state also goes into the prompt.
+DEMO_PI05_CONFIG = register_config(
+    PolicyConfig(
+        name="demo_reach_pi05",
+        family="pi05",
+        inputs=(
+            GenericInputs(
+                cameras={"base_0_rgb": IMAGE_KEY, "left_wrist_0_rgb": WRIST_KEY, "right_wrist_0_rgb": None},
+                state_key=STATE_KEY,
+                state_dim=2,
+                mask_blank=True,
+            ),
+        ),
+        outputs=(GenericOutputs(action_dim=2),),
+        asset_id=ASSET_ID,
+        action_dim=32,
+        action_horizon=ACTION_HORIZON,
+        max_token_len=48,
+        discrete_state_input=True,
+    )
+)
+DEMO_CONFIGS = {"pi0_fast": DEMO_CONFIG, "pi05": DEMO_PI05_CONFIG}
+DEFAULT_ASSETS = {"pi0_fast": ASSETS, "pi05": ASSETS_PI05}
+
+
 def create_demo_policy(
-    *, assets: Path = ASSETS, dtype: str = "float32", stop_at_action_end: bool = False, rng: jax.Array | None = None
+    *,
+    model: str = "pi0_fast",
+    assets: Path | None = None,
+    dtype: str = "float32",
+    stop_at_action_end: bool = False,
+    rng: jax.Array | None = None,
 ) -> Policy:
-    """The bundled model (or one trained into `assets` by `python -m openpi_cam.demo.train`) served through the
-    same `create_policy` as any OpenPI checkpoint."""
+    """The bundled model of a family ("pi0_fast" or "pi05"; or one trained into `assets` by `python -m
+    openpi_cam.demo.train`) served through the same `create_policy` as any OpenPI checkpoint."""
+    assets = DEFAULT_ASSETS[model] if assets is None else assets
     return create_policy(
-        DEMO_CONFIG,
+        DEMO_CONFIGS[model],
         assets / CHECKPOINT.name,
         paligemma_tokenizer=assets / PALIGEMMA_TOKENIZER.name,
         fast_tokenizer=assets / FAST_TOKENIZER.name,

@@ -74,13 +74,15 @@ class GenericInputs:
     """Inputs for a user-declared robot: named client keys for each camera and one state vector.
 
     ``cameras`` maps model camera names (in model order) to client keys; None synthesises a black image shaped like
-    the first real camera. As for upstream's FAST pipelines, every camera mask is True.
+    the first real camera. Every camera mask is True, as upstream's FAST pipelines do, unless ``mask_blank`` masks
+    the synthesised ones, as upstream's pi0 / pi0.5 pipelines do.
     """
 
     cameras: Mapping[str, str | None]
     state_key: str
     state_dim: int | None = None
     channels_first: bool | None = None  # None: upstream's rule (a leading axis of 3 means [3, H, W])
+    mask_blank: bool = False
 
     def __post_init__(self) -> None:
         if not any(k is not None for k in self.cameras.values()):
@@ -105,7 +107,9 @@ class GenericInputs:
         inputs: DataDict = {
             "state": state,
             "image": images,
-            "image_mask": {name: np.True_ for name in self.cameras},
+            "image_mask": {
+                name: np.bool_(key is not None or not self.mask_blank) for name, key in self.cameras.items()
+            },
         }
         if "actions" in data:
             inputs["actions"] = np.asarray(data["actions"])
