@@ -1,0 +1,154 @@
+"""pi0 and pi0.5 against upstream's goldens: embeddings, every Euler iterate, actions, the training loss, and the
+gradients of the actions with respect to the image tokens (through the whole denoising loop).
+
+Tolerances (float32). The goldens' own spread (upstream jit vs eager) is about 2e-6 on x_0, but that spread shares
+one operation order; the float32 evaluation error of these functions is larger: our float32 velocity differs from
+our float64 one by 2.2e-4 (|v| <= 6.6, pi0.5 case_a), i.e. 3.4e-5 of the largest value. So values are compared
+within REL of the reference's largest magnitude (REL = 1.5x that measured error, rounded up), gradients and their
+reductions within GRAD_REL of their largest magnitude (measured at most 6.2e-5, pi0.5 case_a chunk; the goldens
+suggest 1e-4), time steps exactly. A masked camera's gradient must be exactly zero, as upstream's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from paths import GOLDEN_DIR
+
+from openpi_cam.model import pi0
+from openpi_cam.model.checkpoint import read_param_shapes
+from openpi_cam.model.config import check_param_tree, family_of, pi0_param_shapes
+from openpi_cam.model.observation import Observation
+from openpi_cam.model.pi0_maps import CHUNK, maps_for_actions
+from openpi_cam.nested import flatten_dict
+
+REL = 5e-5
+GRAD_REL = 1e-4
+CAMERAS = ("base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb")
+FAMILIES = {"pi0": "tiny_pi0", "pi05": "tiny_pi05"}
+
+
+def assert_close(got, want, rel: float, what: str) -> None:
+    got, want = np.asarray(got, np.float64), np.asarray(want, np.float64)
+    assert got.shape == want.shape, f"{what}: shape {got.shape} != {want.shape}"
+    err, scale = np.abs(got - want).max(), np.abs(want).max()
+    assert err <= rel * scale, f"{what}: max abs error {err:.3g} > {rel:g} x {scale:.3g}"
+
+
+@functools.cache
+def load_model(family: str) -> pi0.Pi0:
+    folder = GOLDEN_DIR / FAMILIES[family]
+    data_cfg = json.loads((folder / "config.json").read_text())["pi0_config"]
+    return pi0.Pi0.from_checkpoint(
+        folder / "checkpoint" / "params",
+        dtype="float32",
+        action_horizon=data_cfg["action_horizon"],
+        max_token_len=data_cfg["max_token_len"],
+    )
+
+
+def load_case(family: str, name: str) -> tuple[dict, Observation]:
+    with np.load(GOLDEN_DIR / FAMILIES[family] / f"{name}.npz") as npz:
+        d = {k: npz[k] for k in npz.files}
+    obs = Observation(
+        images={c: d[f"image_{c}"] for c in CAMERAS},
+        image_masks={c: d[f"image_mask_{c}"] for c in CAMERAS},
+        state=d["state"],
+        tokenized_prompt=d["tokenized_prompt"],
+        tokenized_prompt_mask=d["tokenized_prompt_mask"],
+    )
+    return d, obs
+
+
+@pytest.mark.parametrize("family", ["pi0", "pi05"])
+def test_architecture_and_family_read_from_the_checkpoint(family):
+    model = load_model(family)
+    assert model.family == family and model.config.pi05 == (family == "pi05")
+    shapes = read_param_shapes(GOLDEN_DIR / FAMILIES[family] / "checkpoint" / "params")
+    assert family_of(shapes) == family
+    check_param_tree(shapes, pi0_param_shapes(model.config))
+    assert (model.config.gemma.width, model.config.expert.width, model.config.expert.depth) == (64, 32, 2)
+
+
+@pytest.mark.parametrize("name", ["pi0_param_tree.json", "pi05_param_tree.json", "pi0_lora_param_tree.json"])
+def test_full_size_trees_equal_upstreams(name):
+    """The tree our config builds (through `jax.eval_shape` of our initialiser, no weights) is upstream's."""
+    leaves = json.loads((GOLDEN_DIR / "param_trees" / name).read_text())["leaves"]
+    upstream = {k: tuple(v["shape"]) for k, v in leaves.items()}
+    gemma, expert, siglip, pi05 = pi0.pi0_architecture_from_params(upstream)
+    cfg = pi0.Pi0Config(gemma, expert, siglip, pi05)
+    ours = flatten_dict(jax.eval_shape(functools.partial(pi0.init_params, cfg), jax.random.key(0)))
+    assert {k: tuple(v.shape) for k, v in ours.items()} == upstream
+    assert (expert.width, expert.depth, expert.lora_rank) == (1024, 18, 32 if "lora" in name else 0)
+
+
+@pytest.mark.parametrize("family", ["pi0", "pi05"])
+@pytest.mark.parametrize("name", ["case_a", "case_b", "case_c"])
+def test_sampling_and_loss_match_upstream(family, name):
+    model = load_model(family)
+    d, obs = load_case(family, name)
+    E = model.embed_images(obs)
+    for i, c in enumerate(CAMERAS):
+        assert_close(E[:, i], d[f"siglip_{c}"], REL, f"siglip {c}")
+    actions = model.sample_actions(jax.random.key(0), obs, noise=d["noise"])
+    assert_close(actions, d["actions"], REL, "actions")
+    prepared = pi0.preprocess(obs, model.config)
+    record = jax.jit(functools.partial(pi0.denoise, cfg=model.config, record=True))
+    _, (xs, vs, ts) = record(model.params, E, prepared, jnp.asarray(d["noise"]))
+    np.testing.assert_array_equal(np.asarray(ts), d["t_steps"][:10])  # float32 time accumulation, exactly
+    assert_close(xs, d["x_t_steps"][:, :10], REL, "Euler iterates")
+    assert_close(vs, d["v_t_steps"], REL, "velocities")
+    loss = model.compute_loss(obs, d["loss_actions"], d["loss_noise"], d["loss_time"])
+    assert_close(loss, d["loss"], REL, "loss")
+
+
+@pytest.mark.parametrize("family", ["pi0", "pi05"])
+@pytest.mark.parametrize("name", ["case_a", "case_b", "case_c"])
+def test_gradients_through_the_denoising_loop_match_upstream(family, name):
+    model = load_model(family)
+    d, obs = load_case(family, name)
+    targets = {"gc_h0_d0": (0, 0), "gc_h0_d6": (0, 6), "gc_h9_d3": (9, 3), "gc_chunk": CHUNK}
+    res = maps_for_actions(model, obs, d["noise"], list(targets.values()))
+    assert_close(res.actions, d["actions"], REL, "explained actions")
+    for t, key in enumerate(targets):
+        assert_close(res.score[:, t], d[f"{key}_score"], REL, f"{key} score")
+        for field, ours in (("alpha", res.alphas), ("grad_norm", res.grad_norms)):
+            got = np.stack([ours[c][:, t] for c in CAMERAS], axis=1)
+            assert_close(got, d[f"{key}_{field}"], GRAD_REL, f"{key} {field}")
+        cam = np.stack([res.by_kind["gradcam"][c][:, t] for c in CAMERAS], axis=1)
+        assert_close(cam, d[f"{key}_cam"], GRAD_REL, f"{key} cam")
+        norms = np.stack([res.by_kind["gradnorm"][c][:, t] for c in CAMERAS], axis=1)
+        want = np.linalg.norm(d[f"{key}_grad"], axis=-1).reshape(norms.shape)  # per-token norm of upstream's G
+        assert_close(norms, want, GRAD_REL, f"{key} gradient norm map")
+    if name == "case_b":  # left wrist masked: no gradient reaches it, exactly
+        assert not res.grad_norms["left_wrist_0_rgb"].any() and not res.valid["left_wrist_0_rgb"].any()
+
+
+def test_masked_camera_and_noise_change_the_actions_as_upstream():
+    """The pi0 model reads every valid camera and the noise, and ignores a masked camera's pixels exactly."""
+    model = load_model("pi0")
+    d, obs = load_case("pi0", "case_b")  # left wrist masked
+    base = np.asarray(model.sample_actions(None, obs, noise=d["noise"]))
+    other = np.random.default_rng(0).uniform(-1, 1, d["image_left_wrist_0_rgb"].shape).astype(np.float32)
+    masked_changed = dataclasses.replace(obs, images={**obs.images, "left_wrist_0_rgb": other})
+    np.testing.assert_array_equal(np.asarray(model.sample_actions(None, masked_changed, noise=d["noise"])), base)
+    valid_changed = dataclasses.replace(obs, images={**obs.images, "base_0_rgb": other})
+    assert np.abs(np.asarray(model.sample_actions(None, valid_changed, noise=d["noise"])) - base).max() > 0.1
+    assert np.abs(np.asarray(model.sample_actions(None, obs, noise=d["noise"] + 1.0)) - base).max() > 0.1
+
+
+def test_bad_targets_are_refused_by_name():
+    model = load_model("pi0")
+    d, obs = load_case("pi0", "case_a")
+    with pytest.raises(ValueError, match=r"action \(10, 0\) outside the chunk \[10, 32\]"):
+        maps_for_actions(model, obs, d["noise"], [(10, 0)])
+    with pytest.raises(ValueError, match="lacks the camera"):
+        model.sample_actions(
+            jax.random.key(0), dataclasses.replace(obs, images={"base_0_rgb": obs.images["base_0_rgb"]})
+        )
