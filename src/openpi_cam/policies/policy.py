@@ -251,12 +251,12 @@ def create_policy(
     params_dir = checkpoint_dir / "params"
     if not params_dir.is_dir():
         raise FileNotFoundError(f"model params not found: expected an orbax checkpoint directory at {params_dir}")
-    norm_stats = load_checkpoint_norm_stats(checkpoint_dir, cfg.asset_id)
     checkpoint_family = family_of(read_param_shapes(params_dir))
     if checkpoint_family != cfg.family:
         raise ValueError(
             f"config {cfg.name!r} serves {cfg.family}, the checkpoint at {params_dir} is {checkpoint_family}"
         )
+    norm_stats = load_checkpoint_norm_stats(checkpoint_dir, cfg.asset_id)
     parts: FastParts | FlowParts
     if cfg.family == "pi0_fast":
         parts = build_pi0_fast(
