@@ -11,17 +11,19 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 
 import numpy as np
 import pytest
-from openpi_cam.cam.reader import cam_index_cmd, list_runs, load_run, map_summary, rebuild_manifest
 from paths import REPO_ROOT
 
 from openpi_cam import cli
 from openpi_cam.cam import logger as logger_mod
-from openpi_cam.cam.logger import CAMLogger, StepRecord
+from openpi_cam.cam.logger import CAMLogger
+from openpi_cam.cam.runfmt import SCHEMA_VERSION, StepRecord, list_runs, load_run, map_summary, rebuild_manifest
+from openpi_cam.cli import cam_index
 
 REPO = REPO_ROOT
 CAMERAS = ("base_0_rgb", "left_wrist_0_rgb")
@@ -37,12 +39,17 @@ GEOMETRY = {
 }
 
 
-def make_record(i: int, *, connection: str = "c0", stack: bool = False, frames: bool = True) -> StepRecord:
+def make_record(
+    i: int, *, connection: str = "c0", stack: bool = False, frames: bool = True, gradnorm: bool = True
+) -> StepRecord:
     rng = np.random.default_rng(i)
-    maps = {
+    gradcam = {
         CAMERAS[0]: rng.random((3, 16, 16) if stack else (16, 16), dtype=np.float32),
         CAMERAS[1]: rng.normal(size=(16, 16)).astype(np.float32),
     }
+    maps = {"gradcam": gradcam}
+    if gradnorm:  # same shapes, different values
+        maps["gradnorm"] = {c: np.abs(m[..., ::-1, :]) + 1.0 for c, m in gradcam.items()}
     meta = {
         "target": "all-action-tokens" if stack else "action-token",
         "token_ids": [int(t) for t in rng.integers(0, 2048, 3 if stack else 1)],
@@ -50,6 +57,7 @@ def make_record(i: int, *, connection: str = "c0", stack: bool = False, frames: 
         "positions": [40, 41, 42] if stack else [40 + i % 7],
         "action_indices": None,
         "score": [1.0, 2.0, 3.5] if stack else np.float32(0.25 * i),
+        "map_kinds": list(maps),
         "prompt": f"pick up the cube #{i} ü",
         "cameras": {
             c: {
@@ -61,10 +69,11 @@ def make_record(i: int, *, connection: str = "c0", stack: bool = False, frames: 
             }
             for k, c in enumerate(CAMERAS)
         },
+        "malformed": None,
         "extra": {"target_box": [1, 2, 3, 4]},
     }
-    rec = StepRecord(connection=connection, step=i, timestamp=1_700_000_000.0 + i, maps=maps, meta=meta)
-    rec.gradnorm_maps = {c: np.abs(m[::-1]) + 1.0 for c, m in maps.items()}  # same shapes, different values
+    inputs = {"output": rng.integers(0, 2048, 32).astype(np.int32), "state": rng.normal(size=8).astype(np.float32)}
+    rec = StepRecord(connection=connection, step=i, timestamp=1_700_000_000.0 + i, maps=maps, inputs=inputs, meta=meta)
     if frames:
         rec.frames = {CAMERAS[0]: rng.integers(0, 256, (100, 200, 3), dtype=np.uint8)}
         rec.model_frames = {c: rng.integers(0, 256, (224, 224, 3), dtype=np.uint8) for c in CAMERAS}
@@ -75,19 +84,33 @@ def new_logger(cam_dir: pathlib.Path, **kw) -> CAMLogger:
     return CAMLogger(cam_dir, run_config={"policy": "droid"}, checkpoint="gs://ckpt/pi0_fast", options={"t": 1}, **kw)
 
 
+# What a subprocess needs on sys.path to import this module (and its `paths` import).
+SUBPROCESS_PATH = [str(pathlib.Path(__file__).parent), str(REPO / "tests" / "support")]
+
+
+def subprocess_env() -> dict[str, str]:
+    """This checkout's sources first, whatever the venv's editable install points at."""
+    return os.environ | {"PYTHONPATH": os.pathsep.join([str(REPO / "src"), os.environ.get("PYTHONPATH", "")])}
+
+
 def step_seqs(run_dir: pathlib.Path) -> list[int]:
     return sorted(int(p.stem) for p in (run_dir / "steps").glob("*.npz"))
 
 
+# The step-file key prefix of each map kind, as docs/FORMAT.md spells it.
+KEY_PREFIX = {"gradcam": "cam/", "gradnorm": "gradnorm/"}
+
+
 def test_round_trip_with_numpy_alone(tmp_path):
     lg = new_logger(tmp_path, compress=True)
-    records = [make_record(0), make_record(1, stack=True), make_record(2, frames=False)]
-    records[2].gradnorm_maps = {}  # optional: a record without them writes no gradnorm/ keys
+    # a record without gradient-norm maps writes no gradnorm/ keys
+    records = [make_record(0), make_record(1, stack=True), make_record(2, frames=False, gradnorm=False)]
     assert [lg.log_step(r) for r in records] == [True, True, True]
     lg.close()
 
     run_info = json.loads((lg.run_dir / "run.json").read_text())
-    assert run_info["schema_version"] == 1 and run_info["run_id"] == lg.run_dir.name
+    assert SCHEMA_VERSION == 2
+    assert run_info["schema_version"] == 2 and run_info["run_id"] == lg.run_dir.name
     assert run_info["config"] == {"policy": "droid"} and run_info["checkpoint"] == "gs://ckpt/pi0_fast"
     assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z", run_info["started_at"])
     assert re.fullmatch(r"\d{8}-\d{6}-[0-9a-f]{6}", lg.run_dir.name)
@@ -96,29 +119,30 @@ def test_round_trip_with_numpy_alone(tmp_path):
         with np.load(lg.run_dir / "steps" / f"{seq:08d}.npz", allow_pickle=False) as z:
             meta = json.loads(z["meta"].item())
             assert z["meta"].shape == () and z["meta"].dtype.kind == "U"
-            for c in CAMERAS:
-                assert z[f"cam/{c}"].dtype == np.float32
-                np.testing.assert_array_equal(z[f"cam/{c}"], rec.maps[c])
-            for c, m in rec.gradnorm_maps.items():
-                assert z[f"gradnorm/{c}"].dtype == np.float32
-                np.testing.assert_array_equal(z[f"gradnorm/{c}"], m)
+            for kind, maps in rec.maps.items():
+                for c, m in maps.items():
+                    assert z[KEY_PREFIX[kind] + c].dtype == np.float32
+                    np.testing.assert_array_equal(z[KEY_PREFIX[kind] + c], m)
             for c, frame in rec.frames.items():
                 assert z[f"frame/{c}"].dtype == np.uint8
                 np.testing.assert_array_equal(z[f"frame/{c}"], frame)
             for c, frame in rec.model_frames.items():
                 np.testing.assert_array_equal(z[f"frame_model/{c}"], frame)
+            for name, value in rec.inputs.items():
+                assert z[f"input/{name}"].dtype == value.dtype
+                np.testing.assert_array_equal(z[f"input/{name}"], value)
             assert sorted(z.files) == sorted(
                 ["meta"]
-                + [f"cam/{c}" for c in CAMERAS]
-                + [f"gradnorm/{c}" for c in rec.gradnorm_maps]
+                + [KEY_PREFIX[kind] + c for kind, maps in rec.maps.items() for c in maps]
                 + [f"frame/{c}" for c in rec.frames]
                 + [f"frame_model/{c}" for c in rec.model_frames]
+                + [f"input/{name}" for name in rec.inputs]
             )
         expected = json.loads(json.dumps(rec.meta, default=lambda v: v.item()))
         assert (
             meta
             == {
-                "schema_version": 1,
+                "schema_version": 2,
                 "run_id": lg.run_dir.name,
                 "seq": seq,
                 "connection": "c0",
@@ -136,13 +160,34 @@ def test_round_trip_with_numpy_alone(tmp_path):
         for step, rec in zip(run.steps, records, strict=True):
             assert step.meta["prompt"] == rec.meta["prompt"]
             assert step.file == lg.run_dir / "steps" / f"{step.seq:08d}.npz"
-            assert set(step.maps) == set(CAMERAS) and set(step.frames) == set(rec.frames)
-            np.testing.assert_array_equal(step.maps[CAMERAS[0]], rec.maps[CAMERAS[0]])
-            assert set(step.gradnorm_maps) == set(rec.gradnorm_maps)
-            for c, m in rec.gradnorm_maps.items():
-                np.testing.assert_array_equal(step.gradnorm_maps[c], m)
+            assert step.map_kinds == tuple(rec.maps) and set(step.frames) == set(rec.frames)
+            for kind, maps in rec.maps.items():
+                assert set(step.maps_of(kind)) == set(CAMERAS)
+                for c, m in maps.items():
+                    np.testing.assert_array_equal(step.maps_of(kind)[c], m)
             for c in rec.model_frames:
                 np.testing.assert_array_equal(step.model_frames[c], rec.model_frames[c])
+            for name, value in rec.inputs.items():
+                np.testing.assert_array_equal(step.inputs[name], value)
+        assert run.steps[2].maps_of("gradnorm") == {}
+
+
+def test_the_last_step_survives_close(tmp_path):
+    """Every accepted step is on disk after `close()`, the last one included: its step file, its index line and its
+    manifest entry (the periodic manifest never covers it here, so only close() can have listed it)."""
+    lg = new_logger(tmp_path, manifest_every=100)
+    records = [make_record(i, frames=False) for i in range(3)]
+    assert all(lg.log_step(r) for r in records)
+    lg.close()
+    run_dir = lg.run_dir
+    assert step_seqs(run_dir) == [0, 1, 2]
+    index = [json.loads(line)["seq"] for line in (run_dir / "index.jsonl").read_text().splitlines()]
+    manifest = json.loads((run_dir / "manifest.json").read_text())
+    assert index == [0, 1, 2] and [e["seq"] for e in manifest["steps"]] == [0, 1, 2]
+    assert manifest["num_steps"] == 3 and manifest["counters"]["logger"]["steps_logged"] == 3 and manifest["closed"]
+    last = load_run(run_dir).steps[-1]
+    assert last.meta["step"] == 2
+    np.testing.assert_array_equal(last.maps_of("gradcam")[CAMERAS[1]], records[2].maps["gradcam"][CAMERAS[1]])
 
 
 def test_manifest_and_index_summaries_match_numpy(tmp_path):
@@ -176,7 +221,8 @@ def test_manifest_and_index_summaries_match_numpy(tmp_path):
     for entry, rec in zip(index, records, strict=True):
         assert entry["file"] == f"steps/{entry['seq']:08d}.npz"
         assert (entry["connection"], entry["step"], entry["target"]) == (rec.connection, rec.step, rec.meta["target"])
-        for camera, m in rec.maps.items():
+        assert entry["malformed"] is None and entry["summary_kind"] == "gradcam"
+        for camera, m in rec.maps["gradcam"].items():
             flat = m.mean(axis=0) if m.ndim == 3 else m
             summary = entry["summary"][camera]
             assert summary["max"] == pytest.approx(float(flat.max()))
@@ -240,6 +286,36 @@ def test_caps_are_counted(tmp_path):
     assert step_seqs(lg.run_dir) == [0, 1]
 
 
+def _compressible(i: int) -> StepRecord:
+    """A step whose frames are flat colour: compression shrinks it about 100-fold."""
+    rec = make_record(i)
+    rec.frames = {c: np.full_like(f, 7 * i % 256) for c, f in rec.frames.items()}
+    rec.model_frames = {c: np.full_like(f, 3 * i % 256) for c, f in rec.model_frames.items()}
+    return rec
+
+
+def test_byte_cap_counts_the_compressed_bytes_written(tmp_path):
+    """With compression on, `max_bytes` bounds what lands on disk: the compressed step files plus index lines."""
+    raw = new_logger(tmp_path / "raw", compress=False)
+    assert raw.log_step(_compressible(0))
+    packed = new_logger(tmp_path / "packed", compress=True)
+    assert packed.log_step(_compressible(0))
+    uncompressed, compressed = raw.counters["bytes_written"], packed.counters["bytes_written"]
+    assert compressed * 20 < uncompressed  # a cap on uncompressed bytes could not hold even one of these steps
+
+    cap = int(3.5 * compressed)  # three steps fit, the fourth does not (they differ in size by a few bytes only)
+    lg = new_logger(tmp_path / "capped", compress=True, max_bytes=cap)
+    assert [lg.log_step(_compressible(i)) for i in range(6)] == [True] * 3 + [False] * 3
+    lg.close()
+    on_disk = sum(p.stat().st_size for p in (lg.run_dir / "steps").iterdir())
+    on_disk += (lg.run_dir / "index.jsonl").stat().st_size
+    c = lg.counters
+    assert c["bytes_written"] == on_disk <= cap
+    assert c["steps_logged"] == 3 and c["steps_skipped_cap"] == 3 and step_seqs(lg.run_dir) == [0, 1, 2]
+    with np.load(lg.run_dir / "steps" / "00000000.npz") as z:  # the files really are compressed
+        assert all(info.compress_type == 8 for info in z.zip.infolist())
+
+
 def test_unwritable_steps_dir_is_counted_not_raised(tmp_path, caplog):
     lg = new_logger(tmp_path)
     assert lg.log_step(make_record(0)) and lg.log_step(make_record(1))
@@ -280,16 +356,66 @@ def test_index_write_failure_keeps_step_and_seq(tmp_path):
     assert [e["seq"] for e in rebuild_manifest(lg.run_dir)["steps"]] == [0, 1, 2]
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root ignores directory permissions")
-def test_read_only_steps_dir_is_counted(tmp_path):
-    lg = new_logger(tmp_path)
-    (lg.run_dir / "steps").chmod(0o500)
-    try:
-        assert not lg.log_step(make_record(0))
-    finally:
-        (lg.run_dir / "steps").chmod(0o700)
-    assert lg.counters["io_errors"] == {"permission_denied": 1}
-    assert lg.log_step(make_record(1))
+NOBODY = 65534
+
+# Run as root: the logger is created as root, then the process takes the effective ids of `nobody`, for whom steps/
+# (root's, 0o755) is read-only while the run directory (given to nobody) stays writable; root comes back afterwards
+# (the real and saved ids stay 0). Effective capabilities are dropped with the effective uid, so the kernel checks
+# permissions for real. A subprocess keeps the id switch away from pytest's own threads.
+UNPRIVILEGED_WRITER = """
+import json, os, pathlib, sys
+sys.path[:0] = {tests!r}
+from test_logger import make_record, new_logger
+cam_dir = pathlib.Path({cam_dir!r})
+lg = new_logger(cam_dir)
+ok = [lg.log_step(make_record(0))]
+os.chown(lg.run_dir, {nobody}, {nobody})
+os.chmod(lg.run_dir / "steps", 0o755)
+os.setegid({nobody})
+os.seteuid({nobody})
+probe = lg.run_dir / "nobody-can-write-here"
+probe.write_text("x")  # the run directory is reachable and writable: only steps/ refuses
+probe.unlink()
+ok.append(lg.log_step(make_record(1)))
+os.seteuid(0)
+os.setegid(0)
+ok.append(lg.log_step(make_record(2)))
+lg.close()
+print(json.dumps({{"ok": ok, "counters": lg.counters, "run_dir": str(lg.run_dir)}}))
+"""
+
+
+def test_permission_denied_steps_dir_is_counted(tmp_path):
+    if os.geteuid() != 0:  # an ordinary user: a read-only directory refuses writes by itself
+        lg = new_logger(tmp_path)
+        (lg.run_dir / "steps").chmod(0o500)
+        try:
+            ok = [True, lg.log_step(make_record(1))]
+        finally:
+            (lg.run_dir / "steps").chmod(0o700)
+        ok.append(lg.log_step(make_record(2)))
+        counters, run_dir = lg.counters, lg.run_dir
+    else:
+        # pytest's tmp_path sits under a 0o700 directory nobody cannot enter; this one (in /tmp) is world-readable.
+        cam_dir = pathlib.Path(tempfile.mkdtemp(prefix="cam-permissions-"))
+        cam_dir.chmod(0o755)
+        try:
+            script = UNPRIVILEGED_WRITER.format(tests=SUBPROCESS_PATH, cam_dir=str(cam_dir), nobody=NOBODY)
+            proc = subprocess.run(
+                [sys.executable, "-c", script], capture_output=True, text=True, timeout=120, env=subprocess_env()
+            )
+            assert proc.returncode == 0, proc.stderr[-3000:]
+            out = json.loads(proc.stdout.strip().splitlines()[-1])
+            ok, counters, run_dir = out["ok"], out["counters"], pathlib.Path(out["run_dir"])
+            shutil.copytree(run_dir, tmp_path / run_dir.name)
+            run_dir = tmp_path / run_dir.name
+        finally:
+            shutil.rmtree(cam_dir)
+    assert ok[1:] == [False, True]
+    assert counters["io_errors"] == {"permission_denied": 1} and counters["steps_skipped_io"] == 1
+    # the refused step used up no seq; the run reads back whole
+    run = load_run(run_dir)
+    assert [(s.seq, s.meta["step"]) for s in run.steps][-1] == (len(run.steps) - 1, 2)
 
 
 def test_uncreatable_run_dir_raises_clear_oserror(tmp_path):
@@ -306,11 +432,15 @@ def test_wrong_types_raise(tmp_path):
     with pytest.raises(TypeError, match="uint8"):
         lg.log_step(rec)
     with pytest.raises(ValueError, match="must not set"):
-        lg.log_step(StepRecord("c", 0, 0.0, {"a": np.zeros((2, 2))}, meta={"seq": 3}))
+        lg.log_step(StepRecord("c", 0, 0.0, {"gradcam": {"a": np.zeros((2, 2))}}, meta={"seq": 3}))
     with pytest.raises(ValueError, match="Hp, Wp"):
-        lg.log_step(StepRecord("c", 0, 0.0, {"a": np.zeros(4)}))
-    with pytest.raises(ValueError, match="gradnorm_maps 'a' must be"):
-        lg.log_step(StepRecord("c", 0, 0.0, {"a": np.zeros((2, 2))}, gradnorm_maps={"a": np.zeros(4)}))
+        lg.log_step(StepRecord("c", 0, 0.0, {"gradcam": {"a": np.zeros(4)}}))
+    with pytest.raises(ValueError, match="gradnorm map 'a' must be"):
+        lg.log_step(StepRecord("c", 0, 0.0, {"gradcam": {"a": np.zeros((2, 2))}, "gradnorm": {"a": np.zeros(4)}}))
+    with pytest.raises(ValueError, match="unknown map kind 'saliency'"):
+        lg.log_step(StepRecord("c", 0, 0.0, {"saliency": {"a": np.zeros((2, 2))}}))
+    with pytest.raises(TypeError, match="must be a dict"):
+        lg.log_step(StepRecord("c", 0, 0.0, {"gradcam": np.zeros((2, 2))}))
     assert lg.counters["steps_logged"] == 0 and step_seqs(lg.run_dir) == []
 
 
@@ -346,8 +476,8 @@ def test_reader_tolerates_crash_debris(tmp_path):
 
 WRITER = """
 import sys, numpy as np
-sys.path.insert(0, {tests!r})
-from test_cam_logger import new_logger, make_record
+sys.path[:0] = {tests!r}
+from test_logger import new_logger, make_record
 import pathlib
 lg = new_logger(pathlib.Path({cam_dir!r}), manifest_every=5, compress=False)
 # a large constant frame makes the file write a big share of each step, so the kill often lands inside one
@@ -366,8 +496,8 @@ while True:
 def test_kill_9_mid_run_loses_no_completed_step(tmp_path, capsys):
     cam_dir = tmp_path / "cam"
     script = tmp_path / "writer.py"
-    script.write_text(WRITER.format(tests=str(REPO / "tests"), cam_dir=str(cam_dir)))
-    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    script.write_text(WRITER.format(tests=SUBPROCESS_PATH, cam_dir=str(cam_dir)))
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True, env=subprocess_env())
     try:
         run_dir = pathlib.Path(proc.stdout.readline().strip())
         completed = -1
@@ -391,19 +521,20 @@ def test_kill_9_mid_run_loses_no_completed_step(tmp_path, capsys):
     for step in run.steps:
         rec = make_record(step.seq)
         assert step.meta["step"] == step.seq
-        np.testing.assert_array_equal(step.maps[CAMERAS[1]], rec.maps[CAMERAS[1]])
+        np.testing.assert_array_equal(step.maps_of("gradcam")[CAMERAS[1]], rec.maps["gradcam"][CAMERAS[1]])
+        np.testing.assert_array_equal(step.maps_of("gradnorm")[CAMERAS[0]], rec.maps["gradnorm"][CAMERAS[0]])
         np.testing.assert_array_equal(step.frames[CAMERAS[0]], rec.frames[CAMERAS[0]])
     assert [e["seq"] for e in run.manifest["steps"]] == seqs
 
     old = json.loads((run_dir / "manifest.json").read_text())
     assert old["closed"] is False and old["num_steps"] % 5 == 0 and old["num_steps"] <= len(seqs)
-    assert cam_index_cmd(run_dir) == 0
+    assert cam_index.main(run_dir) == 0
     assert f"{len(seqs)} steps" in capsys.readouterr().out
     rebuilt = json.loads((run_dir / "manifest.json").read_text())
     assert [e["seq"] for e in rebuilt["steps"]] == seqs and rebuilt["num_steps"] == len(seqs)
     assert rebuilt["counters"] == old["counters"] and "rebuilt_at" in rebuilt
     for entry in rebuilt["steps"]:
-        flat = make_record(entry["seq"]).maps[CAMERAS[1]]
+        flat = make_record(entry["seq"]).maps["gradcam"][CAMERAS[1]]
         assert entry["summary"][CAMERAS[1]]["argmax"] == list(np.unravel_index(np.argmax(flat), flat.shape))
 
 
@@ -430,7 +561,8 @@ def test_two_threads(tmp_path):
         steps = [s for s in run.steps if s.meta["connection"] == connection]
         assert [s.meta["step"] for s in steps] == list(range(20))  # each thread's order is kept
         for s in steps:
-            np.testing.assert_array_equal(s.maps[CAMERAS[0]], make_record(s.meta["step"]).maps[CAMERAS[0]])
+            want = make_record(s.meta["step"], connection=connection, frames=False).maps["gradcam"][CAMERAS[0]]
+            np.testing.assert_array_equal(s.maps_of("gradcam")[CAMERAS[0]], want)
 
 
 def test_cli_and_docs_example(tmp_path, capsys):
@@ -438,13 +570,13 @@ def test_cli_and_docs_example(tmp_path, capsys):
     rec = make_record(0)
     hot = np.zeros((16, 16), np.float32)
     hot[6, 3] = 1.0  # model rows [84, 98), cols [42, 56)
-    rec.maps[CAMERAS[0]] = hot
+    rec.maps["gradcam"][CAMERAS[0]] = hot
     lg.log_step(rec)
     lg.close()
 
     cli.main(["cam-index", str(lg.run_dir)])
     assert re.search(r": 1 steps \(seq 0\.\.0\), cameras \['base_0_rgb', 'left_wrist_0_rgb'\]", capsys.readouterr().out)
-    assert cam_index_cmd(tmp_path / "missing") == 1
+    assert cam_index.main(tmp_path / "missing") == 1
 
     # the NumPy-only example in docs/FORMAT.md runs as written and its geometry recipe is right
     doc = (REPO / "docs" / "FORMAT.md").read_text()

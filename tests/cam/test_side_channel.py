@@ -1,7 +1,8 @@
-"""The Grad-CAM side channel in serving: same actions, complete run directories, failures that stay inside.
+"""The side channel in serving: the very actions the policy serves, complete run directories whose maps are the
+model's maps of the served call, failures explained or kept inside.
 
-The tiny upstream DROID model never writes `Action: `; `FixedGeneration` (tests/fixed_generation.py) swaps in
-upstream's hand-made well-formed generation so there are action tokens to explain.
+Identity checks run on the bundled demo policy, whose actions depend on the observation (asserted first in each
+test), so that a side channel answering with another request's response fails them.
 """
 
 from __future__ import annotations
@@ -11,309 +12,354 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
-from client_env import collect, spawn_client
-from fixed_generation import FixedGeneration
-from openpi_cam.cam.engine import explain
-from openpi_cam.cam.reader import load_run
-from openpi_cam.cam.wrapper import CAMOptions, wrap_policy_with_cam
+from cam_support import (
+    REPLAY_CLIENT,
+    GatedExplainer,
+    WithExplainer,
+    assert_pairwise_different,
+    demo_obs,
+    get_stats,
+    policy_part,
+    read_packed,
+    strip_timing,
+    write_packed,
+)
+from client_env import run_client
 from paths import REPO_ROOT
-from test_serving import CLIENT_PRELUDE, get_stats, read_packed
 
-from openpi_cam.cam.records import model_frame_uint8
+from openpi_cam.cam.runfmt import load_run
+from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
+from openpi_cam.model import pi0_fast_maps
+from openpi_cam.model.config import EOS_TOKEN
 from openpi_cam.serving import RequestContext, msgpack_numpy
 from openpi_cam.serving.server import start_server_in_thread
+from openpi_cam.viz.render import RenderOptions, render_run
+
+DEMO_CAMERAS = ("base_0_rgb", "wrist_0_rgb")
 
 
-class GatedModel:
-    """The real model whose Grad-CAM waits for a gate (a slow worker) or raises (a failing one)."""
-
-    def __init__(self, model: Any, *, fail: bool = False):
-        self.model, self.fail = model, fail
-        self.gate = threading.Event()
-        self.entered = threading.Event()
-        self.config = model.config
-
-    def gradcam_for_action_token(self, *args, **kwargs):
-        self.entered.set()
-        if self.fail:
-            raise RuntimeError("injected Grad-CAM failure")
-        assert self.gate.wait(60)
-        return self.model.gradcam_for_action_token(*args, **kwargs)
+def _assert_maps_close(logged: np.ndarray, direct: np.ndarray) -> None:
+    """Logged vs directly computed maps of the same inputs through the same compiled program. Measured: bit-identical
+    on the demo and tiny DROID models; 1e-5 of the map's peak leaves room for a different XLA fusion order only."""
+    assert logged.dtype == np.float32 and logged.shape == direct.shape
+    np.testing.assert_allclose(logged, direct, rtol=0, atol=1e-5 * (np.abs(direct).max() + 1e-30))
 
 
-@pytest.fixture(scope="module")
-def hand_tokens(golden_dir) -> np.ndarray:
-    return np.load(golden_dir / "tiny_policy_droid" / "droid_case.npz")["hand/generated_tokens"]
+def test_real_client_side_channel_on_same_actions_and_complete_run(tmp_path, demo_policy):
+    """Four different observations through the real openpi-client, with the side channel explaining each: every
+    response equals in-process inference on that observation, and every logged step holds the maps of that call."""
+    n = 4
+    observations = [demo_obs(100 + i) for i in range(n)]
+    plain = [demo_policy.infer(policy_part(o)) for o in observations]
+    assert_pairwise_different([p["actions"] for p in plain])
 
-
-@pytest.fixture(scope="module")
-def hand_policy(tiny_droid_policy, hand_tokens):
-    return FixedGeneration(tiny_droid_policy, hand_tokens)
-
-
-def droid_obs(seed: int, size=(180, 320)) -> dict:
-    rng = np.random.default_rng(seed)
-    return {
-        "observation/exterior_image_1_left": rng.integers(0, 256, (*size, 3), dtype=np.uint8),
-        "observation/wrist_image_left": rng.integers(0, 256, (*size, 3), dtype=np.uint8),
-        "observation/joint_position": rng.uniform(-1, 1, 7),
-        "observation/gripper_position": rng.uniform(0, 1, 1),
-        "prompt": "pick up the red block",
-    }
-
-
-def strip_timing(response: dict) -> dict:
-    return {k: v for k, v in response.items() if k not in ("policy_timing", "server_timing")}
-
-
-CAM_ROUND_TRIP = r"""
-policy = connect()
-rng = np.random.RandomState(ARGS["seed"])
-for i in range(ARGS["n"]):
-    obs = droid_obs(rng, size=(180, 320))
-    obs["cam_extra/target_box"] = np.array([1, 2, 3, 4])
-    write(ARGS["out"] + f"/obs{i}.msgpack", obs)
-    write(ARGS["out"] + f"/response{i}.msgpack", policy.infer(obs))
-done(n=ARGS["n"])
-"""
-
-
-def test_real_client_side_channel_on_same_actions_and_complete_run(tmp_path, tiny_droid_policy, hand_policy):
     options = CAMOptions(every_k=1, cam_dir=tmp_path / "cam", save_frames="both", target="action-token", action_index=2)
-    wrapped = wrap_policy_with_cam(hand_policy, options, run_config={"config": "pi0_fast_droid"}, checkpoint="tiny")
-    server = start_server_in_thread(wrapped)
-    out = tmp_path / "client"
-    out.mkdir()
+    wrapped = wrap_policy_with_cam(demo_policy, options, run_config={"config": "demo_reach"}, checkpoint="demo")
+    server = start_server_in_thread(wrapped, metadata=demo_policy.metadata)
+    wire = tmp_path / "wire"
+    wire.mkdir()
+    for i, obs in enumerate(observations):
+        write_packed(wire / f"obs{i}.msgpack", obs)
     try:
-        n = 3
-        collect(
-            spawn_client(
-                CLIENT_PRELUDE + CAM_ROUND_TRIP, json.dumps({"port": server.port, "out": str(out), "seed": 1, "n": n})
-            )
-        )
+        run_client(REPLAY_CLIENT, json.dumps({"port": server.port, "dir": str(wire), "n": n}))
         stats = get_stats(server.port)
     finally:
         server.stop()  # closes the wrapper: drains the queue and writes the final manifest
-    # Actions bit-identical to plain in-process inference on the same decoded observations.
+
     for i in range(n):
-        obs = read_packed(out / f"obs{i}.msgpack")
-        obs = {k: v for k, v in obs.items() if not k.startswith("cam_extra/")}
-        served = read_packed(out / f"response{i}.msgpack")
-        np.testing.assert_array_equal(served["actions"], tiny_droid_policy.infer(obs)["actions"])
-    assert stats["policy"]["gradcam"]["scheduled"] == n  # counters reach the server's /stats
+        served = read_packed(wire / f"response{i}.msgpack")
+        local = strip_timing(plain[i])
+        assert set(strip_timing(served)) == set(local)
+        for key, value in local.items():
+            assert served[key].dtype == np.asarray(value).dtype, key
+            np.testing.assert_array_equal(served[key], value, err_msg=f"response {i}, {key}")
+    assert stats["policy"]["gradcam"]["scheduled"] == n  # side-channel counters reach the server's /stats
     assert wrapped.stats()["gradcam"]["completed"] == n
 
     run = load_run(wrapped.run_dir)
     assert [s.meta["step"] for s in run.steps] == list(range(n))
-    assert run.manifest["counters"]["external"]["completed"] == n
-    steps = hand_policy.tokenizer.action_token_steps(hand_policy.tokens)
-    for i, step in enumerate(run.steps):
-        obs = {k: v for k, v in read_packed(out / f"obs{i}.msgpack").items() if not k.startswith("cam_extra/")}
-        _, trace = tiny_droid_policy.infer_traced(obs)
-        direct = tiny_droid_policy.model.gradcam_for_action_token(trace.observation, hand_policy.tokens, int(steps[2]))
-        for cam in ("base_0_rgb", "base_1_rgb", "wrist_0_rgb"):
-            logged = step.maps[cam]
-            assert logged.dtype == np.float32 and logged.shape == (16, 16)
-            np.testing.assert_allclose(logged, direct.maps[cam][0], rtol=0, atol=1e-5 * (np.abs(logged).max() + 1e-12))
-            logged = step.gradnorm_maps[cam]
-            assert logged.dtype == np.float32 and logged.shape == (16, 16)
-            np.testing.assert_allclose(logged, direct.gradnorm_maps[cam][0], rtol=0, atol=1e-5 * (logged.max() + 1e-12))
-            np.testing.assert_array_equal(step.model_frames[cam], model_frame_uint8(trace.observation.images[cam]))
-        np.testing.assert_array_equal(step.frames["base_0_rgb"], obs["observation/exterior_image_1_left"])
-        np.testing.assert_array_equal(step.frames["wrist_0_rgb"], obs["observation/wrist_image_left"])
-        assert "base_1_rgb" not in step.frames  # DROID synthesises that camera: no client frame exists
-        meta = step.meta
-        assert meta["token_ids"] == [int(hand_policy.tokens[steps[2]])]
-        assert meta["decode_steps"] == [int(steps[2])] and meta["action_indices"] == [2]
-        assert meta["cameras"]["base_0_rgb"]["obs_key"] == "observation/exterior_image_1_left"
-        assert meta["cameras"]["base_1_rgb"]["obs_key"] is None
-        geometry = meta["cameras"]["base_0_rgb"]["geometry"]
-        assert (geometry["orig_h"], geometry["orig_w"], geometry["resized_h"], geometry["pad_top"]) == (
-            180,
-            320,
-            126,
-            49,
+    assert run.manifest["closed"] and run.manifest["counters"]["external"]["completed"] == n
+    model = demo_policy.explainer.model
+    for obs, step in zip(observations, run.steps, strict=True):
+        _, trace = demo_policy.infer_traced(policy_part(obs))
+        generated = np.asarray(trace.output)
+        # The logged model inputs are those of this very request.
+        np.testing.assert_array_equal(step.inputs["output"], generated)
+        np.testing.assert_array_equal(
+            step.inputs["tokenized_prompt"], np.asarray(trace.observation.tokenized_prompt)[0]
         )
-        assert meta["extra"] == {"target_box": [1, 2, 3, 4]}
+        np.testing.assert_array_equal(step.inputs["state"], np.asarray(trace.observation.state)[0])
+        action_steps = demo_policy.explainer.tokenizer.action_token_steps(generated)
+        assert len(action_steps) > 2
+        direct = pi0_fast_maps.gradcam_for_action_token(model, trace.observation, generated[None], int(action_steps[2]))
+        assert set(step.map_kinds) == {"gradcam", "gradnorm"}
+        for cam in DEMO_CAMERAS:
+            _assert_maps_close(step.maps_of("gradcam")[cam], direct.maps[cam][0])
+            _assert_maps_close(step.maps_of("gradnorm")[cam], direct.gradnorm_maps[cam][0])
+            assert step.maps_of("gradcam")[cam].shape == (4, 4)
+        # 64 px client images are the model's images (no resize): raw and model frames both equal what was sent.
+        for cam, key in (("base_0_rgb", "observation/image"), ("wrist_0_rgb", "observation/wrist_image")):
+            np.testing.assert_array_equal(step.frames[cam], obs[key])
+            np.testing.assert_array_equal(step.model_frames[cam], obs[key])
+            assert step.meta["cameras"][cam]["obs_key"] == key
+        meta = step.meta
+        assert meta["target"] == "action-token" and meta["malformed"] is None
+        assert meta["decode_steps"] == [int(action_steps[2])] and meta["action_indices"] == [2]
+        assert meta["token_ids"] == [int(generated[action_steps[2]])]
+        assert meta["score"] == pytest.approx(float(direct.score[0]), rel=1e-5)
         assert meta["prompt"] == obs["prompt"] and meta["connection"].startswith("conn")
+        assert meta["extra"]["target_box"] == obs["cam_extra/target_box"].tolist()
+        assert meta["extra"]["block_boxes"] == obs["cam_extra/block_boxes"].tolist()
 
 
-def test_side_channel_off_returns_plain_bytes(tiny_droid_policy, tmp_path):
-    wrapped = wrap_policy_with_cam(tiny_droid_policy, CAMOptions(every_k=0, cam_dir=tmp_path))
-    obs = droid_obs(0)
-    plain = msgpack_numpy.packb(strip_timing(tiny_droid_policy.infer(obs)))
-    assert msgpack_numpy.packb(strip_timing(wrapped.infer(obs))) == plain
-    on = wrap_policy_with_cam(tiny_droid_policy, CAMOptions(every_k=1, cam_dir=tmp_path))
-    assert msgpack_numpy.packb(strip_timing(on.infer(obs))) == plain
-    on.close(30)
-    wrapped.close(1)
+@pytest.mark.parametrize("every_k", [0, 1, 2])
+def test_side_channel_on_or_off_serves_the_plain_bytes(tmp_path, demo_policy, every_k):
+    """In process, each of several different observations gets exactly the bytes the plain policy sends, whether
+    the call is explained (traced path) or not (plain path)."""
+    observations = [policy_part(demo_obs(200 + i)) for i in range(4)]
+    plain = [msgpack_numpy.packb(strip_timing(demo_policy.infer(o))) for o in observations]
+    assert len(set(plain)) == len(plain)
+    wrapped = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=every_k, cam_dir=tmp_path, save_frames="none"))
+    try:
+        for obs, expected in zip(observations, plain, strict=True):
+            assert msgpack_numpy.packb(strip_timing(wrapped.infer(obs))) == expected
+    finally:
+        wrapped.close(120)
+    scheduled = {0: 0, 1: 4, 2: 2}[every_k]
+    assert wrapped.stats()["gradcam"].get("scheduled", 0) == scheduled
+    assert len(load_run(wrapped.run_dir).steps) == scheduled
 
 
-def test_schedule_is_per_connection_and_every_k(hand_policy, tmp_path):
-    wrapped = wrap_policy_with_cam(hand_policy, CAMOptions(every_k=2, cam_dir=tmp_path, save_frames="none"))
+def test_schedule_is_per_connection_and_every_k(demo_policy, tmp_path):
+    wrapped = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=2, cam_dir=tmp_path, save_frames="none"))
     for i in range(3):
         for conn in ("a", "b"):
-            wrapped.infer(droid_obs(i), RequestContext(conn, i))
+            wrapped.infer(demo_obs(i), RequestContext(conn, i))
     wrapped.close(120)
     run = load_run(wrapped.run_dir)
     assert sorted((s.meta["connection"], s.meta["step"]) for s in run.steps) == [("a", 0), ("a", 2), ("b", 0), ("b", 2)]
     assert all(not s.frames and not s.model_frames for s in run.steps)
 
 
-def test_multi_token_and_chunk_targets(hand_policy, tmp_path):
-    steps = hand_policy.tokenizer.action_token_steps(hand_policy.tokens)
-    _, trace = hand_policy.infer_traced(droid_obs(3))
-    stack = explain(
-        hand_policy.model, hand_policy.tokenizer, trace.observation, trace.generated_tokens, target="all-action-tokens"
-    )
-    assert stack.maps["base_0_rgb"].shape == (len(steps), 16, 16)
-    assert stack.decode_steps == [int(s) for s in steps] and stack.action_indices == list(range(len(steps)))
-    single = explain(
-        hand_policy.model,
-        hand_policy.tokenizer,
-        trace.observation,
-        trace.generated_tokens,
-        target="action-token",
-        action_index=5,
-    )
-    scale = np.abs(single.maps["wrist_0_rgb"]).max()
-    np.testing.assert_allclose(stack.maps["wrist_0_rgb"][5], single.maps["wrist_0_rgb"], atol=1e-4 * scale)
-    chunk = explain(hand_policy.model, hand_policy.tokenizer, trace.observation, trace.generated_tokens, target="chunk")
-    assert chunk.maps["base_0_rgb"].shape == (16, 16) and isinstance(chunk.score, float) and chunk.score < 0
+def test_multi_token_and_chunk_targets_log_the_models_maps(demo_policy, tmp_path):
+    """`all-action-tokens` logs one map per action token and `chunk` one map of the summed log-probabilities, equal
+    to direct calls of the model's map functions on the call's exact inputs."""
+    obs = demo_obs(3)
+    _, trace = demo_policy.infer_traced(policy_part(obs))
+    generated = np.asarray(trace.output)
+    steps = demo_policy.explainer.tokenizer.action_token_steps(generated)
+    assert len(steps) == 20  # the demo's FAST chunks are 20 ids
+    model = demo_policy.explainer.model
+    direct = {
+        "all-action-tokens": pi0_fast_maps.gradcam_for_steps(model, trace.observation, generated[None], steps),
+        "chunk": pi0_fast_maps.gradcam_for_chunk(model, trace.observation, generated[None], steps),
+    }
+    for target, want in direct.items():
+        options = CAMOptions(every_k=1, cam_dir=tmp_path / target, save_frames="none", target=target)
+        wrapped = wrap_policy_with_cam(demo_policy, options)
+        wrapped.infer(obs)
+        wrapped.close(300)
+        (step,) = load_run(wrapped.run_dir).steps
+        assert step.meta["target"] == target and step.meta["decode_steps"] == [int(s) for s in steps]
+        assert step.meta["action_indices"] == list(range(20))
+        for cam in DEMO_CAMERAS:
+            _assert_maps_close(step.maps_of("gradcam")[cam], want.maps[cam][0])
+            _assert_maps_close(step.maps_of("gradnorm")[cam], want.gradnorm_maps[cam][0])
+        if target == "chunk":
+            assert step.maps_of("gradcam")["base_0_rgb"].shape == (4, 4)
+            assert step.meta["score"] == pytest.approx(float(want.score[0]), rel=1e-5) and step.meta["score"] < 0
+        else:
+            assert step.maps_of("gradcam")["base_0_rgb"].shape == (20, 4, 4)
+            np.testing.assert_allclose(step.meta["score"], want.score[0], rtol=1e-5)
 
 
-def test_failures_stay_inside_the_side_channel(tiny_droid_policy, hand_tokens, tmp_path):
-    obs = droid_obs(4)
-    expected = tiny_droid_policy.infer(obs)["actions"]
-    # Grad-CAM raising.
-    failing = FixedGeneration(tiny_droid_policy, hand_tokens, GatedModel(tiny_droid_policy.model, fail=True))
-    wrapped = wrap_policy_with_cam(failing, CAMOptions(every_k=1, cam_dir=tmp_path / "a"))
-    for _ in range(2):
-        np.testing.assert_array_equal(wrapped.infer(obs)["actions"], expected)
+def test_failures_stay_inside_the_side_channel(demo_policy, tmp_path):
+    observations = [policy_part(demo_obs(300 + i)) for i in range(2)]
+    expected = [demo_policy.infer(o)["actions"] for o in observations]
+    assert_pairwise_different(expected)
+    # The explainer raising: counted, nothing logged, responses untouched.
+    failing = GatedExplainer(demo_policy.explainer, fail=True)
+    wrapped = wrap_policy_with_cam(WithExplainer(demo_policy, failing), CAMOptions(every_k=1, cam_dir=tmp_path / "a"))
+    for obs, want in zip(observations, expected, strict=True):
+        np.testing.assert_array_equal(wrapped.infer(obs)["actions"], want)
     wrapped.close(30)
-    assert wrapped.stats()["gradcam"]["failed_RuntimeError"] == 2
+    assert failing.calls == 2 and wrapped.stats()["gradcam"]["failed_RuntimeError"] == 2
     assert load_run(wrapped.run_dir).steps == []
-    # A generation without action tokens (the random model's own): skipped and counted, never an error.
-    plain = wrap_policy_with_cam(tiny_droid_policy, CAMOptions(every_k=1, cam_dir=tmp_path / "b"))
-    np.testing.assert_array_equal(plain.infer(obs)["actions"], expected)
-    plain.close(30)
-    assert plain.stats()["gradcam"]["skipped_no_action_tokens"] == 1
     # An unwritable run directory: serving goes on with the side channel disabled.
     (tmp_path / "file").write_text("not a directory")
-    disabled = wrap_policy_with_cam(tiny_droid_policy, CAMOptions(every_k=1, cam_dir=tmp_path / "file" / "cam"))
-    np.testing.assert_array_equal(disabled.infer(obs)["actions"], expected)
-    assert disabled.stats()["gradcam"]["disabled_logger_unavailable"] == 1
+    disabled = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, cam_dir=tmp_path / "file" / "cam"))
+    for obs, want in zip(observations, expected, strict=True):
+        np.testing.assert_array_equal(disabled.infer(obs)["actions"], want)
+    assert disabled.run_dir is None and disabled.stats()["gradcam"]["disabled_logger_unavailable"] == 1
     disabled.close(1)
 
 
-def test_slow_worker_and_full_queue_never_block_responses(tiny_droid_policy, hand_tokens, tmp_path):
-    gated = GatedModel(tiny_droid_policy.model)
+def test_malformed_generation_is_explained_logged_and_reported(tmp_path, tiny_droid_policy):
+    """Issue #15: the upstream tiny DROID model never writes `Action: `. Served through the real server and client
+    with the side channel on every request, each request still leaves a readable step: maps of the generated tokens
+    (target `generated-tokens`), the policy's reason in `malformed`, and the step under "failures" in the report."""
+    rng = np.random.default_rng(15)
+    observations = [
+        {
+            "observation/exterior_image_1_left": rng.integers(0, 256, (180, 320, 3), dtype=np.uint8),
+            "observation/wrist_image_left": rng.integers(0, 256, (180, 320, 3), dtype=np.uint8),
+            "observation/joint_position": rng.uniform(-1, 1, 7),
+            "observation/gripper_position": rng.uniform(0, 1, 1),
+            "prompt": "pick up the red block",
+        }
+        for _ in range(2)
+    ]
+    wire = tmp_path / "wire"
+    wire.mkdir()
+    for i, obs in enumerate(observations):
+        write_packed(wire / f"obs{i}.msgpack", obs)
+    options = CAMOptions(every_k=1, cam_dir=tmp_path / "cam", save_frames="model", target="action-token")
+    wrapped = wrap_policy_with_cam(tiny_droid_policy, options)
+    server = start_server_in_thread(wrapped, metadata=tiny_droid_policy.metadata)
+    try:
+        run_client(REPLAY_CLIENT, json.dumps({"port": server.port, "dir": str(wire), "n": len(observations)}))
+        stats = get_stats(server.port)
+    finally:
+        server.stop()
+    assert wrapped.stats()["gradcam"]["completed"] == 2 and wrapped.stats()["gradcam"]["explained_malformed"] == 2
+
+    run = load_run(wrapped.run_dir)
+    assert len(run.steps) == 2 and not run.problems
+    model = tiny_droid_policy.explainer.model
+    for obs, step in zip(observations, run.steps, strict=True):
+        _, trace = tiny_droid_policy.infer_traced(obs)
+        assert trace.malformed_reason is not None
+        assert step.meta["malformed"] == trace.malformed_reason
+        assert trace.malformed_reason in stats["policy"]["malformed"]  # the reason the policy counted
+        assert step.meta["target"] == "generated-tokens"
+        generated = np.asarray(trace.output)
+        np.testing.assert_array_equal(step.inputs["output"], generated)
+        # Every emitted token, up to and including the first EOS (all of them when there is none).
+        eos = np.flatnonzero(generated == EOS_TOKEN)
+        emitted = np.arange(eos[0] + 1 if eos.size else generated.size)
+        assert step.meta["decode_steps"] == emitted.tolist()
+        direct = pi0_fast_maps.gradcam_for_chunk(model, trace.observation, generated[None], emitted)
+        for cam in ("base_0_rgb", "base_1_rgb", "wrist_0_rgb"):
+            assert step.maps_of("gradcam")[cam].shape == (16, 16)
+            _assert_maps_close(step.maps_of("gradcam")[cam], direct.maps[cam][0])
+            _assert_maps_close(step.maps_of("gradnorm")[cam], direct.gradnorm_maps[cam][0])
+        assert step.meta["score"] == pytest.approx(float(direct.score[0]), rel=1e-5)
+        assert run.manifest["steps"][step.seq]["malformed"] == trace.malformed_reason
+
+    result = render_run(run, tmp_path / "render", RenderOptions(videos=False, progress=False))
+    doc = result.report.read_text()
+    failures = doc[doc.index('<section class="failures"') : doc.index("</section>", doc.index('id="failures"'))]
+    assert "failures (2)" in failures
+    for step in run.steps:
+        assert f'href="#step-{step.seq}"' in failures
+        assert f'<section class="step failure" id="step-{step.seq}"' in doc
+    assert f'<code class="reason">{run.steps[0].meta["malformed"]}</code>' in failures
+    assert '<code class="target">generated-tokens</code>' in failures
+    assert "2 of 2 steps" in doc
+
+
+def test_slow_worker_and_full_queue_never_block_responses(demo_policy, tmp_path):
+    gated = GatedExplainer(demo_policy.explainer)
     wrapped = wrap_policy_with_cam(
-        FixedGeneration(tiny_droid_policy, hand_tokens, gated), CAMOptions(every_k=1, cam_dir=tmp_path, queue_size=1)
+        WithExplainer(demo_policy, gated), CAMOptions(every_k=1, cam_dir=tmp_path, queue_size=1)
     )
-    obs = droid_obs(5)
-    wrapped.infer(obs)
+    observations = [policy_part(demo_obs(400 + i)) for i in range(4)]
+    expected = [demo_policy.infer(o)["actions"] for o in observations]
+    assert_pairwise_different(expected)
+    np.testing.assert_array_equal(wrapped.infer(observations[0])["actions"], expected[0])
     assert gated.entered.wait(60)  # the worker now holds job 1, blocked
-    for _ in range(3):  # job 2 fills the queue, jobs 3-4 are dropped; every response comes back meanwhile
-        wrapped.infer(obs)
+    for obs, want in zip(observations[1:], expected[1:], strict=True):
+        # job 2 fills the queue, jobs 3-4 are dropped; every response comes back meanwhile, and it is its own
+        np.testing.assert_array_equal(wrapped.infer(obs)["actions"], want)
     counters = wrapped.stats()["gradcam"]
     assert counters["scheduled"] == 4 and counters["dropped_queue_full"] == 2 and counters.get("completed", 0) == 0
     gated.gate.set()
     wrapped.close(120)
     counters = wrapped.stats()["gradcam"]
     assert counters["completed"] == 2
-    assert load_run(wrapped.run_dir).manifest["counters"]["external"]["dropped_queue_full"] == 2
+    run = load_run(wrapped.run_dir)
+    assert [s.meta["step"] for s in run.steps] == [0, 1]
+    assert run.manifest["counters"]["external"]["dropped_queue_full"] == 2
 
 
-def test_disk_failure_mid_run_is_counted_and_earlier_steps_survive(hand_policy, tmp_path):
-    wrapped = wrap_policy_with_cam(hand_policy, CAMOptions(every_k=1, cam_dir=tmp_path, save_frames="none"))
-    wrapped.infer(droid_obs(6))
+def test_disk_failure_mid_run_is_counted_and_earlier_steps_survive(demo_policy, tmp_path):
+    wrapped = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, cam_dir=tmp_path, save_frames="none"))
+    wrapped.infer(demo_obs(6))
     deadline = time.time() + 120
     while wrapped.stats()["gradcam"].get("completed", 0) < 1 and time.time() < deadline:
-        time.sleep(0.1)
+        time.sleep(0.05)
     steps_dir = wrapped.run_dir / "steps"
-    saved = sorted(steps_dir.iterdir())
+    saved = {p.name: p.read_bytes() for p in steps_dir.iterdir()}
+    assert len(saved) == 1
     moved = tmp_path / "moved_steps"
     steps_dir.rename(moved)
     steps_dir.write_text("the disk went away")  # a file where the directory was: writes now fail for real
-    wrapped.infer(droid_obs(7))
+    wrapped.infer(demo_obs(7))
     wrapped.close(120)
     counters = wrapped.stats()["gradcam"]
     assert counters["completed"] == 1 and counters["not_logged"] == 1
-    assert sum(counters["logger"]["io_errors"].values()) >= 1
-    assert [p.name for p in sorted(moved.iterdir())] == [p.name for p in saved]
+    assert counters["logger"]["io_errors"] == {"not_a_directory": 1}
+    assert {p.name: p.read_bytes() for p in moved.iterdir()} == saved
 
 
 KILL_SCRIPT = r"""
-import sys, time, numpy as np
-sys.path.insert(0, sys.argv[3])
-from fixed_generation import FixedGeneration
-from test_cam_wrapper import droid_obs
-from openpi_cam.cam.wrapper import CAMOptions, wrap_policy_with_cam
-from openpi_cam.policies.policy import create_policy
-golden = sys.argv[1]
-policy = create_policy(
-    "pi0_fast_droid", golden + "/checkpoint", paligemma_tokenizer=golden + "/paligemma_tokenizer_tiny.model",
-    fast_tokenizer=golden + "/fast_tokenizer", dtype="float32",
-)
-tokens = np.load(golden + "/droid_case.npz")["hand/generated_tokens"]
-options = CAMOptions(every_k=1, cam_dir=sys.argv[2], queue_size=64)
-wrapped = wrap_policy_with_cam(FixedGeneration(policy, tokens), options)
+import sys
+sys.path.insert(0, sys.argv[2])
+from cam_support import demo_obs
+from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
+from openpi_cam.policies import demo_reach
+options = CAMOptions(every_k=1, cam_dir=sys.argv[1], queue_size=64)
+wrapped = wrap_policy_with_cam(demo_reach.create_demo_policy(), options)
 print(wrapped.run_dir, flush=True)
 i = 0
 while True:
-    wrapped.infer(droid_obs(i)); i += 1
+    wrapped.infer(demo_obs(i)); i += 1
 """
 
 
-def test_kill_9_mid_run_leaves_every_completed_step_readable(golden_dir, tmp_path):
+def test_kill_9_mid_run_leaves_every_completed_step_readable(tmp_path):
+    env = os.environ | {"PYTHONPATH": os.pathsep.join([str(REPO_ROOT / "src"), os.environ.get("PYTHONPATH", "")])}
     proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-c",
-            KILL_SCRIPT,
-            str(golden_dir / "tiny_policy_droid"),
-            str(tmp_path),
-            str(REPO_ROOT / "tests" / "support"),
-        ],
+        [sys.executable, "-c", KILL_SCRIPT, str(tmp_path), str(Path(__file__).parent)],
         stdout=subprocess.PIPE,
         text=True,
         cwd=REPO_ROOT,
+        env=env,
     )
     try:
         run_dir = Path(proc.stdout.readline().strip())
         deadline = time.time() + 240
         while time.time() < deadline and len(list((run_dir / "steps").glob("*.npz"))) < 3:
-            time.sleep(0.2)
+            time.sleep(0.1)
     finally:
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
+        proc.stdout.close()
     written = sorted((run_dir / "steps").glob("*.npz"))
     assert len(written) >= 3
     run = load_run(run_dir)
-    assert [s.seq for s in run.steps] == list(range(len(written)))
+    assert [s.seq for s in run.steps] == list(range(len(written))) and not run.problems
     for step in run.steps:
-        assert step.maps["base_0_rgb"].shape == (16, 16) and np.isfinite(step.maps["base_0_rgb"]).all()
+        assert step.meta["step"] == step.seq
+        for kind in ("gradcam", "gradnorm"):
+            m = step.maps_of(kind)["base_0_rgb"]
+            assert m.shape == (4, 4) and np.isfinite(m).all()
 
 
-def test_float_channels_first_client_images_are_logged_as_uint8_frames(hand_policy, tmp_path):
-    wrapped = wrap_policy_with_cam(hand_policy, CAMOptions(every_k=1, cam_dir=tmp_path, save_frames="raw"))
-    obs = droid_obs(8, size=(224, 224))
-    as_float_chw = {
-        **obs,
-        "observation/exterior_image_1_left": np.moveaxis(obs["observation/exterior_image_1_left"], -1, 0) / 255.0,
-    }
+def test_float_channels_first_client_images_are_logged_as_uint8_frames(demo_policy, tmp_path):
+    wrapped = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, cam_dir=tmp_path, save_frames="raw"))
+    obs = demo_obs(8)
+    image = obs["observation/image"]
+    as_float_chw = {**obs, "observation/image": np.moveaxis(image, -1, 0) / 255.0}
     wrapped.infer(as_float_chw)
     wrapped.infer(obs)
     wrapped.close(120)
     assert wrapped.stats()["gradcam"]["completed"] == 2
     first, second = load_run(wrapped.run_dir).steps
-    np.testing.assert_array_equal(first.frames["base_0_rgb"], obs["observation/exterior_image_1_left"])
-    np.testing.assert_array_equal(second.frames["base_0_rgb"], obs["observation/exterior_image_1_left"])
+    np.testing.assert_array_equal(first.frames["base_0_rgb"], image)
+    np.testing.assert_array_equal(second.frames["base_0_rgb"], image)

@@ -1,9 +1,11 @@
-"""Overlays, panels, videos and the HTML report, on real run directories written by CAMLogger."""
+"""Overlays, panels, videos and the HTML report, on real run directories written by CAMLogger (and one version-1 run
+written by hand)."""
 
 from __future__ import annotations
 
 import html.parser
 import json
+import os
 import pathlib
 import re
 import shutil
@@ -12,21 +14,23 @@ import urllib.parse
 
 import numpy as np
 import pytest
-from openpi_cam.cam.reader import load_run
 from PIL import Image
+from viz_support import assert_overlay_matches, expected_overlay, step_peak
 
-from openpi_cam.cam.logger import CAMLogger, StepRecord
+from openpi_cam.cam.logger import CAMLogger
+from openpi_cam.cam.runfmt import StepRecord, load_run
 from openpi_cam.cli import main as cli_main
 from openpi_cam.image_tools import letterbox_geometry
 from openpi_cam.viz.colormap import LUT, colorize
 from openpi_cam.viz.overlay import map_on_original, upsample
 from openpi_cam.viz.render import RenderOptions, render_run
 from openpi_cam.viz.report import flag_steps, write_report
-from openpi_cam.viz.stats import compute_stats
+from openpi_cam.viz.stats import compute_stats, view_steps
 
 GRID = 16
 MODEL = 224
 BASE, WRIST = "base_0_rgb", "left_wrist_0_rgb"
+GEOMETRY = letterbox_geometry(180, 320, MODEL, MODEL)
 
 
 def _hot(cell: tuple[int, int], value: float = 1.0) -> np.ndarray:
@@ -35,46 +39,37 @@ def _hot(cell: tuple[int, int], value: float = 1.0) -> np.ndarray:
     return m
 
 
-def _meta(score: float, base_geometry: dict | None) -> dict:
+def _meta(score: float, **fields) -> dict:
     return {
         "target": "action-token",
         "token_ids": [1234],
         "decode_steps": [3],
         "positions": [300],
-        "action_indices": None,
+        "action_indices": [0],
         "score": score,
         "prompt": "pick up the cube",
         "cameras": {
-            BASE: {
-                "obs_key": "image",
-                "valid": True,
-                "grid": [GRID, GRID],
-                "span": [0, 256],
-                "geometry": base_geometry,
-            },
+            BASE: {"obs_key": "image", "valid": True, "grid": [GRID, GRID], "span": [0, 256], "geometry": None},
             WRIST: {"obs_key": "wrist", "valid": True, "grid": [GRID, GRID], "span": [256, 512], "geometry": None},
         },
+        "malformed": None,
         "extra": {},
-    }
+    } | fields
 
 
-def _log(
-    cam_dir: pathlib.Path,
-    steps: list[tuple[str, dict[str, np.ndarray], float]],
-    gradnorm: dict[str, np.ndarray] | None = None,
-) -> pathlib.Path:
-    """A run whose base camera has a black 180x320 original frame and whose wrist camera only a model frame; every
-    step carries the `gradnorm` maps when given."""
-    geo = letterbox_geometry(180, 320, MODEL, MODEL)
+def _log(cam_dir: pathlib.Path, steps: list[tuple[str, dict[str, dict[str, np.ndarray]], float, dict]]) -> pathlib.Path:
+    """A run of (connection, maps by kind, score, meta fields) steps. The base camera has a black 180x320 original
+    frame letterboxed into the model image; the wrist camera only a grey model frame."""
     frames = {BASE: np.zeros((180, 320, 3), np.uint8)}
     model_frames = {WRIST: np.full((MODEL, MODEL, 3), 40, np.uint8)}
     counters: dict[str, int] = {}
     with CAMLogger(cam_dir, run_config={}, checkpoint="ckpt", options={}) as logger:
-        for i, (conn, maps, score) in enumerate(steps):
+        for i, (conn, maps, score, fields) in enumerate(steps):
             step = counters[conn] = counters.get(conn, -1) + 1
-            meta = _meta(score, geo.as_dict())
-            record = StepRecord(conn, step, 100.0 + i, maps, frames, model_frames, meta, gradnorm or {})
-            assert logger.log_step(record)
+            meta = _meta(score, **fields)
+            meta["cameras"][BASE]["geometry"] = GEOMETRY.as_dict()
+            meta["map_kinds"] = list(maps)
+            assert logger.log_step(StepRecord(conn, step, 100.0 + i, maps, frames, model_frames, meta=meta))
     return logger.run_dir
 
 
@@ -84,7 +79,7 @@ def _brightest(img: np.ndarray) -> tuple[int, int]:
 
 
 def test_hot_cell_lands_on_the_original_frame():
-    geo = letterbox_geometry(180, 320, MODEL, MODEL)
+    geo = GEOMETRY
     assert (geo.pad_top, geo.resized_h, geo.pad_left, geo.resized_w) == (49, 126, 0, 224)  # rows 49..174 hold it
     heat = map_on_original(_hot((6, 10)), geo)
     assert heat.shape == (180, 320)
@@ -114,23 +109,21 @@ def test_colormap_is_monotone_in_brightness():
 
 @pytest.fixture(scope="module")
 def rendered(tmp_path_factory: pytest.TempPathFactory):
-    """Two connections; on "a" the base camera usually dominates, step 3 looks at the wrist, step 5's score drops."""
+    """Two connections; on "a" the base camera usually dominates, step 3 looks at the wrist, step 5's score drops.
+    The maps are gradient-norm maps (what render draws by default); the Grad-CAM maps beside them peak elsewhere."""
     steps = []
     for i in range(6):
-        base = _hot((6, 10), 1.0)
-        wrist = _hot((8, 8), 0.2)
+        base, wrist = _hot((6, 10), 1.0), _hot((8, 8), 0.2)
         if i == 3:
             base, wrist = _hot((6, 10), 0.1), _hot((2, 12), 1.0)
-        steps.append(("a", {BASE: base, WRIST: wrist}, 0.2 if i == 5 else 1.0))
+        other = {BASE: _hot((0, 0)), WRIST: _hot((15, 15))}
+        steps.append(("a", {"gradnorm": {BASE: base, WRIST: wrist}, "gradcam": other}, 0.2 if i == 5 else 1.0, {}))
         if i % 2 == 0:
-            steps.append(("b", {BASE: _hot((i, i), 0.5), WRIST: _hot((15 - i, i), 0.5)}, 0.5))
+            maps = {BASE: _hot((i, i), 0.5), WRIST: _hot((15 - i, i), 0.5)}
+            steps.append(("b", {"gradnorm": maps, "gradcam": other}, 0.5, {}))
     tmp = tmp_path_factory.mktemp("viz")
-    run_dir = _log(tmp / "cam", steps)
-    run = load_run(run_dir)
-    opts = RenderOptions(progress=False)
-    result = render_run(run.steps, tmp / "out", opts)
-    result.report = write_report(result, run.manifest, opts)
-    return run, result
+    run = load_run(_log(tmp / "cam", steps))
+    return run, render_run(run, tmp / "out", RenderOptions(progress=False))
 
 
 def test_overlays_follow_the_letterbox(rendered):
@@ -144,15 +137,20 @@ def test_overlays_follow_the_letterbox(rendered):
     assert wrist.shape == (MODEL, MODEL, 3)  # only a model frame: the grid is stretched over it
     r, c = _brightest(wrist)
     assert abs(r + 0.5 - 8.5 * 14) <= 1 and abs(c + 0.5 - 8.5 * 14) <= 1
+    # Every overlay of every step, against the reference built from the step file alone.
+    for step in run.steps:
+        maps = step.maps_of("gradnorm")
+        for camera, rel in result.steps[step.seq].overlays.items():
+            want = expected_overlay(step.meta, maps, step.frames, step.model_frames, camera, step_peak(step.meta, maps))
+            assert_overlay_matches(np.asarray(Image.open(result.out_dir / rel)), want, f"seq {step.seq} {camera}")
 
 
 def test_run_normalisation_dims_weaker_steps(tmp_path):
-    run_dir = _log(tmp_path / "cam", [("a", {BASE: _hot((6, 10), 1.0), WRIST: _hot((1, 1), 1.0)}, 1.0),
-                                      ("a", {BASE: _hot((6, 10), 0.5), WRIST: _hot((1, 1), 0.5)}, 1.0)])  # fmt: skip
-    steps = load_run(run_dir).steps
+    steps = [("a", {"gradnorm": {BASE: _hot((6, 10), v), WRIST: _hot((1, 1), v)}}, 1.0, {}) for v in (1.0, 0.5)]
+    run = load_run(_log(tmp_path / "cam", steps))
 
     def peak_colour(norm: str, seq: int) -> np.ndarray:
-        res = render_run(steps, tmp_path / norm, RenderOptions(norm=norm, videos=False, progress=False))
+        res = render_run(run, tmp_path / norm, RenderOptions(norm=norm, videos=False, progress=False))
         img = np.asarray(Image.open(res.out_dir / res.steps[seq].overlays[BASE]))
         return img[_brightest(img)]
 
@@ -174,7 +172,7 @@ def test_files_exist_and_decode(rendered):
     for conn, n in per_conn.items():
         paths = result.videos[conn]
         reader = iio.get_reader(result.out_dir / paths["mp4"], format="FFMPEG")
-        frames = [f for f in reader]
+        frames = [f for f in reader]  # not list(reader): it trusts the reader's len(), which is not a frame count
         reader.close()
         assert len(frames) == n and frames[0].ndim == 3
         with Image.open(result.out_dir / paths["gif"]) as gif:
@@ -197,24 +195,34 @@ class _Collector(html.parser.HTMLParser):
         self.refs += [v for k, v in attrs if k in ("src", "href") and v]
 
 
-def test_html_report_is_complete_and_offline(rendered):
-    run, result = rendered
-    doc = result.report.read_text()
+def _check_links(doc: str, out_dir: pathlib.Path) -> _Collector:
+    """Every in-page link has its target and every file link its file; nothing points at the network."""
     parser = _Collector()
     parser.feed(doc)
-    assert parser.steps == {s.seq for s in run.steps}
     assert not re.search(r"https?:", doc), "the report must not reference the network"
     for ref in parser.refs:
         if ref.startswith("#"):
             assert ref[1:] in parser.ids, ref
         else:
-            assert (result.out_dir / urllib.parse.unquote(ref)).is_file(), ref
-    # Every flagged step is reachable from its connection's flagged list.
-    flags = flag_steps(compute_stats(run.steps))
+            assert (out_dir / urllib.parse.unquote(ref)).is_file(), ref
+    return parser
+
+
+def test_html_report_is_complete_and_offline(rendered):
+    run, result = rendered
+    doc = result.report.read_text()
+    parser = _check_links(doc, result.out_dir)
+    assert parser.steps == {s.seq for s in run.steps}
+    assert "gradient norm (unsigned sensitivity) maps" in doc
+    assert "failures (0)" in doc and "0 of 9 steps" in doc
+    # The flagged steps follow from how the run was built: on "a", step 3 looks at the wrist and step 5's score
+    # drops by 80%; nothing on "b" (its shares are even and its score constant).
     conn_a = [s for s in run.steps if s.meta["connection"] == "a"]
-    assert {f.seq for f in flags} == {conn_a[3].seq, conn_a[5].seq}
-    assert any("moved from base_0_rgb to left_wrist_0_rgb" in f.reason for f in flags)
-    assert any("score dropped 80%" in f.reason for f in flags)
+    flags = flag_steps(compute_stats(view_steps(run.steps, "gradnorm")))
+    assert {(f.seq, f.reason) for f in flags} == {
+        (conn_a[3].seq, "attention moved from base_0_rgb to left_wrist_0_rgb"),
+        (conn_a[5].seq, "score dropped 80%"),
+    }
     for f in flags:
         assert f'<li><a href="#step-{f.seq}">' in doc
 
@@ -222,7 +230,9 @@ def test_html_report_is_complete_and_offline(rendered):
 def test_report_renders_in_headless_chromium(rendered):
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     if chromium is None:
-        pytest.skip("chromium is not installed")
+        if os.environ.get("CI") == "true":
+            pytest.fail("CI=true but Chromium is not installed: .ci/run installs it, so the report test must run")
+        pytest.skip("chromium is not installed (CI installs it and runs this test)")
     run, result = rendered
     cmd = [chromium, "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
            "--virtual-time-budget=5000", "--dump-dom", result.report.resolve().as_uri()]  # fmt: skip
@@ -232,33 +242,117 @@ def test_report_renders_in_headless_chromium(rendered):
     assert f'data-rendered-steps="{len(run.steps)}"' in dom
 
 
+def _failures_section(doc: str) -> str:
+    start = doc.index('<section class="failures"')
+    return doc[start : doc.index("</section>", start)]
+
+
+def _failure_steps(n: int, malformed: dict[int, str]) -> list[tuple[str, dict, float, dict]]:
+    """n steps on one connection; the steps in `malformed` failed with that reason (explained as upstream's fallback
+    generation would be, with target `generated-tokens`)."""
+    steps = []
+    for i in range(n):
+        fields = {"malformed": malformed[i], "target": "generated-tokens"} if i in malformed else {}
+        steps.append(("c0", {"gradnorm": {BASE: _hot((i, 3)), WRIST: _hot((3, i), 0.5)}}, 1.0, fields))
+    return steps
+
+
+def test_report_lists_failures_first(tmp_path):
+    run = load_run(_log(tmp_path / "cam", _failure_steps(4, {1: "no_action_prefix", 3: "wrong_action_shape"})))
+    result = render_run(run, tmp_path / "out", RenderOptions(videos=False, progress=False))
+    doc = result.report.read_text()
+    _check_links(doc, result.out_dir)
+    failures = _failures_section(doc)
+    # Before any connection or step section: failures are what a reader must see first.
+    assert doc.index('<section class="failures"') < doc.index('<section class="conn"') < doc.index("<h2>steps</h2>")
+    assert "failures (2)" in failures and "2 of 4 steps" in doc
+    items = re.findall(r"<li>(.*?)</li>", failures)
+    assert len(items) == 2
+    for item, (seq, reason) in zip(items, [(1, "no_action_prefix"), (3, "wrong_action_shape")], strict=True):
+        assert f'href="#step-{seq}"' in item and f"step {seq}" in item
+        assert f'<code class="reason">{reason}</code>' in item
+        assert '<code class="target">generated-tokens</code>' in item
+    for seq in range(4):
+        marked = f'<section class="step failure" id="step-{seq}"' in doc
+        assert marked == (seq in (1, 3))
+    assert "malformed generation: wrong_action_shape" in doc
+
+    # write_report alone, given the manifest only: schema 2 index entries name the failures too.
+    bare = render_run(run, tmp_path / "bare", RenderOptions(videos=False, progress=False, html=False))
+    assert bare.report is None
+    doc = write_report(bare, run.manifest, map_label="x", norm="step").read_text()
+    assert re.findall(r'href="#step-(\d+)"', _failures_section(doc)) == ["1", "3"]
+
+
+def _write_version_1_run(run_dir: pathlib.Path, malformed: dict[int, str], n: int = 3) -> None:
+    """A run as schema 1 wrote it: `cam/` and `gradnorm/` maps, `malformed_reason` and `gradcam_ms` in the meta, no
+    model inputs, index entries without failure fields."""
+    (run_dir / "steps").mkdir(parents=True)
+    run_info = {"schema_version": 1, "run_id": run_dir.name, "started_at": "2026-01-01T00:00:00.000Z"}
+    (run_dir / "run.json").write_text(json.dumps(run_info | {"config": {}, "checkpoint": "old", "options": {}}))
+    for seq in range(n):
+        meta = _meta(1.0) | {"schema_version": 1, "run_id": run_dir.name, "seq": seq, "connection": "old", "step": seq}
+        del meta["malformed"]
+        meta |= {"timestamp": 10.0 + seq, "malformed_reason": malformed.get(seq), "gradcam_ms": 5.0}
+        if seq in malformed:
+            meta["target"] = "chunk"
+        arrays = {f"cam/{c}": _hot((seq, 2)) for c in (BASE, WRIST)}
+        arrays |= {f"gradnorm/{c}": _hot((2, seq)) for c in (BASE, WRIST)}
+        arrays[f"frame_model/{WRIST}"] = np.full((MODEL, MODEL, 3), 40, np.uint8)
+        np.savez(run_dir / "steps" / f"{seq:08d}.npz", **arrays, meta=np.array(json.dumps(meta)))
+
+
+def test_report_lists_the_failures_of_a_version_1_run(tmp_path):
+    run_dir = tmp_path / "20250101-000000-abcdef"
+    _write_version_1_run(run_dir, {2: "no_action_prefix"})
+    run = load_run(run_dir)
+    assert [s.meta.get("malformed_reason") for s in run.steps] == [None, None, "no_action_prefix"]
+    for kind in ("gradcam", "gradnorm"):
+        result = render_run(run, tmp_path / kind, RenderOptions(map=kind, videos=False, progress=False))
+        doc = result.report.read_text()
+        failures = _failures_section(doc)
+        assert "failures (1)" in failures and "1 of 3 steps" in doc
+        assert re.findall(r'href="#step-(\d+)"', failures) == ["2"]
+        assert '<code class="reason">no_action_prefix</code>' in failures
+        assert '<code class="target">chunk</code>' in failures
+
+
 def test_render_command(tmp_path):
-    run_dir = _log(tmp_path / "cam", [("a", {BASE: _hot((6, 10)), WRIST: _hot((1, 1))}, 1.0)] * 2)
-    cli_main(["render", str(run_dir), "--no-videos", "--norm", "run"])
-    out = run_dir / "render"
+    steps = [("a", {"gradnorm": {BASE: _hot((6, 10)), WRIST: _hot((1, 1))}}, 1.0, {})] * 2
+    run_dir = _log(tmp_path / "cam", steps)
+    cli_main(["render", str(run_dir), "--no-videos", "--norm", "run", "--no-progress"])
+    out = run_dir / "render-gradnorm"
     assert (out / "index.html").is_file() and len(list((out / "panels").glob("*.png"))) == 2
     assert not any((out / "videos").iterdir())
 
 
-def test_render_and_stats_can_show_the_gradient_norm_maps(tmp_path, capsys):
-    """`--map gradnorm` draws and measures the `gradnorm/` maps, not the Grad-CAM ones, and says so."""
-    maps = {BASE: _hot((6, 10)), WRIST: _hot((1, 1))}
-    run_dir = _log(tmp_path / "cam", [("a", maps, 1.0)], gradnorm={BASE: _hot((8, 4)), WRIST: _hot((12, 12))})
-    cli_main(["render", str(run_dir), "--map", "gradnorm", "--no-videos"])
-    out = run_dir / "render-gradnorm"
-    assert "gradient norm maps" in (out / "index.html").read_text()
-    (overlay,) = (out / "overlays").glob(f"*-{BASE}.png")
-    r, c = _brightest(np.asarray(Image.open(overlay)))
-    # Cell (8, 4) is centred on model pixel (119, 63) -> original ((119 - 49) * 180 / 126, 63 * 320 / 224).
-    assert abs(r + 0.5 - 100.0) <= 1 and abs(c + 0.5 - 90.0) <= 1
+def test_render_and_stats_draw_the_requested_kind(tmp_path, capsys):
+    """`--map` picks which maps are drawn and measured, and the report says which."""
+    maps = {
+        "gradcam": {BASE: _hot((6, 10)), WRIST: _hot((1, 1))},
+        "gradnorm": {BASE: _hot((8, 4)), WRIST: _hot((12, 12))},
+    }
+    run_dir = _log(tmp_path / "cam", [("a", maps, 1.0, {})])
+    # Cell (6, 10) is centred on original pixel (60, 210), cell (8, 4) on ((119 - 49) * 180 / 126, 63 * 320 / 224).
+    for kind, label, centre in (
+        ("gradcam", "Grad-CAM maps", (60.0, 210.0)),
+        ("gradnorm", "gradient norm", (100.0, 90.0)),
+    ):
+        cli_main(["render", str(run_dir), "--map", kind, "--no-videos", "--no-progress"])
+        out = run_dir / f"render-{kind}"
+        assert label in (out / "index.html").read_text()
+        (overlay,) = (out / "overlays").glob(f"*-{BASE}.png")
+        r, c = _brightest(np.asarray(Image.open(overlay)))
+        assert abs(r + 0.5 - centre[0]) <= 1 and abs(c + 0.5 - centre[1]) <= 1
     capsys.readouterr()
     for kind, peak in (("gradcam", [6, 10]), ("gradnorm", [8, 4])):
         cli_main(["stats", str(run_dir), "--map", kind, "--format", "json"])
         (row,) = json.loads(capsys.readouterr().out)["steps"]
         assert [row[f"{BASE}/peak_row"], row[f"{BASE}/peak_col"]] == peak
 
-    older = _log(tmp_path / "old", [("a", maps, 1.0)])  # written without gradient-norm maps
-    for command in ("render", "stats"):
+    only_gradcam = _log(tmp_path / "old", [("a", {"gradcam": maps["gradcam"]}, 1.0, {})])
+    for command in ("render", "stats"):  # the default kind is the gradient norm, which this run lacks
         with pytest.raises(SystemExit) as exc:
-            cli_main([command, str(older), "--map", "gradnorm"])
-        assert exc.value.code == 2 and "no gradient-norm maps" in capsys.readouterr().err
+            cli_main([command, str(only_gradcam)])
+        assert exc.value.code == 2 and "no gradient norm (unsigned sensitivity) maps" in capsys.readouterr().err
+    assert not (only_gradcam / "render-gradnorm").exists()  # refused before anything was written

@@ -1,4 +1,5 @@
-"""The Rerun sink: a real CAM run written as an .rrd, read back with rerun's own RRD reader."""
+"""The Rerun sink: a real CAM run written as an .rrd and read back with rerun-sdk's own reader
+(`rerun.chunk.RrdReader`), its entity paths and values compared with what the step files hold."""
 
 from __future__ import annotations
 
@@ -7,10 +8,11 @@ import time
 
 import numpy as np
 import pytest
-from openpi_cam.cam.reader import load_run
+from viz_support import assert_overlay_matches, expected_overlay, shares, step_peak
 
 from openpi_cam import cli
-from openpi_cam.cam.logger import CAMLogger, StepRecord
+from openpi_cam.cam.logger import CAMLogger
+from openpi_cam.cam.runfmt import StepRecord, load_run
 
 CAMERAS = ("base_0_rgb", "left_wrist_0_rgb")
 GEOMETRY = {  # a 90 x 160 client frame letterboxed into 224 x 224
@@ -23,15 +25,23 @@ GEOMETRY = {  # a 90 x 160 client frame letterboxed into 224 x 224
     "pad_top": 49,
     "pad_left": 0,
 }
+# Connection "ep 1/a" is one entity-path part, escaped as Rerun writes it.
+ESCAPED = {"ep 1/a": r"ep\ 1\/a", "c2": "c2"}
 
 
-def _run(tmp_path, *, gradnorm: bool = False) -> CAMLogger:
-    """Two connections (one with a name that needs escaping), a masked camera, a multi-token map; with `gradnorm`,
-    gradient-norm maps unlike the Grad-CAM ones."""
+def _run(tmp_path, *, gradnorm: bool = True) -> CAMLogger:
+    """Two connections (one with a name that needs escaping), a masked camera, a multi-token map; gradient-norm maps
+    unlike the Grad-CAM ones (or none)."""
     rng = np.random.default_rng(0)
     cam_logger = CAMLogger(tmp_path / "cam", run_config={}, checkpoint="ck", options={})
     for i, (conn, step) in enumerate([("ep 1/a", 0), ("ep 1/a", 1), ("c2", 0)]):
-        maps = {CAMERAS[0]: rng.random((16, 16), dtype=np.float32), CAMERAS[1]: rng.random((2, 16, 16), np.float32)}
+        gradcam = {
+            CAMERAS[0]: rng.random((16, 16), dtype=np.float32),
+            CAMERAS[1]: rng.random((2, 16, 16), np.float32) - 0.2,  # negatives carry no attention
+        }
+        maps = {"gradcam": gradcam}
+        if gradnorm:
+            maps["gradnorm"] = {c: np.flip(m, -1) ** 3 for c, m in gradcam.items()}
         meta = {
             "target": "all-action-tokens",
             "score": [0.5 + i, 1.5 + i],
@@ -43,14 +53,14 @@ def _run(tmp_path, *, gradnorm: bool = False) -> CAMLogger:
         }
         frames = {CAMERAS[0]: rng.integers(0, 256, (90, 160, 3), dtype=np.uint8)}
         model_frames = {CAMERAS[1]: rng.integers(0, 256, (224, 224, 3), dtype=np.uint8)}
-        norms = {c: np.flip(m, -1) ** 3 for c, m in maps.items()} if gradnorm else {}
-        assert cam_logger.log_step(StepRecord(conn, step, time.time(), maps, frames, model_frames, meta, norms))
+        assert cam_logger.log_step(StepRecord(conn, step, time.time(), maps, frames, model_frames, meta=meta))
     cam_logger.close()
     return cam_logger
 
 
 def _columns(path) -> dict[str, dict[str, list]]:
-    """entity path -> {"step": [...], "seq": [...], "value": [...]} from the recording (all chunks of an entity)."""
+    """entity path -> {"step": [...], "seq": [...], "value": [...], "format": [...]} over all chunks of the
+    recording's first store (rerun-sdk's reader; a missing reader is an error, not a skip)."""
     from rerun.chunk import RrdReader
 
     out: dict[str, dict[str, list]] = {}
@@ -69,86 +79,79 @@ def _columns(path) -> dict[str, dict[str, list]]:
     return out
 
 
+def _image(cols: dict[str, dict[str, list]], path: str, seq: int) -> np.ndarray:
+    logged = cols[path]
+    row = logged["seq"].index(seq)
+    fmt = logged["format"][row][0]
+    return np.asarray(logged["value"][row][0], np.uint8).reshape(fmt["height"], fmt["width"], -1)
+
+
+def _check_recording(cols: dict[str, dict[str, list]], run_dir, kind: str) -> None:
+    """Every step's frames, overlays of `kind`, shares and score, as the step files define them."""
+    for step in load_run(run_dir).steps:
+        meta, maps = step.meta, step.maps_of(kind)
+        conn = ESCAPED[meta["connection"]]
+        share = shares(meta, maps)
+        scale = step_peak(meta, maps)
+        for c in CAMERAS:
+            logged = cols[f"/{conn}/share/{c}"]
+            row = logged["seq"].index(step.seq)
+            assert logged["step"][row] == meta["step"]
+            assert logged["value"][row][0] == pytest.approx(share[c], abs=1e-9)
+            frame = step.frames.get(c, step.model_frames.get(c))
+            np.testing.assert_array_equal(_image(cols, f"/{conn}/{c}/frame", step.seq), frame)
+            want = expected_overlay(meta, maps, step.frames, step.model_frames, c, scale)
+            assert_overlay_matches(_image(cols, f"/{conn}/{c}/overlay", step.seq), want, f"seq {step.seq} {c}")
+        assert sum(share.values()) == pytest.approx(1.0)
+        score = cols[f"/{conn}/score"]
+        assert score["value"][score["seq"].index(step.seq)][0] == pytest.approx(np.mean(meta["score"]))
+
+
 def test_write_rrd_logs_frames_overlays_and_shares(tmp_path):
-    pytest.importorskip("rerun")
-    from openpi_cam.viz.render import camera_image, camera_overlay, step_scale
     from openpi_cam.viz.rerun_sink import entity_paths, write_rrd
-    from openpi_cam.viz.stats import compute_stats
 
     run_dir = _run(tmp_path).run_dir
-    path = write_rrd(run_dir, tmp_path / "viz" / "run.rrd")
-    assert path.is_file() and path.stat().st_size > 10_000  # holds several full frames
-    try:
-        from rerun.chunk import RrdReader  # noqa: F401
-    except ImportError:
-        pytest.skip("this rerun-sdk cannot read recordings back (rerun.chunk.RrdReader)")
+    path = write_rrd(run_dir, tmp_path / "viz" / "run.rrd", map_kind="gradcam")
     cols = _columns(path)
-    expected = set(entity_paths("ep 1/a", list(CAMERAS))) | set(entity_paths("c2", list(CAMERAS)))
+    expected = {f"/{conn}/score" for conn in ESCAPED.values()}
+    expected |= {f"/{conn}/{c}/{leaf}" for conn in ESCAPED.values() for c in CAMERAS for leaf in ("frame", "overlay")}
+    expected |= {f"/{conn}/share/{c}" for conn in ESCAPED.values() for c in CAMERAS}
     assert set(cols) == expected
-    assert r"/ep\ 1\/a/base_0_rgb/overlay" in cols  # one escaped path part per connection
-
-    steps = load_run(run_dir).steps
-    stats = compute_stats(steps)
-    for step, st in zip(steps, stats, strict=True):
-        conn = r"ep\ 1\/a" if st.connection == "ep 1/a" else "c2"
-        shares = []
-        for c in CAMERAS:
-            share = cols[f"/{conn}/share/{c}"]
-            row = share["seq"].index(st.seq)
-            assert share["step"][row] == st.step
-            shares.append(share["value"][row][0])
-            assert shares[-1] == pytest.approx(st.cameras[c].share)
-            image, _ = camera_image(step, c)
-            for kind, want in (("frame", image), ("overlay", camera_overlay(step, c, step_scale(st), 0.5))):
-                logged = cols[f"/{conn}/{c}/{kind}"]
-                row = logged["seq"].index(st.seq)
-                fmt = logged["format"][row][0]
-                assert (fmt["height"], fmt["width"]) == want.shape[:2]
-                assert np.array_equal(np.asarray(logged["value"][row][0], np.uint8).reshape(want.shape), want)
-        assert sum(shares) == pytest.approx(1.0)
-        score = cols[f"/{conn}/score"]
-        assert score["value"][score["seq"].index(st.seq)][0] == pytest.approx(np.mean(step.meta["score"]))
+    assert set(entity_paths("ep 1/a", list(CAMERAS))) | set(entity_paths("c2", list(CAMERAS))) == expected
+    assert sorted(cols[r"/ep\ 1\/a/score"]["seq"]) == [0, 1] and cols["/c2/score"]["seq"] == [2]
+    _check_recording(cols, run_dir, "gradcam")
     # The masked camera of seq 1 carries no attention and is drawn without a heatmap.
     masked = cols[r"/ep\ 1\/a/share/left_wrist_0_rgb"]
     assert masked["value"][masked["seq"].index(1)][0] == 0.0
-    frame, overlay = cols[r"/ep\ 1\/a/left_wrist_0_rgb/frame"], cols[r"/ep\ 1\/a/left_wrist_0_rgb/overlay"]
-    assert frame["value"][frame["seq"].index(1)] == overlay["value"][overlay["seq"].index(1)]
+    frame = _image(cols, r"/ep\ 1\/a/left_wrist_0_rgb/frame", 1)
+    np.testing.assert_array_equal(_image(cols, r"/ep\ 1\/a/left_wrist_0_rgb/overlay", 1), frame)
 
 
-def test_write_rrd_can_draw_the_gradient_norm_maps(tmp_path):
-    pytest.importorskip("rerun")
-    from openpi_cam.viz.render import camera_overlay, step_scale
+def test_write_rrd_draws_the_requested_kind(tmp_path):
     from openpi_cam.viz.rerun_sink import write_rrd
-    from openpi_cam.viz.stats import compute_stats, with_map_kind
+    from openpi_cam.viz.stats import MissingMaps
 
-    with pytest.raises(ValueError, match="no gradient-norm maps"):
-        write_rrd(_run(tmp_path / "old").run_dir, tmp_path / "old.rrd", map_kind="gradnorm")
-    run_dir = _run(tmp_path, gradnorm=True).run_dir
-    path = write_rrd(run_dir, tmp_path / "gradnorm.rrd", map_kind="gradnorm")
-    try:
-        from rerun.chunk import RrdReader  # noqa: F401
-    except ImportError:
-        pytest.skip("this rerun-sdk cannot read recordings back (rerun.chunk.RrdReader)")
-    cols = _columns(path)
-    steps = load_run(run_dir).steps
-    views = with_map_kind(steps, "gradnorm")
-    for step, view, st in zip(steps, views, compute_stats(views), strict=True):
-        conn = r"ep\ 1\/a" if st.connection == "ep 1/a" else "c2"
-        logged = cols[f"/{conn}/{CAMERAS[0]}/overlay"]
-        drawn = np.asarray(logged["value"][logged["seq"].index(st.seq)][0], np.uint8)
-        want = camera_overlay(view, CAMERAS[0], step_scale(st), 0.5)
-        assert np.array_equal(drawn.reshape(want.shape), want)
-        assert not np.array_equal(want, camera_overlay(step, CAMERAS[0], step_scale(st), 0.5))
+    with pytest.raises(MissingMaps, match="no gradient norm"):
+        write_rrd(_run(tmp_path / "old", gradnorm=False).run_dir, tmp_path / "old.rrd", map_kind="gradnorm")
+    assert not (tmp_path / "old.rrd").exists()
+    run_dir = _run(tmp_path).run_dir
+    cols = _columns(write_rrd(run_dir, tmp_path / "gradnorm.rrd"))  # the default kind
+    _check_recording(cols, run_dir, "gradnorm")
+    step = load_run(run_dir).steps[0]
+    gradcam = expected_overlay(
+        step.meta, step.maps_of("gradcam"), step.frames, step.model_frames, CAMERAS[0], 1.0
+    )  # any scale: the two kinds peak in different places
+    assert np.abs(_image(cols, r"/ep\ 1\/a/base_0_rgb/overlay", 0).astype(int) - gradcam).max() > 50
 
 
 def test_render_cli_writes_a_recording(tmp_path):
-    pytest.importorskip("rerun")
     run_dir = _run(tmp_path).run_dir
     rrd = tmp_path / "out.rrd"
     argv = ["render", str(run_dir), "--out", str(tmp_path / "render"), "--no-videos", "--no-html", "--no-progress"]
     cli.main([*argv, "--rerun", str(rrd)])
-    assert rrd.is_file() and rrd.stat().st_size > 10_000
     assert (tmp_path / "render" / "panels" / "00000002.png").is_file()  # the rest of render still ran
+    cols = _columns(rrd)
+    _check_recording(cols, run_dir, "gradnorm")
 
 
 def test_missing_rerun_names_the_extra(tmp_path, monkeypatch):

@@ -1,4 +1,5 @@
-"""Attention statistics of real CAM run directories (written by CAMLogger) against direct NumPy/SciPy computations."""
+"""Attention statistics of real CAM run directories (written by CAMLogger) against direct NumPy/SciPy computations.
+The statistics describe one kind of map; the run's other kind holds different maps, so mixing them up shows."""
 
 from __future__ import annotations
 
@@ -12,11 +13,11 @@ import sys
 import numpy as np
 import pytest
 import scipy.stats
-from openpi_cam.cam.reader import load_run
 
-from openpi_cam.cam.logger import CAMLogger, StepRecord
+from openpi_cam.cam.logger import CAMLogger
+from openpi_cam.cam.runfmt import StepRecord, load_run
 from openpi_cam.cli import main as cli_main
-from openpi_cam.viz.stats import aggregate, compute_stats, to_rows, write_table
+from openpi_cam.viz.stats import MissingMaps, aggregate, compute_stats, to_rows, view_steps, write_table
 
 CAMS = ("base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb")
 GRID = (4, 5)
@@ -57,13 +58,19 @@ def random_run(tmp_path: pathlib.Path) -> tuple[pathlib.Path, list[dict]]:
                 maps["left_wrist_0_rgb"] = np.zeros(GRID, np.float32)
                 maps["left_wrist_0_rgb"][2, 3] = 1.0
             records.append({"conn": conn, "maps": maps, "valid": valid})
-            logger.log_step(StepRecord(conn, i, 1000.0 + i, maps, meta=_meta(valid, score=[0.5, 1.5])))
+            # the Grad-CAM maps beside them peak elsewhere (flipped), so statistics of the wrong kind differ
+            kinds = {"gradnorm": maps, "gradcam": {c: np.flip(m).copy() for c, m in maps.items()}}
+            logger.log_step(StepRecord(conn, i, 1000.0 + i, kinds, meta=_meta(valid, score=[0.5, 1.5])))
     return logger.run_dir, records
+
+
+def _stats(run_dir: pathlib.Path, kind: str = "gradnorm") -> list:
+    return compute_stats(view_steps(load_run(run_dir, load_arrays=False).steps, kind))
 
 
 def test_stats_match_direct_numpy(random_run):
     run_dir, records = random_run
-    stats = compute_stats(load_run(run_dir).steps)
+    stats = _stats(run_dir)
     assert [st.seq for st in stats] == list(range(len(records)))
     last_peak: dict[tuple[str, str], tuple[int, int] | None] = {}
     for st, rec in zip(stats, records, strict=True):
@@ -104,7 +111,7 @@ def test_stats_match_direct_numpy(random_run):
 
 def test_rows_and_aggregates(random_run):
     run_dir, records = random_run
-    stats = compute_stats(load_run(run_dir).steps)
+    stats = _stats(run_dir)
     rows = to_rows(stats)
     assert len(rows) == len(records)
     for row, st in zip(rows, stats, strict=True):
@@ -115,17 +122,28 @@ def test_rows_and_aggregates(random_run):
             assert (row[f"{c}/peak_row"], row[f"{c}/peak_col"]) == (peak if peak else (None, None))
     summary = aggregate(stats)
     assert summary["steps"] == len(records) and summary["connections"] == 2
-    base_shares = [st.cameras["base_0_rgb"].share for st in stats]
-    assert summary["cameras"]["base_0_rgb"]["mean_share"] == pytest.approx(np.mean(base_shares))
-    dominant = [st.dominant for st in stats]
-    assert sum(a["dominant_steps"] for a in summary["cameras"].values()) == sum(d is not None for d in dominant)
-    right = summary["cameras"]["right_wrist_0_rgb"]
-    assert right["valid_steps"] == sum(r["valid"]["right_wrist_0_rgb"] for r in records)
+    # Expected values from the logged maps with NumPy: per step the valid cameras' mass shares, the dominant camera
+    # (largest share; none when the step has no mass), per camera the mean share over the steps where it is valid.
+    expected_shares, expected_dominant = [], []
+    for rec in records:
+        mass = {c: np.asarray(m, np.float64) for c, m in rec["maps"].items()}
+        mass = {c: (m.mean(axis=0) if m.ndim == 3 else m).sum() if rec["valid"][c] else 0.0 for c, m in mass.items()}
+        total = sum(mass.values())
+        expected_shares.append({c: v / total if total > 0 else 0.0 for c, v in mass.items()})
+        expected_dominant.append(max(mass, key=mass.get) if total > 0 else None)
+    for c in CAMS:
+        agg = summary["cameras"][c]
+        valid_steps = [i for i, rec in enumerate(records) if rec["valid"][c]]
+        assert agg["valid_steps"] == len(valid_steps)
+        assert agg["mean_share"] == pytest.approx(np.mean([expected_shares[i][c] for i in valid_steps]))
+        assert agg["dominant_steps"] == expected_dominant.count(c)
+    assert [st.dominant for st in stats] == expected_dominant
+    assert expected_dominant.count(None) == 1  # the all-zero step
 
 
 def test_formats_round_trip(random_run):
     run_dir, records = random_run
-    stats = compute_stats(load_run(run_dir).steps)
+    stats = _stats(run_dir)
     rows, summary = to_rows(stats), aggregate(stats)
 
     parsed = list(csv.DictReader(io.StringIO(write_table(rows, "csv", summary).decode())))
@@ -135,8 +153,8 @@ def test_formats_round_trip(random_run):
     doc = json.loads(write_table(rows, "json", summary))
     assert doc["steps"] == json.loads(json.dumps(rows)) and doc["summary"]["steps"] == len(records)
 
-    pq = pytest.importorskip("pyarrow.parquet")
-    import pyarrow as pa
+    import pyarrow as pa  # a dev dependency: its absence is an error here, not a skip
+    import pyarrow.parquet as pq
 
     table = pq.read_table(pa.BufferReader(write_table(rows, "parquet", summary)))
     assert table.num_rows == len(rows)
@@ -153,9 +171,26 @@ def test_parquet_without_pyarrow_is_a_clear_error(random_run, monkeypatch):
 def test_stats_command(random_run, tmp_path, capsys):
     run_dir, records = random_run
     out = tmp_path / "s.json"
-    cli_main(["stats", str(run_dir), "--format", "json", "--out", str(out)])
+    cli_main(["stats", str(run_dir), "--format", "json", "--out", str(out)])  # the default kind: gradient norm
     doc = json.loads(out.read_text())
-    assert len(doc["steps"]) == len(records)
+    assert doc["steps"] == json.loads(json.dumps(to_rows(_stats(run_dir, "gradnorm"))))
+    cli_main(["stats", str(run_dir), "--map", "gradcam", "--format", "json", "--out", str(out)])
+    gradcam = json.loads(out.read_text())["steps"]
+    assert gradcam == json.loads(json.dumps(to_rows(_stats(run_dir, "gradcam"))))
+    assert gradcam != doc["steps"]
+    capsys.readouterr()
     cli_main(["stats", str(run_dir)])
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == len(records) + 1 and lines[0].startswith("seq,connection,step")
+
+
+def test_view_steps_refuses_a_kind_the_run_lacks(tmp_path):
+    with CAMLogger(tmp_path, run_config={}, checkpoint="c", options={}) as logger:
+        maps = {"gradcam": {c: np.ones(GRID, np.float32) for c in CAMS}}
+        logger.log_step(StepRecord("a", 0, 0.0, maps, meta=_meta(dict.fromkeys(CAMS, True))))
+    steps = load_run(logger.run_dir).steps
+    assert len(view_steps(steps, "gradcam")) == 1
+    with pytest.raises(MissingMaps, match="no gradient norm"):
+        view_steps(steps, "gradnorm")
+    with pytest.raises(ValueError, match="unknown map kind"):
+        view_steps(steps, "saliency")

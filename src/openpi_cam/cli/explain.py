@@ -14,6 +14,7 @@ from openpi_cam.cam.runfmt import RUN_JSON, load_run
 from openpi_cam.cli.options import parse_action_index
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.model.attribution import MapKind
+from openpi_cam.policies import demo_reach  # noqa: F401  (registers the bundled demo_reach config)
 from openpi_cam.policies.family import Target
 from openpi_cam.policies.policy import create_policy
 from openpi_cam.viz.progress import progress as progress_bar

@@ -226,7 +226,10 @@ def render_run(run: CAMRun, out_dir: pathlib.Path, opts: RenderOptions) -> Rende
     }
     result = RenderResult(out_dir, assets, video_paths, stats)
     if opts.html:
-        result.report = write_report(result, dict(run.manifest), map_label=MAP_LABELS[opts.map], norm=opts.norm)
+        metas = {v.seq: v.meta for v in steps}
+        result.report = write_report(
+            result, dict(run.manifest), map_label=MAP_LABELS[opts.map], norm=opts.norm, step_meta=metas
+        )
     return result
 
 

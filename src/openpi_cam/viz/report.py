@@ -39,6 +39,43 @@ class Flag:
     reason: str
 
 
+@dataclasses.dataclass(frozen=True)
+class Failure:
+    """A step whose generation was malformed (upstream answered with its zero-action fallback); its maps explain
+    the failure (target `generated-tokens`)."""
+
+    seq: int
+    connection: str
+    step: int
+    reason: str
+    target: str
+
+
+def malformed_reason(meta: Mapping[str, Any]) -> str | None:
+    """Why a step's generation was malformed, or None: `malformed` in schema 2, `malformed_reason` in schema 1."""
+    reason = meta.get("malformed", meta.get("malformed_reason"))
+    return None if reason is None else str(reason)
+
+
+def failure_steps(step_meta: Mapping[int, Mapping[str, Any]]) -> list[Failure]:
+    """The failure steps among `step_meta` (seq -> step JSON, or the manifest's index entries), in seq order."""
+    failures = []
+    for seq, meta in sorted(step_meta.items()):
+        reason = malformed_reason(meta)
+        if reason is not None:
+            step = meta.get("step")
+            failures.append(
+                Failure(
+                    seq=int(seq),
+                    connection=str(meta.get("connection", "")),
+                    step=-1 if step is None else int(step),
+                    reason=reason,
+                    target=str(meta.get("target", "")),
+                )
+            )
+    return failures
+
+
 def usual_camera(stats: Sequence[StepStats]) -> str | None:
     """The camera most often dominant over these steps."""
     counts = Counter(st.dominant for st in stats if st.dominant is not None)
@@ -209,8 +246,28 @@ def _connection_section(
     )
 
 
+def _failures_section(failures: Sequence[Failure]) -> str:
+    items = "".join(
+        f'<li><a href="#step-{f.seq}">seq {f.seq} (connection {_e(f.connection)}, step {f.step})</a>: '
+        f'malformed generation <code class="reason">{_e(f.reason)}</code>, explained with target '
+        f'<code class="target">{_e(f.target)}</code></li>'
+        for f in failures
+    )
+    return (
+        f'<section class="failures" id="failures"><h2>failures ({len(failures)})</h2>'
+        "<p class='dim'>steps whose generation decoded to no actions (the client got upstream's zero-action "
+        "fallback); their maps explain what the model generated instead</p>"
+        f"<ul>{items or '<li>none</li>'}</ul></section>"
+    )
+
+
 def _step_section(
-    st: StepStats, meta_cams: list[str], assets: Any, flags: list[str], prev_next: tuple[Any, Any]
+    st: StepStats,
+    meta_cams: list[str],
+    assets: Any,
+    flags: list[str],
+    prev_next: tuple[Any, Any],
+    failure: Failure | None = None,
 ) -> str:
     rows = []
     for c in meta_cams:
@@ -230,8 +287,10 @@ def _step_section(
         f'<a href="#step-{s.seq}">{label}</a>' for s, label in zip(prev_next, ("prev", "next"), strict=True) if s
     )
     warn = f'<p class="warn">{_e("; ".join(flags))}</p>' if flags else ""
+    if failure is not None:
+        warn = f'<p class="fail">malformed generation: {_e(failure.reason)}</p>' + warn
     return (
-        f'<section class="step" id="step-{st.seq}" data-seq="{st.seq}">'
+        f'<section class="step{" failure" if failure else ""}" id="step-{st.seq}" data-seq="{st.seq}">'
         f"<h3>seq {st.seq} · connection {_e(st.connection)} · step {st.step} · {_e(st.target)} · "
         f"score {st.score:.4g} <small>{nav}</small></h3>{warn}"
         f'<a href="{_e(assets.panel)}"><img class="panel" src="{_e(assets.panel)}" alt="seq {st.seq}"></a>'
@@ -245,6 +304,7 @@ _STYLE = """
 body{background:#18181c;color:#e8e8e8;font:14px/1.4 system-ui,sans-serif;margin:16px 24px}
 a{color:#8cb8ff}h1,h2,h3{font-weight:600}table{border-collapse:collapse;margin:6px 0}
 td,th{border:1px solid #444;padding:2px 8px;text-align:left}.dim{color:#999}.warn{color:#ff8a80}
+.fail{color:#ffb74d}section.failures li{margin:2px 0}
 .timeline{display:block;margin:6px 0;background:#202026}.timeline .t{fill:#ccc;font-size:12px}
 .timeline .ax,.timeline .lg{font-size:10px;fill:#aaa}.timeline .frame{fill:none;stroke:#555}
 .timeline .hit{fill:transparent}.timeline .hit:hover{fill:rgba(255,255,255,.08)}
@@ -264,10 +324,24 @@ document.body.setAttribute('data-rendered-steps',String(n));});
 
 
 def write_report(
-    result: RenderResult, manifest: Mapping[str, Any], *, map_label: str, norm: str, score_drop: float = 0.3
+    result: RenderResult,
+    manifest: Mapping[str, Any],
+    *,
+    map_label: str,
+    norm: str,
+    score_drop: float = 0.3,
+    step_meta: Mapping[int, Mapping[str, Any]] | None = None,
 ) -> pathlib.Path:
-    """Writes `index.html` into the render directory and returns its path."""
+    """Writes `index.html` into the render directory and returns its path.
+
+    Failure steps (malformed generations) are listed first, from `step_meta` (seq -> step JSON, which names them in
+    every schema version) or else from the manifest's index entries (schema 2 names them there too)."""
     stats = result.stats
+    rendered = {st.seq for st in stats}
+    if step_meta is None:
+        step_meta = {e["seq"]: e for e in manifest.get("steps", []) if isinstance(e, dict) and "seq" in e}
+    failures = [f for f in failure_steps(step_meta) if f.seq in rendered]
+    failure_of = {f.seq: f for f in failures}
     cams = camera_names(stats)
     flag_map: dict[int, list[str]] = {}
     for f in flag_steps(stats, score_drop):
@@ -278,6 +352,7 @@ def write_report(
         "started": manifest.get("started_at"),
         "checkpoint": manifest.get("checkpoint"),
         "steps": f"{summary['steps']} on {summary['connections']} connection(s)",
+        "failures": f"{len(failures)} of {summary['steps']} steps (malformed generations, listed first)",
         "normalisation": f"per {norm}",
         "flagged": f"attention left the connection's usual camera, or the score fell by more than "
         f"{100 * score_drop:.0f}% from the previous step",
@@ -295,7 +370,11 @@ def write_report(
     for steps in groups.values():
         for i, st in enumerate(steps):
             neighbours = (steps[i - 1] if i > 0 else None, steps[i + 1] if i + 1 < len(steps) else None)
-            step_html.append(_step_section(st, cams, result.steps[st.seq], flag_map.get(st.seq, []), neighbours))
+            step_html.append(
+                _step_section(
+                    st, cams, result.steps[st.seq], flag_map.get(st.seq, []), neighbours, failure_of.get(st.seq)
+                )
+            )
     doc = (
         f'<!doctype html><html lang="en"><head><meta charset="utf-8"><title>CAM run {_e(run_id)}</title>'
         f"<style>{_STYLE}</style></head><body>"
@@ -303,7 +382,7 @@ def write_report(
         f"<dl>{info_html}</dl>"
         "<table><tr><th>camera</th><th>valid steps</th><th>mean share</th><th>mean entropy (norm.)</th>"
         f"<th>peak stayed</th><th>mean peak shift (cells)</th><th>dominant in</th></tr>{cam_rows}</table>"
-        f"{sections}<h2>steps</h2>{''.join(step_html)}<script>{_SCRIPT}</script></body></html>\n"
+        f"{_failures_section(failures)}{sections}<h2>steps</h2>{''.join(step_html)}<script>{_SCRIPT}</script></body></html>\n"
     )
     path = result.out_dir / "index.html"
     path.write_text(doc, encoding="utf-8")
