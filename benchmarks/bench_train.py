@@ -17,7 +17,8 @@ import time
 import jax
 
 from openpi_cam.demo import bundled, make_tokenizers
-from openpi_cam.demo.train import Batches, adamw, load_normalize, training_step
+from openpi_cam.demo.data import Batches, load_normalize
+from openpi_cam.demo.train import adamw, example_losses, training_step
 from openpi_cam.model.pi0_fast import init_params
 from openpi_cam.policies import demo_reach
 
@@ -28,14 +29,15 @@ def step_seconds(batch, repeats: int, *, scan: bool) -> float:
     params = init_params(cfg, jax.random.key(0))
     optimizer = adamw(1e-3)
     opt_state = optimizer.init(params)
-    step = training_step(cfg, optimizer, decode_offset=1)
+    step = training_step(example_losses(cfg, decode_offset=1), optimizer)
+    key = jax.random.key(0)
 
-    params, opt_state, loss = step(params, opt_state, batch)
+    params, opt_state, loss = step(params, opt_state, batch, key)
     jax.block_until_ready(loss)
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        params, opt_state, loss = step(params, opt_state, batch)
+        params, opt_state, loss = step(params, opt_state, batch, key)
         jax.block_until_ready(loss)
         times.append(time.perf_counter() - t0)
     return statistics.median(times)

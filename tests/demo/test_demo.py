@@ -96,7 +96,7 @@ def test_contrast_batches_pair_each_scene_with_two_prompts():
     from openpi_cam.transforms import Normalize
 
     normalize = Normalize(load_checkpoint_norm_stats(demo_reach.CHECKPOINT, demo_reach.ASSET_ID), use_quantiles=True)
-    obs = Batches(demo_reach.ASSETS, normalize, 6, seed=0, contrast_pairs=True)()
+    obs = Batches(demo_reach.ASSETS, normalize, 6, seed=0, contrast_pairs=True)().obs
     images = np.asarray(obs.images["base_0_rgb"])
     tokens = np.asarray(obs.tokenized_prompt)
     for i in range(0, 6, 2):
@@ -198,7 +198,7 @@ def test_shipped_model_scores_expert_chunks(demo_policy):
     model = demo_policy.model
 
     def loss(samples):
-        return np.asarray(model.compute_loss(batches.observation(samples), decode_offset=1))
+        return np.asarray(model.compute_loss(batches.batch(samples).obs, decode_offset=1))
 
     # The training-format observation must line up with what the model learned: the expert's chunks are much
     # likelier than chunks in random directions (measured with the shipped model: 0.09 vs 1.0 mean loss per postfix

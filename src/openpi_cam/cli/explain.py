@@ -114,7 +114,7 @@ def main(
             cam_logger.close()
         if rerun is not None:
             write_rrd(cam_logger.run_dir, rerun)
-    except (FileNotFoundError, ValueError, InvalidRequest, OSError, ImportError) as e:
+    except (FileNotFoundError, KeyError, ValueError, InvalidRequest, OSError, ImportError) as e:
         print(f"openpi-cam explain: {e}", file=sys.stderr)
         return 1
     print(f"openpi-cam explain: wrote {cam_logger.run_dir}: {summary}", file=sys.stderr)
