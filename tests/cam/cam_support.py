@@ -80,16 +80,20 @@ class GatedExplainer:
     def camera_grid(self) -> tuple[int, int]:
         return self.inner.camera_grid
 
+    @property
+    def targets(self) -> tuple[str, ...]:
+        return self.inner.targets
+
     def on_mesh(self, mesh: Any) -> GatedExplainer:
         return self
 
-    def explain(self, observation: Any, outputs: Any, request: Any) -> list:
+    def explain(self, observation: Any, outputs: Any, request: Any, sample_inputs: Any) -> list:
         self.calls += 1
         self.entered.set()
         if self.fail:
             raise RuntimeError("injected explainer failure")
         assert self.gate.wait(120), "the test never opened the gate"
-        return self.inner.explain(observation, outputs, request)
+        return self.inner.explain(observation, outputs, request, sample_inputs)
 
 
 def write_packed(path: Path, value: Any) -> None:
