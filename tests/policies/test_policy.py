@@ -145,6 +145,9 @@ def test_bfloat16_policy_against_upstream_create_trained_policy(tiny_policy_file
     policy = create_policy("pi0_fast_droid", tiny_policy_files.checkpoint, **kwargs)
     assert {str(v.dtype) for v in jax.tree.leaves(policy.model.params)} == {"bfloat16"}
     response, trace = policy.infer_traced(raw_obs(case))
+    # The computation runs in bf16 too (upstream's create_trained_policy with a bf16 config), not only the weights:
+    # the image tokens the LLM sees come out of SigLIP in bf16.
+    assert policy.model.embed_images(trace.observation).dtype == jnp.bfloat16
     upstream_bf16 = case["create_trained_policy_bf16/generated_tokens"]
     float32 = case["generated_tokens"]
     assert int(np.cumprod(float32 == upstream_bf16).sum()) == 7
