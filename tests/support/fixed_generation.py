@@ -19,7 +19,8 @@ from openpi_cam.policies.pi0_fast_family import FastExplainer
 
 class FixedGeneration:
     """`policy` with every trace's output replaced by `tokens`; with `model`, its explainer runs on that model
-    (e.g. a wrapper that blocks or fails) and the policy's tokenizer."""
+    (e.g. a wrapper that blocks or fails; it needs `params`, `config` and `camera_grid` like `Pi0FAST`) and the
+    policy's tokenizer."""
 
     def __init__(self, policy: Any, tokens: np.ndarray, model: Any = None):
         self.inner = policy
@@ -32,6 +33,7 @@ class FixedGeneration:
 
     metadata = property(lambda self: self.inner.metadata)
     explainer = property(lambda self: self._explainer)
+    tokenizer = property(lambda self: self._explainer.tokenizer)  # shorthand: `Policy` itself has no `.tokenizer` now
 
     def infer(self, obs, context=None):
         return self.inner.infer(obs, context)
