@@ -4,9 +4,10 @@
 `shared/golden/tiny_pi0_fast` (config.json, checkpoint/params, case_*.npz), runs our model on every case and prints
 one line per compared array with its max abs / rel error. Exit status 1 on any mismatch or unreadable input.
 
-Tolerances (float32; from the golden's own measurements of upstream-vs-upstream agreement, README "Verification"):
-SigLIP outputs and prompt embeddings atol 1e-4; logits atol 2e-3 (upstream's own evaluations differ by up to 5.4e-4
-over 16 steps); tokens exact; Grad-CAM maps / alphas / grad norms within 1e-3 of their max; scores atol 2e-3.
+The criterion of every non-exact comparison is relative to the compared quantity's scale: it passes when
+max |ours - reference| <= r x max |reference| (`Tolerances`; each line prints r, the scale and the bound). Token ids
+and decode-step counts are compared exactly. `DEFAULT_TOLERANCES` (the command's) are derived from upstream's own
+float32 variation in the golden's README and verification.json; the tests pass their own.
 """
 
 from __future__ import annotations
@@ -24,8 +25,31 @@ from openpi_cam.model import gemma, pi0_fast_maps
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.pi0_fast import Pi0FAST, embed_prefix, make_attn_mask, sample_tokens_jit
 
-ATOL = {"siglip": 1e-4, "embeddings": 1e-4, "logits": 2e-3, "score": 2e-3}
-REL_TO_MAX = 1e-3
+
+@dataclasses.dataclass(frozen=True)
+class Tolerances:
+    """Relative criteria r per kind of compared array: it passes when max |ours - ref| <= r x max |ref|."""
+
+    siglip: float  # per-camera SigLIP outputs
+    embeddings: float  # prompt token embeddings (a table lookup times sqrt(width))
+    logits: float  # plain-forward, prefix-last and decode-step logits, and the explained logit vectors
+    score: float  # Grad-CAM scores (one logit, or a sum of log-probabilities for the chunk)
+    gradcam: float  # Grad-CAM maps, channel weights (alpha) and gradient norms
+
+    def __post_init__(self) -> None:
+        for field in dataclasses.fields(self):
+            if not getattr(self, field.name) > 0:
+                raise ValueError(f"tolerance {field.name} must be positive")
+
+
+# The command's defaults, from upstream's own float32 variation (tiny_pi0_fast README "Verification"; the tests keep
+# their own copy with the full reasoning, tests/model/test_model.py). Logits and scores: upstream's evaluations of the
+# same logits differ by up to 5.43e-4 at max |logit| 9.51, i.e. 5.7e-5 of the scale; 10x that is allowed. Maps: they
+# are gradients of those logits; 1e-3 of their max is the README's suggestion, 5x the variation upstream's own
+# numbers imply for the 16-step chunk (2.3e-5 two-way agreement where logits agree to 6.5e-5, logits varying up to
+# 8x more over 16 steps). SigLIP: a 1e-5 relative error in the image tokens moves logits by ~1e-3 (probe: 1e-6 ->
+# 1.5e-4), inside the logit criterion. Embeddings: one float32 product per entry.
+DEFAULT_TOLERANCES = Tolerances(siglip=1e-5, embeddings=1e-6, logits=6e-4, score=6e-4, gradcam=1e-3)
 
 
 @dataclasses.dataclass
@@ -33,9 +57,14 @@ class Comparison:
     case: str
     name: str
     max_abs: float
-    max_rel: float
+    scale: float  # max |reference|
+    bound: float  # the largest max_abs that passes (0 for exact comparisons)
     ok: bool
     note: str = ""
+
+    @property
+    def max_rel(self) -> float:
+        return self.max_abs / self.scale if self.scale > 0 else self.max_abs
 
     def line(self) -> str:
         status = "ok  " if self.ok else "FAIL"
@@ -44,21 +73,21 @@ class Comparison:
         )
 
 
-def compare(
-    case: str, name: str, got, want, *, atol: float | None = None, rel_to_max: float | None = None, exact: bool = False
-) -> Comparison:
+def compare(case: str, name: str, got, want, *, rel: float | None = None, exact: bool = False) -> Comparison:
+    """`exact`: equal arrays; else max |got - want| <= rel x max |want|."""
     got, want = np.asarray(got), np.asarray(want)
     if got.shape != want.shape:
-        return Comparison(case, name, np.inf, np.inf, False, f"shape {got.shape} != {want.shape}")
+        return Comparison(case, name, np.inf, np.inf, 0.0, False, f"shape {got.shape} != {want.shape}")
     diff = np.abs(got.astype(np.float64) - want.astype(np.float64))
     max_abs = float(diff.max(initial=0.0))
-    scale = float(np.abs(want).max(initial=0.0))
-    max_rel = max_abs / scale if scale > 0 else max_abs
+    scale = float(np.abs(want.astype(np.float64)).max(initial=0.0))
     if exact:
-        return Comparison(case, name, max_abs, max_rel, bool(np.array_equal(got, want)), "(exact)")
-    if rel_to_max is not None:
-        return Comparison(case, name, max_abs, max_rel, max_rel <= rel_to_max, f"(<= {rel_to_max:g} of max)")
-    return Comparison(case, name, max_abs, max_rel, max_abs <= atol, f"(atol {atol:g})")
+        return Comparison(case, name, max_abs, scale, 0.0, bool(np.array_equal(got, want)), "(exact)")
+    if rel is None:
+        raise ValueError("give rel= or exact=True")
+    bound = rel * scale
+    note = f"(<= {rel:g} x max|ref| {scale:.3g} = {bound:.3g})"
+    return Comparison(case, name, max_abs, scale, bound, max_abs <= bound, note)
 
 
 def load_observation(case: dict, cameras: list[str]) -> Observation:
@@ -84,21 +113,21 @@ def plain_prompt_logits(model: Pi0FAST, obs: Observation) -> np.ndarray:
     return np.where(np.asarray(obs.tokenized_prompt_mask)[..., None], logits, 0.0)
 
 
-def check_case(model: Pi0FAST, name: str, case: dict, cameras: list[str], max_steps: int) -> list[Comparison]:
+def check_case(
+    model: Pi0FAST, name: str, case: dict, cameras: list[str], max_steps: int, tol: Tolerances = DEFAULT_TOLERANCES
+) -> list[Comparison]:
     obs = load_observation(case, cameras)
     out: list[Comparison] = []
     image_tokens = np.asarray(model.embed_images(obs))
     for i, cam in enumerate(cameras):
         if f"siglip_{cam}" in case:
-            out.append(compare(name, f"siglip_{cam}", image_tokens[:, i], case[f"siglip_{cam}"], atol=ATOL["siglip"]))
+            out.append(compare(name, f"siglip_{cam}", image_tokens[:, i], case[f"siglip_{cam}"], rel=tol.siglip))
     if "prompt_token_embeddings" in case:
         emb = gemma.embed_tokens(model.params["PaliGemma"]["llm"], obs.tokenized_prompt, jnp.float32)
-        out.append(
-            compare(name, "prompt_token_embeddings", emb, case["prompt_token_embeddings"], atol=ATOL["embeddings"])
-        )
+        out.append(compare(name, "prompt_token_embeddings", emb, case["prompt_token_embeddings"], rel=tol.embeddings))
     if "prompt_logits" in case:
         out.append(
-            compare(name, "prompt_logits", plain_prompt_logits(model, obs), case["prompt_logits"], atol=ATOL["logits"])
+            compare(name, "prompt_logits", plain_prompt_logits(model, obs), case["prompt_logits"], rel=tol.logits)
         )
     tokens, n_steps, step_logits = sample_tokens_jit(
         model.params,
@@ -115,17 +144,13 @@ def check_case(model: Pi0FAST, name: str, case: dict, cameras: list[str], max_st
     if "num_decoded_steps" in case:
         out.append(compare(name, "num_decoded_steps", n_steps, case["num_decoded_steps"], exact=True))
     if "prefix_last_logits" in case:
-        out.append(
-            compare(name, "prefix_last_logits", step_logits[:, 0], case["prefix_last_logits"], atol=ATOL["logits"])
-        )
+        out.append(compare(name, "prefix_last_logits", step_logits[:, 0], case["prefix_last_logits"], rel=tol.logits))
     if "decode_step_logits" in case:
         n = int(n_steps)
         out.append(
-            compare(
-                name, "decode_step_logits", step_logits[:, :n], case["decode_step_logits"][:, :n], atol=ATOL["logits"]
-            )
+            compare(name, "decode_step_logits", step_logits[:, :n], case["decode_step_logits"][:, :n], rel=tol.logits)
         )
-    out += check_gradcam(model, name, case, obs, cameras)
+    out += check_gradcam(model, name, case, obs, cameras, tol)
     return out
 
 
@@ -133,7 +158,9 @@ def _stack(result, field: str, cameras: list[str]) -> np.ndarray:
     return np.stack([getattr(result, field)[c] for c in cameras], axis=1)  # camera axis after batch
 
 
-def check_gradcam(model: Pi0FAST, name: str, case: dict, obs: Observation, cameras: list[str]) -> list[Comparison]:
+def check_gradcam(
+    model: Pi0FAST, name: str, case: dict, obs: Observation, cameras: list[str], tol: Tolerances = DEFAULT_TOLERANCES
+) -> list[Comparison]:
     """The `gc_replay_*` references: Grad-CAM of the logits upstream's cached decoding used."""
     out: list[Comparison] = []
     generated = np.asarray(case["output_tokens"]).astype(np.int32)
@@ -141,18 +168,16 @@ def check_gradcam(model: Pi0FAST, name: str, case: dict, obs: Observation, camer
     for k in steps:
         prefix = f"gc_replay_k{k}"
         res = pi0_fast_maps.gradcam_for_action_token(model, obs, generated, k)
-        out.append(compare(name, f"{prefix}_logits", res.logits, case[f"{prefix}_logits"], atol=ATOL["logits"]))
-        out.append(compare(name, f"{prefix}_score", res.score, case[f"{prefix}_score"], atol=ATOL["score"]))
+        out.append(compare(name, f"{prefix}_logits", res.logits, case[f"{prefix}_logits"], rel=tol.logits))
+        out.append(compare(name, f"{prefix}_score", res.score, case[f"{prefix}_score"], rel=tol.score))
         for field, key in (("alphas", "alpha"), ("maps", "cam"), ("grad_norms", "grad_norm")):
             out.append(
-                compare(
-                    name, f"{prefix}_{key}", _stack(res, field, cameras), case[f"{prefix}_{key}"], rel_to_max=REL_TO_MAX
-                )
+                compare(name, f"{prefix}_{key}", _stack(res, field, cameras), case[f"{prefix}_{key}"], rel=tol.gradcam)
             )
     if "gc_replay_chunk_score" in case:
         n = int(case.get("num_decoded_steps", generated.shape[1]))
         res = pi0_fast_maps.gradcam_for_chunk(model, obs, generated, list(range(n)))
-        out.append(compare(name, "gc_replay_chunk_score", res.score, case["gc_replay_chunk_score"], atol=ATOL["score"]))
+        out.append(compare(name, "gc_replay_chunk_score", res.score, case["gc_replay_chunk_score"], rel=tol.score))
         for field, key in (("alphas", "alpha"), ("maps", "cam"), ("grad_norms", "grad_norm")):
             out.append(
                 compare(
@@ -160,13 +185,19 @@ def check_gradcam(model: Pi0FAST, name: str, case: dict, obs: Observation, camer
                     f"gc_replay_chunk_{key}",
                     _stack(res, field, cameras),
                     case[f"gc_replay_chunk_{key}"],
-                    rel_to_max=REL_TO_MAX,
+                    rel=tol.gradcam,
                 )
             )
     return out
 
 
-def run_golden(folder: str | pathlib.Path, *, verbose: bool = True, scan: bool | None = None) -> list[Comparison]:
+def run_golden(
+    folder: str | pathlib.Path,
+    *,
+    verbose: bool = True,
+    scan: bool | None = None,
+    tolerances: Tolerances = DEFAULT_TOLERANCES,
+) -> list[Comparison]:
     """Every comparison of a golden folder; `scan` forces the layer-stack layout (None: the read-back default)."""
     folder = pathlib.Path(folder)
     config = json.loads((folder / "config.json").read_text())
@@ -188,7 +219,7 @@ def run_golden(folder: str | pathlib.Path, *, verbose: bool = True, scan: bool |
     for path in case_files:
         with np.load(path, allow_pickle=False) as npz:
             case = {k: npz[k] for k in npz.files}
-        for comp in check_case(model, path.stem, case, cameras, max_steps):
+        for comp in check_case(model, path.stem, case, cameras, max_steps, tolerances):
             results.append(comp)
             if verbose:
                 print(comp.line(), flush=True)

@@ -19,7 +19,7 @@ from openpi_cam.normalize import (
     save_norm_stats,
 )
 from openpi_cam.policies import aloha, droid, libero
-from openpi_cam.policies.config import PI0_FAST_DROID, PI0_FAST_LIBERO
+from openpi_cam.policies.config import PI0_FAST_ALOHA, PI0_FAST_DROID, PI0_FAST_LIBERO
 from openpi_cam.policies.policy import build_transforms
 from openpi_cam.policies.robot import GenericInputs
 from openpi_cam.tokenizers.pi0_fast import Pi0FastTokenizer
@@ -28,6 +28,8 @@ from openpi_cam.transforms import (
     DeltaActions,
     ExtractFASTActions,
     Normalize,
+    ResizeImages,
+    TokenizeFASTInputs,
     Unnormalize,
     compose,
     make_bool_mask,
@@ -61,7 +63,9 @@ def stats(droid_dir: Path) -> dict[str, NormStats]:
 
 @pytest.fixture(scope="module")
 def chains(stats, tokenizer):
-    return build_transforms(PI0_FAST_DROID, stats, tokenizer, (224, 224))
+    """(input transforms, the FAST decoder, output transforms) of `pi0_fast_droid`, as `create_policy` builds them."""
+    inputs, outputs = build_transforms(PI0_FAST_DROID, stats, TokenizeFASTInputs(tokenizer), (224, 224))
+    return inputs, ExtractFASTActions(tokenizer, PI0_FAST_DROID.action_horizon, PI0_FAST_DROID.action_dim), outputs
 
 
 def raw_obs(case: dict[str, np.ndarray]) -> dict:
@@ -115,7 +119,8 @@ def test_float_chw_images_are_converted_like_upstream(case, chains):
 
 
 def test_default_prompt_injected_only_when_missing(case, stats, tokenizer):
-    inputs, _, _ = build_transforms(PI0_FAST_DROID, stats, tokenizer, (224, 224), default_prompt=PROMPT)
+    tokenize = TokenizeFASTInputs(tokenizer)
+    inputs, _ = build_transforms(PI0_FAST_DROID, stats, tokenize, (224, 224), default_prompt=PROMPT)
     obs = raw_obs(case)
     del obs["prompt"]
     np.testing.assert_array_equal(compose(inputs)(obs)["tokenized_prompt"], case["model_input/tokenized_prompt"])
@@ -236,33 +241,113 @@ def test_norm_stats_save_load_round_trip_in_upstream_format(tmp_path, droid_dir,
 # ---------------------------------------------------------------------------------------------- other robots
 
 
-def test_libero_and_aloha_inputs_and_outputs():
-    obs = libero.make_libero_example(height=64, width=96)
-    out = libero.LiberoInputs()(dict(obs))
-    assert list(out["image"]) == ["base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb"]
-    assert all(bool(m) for m in out["image_mask"].values())  # FAST does not mask the padding camera
-    assert not out["image"]["right_wrist_0_rgb"].any()
-    assert libero.LiberoOutputs()({"actions": np.ones((10, 9))})["actions"].shape == (10, 7)
+LIBERO_DIR = "tiny_policy_pi0_libero"
 
+
+@pytest.mark.parametrize("name", ["case_1", "case_2"])
+def test_libero_transforms_reproduce_upstreams_numbers(golden_dir: Path, name: str):
+    """Upstream's `pi0_libero` policy on a raw LIBERO observation (tiny_policy_pi0_libero; a pi0 policy, so z-score
+    stats and a pi0 prompt, but the same robot transforms): our LIBERO image mapping, resizing (case_2 sends 256x256),
+    normalisation and output chain (Unnormalize -> AbsoluteActions -> LiberoOutputs) give its numbers."""
+    root = golden_dir / LIBERO_DIR
+    with np.load(root / f"{name}.npz") as f:
+        case = dict(f)
+    stats = load_checkpoint_norm_stats(root / "checkpoint", "physical-intelligence/libero")
+    raw = {
+        libero.IMAGE_KEY: case["raw/image"],
+        libero.WRIST_IMAGE_KEY: case["raw/wrist_image"],
+        libero.STATE_KEY: case["raw/state"],
+        "prompt": json.loads((root / "case.json").read_text())["cases"][name]["prompt"],
+    }
+    robot = libero.LiberoInputs()(dict(raw))
+    # Image mapping: image -> base_0_rgb, wrist_image -> left_wrist_0_rgb, a black right_wrist_0_rgb.
+    assert list(robot["image"]) == ["base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb"]
+    np.testing.assert_array_equal(robot["image"]["base_0_rgb"], case["raw/image"])
+    np.testing.assert_array_equal(robot["image"]["left_wrist_0_rgb"], case["raw/wrist_image"])
+    # The padding camera: pi0 masks it (the golden), pi0-FAST does not (README quirk 1), so ours stays True.
+    assert not case["model_input/image_mask/right_wrist_0_rgb"] and bool(robot["image_mask"]["right_wrist_0_rgb"])
+    for cam in ("base_0_rgb", "left_wrist_0_rgb"):
+        assert bool(robot["image_mask"][cam]) == bool(case[f"model_input/image_mask/{cam}"])
+    # Resize to 224 (case_1 passes through unchanged, case_2 shrinks 256 -> 224 without padding).
+    resized = ResizeImages(224, 224)({"image": dict(robot["image"])})["image"]
+    for cam in robot["image"]:
+        np.testing.assert_array_equal(resized[cam], case[f"model_input/image/{cam}"], err_msg=cam)
+    # z-score normalisation of the state (the golden pads it to the model's 32 dims afterwards).
+    state = Normalize(stats, use_quantiles=False)({"state": robot["state"]})["state"]
+    np.testing.assert_allclose(state, case["model_input/state"][:8], rtol=0, atol=1e-12)
+    assert not case["model_input/state"][8:].any()
+    # Output chain: the model's raw [50, 32] output and the float32 normalised padded state Policy.infer passes on.
+    outputs = compose([Unnormalize(stats, use_quantiles=False), *PI0_FAST_LIBERO.outputs])
+    actions = outputs({"state": case["model_input/state"].astype(np.float32), "actions": case["model_output/actions"]})[
+        "actions"
+    ]
+    assert actions.shape == (50, 7)
+    # Upstream computed these in float64 from the same float32 inputs: rounding only.
+    np.testing.assert_allclose(actions, case["policy_output/actions"], rtol=0, atol=1e-9)
+    # AbsoluteActions really contributes: without it, dims 0-5 are off by the state.
+    plain = compose([Unnormalize(stats, use_quantiles=False), libero.LiberoOutputs()])(
+        {"state": case["model_input/state"].astype(np.float32), "actions": case["model_output/actions"]}
+    )["actions"]
+    assert np.abs(plain[:, :6] - case["policy_output/actions"][:, :6]).min() > 1e-3
+    np.testing.assert_allclose(plain[:, 6], case["policy_output/actions"][:, 6], rtol=0, atol=1e-9)
+
+
+# ALOHA: no upstream golden exists. Expected numbers below are derived by hand from upstream's documented formulas
+# (openpi `aloha_policy.py`, adapt_to_pi=True), not from our code:
+# - joints: multiplied by the flip mask [1, -1, -1, 1, 1, 1, 1] per arm (dims 1, 2, 8, 9 negate);
+# - state grippers (dims 6, 13): linear = 0.01844 + g * (0.05800 - 0.01844) (ALOHA puppet gripper positions), the
+#   Interbotix linkage inverted with horn radius 0.022 and arm length 0.036:
+#   angle = asin((0.022^2 + linear^2 - 0.036^2) / (2 * 0.022 * linear)), then normalised to pi0's range:
+#   (angle - 0.5476) / (1.6296 - 0.5476). For g = 0: asin(-0.58170) = -0.62081 -> -1.07987; g = 0.5: linear 0.03822,
+#   asin(0.38579) = 0.39606 -> -0.14006; g = 1: the ratio is exactly 1 -> pi/2 -> 0.94565.
+# - action grippers: (a + 0.5476 - (-0.6213)) / (1.4910 - (-0.6213)), e.g. 0.3 -> 0.69540, -0.1 -> 0.50604.
+ALOHA_STATE_GRIPPER = {0.0: -1.07987, 0.5: -0.14006, 1.0: 0.94565}
+ALOHA_ACTION_GRIPPER = {0.3: 0.69540, -0.1: 0.50604}
+ALOHA_FLIP = np.array([1, -1, -1, 1, 1, 1, 1] * 2, float)
+
+
+def test_aloha_adapt_to_pi_against_upstreams_formulas():
+    joints = np.array([0.1, 0.2, -0.3, 0.4, 0.5, 0.6])
+    for left, right in ((0.0, 0.5), (1.0, 0.0)):
+        state = np.concatenate([joints, [left], -joints, [right]])
+        obs = aloha.make_aloha_example(height=48, width=64)
+        obs["state"] = state
+        out = aloha.AlohaInputs(adapt_to_pi=True)(obs)
+        want = ALOHA_FLIP * state
+        want[[6, 13]] = ALOHA_STATE_GRIPPER[left], ALOHA_STATE_GRIPPER[right]
+        np.testing.assert_allclose(out["state"], want, rtol=0, atol=1e-5)  # the hand values carry 5 decimals
+        np.testing.assert_array_equal(obs["state"], state)  # the client's array is not modified
+    # Images arrive [3, H, W] and become [H, W, 3]; a missing wrist camera is black and masked (even for FAST).
     obs = aloha.make_aloha_example(height=48, width=64)
     del obs["images"]["cam_right_wrist"]
-    inputs = aloha.AlohaInputs()
-    out = inputs(dict(obs))
-    assert out["image"]["base_0_rgb"].shape == (48, 64, 3)  # ALOHA images arrive [3, H, W]
-    assert bool(out["image_mask"]["left_wrist_0_rgb"]) and not bool(out["image_mask"]["right_wrist_0_rgb"])
-    assert inputs.camera_sources_for(obs)["right_wrist_0_rgb"] is None
-    # Joint flips: state all ones -> dims 1, 2, 8, 9 negated.
-    assert out["state"][1] == -1 and out["state"][8] == -1 and out["state"][0] == 1
+    out = aloha.AlohaInputs()(dict(obs))
+    np.testing.assert_array_equal(out["image"]["base_0_rgb"], obs["images"]["cam_high"].transpose(1, 2, 0))
+    np.testing.assert_array_equal(out["image"]["left_wrist_0_rgb"], obs["images"]["cam_left_wrist"].transpose(1, 2, 0))
+    assert not out["image"]["right_wrist_0_rgb"].any()
+    assert [bool(out["image_mask"][c]) for c in out["image"]] == [True, True, False]
+    assert aloha.AlohaInputs().camera_sources_for(obs)["right_wrist_0_rgb"] is None
     with pytest.raises(InvalidRequest, match="unknown cameras"):
-        inputs({**obs, "images": {**obs["images"], "cam_extra": obs["images"]["cam_high"]}})
+        aloha.AlohaInputs()({**obs, "images": {**obs["images"], "cam_extra": obs["images"]["cam_high"]}})
 
 
-def test_aloha_gripper_conversions_invert_each_other():
-    x = np.linspace(-0.3, 0.9, 7)
-    np.testing.assert_allclose(aloha.gripper_from_angular(aloha.gripper_from_angular_inv(x)), x, atol=1e-12)
-    actions = np.random.default_rng(0).normal(size=(5, 14))
-    round_trip = aloha.encode_actions(aloha.encode_actions_inv(actions.copy(), adapt_to_pi=True), adapt_to_pi=True)
-    np.testing.assert_allclose(round_trip, actions, atol=1e-12)
+def test_aloha_output_chain_against_upstreams_formulas():
+    """pi0_fast_aloha's outputs: AbsoluteActions on the joints (pi0-space state added back, grippers absolute), then
+    AlohaOutputs (flip, gripper to ALOHA's joint range), keeping 14 of the model's 32 dims."""
+    rng = np.random.default_rng(0)
+    state = rng.uniform(-0.5, 0.5, 14)  # the pi0-space state (after AlohaInputs), as the output transforms get it
+    actions = rng.uniform(-0.5, 0.5, (4, 32))
+    actions[:, 6], actions[:, 13] = 0.3, -0.1
+    out = compose(PI0_FAST_ALOHA.outputs)({"state": state, "actions": actions.copy()})["actions"]
+    want = actions[:, :14].copy()
+    joints = [i for i in range(14) if i not in (6, 13)]
+    want[:, joints] += state[joints]
+    want = ALOHA_FLIP * want
+    want[:, 6], want[:, 13] = ALOHA_ACTION_GRIPPER[0.3], ALOHA_ACTION_GRIPPER[-0.1]
+    assert out.shape == (4, 14)
+    np.testing.assert_allclose(out, want, rtol=0, atol=1e-5)
+    # Training direction: the inverse maps ALOHA actions back (what AlohaInputs does with `actions`).
+    back = aloha.encode_actions_inv(out.copy(), adapt_to_pi=True)
+    np.testing.assert_allclose(back[:, [6, 13]], [[0.3, -0.1]] * 4, atol=1e-12)
 
 
 def test_delta_and_absolute_actions_invert_each_other():
