@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 from websockets.sync.client import connect
 
-from openpi_cam.cam.wrapper import CAMOptions, wrap_policy_with_cam
+from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.policies import demo_reach
 from openpi_cam.serving import msgpack_numpy
 from openpi_cam.serving.server import start_server_in_thread
