@@ -85,7 +85,7 @@ def test_trace_holds_the_exact_model_inputs(traced, case):
     # State becomes float32 in the model (jax without x64), as upstream.
     np.testing.assert_array_equal(np.asarray(obs.state[0]), case["model_input/state"].astype(np.float32))
 
-    assert trace.camera_sources == dict(droid.CAMERA_SOURCES)
+    assert trace.camera_sources == dict(droid.CAMERA_SOURCES["pi0_fast"])
     np.testing.assert_array_equal(trace.raw_images["base_0_rgb"], case["raw/exterior_image_1_left"])
     np.testing.assert_array_equal(trace.raw_images["wrist_0_rgb"], case["raw/wrist_image_left"])
     assert trace.raw_images["base_1_rgb"] is None
@@ -168,6 +168,10 @@ def test_create_policy_reports_missing_files(tmp_path, tiny_policy_files):
     with pytest.raises(FileNotFoundError, match=str(tmp_path / "params")):
         create_policy("pi0_fast_droid", tmp_path, **tiny_policy_files.create_kwargs())
     (tmp_path / "params").mkdir()
+    with pytest.raises(FileNotFoundError, match="_METADATA is missing"):
+        create_policy("pi0_fast_droid", tmp_path, **tiny_policy_files.create_kwargs())
+    (tmp_path / "params").rmdir()
+    (tmp_path / "params").symlink_to(tiny_policy_files.checkpoint / "params")
     with pytest.raises(FileNotFoundError, match=str(tmp_path / "assets" / "droid" / "norm_stats.json")):
         create_policy("pi0_fast_droid", tmp_path, **tiny_policy_files.create_kwargs())
     with pytest.raises(KeyError, match="pi0_fast_droid"):

@@ -64,7 +64,7 @@ def stats(droid_dir: Path) -> dict[str, NormStats]:
 @pytest.fixture(scope="module")
 def chains(stats, tokenizer):
     """(input transforms, the FAST decoder, output transforms) of `pi0_fast_droid`, as `create_policy` builds them."""
-    inputs, outputs = build_transforms(PI0_FAST_DROID, stats, TokenizeFASTInputs(tokenizer), (224, 224))
+    inputs, outputs = build_transforms(PI0_FAST_DROID, stats, (TokenizeFASTInputs(tokenizer),), (224, 224))
     return inputs, ExtractFASTActions(tokenizer, PI0_FAST_DROID.action_horizon, PI0_FAST_DROID.action_dim), outputs
 
 
@@ -120,7 +120,7 @@ def test_float_chw_images_are_converted_like_upstream(case, chains):
 
 def test_default_prompt_injected_only_when_missing(case, stats, tokenizer):
     tokenize = TokenizeFASTInputs(tokenizer)
-    inputs, _ = build_transforms(PI0_FAST_DROID, stats, tokenize, (224, 224), default_prompt=PROMPT)
+    inputs, _ = build_transforms(PI0_FAST_DROID, stats, (tokenize,), (224, 224), default_prompt=PROMPT)
     obs = raw_obs(case)
     del obs["prompt"]
     np.testing.assert_array_equal(compose(inputs)(obs)["tokenized_prompt"], case["model_input/tokenized_prompt"])

@@ -959,7 +959,7 @@ def test_serve_with_cam_flags_writes_an_explained_closed_run(demo_observations, 
     assert manifest is not None and manifest["closed"] is True and manifest["num_steps"] == len(observations)
     run = load_run(run_dir)
     assert [(s.meta["connection"], s.meta["step"]) for s in run.steps] == [("conn0000", i) for i in range(3)]
-    request = ExplainRequest("action-token", 2, ("gradcam", "gradnorm"))
+    request = ExplainRequest("action-token", 2, kinds=("gradcam", "gradnorm"))
     for step, obs, served in zip(run.steps, observations, responses(tmp_path / "client", 3), strict=True):
         local, trace = policy.infer_traced(obs)
         assert_same_response(served, local)
