@@ -158,17 +158,20 @@ def integrated_gradients(
     step count is judged. The weighted gradient sum is a scan carry, so memory does not grow with `steps`.
     -> attr [T, B, C, N], score(E) [T, B], score(E0) [T, B]."""
     nodes, weights = quadrature(rule, steps)
+    # The path runs in float32 even for a bfloat16 model (score_fn casts to the compute dtype): bfloat16 points on
+    # the path would round the small steps of a fine quadrature away.
+    E, E0 = E.astype(jnp.float32), E0.astype(jnp.float32)
     delta = E - E0
     score_e = score_fn(E)
 
     def point(acc, node_weight):
         a, w = node_weight
-        scores, vjp_fn = jax.vjp(score_fn, E0 + a.astype(E.dtype) * delta)
+        scores, vjp_fn = jax.vjp(score_fn, E0 + a * delta)
         return acc + w.astype(acc.dtype) * per_score_grads(vjp_fn, scores).astype(acc.dtype), None
 
     init = jnp.zeros((score_e.shape[0], *E.shape), jnp.float32)
     mean_grad, _ = jax.lax.scan(point, init, (jnp.asarray(nodes, jnp.float32), jnp.asarray(weights, jnp.float32)))
-    attr = jnp.einsum("bcnd,tbcnd->tbcn", delta.astype(jnp.float32), mean_grad)
+    attr = jnp.einsum("bcnd,tbcnd->tbcn", delta, mean_grad)
     return attr, score_e, score_fn(E0)
 
 

@@ -184,19 +184,36 @@ def _bucket(n: int) -> int:
     return 1 << max(0, (n - 1).bit_length())
 
 
-def _score_fn(params, obs, fed, targets, steps, weights, cfg) -> Callable[[jax.Array], jax.Array]:
-    """The explained scores as a function of the image tokens E [B, C, N, D] -> [T, B]: the logits of targets at
-    decode steps `steps` [T, B] (`weights` None), or sum_k weights[b, k] log p(fed[b, k]) as one row [1, B]."""
+def _token_target(ids: Any, steps_tb: np.ndarray) -> dict[str, jax.Array]:
+    """The logits of ids [B, S] at decode steps steps_tb [T, B]."""
+    return {"ids": jnp.asarray(ids), "steps": jnp.asarray(steps_tb)}
+
+
+def _weights_target(weights: np.ndarray) -> dict[str, jax.Array]:
+    """sum_k weights[b, k] log p(g_k), kept only at the P decode steps some row weights (padded to a power of two
+    with zero weights), so the vocabulary projection is [B, P, V], not [B, S, V]: S is 256 on real checkpoints."""
+    cols = np.flatnonzero(np.any(weights != 0, axis=0))
+    positions = np.zeros(_bucket(max(cols.size, 1)), np.int32)
+    positions[: cols.size] = cols
+    w = np.zeros((weights.shape[0], positions.size), np.float32)
+    w[:, : cols.size] = weights[:, cols]
+    return {"weights": jnp.asarray(w), "positions": jnp.asarray(positions)}
+
+
+def _score_fn(params, obs, fed, target, cfg) -> Callable[[jax.Array], jax.Array]:
+    """The explained scores as a function of the image tokens E [B, C, N, D] -> [T, B]: a token target's logits
+    (`_token_target`), or a weights target's weighted log-prob sum as one row [1, B] (`_weights_target`)."""
     llm = params["PaliGemma"]["llm"]
 
     def fn(image_tokens):
         pre = replay_prelogits(params, image_tokens, obs, fed, cfg)
-        if weights is None:
-            scores = _gathered_logits(params, pre, targets).astype(jnp.float32)  # [B, S]
-            return scores[jnp.arange(fed.shape[0])[None, :], steps]
-        logits = gemma.logits_from_prelogits(llm, pre).astype(jnp.float32)
-        logp = jnp.take_along_axis(jax.nn.log_softmax(logits, -1), fed[..., None], -1)[..., 0]
-        return jnp.sum(weights * logp, axis=-1)[None]
+        if "steps" in target:
+            scores = _gathered_logits(params, pre, target["ids"]).astype(jnp.float32)  # [B, S]
+            return scores[jnp.arange(fed.shape[0])[None, :], target["steps"]]
+        positions = target["positions"]
+        logits = gemma.logits_from_prelogits(llm, pre[:, positions]).astype(jnp.float32)  # [B, P, V]
+        logp = jnp.take_along_axis(jax.nn.log_softmax(logits, -1), fed[:, positions, None], -1)[..., 0]
+        return jnp.sum(target["weights"] * logp, axis=-1)[None]
 
     return fn
 
@@ -235,23 +252,22 @@ def _painted_scores(params, obs, score_fn, E, images, base, cams, masks, chunk, 
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "kinds", "options", "base_outputs"))
-def _baseline_kinds(
-    params, obs, fed, targets, steps, weights, cams, masks, *, cfg: Pi0FASTConfig, kinds, options, base_outputs
-):
-    """The kinds that compare with a baseline frame, for one target (steps [T, B], or weights [B, S] as T = 1).
+def _baseline_kinds(params, obs, fed, target, cams, masks, *, cfg: Pi0FASTConfig, kinds, options, base_outputs):
+    """The kinds that compare with a baseline frame, for one target (token steps [T, B], or weights as T = 1).
 
     Returns a dict: "ig" [T, B, C, N] with "ig_score" / "ig_baseline_score" [T, B]; "occlusion_scores" [K, T, B]
     for the variants (cams, masks); with `base_outputs` (no gradient pass ran) "score" [T, B] and, for token
     targets, "logits" [T, B, V]."""
     E = embed_images(params, obs, cfg)
-    score_fn = _score_fn(params, obs, fed, targets, steps, weights, cfg)
+    score_fn = _score_fn(params, obs, fed, target, cfg)
     images, valid = _camera_stack(obs)
     base = baseline_images(images, valid, options)  # [C, B, H, W, 3]
     out = {}
     if base_outputs:
         out["score"] = score_fn(E)
-        if weights is None:
-            pre = replay_prelogits(params, E, obs, fed, cfg)[jnp.arange(fed.shape[0])[None, :], steps]  # [T, B, D]
+        if "steps" in target:
+            rows = jnp.arange(fed.shape[0])[None, :]
+            pre = replay_prelogits(params, E, obs, fed, cfg)[rows, target["steps"]]  # [T, B, D]
             out["logits"] = gemma.logits_from_prelogits(params["PaliGemma"]["llm"], pre).astype(jnp.float32)
     if "ig" in kinds:
         E0 = embed_images(params, _with_images(obs, dict(zip(obs.images, base, strict=True))), cfg)
@@ -267,11 +283,11 @@ def _baseline_kinds(
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "chunk"))
-def _variant_scores(params, obs, fed, targets, steps, weights, variants, *, cfg: Pi0FASTConfig, chunk: int):
+def _variant_scores(params, obs, fed, target, variants, *, cfg: Pi0FASTConfig, chunk: int):
     """Scores with the cameras in `variants` (camera -> [K, B, H, W, 3], camera order, K a multiple of `chunk`)
     replaced jointly per variant and re-encoded; the other cameras' tokens kept. -> [K, T, B]"""
     E = embed_images(params, obs, cfg)
-    score_fn = _score_fn(params, obs, fed, targets, steps, weights, cfg)
+    score_fn = _score_fn(params, obs, fed, target, cfg)
     index = jnp.asarray([list(obs.images).index(c) for c in variants])
 
     def one(images):
@@ -297,18 +313,16 @@ def _check_kinds(kinds: Sequence[str]) -> tuple[str, ...]:
     return kinds
 
 
-def _compiled_options(options: MapOptions) -> MapOptions:
+def _compiled_options(options: MapOptions, kinds: Sequence[str] = BASELINE_KINDS) -> MapOptions:
     """The options the compiled program depends on: which masks occlusion uses is data (their count a shape), so
-    the mask-drawing fields are reset and e.g. a new seed reuses the compilation."""
+    the mask-drawing fields are reset and e.g. a new seed reuses the compilation; so are the fields of kinds not
+    requested."""
     defaults = MapOptions()
-    return dataclasses.replace(
-        options,
-        occlusion_region=defaults.occlusion_region,
-        occlusion_mode=defaults.occlusion_mode,
-        random_masks=defaults.random_masks,
-        keep_prob=defaults.keep_prob,
-        seed=defaults.seed,
-    )
+    keep = {"baseline", "blur_sigma"}
+    keep |= {"ig_steps", "ig_rule"} if "ig" in kinds else set()
+    keep |= {"mask_chunk"} if "occlusion" in kinds else set()
+    reset = {f.name: getattr(defaults, f.name) for f in dataclasses.fields(MapOptions) if f.name not in keep}
+    return dataclasses.replace(options, **reset)
 
 
 def occlusion_masks(grid: tuple[int, int], options: MapOptions) -> np.ndarray:
@@ -337,7 +351,7 @@ def _variants(per_camera: Sequence[np.ndarray | None], chunk: int) -> tuple[jax.
     return jnp.asarray(cams), jnp.asarray(masks), where
 
 
-def _baseline_maps(model, obs, fed, targets, steps_tb, weights, kinds, options, base_outputs) -> dict[str, Any]:
+def _baseline_maps(model, obs, fed, target, kinds, options, base_outputs) -> dict[str, Any]:
     """Runs the requested baseline kinds; every array keeps the core's leading [T, B] axes. Returns "ig" and
     "occlusion" (camera -> [T, B, Hp, Wp]), "ig_check" (score, baseline score, attribution sum, each [T, B]) and,
     with `base_outputs`, "score" [T, B] and "logits" [T, B, V] (token targets)."""
@@ -354,14 +368,12 @@ def _baseline_maps(model, obs, fed, targets, steps_tb, weights, kinds, options, 
         model.params,
         obs,
         fed,
-        targets,
-        steps_tb,
-        weights,
+        target,
         variant_cams,
         variant_masks,
         cfg=model.config,
         kinds=tuple(k for k in BASELINE_KINDS if k in kinds),
-        options=_compiled_options(options),
+        options=_compiled_options(options, kinds),
         base_outputs=base_outputs,
     )
     res: dict[str, Any] = {k: np.asarray(out[k]) for k in ("score", "logits") if k in out}
@@ -521,7 +533,7 @@ def _explain_tokens(model, obs, fed, targets, steps, prefill_len, squeeze, kinds
     extra = {}
     if any(k in BASELINE_KINDS for k in kinds):
         extra = _baseline_maps(
-            model, obs, fed, targets, jnp.asarray(steps_tb), None, kinds, options, base_outputs=grad is None
+            model, obs, fed, _token_target(targets, steps_tb), kinds, options, base_outputs=grad is None
         )
         extra = _map_tree(batch_first, extra)
         if grad is None:
@@ -609,7 +621,8 @@ def _explain_weights(model, obs, fed, weights, rows, shared, prefill_len, target
         grad = (alpha, cam, token_norm)
     extra = {}
     if any(k in BASELINE_KINDS for k in kinds):
-        extra = _baseline_maps(model, obs, fed, fed, None, weights, kinds, options, base_outputs=grad is None)
+        target_spec = _weights_target(np.asarray(weights))
+        extra = _baseline_maps(model, obs, fed, target_spec, kinds, options, base_outputs=grad is None)
         extra = _map_tree(lambda x: x[0], extra)  # the one score row
         score = extra["score"] if grad is None else score
     valid = padded >= 0
@@ -627,18 +640,18 @@ def baseline_frames(model: Pi0FAST, obs: Observation, options: MapOptions | None
     """camera -> the baseline frame [B, H, W, 3] at the model resolution that IG and occlusion compare with (a masked
     camera's row is its own image), so deletion curves paint with exactly the same pixels."""
     obs = preprocess_observation(obs, model.config.image_resolution)
-    base = np.asarray(_baseline_frames(obs, options=_compiled_options(options or MapOptions())))
+    base = np.asarray(_baseline_frames(obs, options=_compiled_options(options or MapOptions(), ())))
     return dict(zip(obs.images, base, strict=True))
 
 
-def _rescore_target(fed: jax.Array, steps: Any, weights: Any) -> tuple[Any, Any, int | None]:
-    """(steps [T_pad, B] or None, weights [B, S] or None, T or None) for the rescoring cores."""
+def _rescore_target(fed: jax.Array, steps: Any, weights: Any) -> tuple[dict[str, jax.Array], int | None]:
+    """(target for the rescoring cores, T for token targets or None for weights)."""
     if (steps is None) == (weights is None):
         raise ValueError("give exactly one of steps= (token logits) or weights= (weighted log-prob sum)")
     if steps is not None:
         steps, _, steps_tb = _token_steps(np.atleast_1d(np.asarray(steps, np.int32)), fed.shape[0], fed.shape[1])
-        return jnp.asarray(steps_tb), None, steps.shape[1]
-    return None, jnp.asarray(np.broadcast_to(np.asarray(weights, np.float32), fed.shape)), None
+        return _token_target(fed, steps_tb), steps.shape[1]
+    return _weights_target(np.broadcast_to(np.asarray(weights, np.float32), fed.shape)), None
 
 
 def _scores_out(scores: np.ndarray, t: int | None) -> np.ndarray:
@@ -665,26 +678,26 @@ def rescore_masks(
     `options.mask_chunk`. -> camera -> [M, B, T] (steps) or [M, B] (weights)."""
     options = options or MapOptions()
     obs, fed, _ = _prepare(model, obs, generated_ids)
-    steps_tb, weights, t = _rescore_target(fed, steps, weights)
+    target, t = _rescore_target(fed, steps, weights)
     cams = tuple(obs.images)
     unknown = set(masks) - set(cams)
     if unknown:
         raise ValueError(f"unknown cameras {sorted(unknown)}; the model's are {cams}")
     grid = model.config.siglip.grid
-    per_camera = [None if c not in masks else np.asarray(masks[c], bool).reshape(-1, *grid) for c in cams]
+    per_camera = [None if c not in masks else np.asarray(masks[c], bool) for c in cams]
+    if not masks or any(m is not None and (m.ndim != 3 or m.shape[1:] != grid or not len(m)) for m in per_camera):
+        raise ValueError(f"masks must map cameras to non-empty bool [M, {grid[0]}, {grid[1]}] stacks")
     variant_cams, variant_masks, where = _variants(per_camera, options.mask_chunk)
     out = _baseline_kinds(
         model.params,
         obs,
         fed,
-        fed,
-        steps_tb,
-        weights,
+        target,
         variant_cams,
         variant_masks,
         cfg=model.config,
         kinds=("occlusion",),
-        options=_compiled_options(options),
+        options=_compiled_options(options, ("occlusion",)),
         base_outputs=False,
     )
     scores = _scores_out(out["occlusion_scores"], t)
@@ -705,7 +718,7 @@ def rescore_images(
     resolution); variant m replaces those cameras jointly, re-encodes them, keeps the other cameras' tokens.
     Target as `rescore_masks`. -> [M, B, T] (steps) or [M, B] (weights)."""
     obs, fed, _ = _prepare(model, obs, generated_ids)
-    steps_tb, weights, t = _rescore_target(fed, steps, weights)
+    target, t = _rescore_target(fed, steps, weights)
     cams = tuple(obs.images)
     if not images or set(images) - set(cams):
         raise ValueError(f"image variants must name some of the model's cameras {cams}, got {sorted(images)}")
@@ -717,7 +730,5 @@ def rescore_images(
     m = m.pop()
     pad = -m % mask_chunk
     variants = {c: jnp.asarray(np.concatenate([v, np.repeat(v[:1], pad, axis=0)])) for c, v in variants.items()}
-    scores = _variant_scores(
-        model.params, obs, fed, fed, steps_tb, weights, variants, cfg=model.config, chunk=mask_chunk
-    )
+    scores = _variant_scores(model.params, obs, fed, target, variants, cfg=model.config, chunk=mask_chunk)
     return _scores_out(scores, t)[:m]
