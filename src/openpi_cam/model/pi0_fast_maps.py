@@ -40,6 +40,7 @@ from openpi_cam.model import gemma
 from openpi_cam.model.attribution import (
     MapOptions,
     baseline_images,
+    completeness_met,
     gradcam_reduce,
     integrated_gradients,
     iss_map,
@@ -65,6 +66,7 @@ class IgCompleteness:
     score: np.ndarray  # [B] or [B, T]: score(E)
     baseline_score: np.ndarray  # score(E0), E0 the baseline frame's tokens
     attribution_sum: np.ndarray  # IG attributions summed over every camera and token
+    steps: int  # quadrature steps used (ig_steps, doubled while the completeness target was missed)
 
     @property
     def error(self) -> np.ndarray:
@@ -364,24 +366,37 @@ def _baseline_maps(model, obs, fed, target, kinds, options, base_outputs) -> dic
         variant_cams, variant_masks, where = _variants(
             [np.concatenate([reference, masks])] * len(cams), options.mask_chunk
         )
-    out = _baseline_kinds(
-        model.params,
-        obs,
-        fed,
-        target,
-        variant_cams,
-        variant_masks,
-        cfg=model.config,
-        kinds=tuple(k for k in BASELINE_KINDS if k in kinds),
-        options=_compiled_options(options, kinds),
-        base_outputs=base_outputs,
-    )
+
+    def run(kinds, options, base_outputs):
+        return _baseline_kinds(
+            model.params,
+            obs,
+            fed,
+            target,
+            variant_cams,
+            variant_masks,
+            cfg=model.config,
+            kinds=tuple(k for k in BASELINE_KINDS if k in kinds),
+            options=_compiled_options(options, kinds),
+            base_outputs=base_outputs,
+        )
+
+    out = run(kinds, options, base_outputs)
     res: dict[str, Any] = {k: np.asarray(out[k]) for k in ("score", "logits") if k in out}
     if "ig" in out:
-        attr = np.asarray(out["ig"])  # [T, B, C, N]
+        steps = options.ig_steps
+        while True:
+            attr = np.asarray(out["ig"])  # [T, B, C, N]
+            check = (np.asarray(out["ig_score"]), np.asarray(out["ig_baseline_score"]))
+            check += (attr.astype(np.float64).sum(axis=(-2, -1)),)
+            met = options.ig_tolerance == 0 or completeness_met(*check, options.ig_tolerance)
+            if met or 2 * steps > options.ig_max_steps:
+                break
+            steps *= 2  # one more compiled program per doubling; only the rare sharp paths pay for it
+            out = run(("ig",), dataclasses.replace(options, ig_steps=steps), False)
         res["ig"] = {c: attr[..., i, :].reshape(*attr.shape[:2], *grid) for i, c in enumerate(cams)}
-        total = attr.astype(np.float64).sum(axis=(-2, -1))
-        res["ig_check"] = (np.asarray(out["ig_score"]), np.asarray(out["ig_baseline_score"]), total)
+        res["ig_check"] = check
+        res["ig_steps"] = steps
     if "occlusion_scores" in out:
         scores = np.asarray(out["occlusion_scores"], np.float64)  # [K, T, B]
         reduce = region_map if options.occlusion_mode == "regions" else iss_map
@@ -396,7 +411,7 @@ def _camera_maps(x: np.ndarray, cams: Sequence[str], grid: tuple[int, int]) -> d
     return {c: x[..., i, :].reshape(*x.shape[:-2], *grid) for i, c in enumerate(cams)}
 
 
-def _result(model, obs, target, kinds, grad, score, logits, extra, token_ids, steps, positions, options):
+def _result(model, obs, target, kinds, grad, score, logits, extra, ig_steps, token_ids, steps, positions, options):
     """grad: (alpha, cam, token_norm) batch-first or None; extra: `_baseline_maps` output made batch-first."""
     cams = tuple(obs.images)
     n = model.config.siglip.num_tokens
@@ -410,7 +425,7 @@ def _result(model, obs, target, kinds, grad, score, logits, extra, token_ids, st
         grad_norms = {c: grad_norm[..., i] for i, c in enumerate(cams)}
         by_kind.update({k: m for k, m in (("gradcam", maps), ("gradnorm", gradnorm_maps)) if k in kinds})
     by_kind.update({k: extra[k] for k in BASELINE_KINDS if k in extra})
-    completeness = IgCompleteness(*extra["ig_check"]) if "ig_check" in extra else None
+    completeness = IgCompleteness(*extra["ig_check"], steps=ig_steps) if "ig_check" in extra else None
     return GradCamResult(
         target=target,
         cameras=cams,
@@ -530,11 +545,12 @@ def _explain_tokens(model, obs, fed, targets, steps, prefill_len, squeeze, kinds
         )
         grad = tuple(batch_first(x) for x in (alpha, cam, token_norm))
         score, logits = batch_first(score), batch_first(logits)
-    extra = {}
+    extra, ig_steps = {}, None
     if any(k in BASELINE_KINDS for k in kinds):
         extra = _baseline_maps(
             model, obs, fed, _token_target(targets, steps_tb), kinds, options, base_outputs=grad is None
         )
+        ig_steps = extra.pop("ig_steps", None)
         extra = _map_tree(batch_first, extra)
         if grad is None:
             score, logits = extra["score"], extra["logits"]
@@ -548,6 +564,7 @@ def _explain_tokens(model, obs, fed, targets, steps, prefill_len, squeeze, kinds
         score,
         logits,
         extra,
+        ig_steps,
         token_ids,
         steps[0] if shared else steps,
         _positions(prefill_len, steps),
@@ -619,17 +636,18 @@ def _explain_weights(model, obs, fed, weights, rows, shared, prefill_len, target
     if any(k in GRADIENT_KINDS for k in kinds):
         score, alpha, cam, token_norm = _chunk_cam(model.params, obs, fed, weights, cfg=model.config)
         grad = (alpha, cam, token_norm)
-    extra = {}
+    extra, ig_steps = {}, None
     if any(k in BASELINE_KINDS for k in kinds):
         target_spec = _weights_target(np.asarray(weights))
         extra = _baseline_maps(model, obs, fed, target_spec, kinds, options, base_outputs=grad is None)
+        ig_steps = extra.pop("ig_steps", None)
         extra = _map_tree(lambda x: x[0], extra)  # the one score row
         score = extra["score"] if grad is None else score
     valid = padded >= 0
     token_ids = np.where(valid, np.take_along_axis(np.asarray(fed), np.maximum(padded, 0), axis=1), -1)
     positions = np.where(valid, _positions(prefill_len, np.maximum(padded, 0)), -1)
     steps = rows[0] if shared else padded
-    return _result(model, obs, target, kinds, grad, score, None, extra, token_ids, steps, positions, options)
+    return _result(model, obs, target, kinds, grad, score, None, extra, ig_steps, token_ids, steps, positions, options)
 
 
 # ----------------------------------------------------------------------------------------------------------------
