@@ -40,7 +40,7 @@ class MapOptions:
     baseline: str = "mean"  # "mean": the frame's per-channel mean colour; "blur": a Gaussian-blurred copy
     blur_sigma: float = 8.0  # pixels at the model resolution (the demo: half a 16 px patch)
     # 16 Gauss-Legendre points meet the completeness target on 92-99% of demo steps (midpoint: 94-97%, trapezoid:
-    # 89-95%, the IG paper's right Riemann sum: 8-14%); the rest are refined (ig_tolerance).
+    # 89-95%, the IG paper's right Riemann sum: 8-64%); the rest are refined (ig_tolerance).
     ig_steps: int = 16  # gradient evaluations along the path (the first try, see ig_tolerance)
     ig_rule: str = "gauss-legendre"  # quadrature rule over the path, one of IG_RULES
     # Completeness target: while some explained score misses it (|sum of attributions - (score(E) - score(E0))| >
