@@ -11,6 +11,16 @@ Simonyan et al. 2014): Grad-CAM's mean over tokens assumes, as in a CNN's last c
 same thing at every position and that activations are non-negative; neither holds for transformer tokens, and on the
 bundled demo model Grad-CAM peaks on the named block at chance while the gradient norm finds it (README).
 
+Two more kinds compare the frame with a *baseline frame* a robot could see (`attribution.MapOptions.baseline`: the
+frame blurred, or its mean colour), and are signed (positive = supports the explained score):
+  ig         integrated gradients over E along the straight path E0 -> E, E0 = SigLIP tokens of the baseline frame
+             (no gradient through SigLIP); its completeness terms come with the result (`IgCompleteness`).
+  occlusion  the drop of the score when a region's pixels are replaced by the baseline's and the whole model re-run,
+             one camera at a time; every region once ("regions") or random Bernoulli masks (ISS, "random").
+Scores: a token's logit at its decode step, or a weighted sum of log-probabilities over decode steps (the chunk and
+any per-row list of steps, `maps_for_weights`). The re-scoring functions (`rescore_masks`, `rescore_images`) return the
+same scores for image variants, for faithfulness metrics (`openpi_cam.cam.faithfulness`).
+
 Every entry point takes the generated sequence at its full decode length S (which sizes upstream's KV cache) and the
 steps to explain as traced values, so explaining step 0, 5 or 9 of a request reuses one compilation.
 """
@@ -19,7 +29,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -27,17 +38,55 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from openpi_cam.model import gemma
-from openpi_cam.model.attribution import gradcam_reduce
+from openpi_cam.model.attribution import (
+    BASELINE_KINDS,
+    DEFAULT_KINDS,
+    GRADIENT_KINDS,
+    MAP_KINDS,
+    MapOptions,
+    baseline_images,
+    completeness_met,
+    gradcam_reduce,
+    integrated_gradients,
+    iss_map,
+    paint,
+    random_region_masks,
+    region_map,
+    region_masks,
+)
 from openpi_cam.model.config import MAX_DECODING_STEPS, Pi0FASTConfig
 from openpi_cam.model.observation import Observation, preprocess_observation
 from openpi_cam.model.pi0_fast import Pi0FAST, embed_images, replay_prelogits
 
 
 @dataclasses.dataclass(frozen=True)
-class GradCamResult:
-    """Raw (unnormalised) maps per camera. Leading axis B (batch rows); multi-token targets add an axis T."""
+class IgCompleteness:
+    """IG's completeness check per row (and explained token): attribution_sum should equal score - baseline_score."""
 
-    target: str  # "token" | "tokens" | "chunk"
+    score: np.ndarray  # [B] or [B, T]: score(E)
+    baseline_score: np.ndarray  # score(E0), E0 the baseline frame's tokens
+    attribution_sum: np.ndarray  # IG attributions summed over every camera and token
+    steps: int  # quadrature steps used (ig_steps, doubled while the completeness target was missed)
+
+    @property
+    def error(self) -> np.ndarray:
+        return np.abs(self.attribution_sum - (self.score - self.baseline_score))
+
+    @property
+    def relative_error(self) -> np.ndarray:
+        """error / |score(E) - score(E0)| (the 2% target is on this); inf when the two scores coincide."""
+        gap = np.abs(self.score - self.baseline_score)
+        return np.divide(self.error, gap, out=np.full_like(gap, np.inf), where=gap > 0)
+
+
+@dataclasses.dataclass(frozen=True)
+class GradCamResult:
+    """Raw (unnormalised) maps per camera. Leading axis B (batch rows); multi-token targets add an axis T.
+
+    `maps`, `alphas`, `grad_norms` and `gradnorm_maps` come from the gradient pass and are empty when neither
+    "gradcam" nor "gradnorm" was requested; `by_kind` holds every requested kind (signed for ig and occlusion)."""
+
+    target: str  # "token" | "tokens" | "chunk" | "weights"
     cameras: tuple[str, ...]
     maps: dict[str, np.ndarray]  # camera -> float32 [B, Hp, Wp] or [B, T, Hp, Wp]
     alphas: dict[str, np.ndarray]  # camera -> float32 [B, D] or [B, T, D]
@@ -50,6 +99,9 @@ class GradCamResult:
     decode_steps: np.ndarray  # int32 [T] (or [B, T] when rows explain different steps): the decode steps explained
     positions: np.ndarray  # int32 [B, T]: RoPE position of the output that predicted each explained token
     logits: np.ndarray | None  # float32 [B, V] or [B, T, V]: the full logit vector at that output (token targets)
+    by_kind: dict[str, dict[str, np.ndarray]] = dataclasses.field(default_factory=dict)  # kind -> camera -> like maps
+    ig_completeness: IgCompleteness | None = None  # with "ig"
+    options: MapOptions | None = None  # the options of the baseline kinds, when any was requested
 
 
 def _gathered_logits(params: dict, pre: jax.Array, targets: jax.Array) -> jax.Array:
@@ -134,19 +186,253 @@ def _bucket(n: int) -> int:
     return 1 << max(0, (n - 1).bit_length())
 
 
-def _result(model, obs, target, alpha, cam, token_norm, score, token_ids, steps, positions, logits) -> GradCamResult:
+def _token_target(ids: ArrayLike, steps_tb: np.ndarray) -> dict[str, jax.Array]:
+    """The logits of ids [B, S] at decode steps steps_tb [T, B]."""
+    return {"ids": jnp.asarray(ids), "steps": jnp.asarray(steps_tb)}
+
+
+def _weights_target(weights: np.ndarray) -> dict[str, jax.Array]:
+    """sum_k weights[b, k] log p(g_k), kept only at the P decode steps some row weights (padded to a power of two
+    with zero weights), so the vocabulary projection is [B, P, V], not [B, S, V]: S is 256 on real checkpoints."""
+    cols = np.flatnonzero(np.any(weights != 0, axis=0))
+    positions = np.zeros(_bucket(max(cols.size, 1)), np.int32)
+    positions[: cols.size] = cols
+    w = np.zeros((weights.shape[0], positions.size), np.float32)
+    w[:, : cols.size] = weights[:, cols]
+    return {"weights": jnp.asarray(w), "positions": jnp.asarray(positions)}
+
+
+def _score_fn(params, obs, fed, target, cfg) -> Callable[[jax.Array], jax.Array]:
+    """The explained scores as a function of the image tokens E [B, C, N, D] -> [T, B]: a token target's logits
+    (`_token_target`), or a weights target's weighted log-prob sum as one row [1, B] (`_weights_target`)."""
+    llm = params["PaliGemma"]["llm"]
+
+    def fn(image_tokens):
+        pre = replay_prelogits(params, image_tokens, obs, fed, cfg)
+        if "steps" in target:
+            scores = _gathered_logits(params, pre, target["ids"]).astype(jnp.float32)  # [B, S]
+            return scores[jnp.arange(fed.shape[0])[None, :], target["steps"]]
+        positions = target["positions"]
+        logits = gemma.logits_from_prelogits(llm, pre[:, positions]).astype(jnp.float32)  # [B, P, V]
+        logp = jnp.take_along_axis(jax.nn.log_softmax(logits, -1), fed[:, positions, None], -1)[..., 0]
+        return jnp.sum(target["weights"] * logp, axis=-1)[None]
+
+    return fn
+
+
+def _camera_stack(obs: Observation) -> tuple[jax.Array, jax.Array]:
+    """images [C, B, H, W, 3] and validity [C, B] in camera order (every camera is at the model resolution)."""
+    images = jnp.stack([jnp.asarray(obs.images[c], jnp.float32) for c in obs.images])
+    valid = jnp.stack([jnp.asarray(obs.image_masks[c], bool).reshape(-1) for c in obs.images])
+    return images, valid
+
+
+def _with_images(obs: Observation, images: Mapping[str, jax.Array]) -> Observation:
+    return dataclasses.replace(obs, images=dict(images))
+
+
+def _painted_scores(params, obs, score_fn, E, images, base, cams, masks, chunk, cfg) -> jax.Array:
+    """Scores with camera cams[k]'s patches masks[k] replaced by its baseline frame, that camera re-encoded by SigLIP
+    and the others' tokens kept. cams int32 [K], masks bool [K, Hp, Wp], K a multiple of `chunk` -> [K, T, B].
+
+    A chunk of variants runs vectorised (forward only, so `vmap` is safe here); the chunks run one after another
+    (`lax.map`), which bounds memory at chunk x B model runs for any number of masks."""
+    name = next(iter(obs.images))
+    select = jnp.arange(E.shape[1])[None, :, None, None]  # [1, C, 1, 1]
+
+    def one(cam, mask):
+        image = paint(images[cam], base[cam], mask, cfg.siglip.patch_size)  # [B, H, W, 3]
+        tokens = embed_images(params, _with_images(obs, {name: image}), cfg)  # [B, 1, N, D]
+        return score_fn(jnp.where(select == cam, tokens, E))
+
+    k = cams.shape[0]
+    scores = jax.lax.map(
+        lambda chunk_args: jax.vmap(one)(*chunk_args),
+        (cams.reshape(k // chunk, chunk), masks.reshape(k // chunk, chunk, *masks.shape[1:])),
+    )
+    return scores.reshape(k, *scores.shape[2:])
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "kinds", "options", "base_outputs"))
+def _baseline_kinds(params, obs, fed, target, cams, masks, *, cfg: Pi0FASTConfig, kinds, options, base_outputs):
+    """The kinds that compare with a baseline frame, for one target (token steps [T, B], or weights as T = 1).
+
+    Returns a dict: "ig" [T, B, C, N] with "ig_score" / "ig_baseline_score" [T, B]; "occlusion_scores" [K, T, B]
+    for the variants (cams, masks); with `base_outputs` (no gradient pass ran) "score" [T, B] and, for token
+    targets, "logits" [T, B, V]."""
+    E = embed_images(params, obs, cfg)
+    score_fn = _score_fn(params, obs, fed, target, cfg)
+    images, valid = _camera_stack(obs)
+    base = baseline_images(images, valid, options)  # [C, B, H, W, 3]
+    out = {}
+    if base_outputs:
+        out["score"] = score_fn(E)
+        if "steps" in target:
+            rows = jnp.arange(fed.shape[0])[None, :]
+            pre = replay_prelogits(params, E, obs, fed, cfg)[rows, target["steps"]]  # [T, B, D]
+            out["logits"] = gemma.logits_from_prelogits(params["PaliGemma"]["llm"], pre).astype(jnp.float32)
+    if "ig" in kinds:
+        E0 = embed_images(params, _with_images(obs, dict(zip(obs.images, base, strict=True))), cfg)
+        E0 = jnp.where(valid.T[:, :, None, None], E0, E)  # a masked camera is its own baseline
+        out["ig"], out["ig_score"], out["ig_baseline_score"] = integrated_gradients(
+            score_fn, E, E0, options.ig_rule, options.ig_steps
+        )
+    if "occlusion" in kinds:
+        out["occlusion_scores"] = _painted_scores(
+            params, obs, score_fn, E, images, base, cams, masks, options.mask_chunk, cfg
+        )
+    return out
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "chunk"))
+def _variant_scores(params, obs, fed, target, variants, *, cfg: Pi0FASTConfig, chunk: int):
+    """Scores with the cameras in `variants` (camera -> [K, B, H, W, 3], camera order, K a multiple of `chunk`)
+    replaced jointly per variant and re-encoded; the other cameras' tokens kept. -> [K, T, B]"""
+    E = embed_images(params, obs, cfg)
+    score_fn = _score_fn(params, obs, fed, target, cfg)
+    index = jnp.asarray([list(obs.images).index(c) for c in variants])
+
+    def one(images):
+        return score_fn(E.at[:, index].set(embed_images(params, _with_images(obs, images), cfg)))
+
+    k = next(iter(variants.values())).shape[0]
+    chunks = {c: v.reshape(k // chunk, chunk, *v.shape[1:]) for c, v in variants.items()}
+    scores = jax.lax.map(lambda x: jax.vmap(one)(x), chunks)
+    return scores.reshape(k, *scores.shape[2:])
+
+
+@functools.partial(jax.jit, static_argnames=("options",))
+def _baseline_frames(obs: Observation, *, options: MapOptions) -> jax.Array:
+    images, valid = _camera_stack(obs)
+    return baseline_images(images, valid, options)
+
+
+def _check_kinds(kinds: Sequence[str]) -> tuple[str, ...]:
+    kinds = tuple(dict.fromkeys(kinds))
+    unknown = [k for k in kinds if k not in MAP_KINDS]
+    if unknown or not kinds:
+        raise ValueError(f"map kinds must be a non-empty selection of {MAP_KINDS}, got {list(kinds)}")
+    return kinds
+
+
+def _compiled_options(options: MapOptions, kinds: Sequence[str] = BASELINE_KINDS) -> MapOptions:
+    """The options the compiled program depends on: which masks occlusion uses is data (their count a shape), so
+    the mask-drawing fields are reset and e.g. a new seed reuses the compilation; so are the fields of kinds not
+    requested."""
+    defaults = MapOptions()
+    keep = {"baseline", "blur_sigma"}
+    keep |= {"ig_steps", "ig_rule"} if "ig" in kinds else set()
+    keep |= {"mask_chunk"} if "occlusion" in kinds else set()
+    reset = {f.name: getattr(defaults, f.name) for f in dataclasses.fields(MapOptions) if f.name not in keep}
+    return dataclasses.replace(options, **reset)
+
+
+def occlusion_masks(grid: tuple[int, int], options: MapOptions) -> np.ndarray:
+    """The masks occlusion paints one camera with (bool [M, Hp, Wp], True = painted): every region once, or the
+    random ISS masks drawn from the options' seed."""
+    if options.occlusion_mode == "regions":
+        return region_masks(grid, options.occlusion_region)
+    return random_region_masks(grid, options.occlusion_region, options.random_masks, options.keep_prob, options.seed)
+
+
+def _variants(per_camera: Sequence[np.ndarray | None], chunk: int) -> tuple[jax.Array, jax.Array, list[slice]]:
+    """Flattens per-camera mask stacks into one variant list (cams [K], masks [K, Hp, Wp]) padded with no-op
+    variants to a multiple of `chunk`; slice c selects camera c's variants."""
+    cams, masks, where, start = [], [], [], 0
+    for c, m in enumerate(per_camera):
+        m = np.zeros((0,), bool) if m is None else np.asarray(m, bool)
+        if m.size:
+            cams.append(np.full(m.shape[0], c, np.int32))
+            masks.append(m)
+        where.append(slice(start, start + len(m)))
+        start += len(m)
+    cams, masks = np.concatenate(cams), np.concatenate(masks)
+    pad = -len(cams) % chunk
+    cams = np.concatenate([cams, np.zeros(pad, np.int32)])
+    masks = np.concatenate([masks, np.zeros((pad, *masks.shape[1:]), bool)])
+    return jnp.asarray(cams), jnp.asarray(masks), where
+
+
+def _baseline_maps(model, obs, fed, target, kinds, options, base_outputs) -> dict[str, Any]:
+    """Runs the requested baseline kinds; every array keeps the core's leading [T, B] axes. Returns "ig" and
+    "occlusion" (camera -> [T, B, Hp, Wp]), "ig_check" (score, baseline score, attribution sum, each [T, B]) and,
+    with `base_outputs`, "score" [T, B] and "logits" [T, B, V] (token targets)."""
+    cams = tuple(obs.images)
+    grid = model.config.siglip.grid
+    variant_cams = variant_masks = None
+    if "occlusion" in kinds:
+        masks = occlusion_masks(grid, options)
+        reference = np.zeros((1, *grid), bool)  # every camera's drops against its own unpainted re-run
+        variant_cams, variant_masks, where = _variants(
+            [np.concatenate([reference, masks])] * len(cams), options.mask_chunk
+        )
+
+    def run(kinds, options, base_outputs):
+        return _baseline_kinds(
+            model.params,
+            obs,
+            fed,
+            target,
+            variant_cams,
+            variant_masks,
+            cfg=model.config,
+            kinds=tuple(k for k in BASELINE_KINDS if k in kinds),
+            options=_compiled_options(options, kinds),
+            base_outputs=base_outputs,
+        )
+
+    out = run(kinds, options, base_outputs)
+    res: dict[str, Any] = {k: np.asarray(out[k]) for k in ("score", "logits") if k in out}
+    if "ig" in out:
+        steps = options.ig_steps
+        while True:
+            attr = np.asarray(out["ig"])  # [T, B, C, N]
+            check = (np.asarray(out["ig_score"]), np.asarray(out["ig_baseline_score"]))
+            check += (attr.astype(np.float64).sum(axis=(-2, -1)),)
+            met = options.ig_tolerance == 0 or completeness_met(*check, options.ig_tolerance)
+            if met or 2 * steps > options.ig_max_steps:
+                break
+            steps *= 2  # one more compiled program per doubling; only the rare sharp paths pay for it
+            out = run(("ig",), dataclasses.replace(options, ig_steps=steps), False)
+        res["ig"] = {c: attr[..., i, :].reshape(*attr.shape[:2], *grid) for i, c in enumerate(cams)}
+        res["ig_check"] = check
+        res["ig_steps"] = steps
+    if "occlusion_scores" in out:
+        scores = np.asarray(out["occlusion_scores"], np.float64)  # [K, T, B]
+        reduce = region_map if options.occlusion_mode == "regions" else iss_map
+        res["occlusion"] = {
+            c: reduce(masks, scores[s][:1] - scores[s][1:]).astype(np.float32) for c, s in zip(cams, where, strict=True)
+        }
+    return res
+
+
+def _camera_maps(x: np.ndarray, cams: Sequence[str], grid: tuple[int, int]) -> dict[str, np.ndarray]:
+    """[..., C, N] -> camera -> [..., Hp, Wp] (row-major patch grid)."""
+    return {c: x[..., i, :].reshape(*x.shape[:-2], *grid) for i, c in enumerate(cams)}
+
+
+def _result(model, obs, target, kinds, grad, score, logits, extra, ig_steps, token_ids, steps, positions, options):
+    """grad: (alpha, cam, token_norm) batch-first or None; extra: `_baseline_maps` output made batch-first."""
     cams = tuple(obs.images)
     n = model.config.siglip.num_tokens
     grid = model.config.siglip.grid
-    cam, token_norm = np.asarray(cam), np.asarray(token_norm)
-    grad_norm = np.sqrt(np.sum(np.square(token_norm.astype(np.float64)), axis=-1)).astype(np.float32)  # [..., C]
+    maps, alphas, grad_norms, gradnorm_maps, by_kind = {}, {}, {}, {}, {}
+    if grad is not None:
+        alpha, cam, token_norm = (np.asarray(x) for x in grad)
+        grad_norm = np.sqrt(np.sum(np.square(token_norm.astype(np.float64)), axis=-1)).astype(np.float32)  # [..., C]
+        maps, gradnorm_maps = _camera_maps(cam, cams, grid), _camera_maps(token_norm, cams, grid)
+        alphas = {c: alpha[..., i, :] for i, c in enumerate(cams)}
+        grad_norms = {c: grad_norm[..., i] for i, c in enumerate(cams)}
+        by_kind.update({k: m for k, m in (("gradcam", maps), ("gradnorm", gradnorm_maps)) if k in kinds})
+    by_kind.update({k: extra[k] for k in BASELINE_KINDS if k in extra})
+    completeness = IgCompleteness(*extra["ig_check"], steps=ig_steps) if "ig_check" in extra else None
     return GradCamResult(
         target=target,
         cameras=cams,
-        maps={c: cam[..., i, :].reshape(*cam.shape[:-2], *grid) for i, c in enumerate(cams)},
-        alphas={c: np.asarray(alpha)[..., i, :] for i, c in enumerate(cams)},
-        grad_norms={c: grad_norm[..., i] for i, c in enumerate(cams)},
-        gradnorm_maps={c: token_norm[..., i, :].reshape(*token_norm.shape[:-2], *grid) for i, c in enumerate(cams)},
+        maps=maps,
+        alphas=alphas,
+        grad_norms=grad_norms,
+        gradnorm_maps=gradnorm_maps,
         spans={c: (i * n, (i + 1) * n) for i, c in enumerate(cams)},
         valid={c: np.asarray(obs.image_masks[c], bool).reshape(-1) for c in cams},
         score=np.asarray(score),
@@ -154,20 +440,43 @@ def _result(model, obs, target, alpha, cam, token_norm, score, token_ids, steps,
         decode_steps=np.asarray(steps, np.int32),
         positions=positions,
         logits=None if logits is None else np.asarray(logits),
+        by_kind=by_kind,
+        ig_completeness=completeness,
+        options=options if any(k in BASELINE_KINDS for k in kinds) else None,
     )
 
 
-def gradcam_for_steps(model: Pi0FAST, obs: Observation, generated_ids: ArrayLike, steps: ArrayLike) -> GradCamResult:
+def _map_tree(fn: Callable[[np.ndarray], np.ndarray], tree: Any) -> Any:
+    return jax.tree.map(fn, tree, is_leaf=lambda x: isinstance(x, np.ndarray))
+
+
+def gradcam_for_steps(
+    model: Pi0FAST,
+    obs: Observation,
+    generated_ids: ArrayLike,
+    steps: ArrayLike,
+    *,
+    kinds: Sequence[str] = DEFAULT_KINDS,
+    options: MapOptions | None = None,
+) -> GradCamResult:
     """Explains the generated tokens at `steps` ([T] for every row, or [B, T] per row; one map stack per camera),
-    with one forward pass shared by all of them."""
+    with one forward pass shared by all of them (per kind)."""
     obs, fed, prefill_len = _prepare(model, obs, generated_ids)
-    return _explain_tokens(model, obs, fed, fed, steps, prefill_len, False)
+    return _explain_tokens(model, obs, fed, fed, steps, prefill_len, False, kinds, options)
 
 
-def gradcam_for_action_token(model: Pi0FAST, obs: Observation, generated_ids: ArrayLike, step: int) -> GradCamResult:
+def gradcam_for_action_token(
+    model: Pi0FAST,
+    obs: Observation,
+    generated_ids: ArrayLike,
+    step: int,
+    *,
+    kinds: Sequence[str] = DEFAULT_KINDS,
+    options: MapOptions | None = None,
+) -> GradCamResult:
     """Explains the generated token at decode `step` (one map per camera, no token axis)."""
     obs, fed, prefill_len = _prepare(model, obs, generated_ids)
-    return _explain_tokens(model, obs, fed, fed, [int(step)], prefill_len, True)
+    return _explain_tokens(model, obs, fed, fed, [int(step)], prefill_len, True, kinds, options)
 
 
 def gradcam_for_token(
@@ -179,6 +488,8 @@ def gradcam_for_token(
     position: int | None = None,
     generated_prefix: ArrayLike | None = None,
     max_decoding_steps: int = MAX_DECODING_STEPS,
+    kinds: Sequence[str] = DEFAULT_KINDS,
+    options: MapOptions | None = None,
 ) -> GradCamResult:
     """Explains the logit of `token_id` at decode step `step` (or at the output with RoPE `position`), with
     `generated_prefix` = g_0 .. g_{step-1} fed back. `token_id` need not be the generated token (counterfactuals).
@@ -202,65 +513,240 @@ def gradcam_for_token(
         raise ValueError(f"explaining step {step} needs the {step} tokens generated before it, got {prefix.shape[1]}")
     targets = fed.copy()
     targets[:, step] = np.broadcast_to(np.asarray(token_id, np.int32), (batch,))
-    return _explain_tokens(model, obs, fed_j, jnp.asarray(targets), [step], prefill_len, True)
+    return _explain_tokens(model, obs, fed_j, jnp.asarray(targets), [step], prefill_len, True, kinds, options)
 
 
-def _explain_tokens(model, obs, fed, targets, steps, prefill_len, squeeze) -> GradCamResult:
-    batch = fed.shape[0]
+def _token_steps(steps: ArrayLike, batch: int, length: int) -> tuple[np.ndarray, bool, np.ndarray]:
+    """Validated steps ([B, T], shared?) and their padding to a power-of-two count, transposed: [T_pad, B]."""
     steps, shared = _per_row(steps, batch)
     if steps.size == 0:
         raise ValueError("no decode steps to explain")
-    if steps.min() < 0 or steps.max() >= fed.shape[1]:
-        raise ValueError(f"decode steps {steps.tolist()} outside [0, {fed.shape[1]})")
+    if steps.min() < 0 or steps.max() >= length:
+        raise ValueError(f"decode steps {steps.tolist()} outside [0, {length})")
     t = steps.shape[1]
     padded = np.concatenate([steps, np.repeat(steps[:, :1], _bucket(t) - t, axis=1)], axis=1)  # [B, T_pad]
-    score, alpha, cam, token_norm, logits = _token_cams(
-        model.params, obs, fed, targets, jnp.asarray(padded.T), cfg=model.config
-    )
+    return steps, shared, np.ascontiguousarray(padded.T)
+
+
+def _explain_tokens(model, obs, fed, targets, steps, prefill_len, squeeze, kinds, options) -> GradCamResult:
+    kinds, options = _check_kinds(kinds), options or MapOptions()
+    batch = fed.shape[0]
+    steps, shared, steps_tb = _token_steps(steps, batch, fed.shape[1])
+    t = steps.shape[1]
 
     def batch_first(x):  # [T_pad, B, ...] -> [B, T, ...] (or [B, ...] for one token)
         x = np.moveaxis(np.asarray(x)[:t], 0, 1)
         return x[:, 0] if squeeze else x
 
+    grad = score = logits = None
+    if any(k in GRADIENT_KINDS for k in kinds):
+        score, alpha, cam, token_norm, logits = _token_cams(
+            model.params, obs, fed, targets, jnp.asarray(steps_tb), cfg=model.config
+        )
+        grad = tuple(batch_first(x) for x in (alpha, cam, token_norm))
+        score, logits = batch_first(score), batch_first(logits)
+    extra, ig_steps = {}, None
+    if any(k in BASELINE_KINDS for k in kinds):
+        extra = _baseline_maps(
+            model, obs, fed, _token_target(targets, steps_tb), kinds, options, base_outputs=grad is None
+        )
+        ig_steps = extra.pop("ig_steps", None)
+        extra = _map_tree(batch_first, extra)
+        if grad is None:
+            score, logits = extra["score"], extra["logits"]
     token_ids = np.take_along_axis(np.asarray(targets), steps, axis=1)
     return _result(
         model,
         obs,
         "token" if squeeze else "tokens",
-        batch_first(alpha),
-        batch_first(cam),
-        batch_first(token_norm),
-        batch_first(score),
+        kinds,
+        grad,
+        score,
+        logits,
+        extra,
+        ig_steps,
         token_ids,
         steps[0] if shared else steps,
         _positions(prefill_len, steps),
-        batch_first(logits),
+        options,
     )
 
 
+def chunk_weights(steps: ArrayLike, batch: int, length: int) -> tuple[np.ndarray, list[np.ndarray], bool]:
+    """A chunk target's weights [B, S] (1 on the listed steps): `steps` is one list for every row or one per row.
+    Also returns the per-row step arrays and whether they were shared."""
+    shared = all(np.ndim(s) == 0 for s in steps)
+    rows = [np.asarray(steps, np.int32)] * batch if shared else [np.asarray(r, np.int32) for r in steps]
+    if len(rows) != batch or any(r.size == 0 for r in rows):
+        raise ValueError(f"give one non-empty list of decode steps, or one per row (batch {batch})")
+    if any(r.min() < 0 or r.max() >= length for r in rows):
+        raise ValueError(f"decode steps outside [0, {length})")
+    weights = np.zeros((batch, length), np.float32)
+    for b, r in enumerate(rows):
+        weights[b, r] = 1.0
+    return weights, rows, shared
+
+
 def gradcam_for_chunk(
-    model: Pi0FAST, obs: Observation, generated_ids: ArrayLike, steps: ArrayLike | Sequence[ArrayLike]
+    model: Pi0FAST,
+    obs: Observation,
+    generated_ids: ArrayLike,
+    steps: ArrayLike,
+    *,
+    kinds: Sequence[str] = DEFAULT_KINDS,
+    options: MapOptions | None = None,
 ) -> GradCamResult:
     """Whole-chunk target: score = sum over `steps` of log p(g_k); one backward pass, one map per camera.
 
     `steps` is one list for every row, or one list per row (lengths may differ: per-row `token_ids`,
     `decode_steps` and `positions` are then padded with -1)."""
     obs, fed, prefill_len = _prepare(model, obs, generated_ids)
+    weights, rows, shared = chunk_weights(steps, fed.shape[0], fed.shape[1])
+    return _explain_weights(model, obs, fed, weights, rows, shared, prefill_len, "chunk", kinds, options)
+
+
+def maps_for_weights(
+    model: Pi0FAST,
+    obs: Observation,
+    generated_ids: ArrayLike,
+    weights: ArrayLike,
+    *,
+    kinds: Sequence[str] = DEFAULT_KINDS,
+    options: MapOptions | None = None,
+) -> GradCamResult:
+    """Sequence target with arbitrary per-row weights: score = sum_k weights[b, k] log p(g_k), weights [S] or [B, S]
+    (e.g. the generated tokens of each row, or a decayed chunk). One map per camera; the explained steps are those
+    with a non-zero weight (per row, padded with -1)."""
+    obs, fed, prefill_len = _prepare(model, obs, generated_ids)
+    weights = np.broadcast_to(np.asarray(weights, np.float32), fed.shape).copy()
+    rows = [np.flatnonzero(w).astype(np.int32) for w in weights]
+    if any(r.size == 0 for r in rows):
+        raise ValueError("every row needs at least one decode step with a non-zero weight")
+    return _explain_weights(model, obs, fed, weights, rows, False, prefill_len, "weights", kinds, options)
+
+
+def _explain_weights(model, obs, fed, weights, rows, shared, prefill_len, target, kinds, options) -> GradCamResult:
+    kinds, options = _check_kinds(kinds), options or MapOptions()
     batch = fed.shape[0]
-    shared = all(np.ndim(s) == 0 for s in steps)
-    rows = [np.asarray(steps, np.int32)] * batch if shared else [np.asarray(r, np.int32) for r in steps]
-    if len(rows) != batch or any(r.size == 0 for r in rows):
-        raise ValueError(f"give one non-empty list of decode steps, or one per row (batch {batch})")
-    width = max(r.size for r in rows)
-    padded = np.full((batch, width), -1, np.int32)
-    weights = np.zeros(fed.shape, np.float32)
+    padded = np.full((batch, max(r.size for r in rows)), -1, np.int32)
     for b, r in enumerate(rows):
         padded[b, : r.size] = r
-        weights[b, r] = 1.0
-    score, alpha, cam, token_norm = _chunk_cam(model.params, obs, fed, jnp.asarray(weights), cfg=model.config)
+    weights = jnp.asarray(weights)
+    grad = score = None
+    if any(k in GRADIENT_KINDS for k in kinds):
+        score, alpha, cam, token_norm = _chunk_cam(model.params, obs, fed, weights, cfg=model.config)
+        grad = (alpha, cam, token_norm)
+    extra, ig_steps = {}, None
+    if any(k in BASELINE_KINDS for k in kinds):
+        target_spec = _weights_target(np.asarray(weights))
+        extra = _baseline_maps(model, obs, fed, target_spec, kinds, options, base_outputs=grad is None)
+        ig_steps = extra.pop("ig_steps", None)
+        extra = _map_tree(lambda x: x[0], extra)  # the one score row
+        score = extra["score"] if grad is None else score
     valid = padded >= 0
     token_ids = np.where(valid, np.take_along_axis(np.asarray(fed), np.maximum(padded, 0), axis=1), -1)
     positions = np.where(valid, _positions(prefill_len, np.maximum(padded, 0)), -1)
-    return _result(
-        model, obs, "chunk", alpha, cam, token_norm, score, token_ids, rows[0] if shared else padded, positions, None
+    steps = rows[0] if shared else padded
+    return _result(model, obs, target, kinds, grad, score, None, extra, ig_steps, token_ids, steps, positions, options)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# What faithfulness metrics need: the baseline frames, and the explained score of image variants.
+
+
+def baseline_frames(model: Pi0FAST, obs: Observation, options: MapOptions | None = None) -> dict[str, np.ndarray]:
+    """camera -> the baseline frame [B, H, W, 3] at the model resolution that IG and occlusion compare with (a masked
+    camera's row is its own image), so deletion curves paint with exactly the same pixels."""
+    obs = preprocess_observation(obs, model.config.image_resolution)
+    base = np.asarray(_baseline_frames(obs, options=_compiled_options(options or MapOptions(), ())))
+    return dict(zip(obs.images, base, strict=True))
+
+
+def _rescore_target(fed: jax.Array, steps: ArrayLike, weights: ArrayLike) -> tuple[dict[str, jax.Array], int | None]:
+    """(target for the rescoring cores, T for token targets or None for weights)."""
+    if (steps is None) == (weights is None):
+        raise ValueError("give exactly one of steps= (token logits) or weights= (weighted log-prob sum)")
+    if steps is not None:
+        steps, _, steps_tb = _token_steps(np.atleast_1d(np.asarray(steps, np.int32)), fed.shape[0], fed.shape[1])
+        return _token_target(fed, steps_tb), steps.shape[1]
+    return _weights_target(np.broadcast_to(np.asarray(weights, np.float32), fed.shape)), None
+
+
+def _scores_out(scores: np.ndarray, t: int | None) -> np.ndarray:
+    """[K, T_pad, B] -> [K, B, T] (token targets) or [K, B] (weights)."""
+    scores = np.asarray(scores)
+    return scores[:, 0] if t is None else np.moveaxis(scores[:, :t], 1, 2)
+
+
+def rescore_masks(
+    model: Pi0FAST,
+    obs: Observation,
+    generated_ids: ArrayLike,
+    masks: Mapping[str, ArrayLike],
+    *,
+    steps: ArrayLike | None = None,
+    weights: ArrayLike | None = None,
+    options: MapOptions | None = None,
+) -> dict[str, np.ndarray]:
+    """The explained score with patches painted by the baseline frame (`options`), one camera at a time.
+
+    masks: camera -> bool [M, Hp, Wp] (True = painted; an all-False mask gives the unmodified score in the same
+    numerics). Target: `steps` ([T] or [B, T]: logits of the generated tokens there) or `weights` ([S] or [B, S]:
+    weighted log-prob sum). Every variant of every camera runs in one compiled call, in chunks of
+    `options.mask_chunk`. -> camera -> [M, B, T] (steps) or [M, B] (weights)."""
+    options = options or MapOptions()
+    obs, fed, _ = _prepare(model, obs, generated_ids)
+    target, t = _rescore_target(fed, steps, weights)
+    cams = tuple(obs.images)
+    unknown = set(masks) - set(cams)
+    if unknown:
+        raise ValueError(f"unknown cameras {sorted(unknown)}; the model's are {cams}")
+    grid = model.config.siglip.grid
+    per_camera = [None if c not in masks else np.asarray(masks[c], bool) for c in cams]
+    if not masks or any(m is not None and (m.ndim != 3 or m.shape[1:] != grid or not len(m)) for m in per_camera):
+        raise ValueError(f"masks must map cameras to non-empty bool [M, {grid[0]}, {grid[1]}] stacks")
+    variant_cams, variant_masks, where = _variants(per_camera, options.mask_chunk)
+    out = _baseline_kinds(
+        model.params,
+        obs,
+        fed,
+        target,
+        variant_cams,
+        variant_masks,
+        cfg=model.config,
+        kinds=("occlusion",),
+        options=_compiled_options(options, ("occlusion",)),
+        base_outputs=False,
     )
+    scores = _scores_out(out["occlusion_scores"], t)
+    return {c: scores[s] for c, s in zip(cams, where, strict=True) if c in masks}
+
+
+def rescore_images(
+    model: Pi0FAST,
+    obs: Observation,
+    generated_ids: ArrayLike,
+    images: Mapping[str, ArrayLike],
+    *,
+    steps: ArrayLike | None = None,
+    weights: ArrayLike | None = None,
+    mask_chunk: int = MapOptions().mask_chunk,
+) -> np.ndarray:
+    """The explained score for image variants: images camera -> [M, B, H, W, 3] (float32 in [-1, 1], at the model
+    resolution); variant m replaces those cameras jointly, re-encodes them, keeps the other cameras' tokens.
+    Target as `rescore_masks`. -> [M, B, T] (steps) or [M, B] (weights)."""
+    obs, fed, _ = _prepare(model, obs, generated_ids)
+    target, t = _rescore_target(fed, steps, weights)
+    cams = tuple(obs.images)
+    if not images or set(images) - set(cams):
+        raise ValueError(f"image variants must name some of the model's cameras {cams}, got {sorted(images)}")
+    variants = {c: np.asarray(images[c], np.float32) for c in cams if c in images}
+    m = {v.shape[0] for v in variants.values()}
+    expected = (fed.shape[0], *model.config.image_resolution, 3)
+    if len(m) != 1 or any(v.shape[1:] != expected for v in variants.values()):
+        raise ValueError(f"every camera needs [M, {', '.join(map(str, expected))}] variants with the same M")
+    m = m.pop()
+    pad = -m % mask_chunk
+    variants = {c: jnp.asarray(np.concatenate([v, np.repeat(v[:1], pad, axis=0)])) for c, v in variants.items()}
+    scores = _variant_scores(model.params, obs, fed, target, variants, cfg=model.config, chunk=mask_chunk)
+    return _scores_out(scores, t)[:m]

@@ -1,0 +1,221 @@
+"""Faithfulness metrics for attribution maps over a camera's patch grid: pure functions of maps, boxes and a
+re-scoring callback (no model here; `openpi_cam.model.pi0_fast_maps.rescore_masks` gives the callback).
+
+Conventions shared by every function:
+* A map is [Hp, Wp], or a per-token stack [T, Hp, Wp] that is reduced by its mean over T (`reduce_map`): the mean
+  keeps each token's sign and scale, as the explained chunk score is a sum over tokens.
+* Signs: orders (deletion, top-1, Spearman) use the signed map, highest first = most supporting. Mass-based
+  metrics (mass on target, nuisance ratio) use the positive part only: negative evidence is not "looking at" a box.
+  The pointing game uses the signed peak and counts a map whose peak is not positive as a miss.
+* Ties: patches are ordered by value descending, ties by row-major patch index ascending, so every order is
+  deterministic.
+* Deletion paints patches with a baseline frame and re-runs the model through `rescore(masks) -> scores`, masks bool
+  [K, Hp, Wp] (True = painted), scores [K]. A drop is score(nothing painted) - score(painted), from the same call.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+
+import numpy as np
+from scipy import stats
+
+Rescore = Callable[[np.ndarray], np.ndarray]  # masks bool [K, Hp, Wp] -> scores [K]
+
+
+def reduce_map(cam_map: np.ndarray) -> np.ndarray:
+    """[Hp, Wp] or [T, Hp, Wp] -> float64 [Hp, Wp] (mean over T)."""
+    m = np.asarray(cam_map, np.float64)
+    if m.ndim == 3:
+        return m.mean(axis=0)
+    if m.ndim != 2:
+        raise ValueError(f"a map is [Hp, Wp] or [T, Hp, Wp], got shape {m.shape}")
+    return m
+
+
+def patch_order(cam_map: np.ndarray) -> np.ndarray:
+    """Row-major patch indices, highest (signed) value first, ties by index. -> int [Hp * Wp]"""
+    return np.argsort(-reduce_map(cam_map).ravel(), kind="stable")
+
+
+def top_k_masks(order: np.ndarray, grid: tuple[int, int]) -> np.ndarray:
+    """Row k paints the first k patches of `order` (k = 0..N, N = Hp * Wp). -> bool [N + 1, Hp, Wp]"""
+    n = grid[0] * grid[1]
+    rank = np.empty(n, np.int64)
+    rank[np.asarray(order)] = np.arange(n)
+    return (rank[None, :] < np.arange(n + 1)[:, None]).reshape(n + 1, *grid)
+
+
+def single_patch_masks(grid: tuple[int, int]) -> np.ndarray:
+    """Row 0 paints nothing, row 1 + i paints patch i (row-major) alone. -> bool [N + 1, Hp, Wp]"""
+    n = grid[0] * grid[1]
+    return np.concatenate([np.zeros((1, n), bool), np.eye(n, dtype=bool)]).reshape(n + 1, *grid)
+
+
+def _drops(rescore: Rescore, masks: np.ndarray) -> np.ndarray:
+    """Scores of masks whose row 0 paints nothing -> drops against it [K] (drop[0] = 0)."""
+    scores = np.asarray(rescore(masks), np.float64).reshape(-1)
+    if scores.shape[0] != masks.shape[0]:
+        raise ValueError(f"rescore returned {scores.shape[0]} scores for {masks.shape[0]} masks")
+    return scores[0] - scores
+
+
+def single_patch_drops(rescore: Rescore, grid: tuple[int, int]) -> np.ndarray:
+    """Occlusion of every patch alone: drop when only that patch is painted. -> [Hp, Wp]"""
+    return _drops(rescore, single_patch_masks(grid))[1:].reshape(grid)
+
+
+def deletion_drops(order: np.ndarray, rescore: Rescore, grid: tuple[int, int]) -> np.ndarray:
+    """Drops after painting the first k patches of `order`, k = 0..N (one rescore call). -> [N + 1]"""
+    return _drops(rescore, top_k_masks(order, grid))
+
+
+def random_deletion_drops(rescore: Rescore, grid: tuple[int, int], orders: int = 8, seed: int = 0) -> np.ndarray:
+    """Expected deletion drops of a random order: the mean over `orders` uniformly random permutations
+    (`numpy.random.default_rng(seed)`), all re-scored in one call. -> [N + 1]"""
+    n = grid[0] * grid[1]
+    rng = np.random.default_rng(seed)
+    masks = np.concatenate(
+        [np.zeros((1, *grid), bool)] + [top_k_masks(rng.permutation(n), grid)[1:] for _ in range(orders)]
+    )
+    drops = _drops(rescore, masks)[1:].reshape(orders, n)
+    return np.concatenate([[0.0], drops.mean(axis=0)])
+
+
+def deletion_summary(drops: np.ndarray, optimum: float, ks: Sequence[int] = (1, 2, 4)) -> tuple[np.ndarray, float]:
+    """(drop at each k / optimum, AUC) with AUC = mean over k = 1..N of drop_k / optimum (the area under the
+    normalised drop-vs-k curve divided by N). NaN when the optimum is not positive (no patch lowers the score)."""
+    drops = np.asarray(drops, np.float64)
+    if optimum <= 0:
+        return np.full(len(ks), np.nan), float("nan")
+    return drops[list(ks)] / optimum, float(drops[1:].mean() / optimum)
+
+
+@dataclasses.dataclass(frozen=True)
+class Deletion:
+    """A map's deletion curve next to a random order's, normalised by the single-patch occlusion optimum (the
+    largest drop any one patch causes alone): occlusion's own map scores 1.0 at k = 1 by definition."""
+
+    ks: tuple[int, ...]
+    at_k: np.ndarray  # [len(ks)]: drop after painting the map's top k patches / optimum
+    auc: float  # mean over k = 1..N of drop_k / optimum
+    random_at_k: np.ndarray  # the same for a random order (expectation over `random_orders` permutations)
+    random_auc: float
+    optimum: float
+    drops: np.ndarray  # [N + 1] raw drops along the map's order (drops[0] = 0)
+    random_drops: np.ndarray  # [N + 1]
+    order: np.ndarray  # [N] the patch order used (row-major indices)
+
+
+def deletion_curve(
+    cam_map: np.ndarray,
+    rescore: Rescore,
+    *,
+    ks: Sequence[int] = (1, 2, 4),
+    random_orders: int = 8,
+    seed: int = 0,
+    single_drops: np.ndarray | None = None,
+    random_drops: np.ndarray | None = None,
+) -> Deletion:
+    """Deletion metric of one map: paint its patches highest first and measure the score drop after each.
+
+    `single_drops` ([Hp, Wp], `single_patch_drops`) and `random_drops` ([N + 1], `random_deletion_drops`) depend
+    only on the explained score, not the map: pass them to share them between maps of the same step."""
+    grid = reduce_map(cam_map).shape
+    if single_drops is None:
+        single_drops = single_patch_drops(rescore, grid)
+    if random_drops is None:
+        random_drops = random_deletion_drops(rescore, grid, random_orders, seed)
+    order = patch_order(cam_map)
+    drops = deletion_drops(order, rescore, grid)
+    optimum = float(np.max(single_drops))
+    at_k, auc = deletion_summary(drops, optimum, ks)
+    random_at_k, random_auc = deletion_summary(random_drops, optimum, ks)
+    return Deletion(tuple(ks), at_k, auc, random_at_k, random_auc, optimum, drops, np.asarray(random_drops), order)
+
+
+def top1_agreement(cam_map: np.ndarray, reference: np.ndarray) -> bool:
+    """Do the two maps' top patches (signed, ties by index) coincide? Against an occlusion map: does the map's
+    peak name the patch whose removal alone lowers the score most."""
+    return bool(patch_order(cam_map)[0] == patch_order(reference)[0])
+
+
+def spearman(a: np.ndarray, b: np.ndarray) -> float:
+    """Spearman rank correlation of two (reduced, signed) maps over patches, ties given their average rank; NaN when
+    either map is constant."""
+    x, y = reduce_map(a).ravel(), reduce_map(b).ravel()
+    if np.ptp(x) == 0 or np.ptp(y) == 0:
+        return float("nan")
+    return float(stats.spearmanr(x, y).statistic)
+
+
+def bootstrap_mean_ci(
+    values: Sequence[float], *, resamples: int = 10_000, level: float = 0.95, seed: int = 0
+) -> tuple[float, float, float]:
+    """(mean, low, high): percentile bootstrap interval of the mean over steps; `resamples` resamples with
+    replacement drawn by `numpy.random.default_rng(seed)`. Non-finite values (e.g. Spearman of a constant map)
+    are dropped first; NaNs when nothing is left."""
+    x = np.asarray(values, np.float64)
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return float("nan"), float("nan"), float("nan")
+    means = x[np.random.default_rng(seed).integers(0, x.size, size=(resamples, x.size))].mean(axis=1)
+    tail = (1.0 - level) / 2.0 * 100.0
+    return float(x.mean()), float(np.percentile(means, tail)), float(np.percentile(means, 100.0 - tail))
+
+
+def randomisation_abs_spearman(maps: Sequence[np.ndarray], random_maps: Sequence[np.ndarray]) -> np.ndarray:
+    """Model randomisation (Adebayo et al. 2018): |Spearman| between each map and the same method's map of the same
+    step from a re-initialised model. A method that depends on what the model learned scores near the null
+    (`null_abs_spearman`); one that mostly reflects the input scores high. -> [n]"""
+    if len(maps) != len(random_maps):
+        raise ValueError("one randomised map per map")
+    return np.abs([spearman(a, b) for a, b in zip(maps, random_maps, strict=True)])
+
+
+def null_abs_spearman(maps: Sequence[np.ndarray]) -> np.ndarray:
+    """|Spearman| between maps of unrelated steps (same camera, same method): map i against map i + 1 (cyclic), so
+    n maps give n pairs. The level randomisation should be compared with. -> [n]"""
+    n = len(maps)
+    if n < 2:
+        raise ValueError("the null needs maps of at least two steps")
+    return np.abs([spearman(maps[i], maps[(i + 1) % n]) for i in range(n)])
+
+
+def box_cells(box: Sequence[int], grid: tuple[int, int], image_size: int | tuple[int, int]) -> np.ndarray:
+    """bool [Hp, Wp]: the patches sharing at least one pixel with box (x0, y0, x1, y1), end exclusive, for an image
+    of `image_size` (side, or (H, W)) pixels cut into the grid."""
+    h, w = (image_size, image_size) if np.ndim(image_size) == 0 else image_size
+    x0, y0, x1, y1 = box
+    ph, pw = h / grid[0], w / grid[1]
+    rows = (np.arange(grid[0]) * ph < y1) & ((np.arange(grid[0]) + 1) * ph > y0)
+    cols = (np.arange(grid[1]) * pw < x1) & ((np.arange(grid[1]) + 1) * pw > x0)
+    return rows[:, None] & cols[None, :]
+
+
+def pointing_hit(cam_map: np.ndarray, cells: np.ndarray) -> bool:
+    """Pointing game: the peak patch (signed, ties by index) lies in `cells`, and its value is positive."""
+    m = reduce_map(cam_map)
+    peak = patch_order(m)[0]
+    return bool(m.ravel()[peak] > 0 and np.asarray(cells, bool).ravel()[peak])
+
+
+def pointing_chance(cells: np.ndarray) -> float:
+    """Hit rate of a peak placed uniformly at random: the share of patches in `cells`."""
+    return float(np.mean(cells))
+
+
+def mass_on_target(cam_map: np.ndarray, cells: np.ndarray) -> float:
+    """Share of the map's positive mass on `cells` (chance: `pointing_chance(cells)`, a uniform map); NaN
+    without positive mass."""
+    pos = np.maximum(reduce_map(cam_map), 0.0)
+    total = pos.sum()
+    return float(pos[np.asarray(cells, bool)].sum() / total) if total > 0 else float("nan")
+
+
+def nuisance_mass_ratio(cam_map: np.ndarray, relevant_cells: np.ndarray) -> float:
+    """Nuisance mass ratio (Zhang et al.): share of positive mass outside the task-relevant cells (chance:
+    1 - their share of patches); NaN without positive mass."""
+    inside = mass_on_target(cam_map, relevant_cells)
+    return 1.0 - inside
