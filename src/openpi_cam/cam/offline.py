@@ -33,7 +33,7 @@ from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.records import EXTRA_PREFIX, SaveFrames, jsonable, split_extra, step_record
 from openpi_cam.cam.runfmt import RUN_JSON, load_run
 from openpi_cam.cam.side_channel import TracedPolicy
-from openpi_cam.model.attribution import MapKind
+from openpi_cam.model.attribution import MapKind, MapOptions
 from openpi_cam.nested import unflatten_dict
 from openpi_cam.policies.family import ExplainRequest, ExplainSkipped, Target
 
@@ -43,7 +43,7 @@ _RECORD_RE = re.compile(r"^step_(\d+)\.npy$")
 SOURCE_KEY = "source"  # meta["extra"] key holding the id of the record a step explains
 # run.json fields that must match for a resumed run to stay one consistent explanation of one source.
 _RESUME_CONFIG_KEYS = ("config", "checkpoint_dir", "dtype", "source")
-_RESUME_OPTION_KEYS = ("target", "action_index", "action_dim_index", "maps")
+_RESUME_OPTION_KEYS = ("target", "action_index", "action_dim_index", "maps", "baseline")
 
 # Wraps the replays with a progress display: (replays, how many) -> the same replays.
 Progress = Callable[[Iterator["Replay"], int], Iterator["Replay"]]
@@ -71,6 +71,7 @@ class ExplainOptions:
     save_frames: SaveFrames = "both"
     batch_size: int = 8  # observations per explainer call (padded to a multiple of the device count)
     limit: int | None = None  # explain at most this many new observations
+    map_options: MapOptions = dataclasses.field(default_factory=MapOptions)  # of the "ig" / "occlusion" kinds
 
     def __post_init__(self) -> None:
         if self.batch_size < 1 or (self.limit is not None and self.limit < 0):
@@ -79,7 +80,7 @@ class ExplainOptions:
 
     @property
     def request(self) -> ExplainRequest:
-        return ExplainRequest(self.target, self.action_index, self.action_dim_index, tuple(self.maps))
+        return ExplainRequest(self.target, self.action_index, self.action_dim_index, tuple(self.maps), self.map_options)
 
 
 def split_extra_json(obs: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -228,9 +229,9 @@ def resume_mismatch(run_info: Mapping[str, Any], run_config: dict[str, Any], opt
         if old_config.get(k) != run_config[k]
     ]
     return diffs + [
-        f"{k}: {old_options.get(k)!r} != {options[k]!r}"
+        f"{k}: {old_options.get(k)!r} != {options.get(k)!r}"
         for k in _RESUME_OPTION_KEYS
-        if old_options.get(k) != options[k]
+        if old_options.get(k) != options.get(k)
     ]
 
 

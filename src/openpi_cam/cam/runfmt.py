@@ -33,7 +33,7 @@ INDEX_JSONL = "index.jsonl"
 MANIFEST_JSON = "manifest.json"
 STEPS_DIR = "steps"
 # Step-file key prefix of each map kind, followed by the camera name.
-MAP_PREFIXES: dict[str, str] = {"gradcam": "cam/", "gradnorm": "gradnorm/"}
+MAP_PREFIXES: dict[str, str] = {"gradcam": "cam/", "gradnorm": "gradnorm/", "ig": "ig/", "occlusion": "occlusion/"}
 FRAME_PREFIX = "frame/"
 MODEL_FRAME_PREFIX = "frame_model/"
 INPUT_PREFIX = "input/"  # the explained call's non-image model inputs (token ids, masks, generated output)

@@ -22,7 +22,7 @@ from openpi_cam.cam.batching import explain_traces
 from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.records import SAVE_FRAMES, SaveFrames, jsonable, split_extra, step_record
 from openpi_cam.counters import WarnOnceCounter
-from openpi_cam.model.attribution import MapKind
+from openpi_cam.model.attribution import MapKind, MapOptions
 from openpi_cam.policies.family import Explainer, ExplainRequest, ExplainSkipped, Target
 from openpi_cam.policies.policy import InferenceTrace
 
@@ -56,6 +56,7 @@ class CAMOptions:
     action_index: int = 0  # pi0-FAST: which action token ("action-token"); pi0 / pi0.5: horizon step ("action")
     action_dim_index: int = 0  # pi0 / pi0.5: which action dimension ("action")
     maps: tuple[MapKind, ...] = ("gradcam", "gradnorm")  # which map kinds each explained step carries
+    map_options: MapOptions = dataclasses.field(default_factory=MapOptions)  # of the "ig" / "occlusion" kinds
     queue_size: int = 8
     max_steps: int | None = None
     max_bytes: int | None = None
@@ -70,7 +71,7 @@ class CAMOptions:
 
     @property
     def request(self) -> ExplainRequest:
-        return ExplainRequest(self.target, self.action_index, self.action_dim_index, tuple(self.maps))
+        return ExplainRequest(self.target, self.action_index, self.action_dim_index, tuple(self.maps), self.map_options)
 
 
 @dataclasses.dataclass

@@ -16,6 +16,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("openpi_cam.cli.demo", "run the bundled tiny model end to end with the side channel on"),
     "golden": ("openpi_cam.cli.golden", "check the model against an upstream golden folder"),
     "explain": ("openpi_cam.cli.explain", "compute maps offline for recorded observations"),
+    "faithfulness": ("openpi_cam.cli.faithfulness", "how faithful a run's maps are, re-scored by the model"),
     "render": ("openpi_cam.cli.render", "overlays, videos and an HTML report for a CAM run"),
     "stats": ("openpi_cam.cli.stats", "per-step, per-camera map statistics of a CAM run"),
     "cam-index": ("openpi_cam.cli.cam_index", "rebuild a CAM run's manifest from its step files"),

@@ -5,7 +5,9 @@ from __future__ import annotations
 import pathlib
 from typing import Literal
 
+from openpi_cam.cam.faithfulness_run import format_report
 from openpi_cam.demo.run import DemoOptions, run_demo
+from openpi_cam.model.attribution import MAP_KINDS, MapKind
 from openpi_cam.policies.family import Target
 from openpi_cam.viz.stats import MAP_LABELS
 
@@ -21,6 +23,8 @@ def main(
     videos: bool = False,
     model: Literal["pi0_fast", "pi05"] = "pi0_fast",
     assets: pathlib.Path | None = None,
+    maps: tuple[MapKind, ...] = MAP_KINDS,
+    faithfulness: bool = True,
 ) -> int:
     """Run the bundled model end to end: server + side channel + simulated robot + rendered reports + figures.
 
@@ -35,8 +39,12 @@ def main(
         videos: also write MP4/GIF videos (needs the viz extra).
         model: which bundled model serves: the tiny pi0-FAST (default) or the tiny pi0.5 trained on the same task.
         assets: directory holding the model (checkpoint/) and its tokenizers (default: the bundled ones of `model`).
+        maps: which map kinds the side channel computes (all four by default, to compare them).
+        faithfulness: re-score every step afterwards and print how faithful each map kind is.
     """
-    opts = DemoOptions(out, episodes, max_calls, execute, seed, target, render, videos, model, assets)
+    opts = DemoOptions(
+        out, episodes, max_calls, execute, seed, target, render, videos, model, assets, maps, faithfulness
+    )
     try:
         result = run_demo(opts)
     except OSError as e:
@@ -48,6 +56,10 @@ def main(
     print(f"pointing game over {figures['steps']} steps (the base camera's map peaks on the named block):")
     for kind, f in figures["maps"].items():
         print(f"  {MAP_LABELS[kind]:>36}: {f['pointing_game']:.0%} (chance {f['pointing_chance']:.0%})")
+    if result.faithfulness is not None:
+        print()
+        print(format_report(result.faithfulness))
+        print()
     print(f"run directory: {result.run_dir}")
     for kind, report in result.reports.items():
         print(f"open the {MAP_LABELS[kind]} report: {report}")

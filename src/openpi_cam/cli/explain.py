@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pathlib
 import sys
+from typing import Literal
 
 import tyro
 
@@ -13,7 +14,7 @@ from openpi_cam.cam.records import SaveFrames
 from openpi_cam.cam.runfmt import RUN_JSON, load_run
 from openpi_cam.cli.options import parse_action_index
 from openpi_cam.errors import InvalidRequest
-from openpi_cam.model.attribution import MapKind
+from openpi_cam.model.attribution import MAP_KINDS, MapKind, MapOptions
 from openpi_cam.policies import demo_reach  # noqa: F401  (registers the bundled demo_reach config)
 from openpi_cam.policies.family import Target
 from openpi_cam.policies.policy import create_policy
@@ -29,7 +30,8 @@ def main(
     resume: pathlib.Path | None = None,
     target: Target = "action-token",
     action_index: str = "0",
-    maps: tuple[MapKind, ...] = ("gradcam", "gradnorm"),
+    maps: tuple[MapKind, ...] = MAP_KINDS,
+    baseline: Literal["mean", "blur"] = "mean",
     save_frames: SaveFrames = "both",
     batch_size: int = 8,
     limit: int | None = None,
@@ -53,7 +55,9 @@ def main(
         target: which score the maps explain (generations without action tokens: `generated-tokens`).
         action_index: pi0-FAST: which action token (`action-token`); pi0 / pi0.5: `H,D`, dimension D at horizon
             step H (`action`).
-        maps: which kinds of map to compute (README, "Which map to trust").
+        maps: which kinds of map to compute (README, "Which map to trust"); all four by default.
+        baseline: the frame IG starts from and occlusion paints with: the frame's mean colour (measured more
+            faithful on the demo model) or a Gaussian-blurred copy (sigma 8 px).
         save_frames: which camera frames to store next to the maps (`raw`/`both` keep the run re-explainable).
         batch_size: observations explained per model call, split over all local devices.
         limit: explain at most this many observations not yet in the run (resume later for the rest).
@@ -83,10 +87,13 @@ def main(
             "action_index": index,
             "action_dim_index": dim_index,
             "maps": list(maps),
+            "baseline": baseline,
             "save_frames": save_frames,
         }
         replays, total = open_source(source, nested_keys=nested_keys)
-        options = ExplainOptions(target, index, dim_index, tuple(maps), save_frames, batch_size, limit)
+        options = ExplainOptions(
+            target, index, dim_index, tuple(maps), save_frames, batch_size, limit, MapOptions(baseline=baseline)
+        )
         if resume_dir is not None:
             run_info = load_run(resume_dir, load_arrays=False).run_info
             if diffs := resume_mismatch(run_info, run_config, run_options):

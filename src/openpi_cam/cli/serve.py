@@ -14,7 +14,7 @@ from typing import Literal
 from openpi_cam.cam.records import SaveFrames
 from openpi_cam.cam.side_channel import CAMOptions, CAMPolicy, wrap_policy_with_cam
 from openpi_cam.cli.options import parse_action_index
-from openpi_cam.model.attribution import MapKind
+from openpi_cam.model.attribution import DEFAULT_KINDS, MapKind, MapOptions
 from openpi_cam.model.config import MAX_DECODING_STEPS
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import Target
@@ -42,7 +42,8 @@ def main(
     cam_save_frames: SaveFrames = "model",
     cam_target: Target = "action-token",
     cam_action_index: str = "0",
-    cam_maps: tuple[MapKind, ...] = ("gradcam", "gradnorm"),
+    cam_maps: tuple[MapKind, ...] = DEFAULT_KINDS,
+    cam_baseline: Literal["mean", "blur"] = "mean",
     cam_queue_size: int = 8,
     cam_max_steps: int | None = None,
     cam_max_mb: float | None = None,
@@ -70,7 +71,10 @@ def main(
             `generated-tokens` whatever this says).
         cam_action_index: pi0-FAST: which action token (`action-token`); pi0 / pi0.5: `H,D`, dimension D at horizon
             step H (`action`).
-        cam_maps: which kinds of map each explained step carries (README, "Which map to trust").
+        cam_maps: which kinds of map each explained step carries (README, "Which map to trust"): `gradcam` and
+            `gradnorm` cost one backward pass together; `ig` (about 8x an inference on the demo model) and
+            `occlusion` (one re-run per patch and camera) are opt-in live.
+        cam_baseline: the frame `ig` starts from and `occlusion` paints with: the frame's mean colour or a blurred copy.
         cam_queue_size: pending Grad-CAM jobs before new ones are dropped (inference never waits).
         cam_max_steps: stop recording after this many steps (None = no limit).
         cam_max_mb: stop recording once the run directory holds this many MB (None = no limit).
@@ -126,6 +130,7 @@ def main(
             action_index=action_index,
             action_dim_index=action_dim_index,
             maps=cam_maps,
+            map_options=MapOptions(baseline=cam_baseline),
             queue_size=cam_queue_size,
             max_steps=cam_max_steps,
             max_bytes=None if cam_max_mb is None else int(cam_max_mb * 1024 * 1024),

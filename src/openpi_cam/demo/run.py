@@ -10,10 +10,12 @@ import pathlib
 import time
 from typing import Any, Literal
 
+from openpi_cam.cam.faithfulness_run import FaithfulnessOptions, evaluate_run
 from openpi_cam.cam.runfmt import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.demo import bundled, quality, sim
 from openpi_cam.demo.client import PolicyClient
+from openpi_cam.model.attribution import MAP_KINDS, MapKind
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import Target
 from openpi_cam.serving.server import start_server_in_thread
@@ -55,6 +57,8 @@ class DemoOptions:
     videos: bool = False
     model: Literal["pi0_fast", "pi05"] = "pi0_fast"
     assets: pathlib.Path | None = None  # None: the bundled model of `model`
+    maps: tuple[MapKind, ...] = MAP_KINDS  # every kind, so the faithfulness table compares them all
+    faithfulness: bool = True  # re-score every step and report how faithful each map kind is
 
 
 @dataclasses.dataclass
@@ -64,6 +68,7 @@ class DemoResult:
     figures: dict[str, Any]
     reports: dict[str, pathlib.Path]
     seconds: float
+    faithfulness: dict[str, Any] | None = None  # `cam.faithfulness_run.evaluate_run`'s report
 
 
 def run_demo(opts: DemoOptions) -> DemoResult:
@@ -71,7 +76,9 @@ def run_demo(opts: DemoOptions) -> DemoResult:
     t0 = time.time()
     assets = demo_reach.DEFAULT_ASSETS[opts.model] if opts.assets is None else opts.assets
     policy = demo_reach.create_demo_policy(model=opts.model, assets=assets)
-    options = CAMOptions(every_k=1, cam_dir=opts.out, save_frames="both", target=opts.target, queue_size=64)
+    options = CAMOptions(
+        every_k=1, cam_dir=opts.out, save_frames="both", target=opts.target, maps=opts.maps, queue_size=64
+    )
     config = demo_reach.DEMO_CONFIGS[opts.model].name
     run_config = {"config": config, "demo": {"episodes": opts.episodes, "seed": opts.seed, "model": opts.model}}
     checkpoint = str(assets / demo_reach.CHECKPOINT.name)
@@ -95,4 +102,7 @@ def run_demo(opts: DemoOptions) -> DemoResult:
             result = render_run(run, default_render_dir(run_dir, kind), render_opts)
             if result.report is not None:
                 reports[kind] = result.report
-    return DemoResult(run_dir, episodes, quality.run_figures(run_dir), reports, time.time() - t0)
+    faithfulness = None
+    if opts.faithfulness:
+        faithfulness = evaluate_run(load_run(run_dir), policy.explainer, FaithfulnessOptions(randomize="llm"))
+    return DemoResult(run_dir, episodes, quality.run_figures(run_dir), reports, time.time() - t0, faithfulness)

@@ -13,7 +13,7 @@ The image helpers work on one camera's images [..., H, W, 3] at the model resolu
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Literal, get_args
 
 import jax
@@ -83,6 +83,35 @@ GRADIENT_KINDS: tuple[MapKind, ...] = ("gradcam", "gradnorm")  # one backward pa
 BASELINE_KINDS: tuple[MapKind, ...] = ("ig", "occlusion")  # compare the frame with a baseline frame
 # What a live side channel computes unless told otherwise: the kinds at the cost of one backward pass.
 DEFAULT_KINDS: tuple[MapKind, ...] = GRADIENT_KINDS
+
+
+def check_kinds(kinds: Sequence[str]) -> tuple[MapKind, ...]:
+    """The requested kinds, deduplicated in order; an unknown or empty selection is an error naming the choices."""
+    kinds = tuple(dict.fromkeys(kinds))
+    unknown = [k for k in kinds if k not in MAP_KINDS]
+    if unknown or not kinds:
+        raise ValueError(f"map kinds must be a non-empty selection of {MAP_KINDS}, got {list(kinds)}")
+    return kinds  # type: ignore[return-value]
+
+
+@dataclasses.dataclass(frozen=True)
+class IgCompleteness:
+    """IG's completeness check per row (and explained token): attribution_sum should equal score - baseline_score."""
+
+    score: np.ndarray  # [B] or [B, T]: score(E)
+    baseline_score: np.ndarray  # score(E0), E0 the baseline frame's tokens
+    attribution_sum: np.ndarray  # IG attributions summed over every camera and token
+    steps: int  # quadrature steps used (ig_steps, doubled while the completeness target was missed)
+
+    @property
+    def error(self) -> np.ndarray:
+        return np.abs(self.attribution_sum - (self.score - self.baseline_score))
+
+    @property
+    def relative_error(self) -> np.ndarray:
+        """error / |score(E) - score(E0)| (the 2% target is on this); inf when the two scores coincide."""
+        gap = np.abs(self.score - self.baseline_score)
+        return np.divide(self.error, gap, out=np.full_like(gap, np.inf), where=gap > 0)
 
 
 def gradcam_reduce(E: jax.Array, G: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:

@@ -37,3 +37,25 @@ def init_from_shapes(shapes: Mapping[str, tuple[int, ...]], rng: jax.Array) -> d
         else:
             leaves[path] = jax.random.normal(key, shape) * _fan_in(path, shape) ** -0.5
     return unflatten_dict(leaves)
+
+
+def randomized(params: dict, scope: str, rng: jax.Array) -> dict:
+    """`params` with the weights in `scope` replaced by Gaussian noise of each tensor's own mean and standard
+    deviation: "llm" the language model (and pi0's action expert, which lives in the same transformer) only, SigLIP
+    and the projections kept; "all" every weight. Each leaf keeps its dtype. For the model randomisation test of
+    attribution maps (Adebayo et al. 2018). Matching each tensor's moments rather than re-running the training
+    initialisation keeps every path open: pi0.5's adaRMS gates start at zero, which would cut the action expert off
+    from the images and make every map constant."""
+    if scope not in ("llm", "all"):
+        raise ValueError(f"randomisation scope must be 'llm' or 'all', got {scope!r}")
+    target = params if scope == "all" else params["PaliGemma"]["llm"]
+    leaves, treedef = jax.tree.flatten(target)
+    fresh = []
+    for leaf, key in zip(leaves, jax.random.split(rng, len(leaves)), strict=True):
+        x = jnp.asarray(leaf, jnp.float32)
+        noise = jax.random.normal(key, x.shape) * jnp.std(x) + jnp.mean(x)
+        fresh.append(noise.astype(leaf.dtype))
+    fresh_tree = jax.tree.unflatten(treedef, fresh)
+    if scope == "all":
+        return fresh_tree
+    return {**params, "PaliGemma": {**params["PaliGemma"], "llm": fresh_tree}}

@@ -37,46 +37,19 @@ import jax.numpy as jnp
 import numpy as np
 from numpy.typing import ArrayLike
 
-from openpi_cam.model import gemma
+from openpi_cam.model import baseline_maps, gemma
 from openpi_cam.model.attribution import (
     BASELINE_KINDS,
     DEFAULT_KINDS,
     GRADIENT_KINDS,
-    MAP_KINDS,
+    IgCompleteness,
     MapOptions,
-    baseline_images,
-    completeness_met,
+    check_kinds,
     gradcam_reduce,
-    integrated_gradients,
-    iss_map,
-    paint,
-    random_region_masks,
-    region_map,
-    region_masks,
 )
 from openpi_cam.model.config import MAX_DECODING_STEPS, Pi0FASTConfig
 from openpi_cam.model.observation import Observation, preprocess_observation
 from openpi_cam.model.pi0_fast import Pi0FAST, embed_images, replay_prelogits
-
-
-@dataclasses.dataclass(frozen=True)
-class IgCompleteness:
-    """IG's completeness check per row (and explained token): attribution_sum should equal score - baseline_score."""
-
-    score: np.ndarray  # [B] or [B, T]: score(E)
-    baseline_score: np.ndarray  # score(E0), E0 the baseline frame's tokens
-    attribution_sum: np.ndarray  # IG attributions summed over every camera and token
-    steps: int  # quadrature steps used (ig_steps, doubled while the completeness target was missed)
-
-    @property
-    def error(self) -> np.ndarray:
-        return np.abs(self.attribution_sum - (self.score - self.baseline_score))
-
-    @property
-    def relative_error(self) -> np.ndarray:
-        """error / |score(E) - score(E0)| (the 2% target is on this); inf when the two scores coincide."""
-        gap = np.abs(self.score - self.baseline_score)
-        return np.divide(self.error, gap, out=np.full_like(gap, np.inf), where=gap > 0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -220,67 +193,20 @@ def _score_fn(params, obs, fed, target, cfg) -> Callable[[jax.Array], jax.Array]
     return fn
 
 
-def _camera_stack(obs: Observation) -> tuple[jax.Array, jax.Array]:
-    """images [C, B, H, W, 3] and validity [C, B] in camera order (every camera is at the model resolution)."""
-    images = jnp.stack([jnp.asarray(obs.images[c], jnp.float32) for c in obs.images])
-    valid = jnp.stack([jnp.asarray(obs.image_masks[c], bool).reshape(-1) for c in obs.images])
-    return images, valid
-
-
-def _with_images(obs: Observation, images: Mapping[str, jax.Array]) -> Observation:
-    return dataclasses.replace(obs, images=dict(images))
-
-
-def _painted_scores(params, obs, score_fn, E, images, base, cams, masks, chunk, cfg) -> jax.Array:
-    """Scores with camera cams[k]'s patches masks[k] replaced by its baseline frame, that camera re-encoded by SigLIP
-    and the others' tokens kept. cams int32 [K], masks bool [K, Hp, Wp], K a multiple of `chunk` -> [K, T, B].
-
-    A chunk of variants runs vectorised (forward only, so `vmap` is safe here); the chunks run one after another
-    (`lax.map`), which bounds memory at chunk x B model runs for any number of masks."""
-    name = next(iter(obs.images))
-    select = jnp.arange(E.shape[1])[None, :, None, None]  # [1, C, 1, 1]
-
-    def one(cam, mask):
-        image = paint(images[cam], base[cam], mask, cfg.siglip.patch_size)  # [B, H, W, 3]
-        tokens = embed_images(params, _with_images(obs, {name: image}), cfg)  # [B, 1, N, D]
-        return score_fn(jnp.where(select == cam, tokens, E))
-
-    k = cams.shape[0]
-    scores = jax.lax.map(
-        lambda chunk_args: jax.vmap(one)(*chunk_args),
-        (cams.reshape(k // chunk, chunk), masks.reshape(k // chunk, chunk, *masks.shape[1:])),
-    )
-    return scores.reshape(k, *scores.shape[2:])
-
-
 @functools.partial(jax.jit, static_argnames=("cfg", "kinds", "options", "base_outputs"))
 def _baseline_kinds(params, obs, fed, target, cams, masks, *, cfg: Pi0FASTConfig, kinds, options, base_outputs):
-    """The kinds that compare with a baseline frame, for one target (token steps [T, B], or weights as T = 1).
-
-    Returns a dict: "ig" [T, B, C, N] with "ig_score" / "ig_baseline_score" [T, B]; "occlusion_scores" [K, T, B]
-    for the variants (cams, masks); with `base_outputs` (no gradient pass ran) "score" [T, B] and, for token
+    """The kinds that compare with a baseline frame, for one target (token steps [T, B], or weights as T = 1): see
+    `baseline_maps.baseline_kinds`. With `base_outputs` (no gradient pass ran) also "score" [T, B] and, for token
     targets, "logits" [T, B, V]."""
     E = embed_images(params, obs, cfg)
     score_fn = _score_fn(params, obs, fed, target, cfg)
-    images, valid = _camera_stack(obs)
-    base = baseline_images(images, valid, options)  # [C, B, H, W, 3]
-    out = {}
+    out = baseline_maps.baseline_kinds(params, obs, cfg, score_fn, E, cams, masks, kinds, options)
     if base_outputs:
         out["score"] = score_fn(E)
         if "steps" in target:
             rows = jnp.arange(fed.shape[0])[None, :]
             pre = replay_prelogits(params, E, obs, fed, cfg)[rows, target["steps"]]  # [T, B, D]
             out["logits"] = gemma.logits_from_prelogits(params["PaliGemma"]["llm"], pre).astype(jnp.float32)
-    if "ig" in kinds:
-        E0 = embed_images(params, _with_images(obs, dict(zip(obs.images, base, strict=True))), cfg)
-        E0 = jnp.where(valid.T[:, :, None, None], E0, E)  # a masked camera is its own baseline
-        out["ig"], out["ig_score"], out["ig_baseline_score"] = integrated_gradients(
-            score_fn, E, E0, options.ig_rule, options.ig_steps
-        )
-    if "occlusion" in kinds:
-        out["occlusion_scores"] = _painted_scores(
-            params, obs, score_fn, E, images, base, cams, masks, options.mask_chunk, cfg
-        )
     return out
 
 
@@ -293,7 +219,7 @@ def _variant_scores(params, obs, fed, target, variants, *, cfg: Pi0FASTConfig, c
     index = jnp.asarray([list(obs.images).index(c) for c in variants])
 
     def one(images):
-        return score_fn(E.at[:, index].set(embed_images(params, _with_images(obs, images), cfg)))
+        return score_fn(E.at[:, index].set(embed_images(params, baseline_maps.with_images(obs, images), cfg)))
 
     k = next(iter(variants.values())).shape[0]
     chunks = {c: v.reshape(k // chunk, chunk, *v.shape[1:]) for c, v in variants.items()}
@@ -301,109 +227,29 @@ def _variant_scores(params, obs, fed, target, variants, *, cfg: Pi0FASTConfig, c
     return scores.reshape(k, *scores.shape[2:])
 
 
-@functools.partial(jax.jit, static_argnames=("options",))
-def _baseline_frames(obs: Observation, *, options: MapOptions) -> jax.Array:
-    images, valid = _camera_stack(obs)
-    return baseline_images(images, valid, options)
-
-
-def _check_kinds(kinds: Sequence[str]) -> tuple[str, ...]:
-    kinds = tuple(dict.fromkeys(kinds))
-    unknown = [k for k in kinds if k not in MAP_KINDS]
-    if unknown or not kinds:
-        raise ValueError(f"map kinds must be a non-empty selection of {MAP_KINDS}, got {list(kinds)}")
-    return kinds
-
-
-def _compiled_options(options: MapOptions, kinds: Sequence[str] = BASELINE_KINDS) -> MapOptions:
-    """The options the compiled program depends on: which masks occlusion uses is data (their count a shape), so
-    the mask-drawing fields are reset and e.g. a new seed reuses the compilation; so are the fields of kinds not
-    requested."""
-    defaults = MapOptions()
-    keep = {"baseline", "blur_sigma"}
-    keep |= {"ig_steps", "ig_rule"} if "ig" in kinds else set()
-    keep |= {"mask_chunk"} if "occlusion" in kinds else set()
-    reset = {f.name: getattr(defaults, f.name) for f in dataclasses.fields(MapOptions) if f.name not in keep}
-    return dataclasses.replace(options, **reset)
-
-
-def occlusion_masks(grid: tuple[int, int], options: MapOptions) -> np.ndarray:
-    """The masks occlusion paints one camera with (bool [M, Hp, Wp], True = painted): every region once, or the
-    random ISS masks drawn from the options' seed."""
-    if options.occlusion_mode == "regions":
-        return region_masks(grid, options.occlusion_region)
-    return random_region_masks(grid, options.occlusion_region, options.random_masks, options.keep_prob, options.seed)
-
-
-def _variants(per_camera: Sequence[np.ndarray | None], chunk: int) -> tuple[jax.Array, jax.Array, list[slice]]:
-    """Flattens per-camera mask stacks into one variant list (cams [K], masks [K, Hp, Wp]) padded with no-op
-    variants to a multiple of `chunk`; slice c selects camera c's variants."""
-    cams, masks, where, start = [], [], [], 0
-    for c, m in enumerate(per_camera):
-        m = np.zeros((0,), bool) if m is None else np.asarray(m, bool)
-        if m.size:
-            cams.append(np.full(m.shape[0], c, np.int32))
-            masks.append(m)
-        where.append(slice(start, start + len(m)))
-        start += len(m)
-    cams, masks = np.concatenate(cams), np.concatenate(masks)
-    pad = -len(cams) % chunk
-    cams = np.concatenate([cams, np.zeros(pad, np.int32)])
-    masks = np.concatenate([masks, np.zeros((pad, *masks.shape[1:]), bool)])
-    return jnp.asarray(cams), jnp.asarray(masks), where
+occlusion_masks = baseline_maps.occlusion_masks
+_baseline_frames = jax.jit(baseline_maps.frames, static_argnames=("options",))
 
 
 def _baseline_maps(model, obs, fed, target, kinds, options, base_outputs) -> dict[str, Any]:
-    """Runs the requested baseline kinds; every array keeps the core's leading [T, B] axes. Returns "ig" and
-    "occlusion" (camera -> [T, B, Hp, Wp]), "ig_check" (score, baseline score, attribution sum, each [T, B]) and,
-    with `base_outputs`, "score" [T, B] and "logits" [T, B, V] (token targets)."""
-    cams = tuple(obs.images)
-    grid = model.config.siglip.grid
-    variant_cams = variant_masks = None
-    if "occlusion" in kinds:
-        masks = occlusion_masks(grid, options)
-        reference = np.zeros((1, *grid), bool)  # every camera's drops against its own unpainted re-run
-        variant_cams, variant_masks, where = _variants(
-            [np.concatenate([reference, masks])] * len(cams), options.mask_chunk
-        )
+    """`baseline_maps.collect` over this family's program; with `base_outputs` also "score" [T, B] and "logits"
+    [T, B, V] (token targets)."""
 
-    def run(kinds, options, base_outputs):
+    def run(kinds, options, cams, masks, first):
         return _baseline_kinds(
             model.params,
             obs,
             fed,
             target,
-            variant_cams,
-            variant_masks,
+            cams,
+            masks,
             cfg=model.config,
-            kinds=tuple(k for k in BASELINE_KINDS if k in kinds),
-            options=_compiled_options(options, kinds),
-            base_outputs=base_outputs,
+            kinds=kinds,
+            options=options,
+            base_outputs=base_outputs and first,
         )
 
-    out = run(kinds, options, base_outputs)
-    res: dict[str, Any] = {k: np.asarray(out[k]) for k in ("score", "logits") if k in out}
-    if "ig" in out:
-        steps = options.ig_steps
-        while True:
-            attr = np.asarray(out["ig"])  # [T, B, C, N]
-            check = (np.asarray(out["ig_score"]), np.asarray(out["ig_baseline_score"]))
-            check += (attr.astype(np.float64).sum(axis=(-2, -1)),)
-            met = options.ig_tolerance == 0 or completeness_met(*check, options.ig_tolerance)
-            if met or 2 * steps > options.ig_max_steps:
-                break
-            steps *= 2  # one more compiled program per doubling; only the rare sharp paths pay for it
-            out = run(("ig",), dataclasses.replace(options, ig_steps=steps), False)
-        res["ig"] = {c: attr[..., i, :].reshape(*attr.shape[:2], *grid) for i, c in enumerate(cams)}
-        res["ig_check"] = check
-        res["ig_steps"] = steps
-    if "occlusion_scores" in out:
-        scores = np.asarray(out["occlusion_scores"], np.float64)  # [K, T, B]
-        reduce = region_map if options.occlusion_mode == "regions" else iss_map
-        res["occlusion"] = {
-            c: reduce(masks, scores[s][:1] - scores[s][1:]).astype(np.float32) for c, s in zip(cams, where, strict=True)
-        }
-    return res
+    return baseline_maps.collect(run, tuple(obs.images), model.config.siglip.grid, kinds, options)
 
 
 def _camera_maps(x: np.ndarray, cams: Sequence[str], grid: tuple[int, int]) -> dict[str, np.ndarray]:
@@ -529,7 +375,7 @@ def _token_steps(steps: ArrayLike, batch: int, length: int) -> tuple[np.ndarray,
 
 
 def _explain_tokens(model, obs, fed, targets, steps, prefill_len, squeeze, kinds, options) -> GradCamResult:
-    kinds, options = _check_kinds(kinds), options or MapOptions()
+    kinds, options = check_kinds(kinds), options or MapOptions()
     batch = fed.shape[0]
     steps, shared, steps_tb = _token_steps(steps, batch, fed.shape[1])
     t = steps.shape[1]
@@ -626,7 +472,7 @@ def maps_for_weights(
 
 
 def _explain_weights(model, obs, fed, weights, rows, shared, prefill_len, target, kinds, options) -> GradCamResult:
-    kinds, options = _check_kinds(kinds), options or MapOptions()
+    kinds, options = check_kinds(kinds), options or MapOptions()
     batch = fed.shape[0]
     padded = np.full((batch, max(r.size for r in rows)), -1, np.int32)
     for b, r in enumerate(rows):
@@ -658,7 +504,7 @@ def baseline_frames(model: Pi0FAST, obs: Observation, options: MapOptions | None
     """camera -> the baseline frame [B, H, W, 3] at the model resolution that IG and occlusion compare with (a masked
     camera's row is its own image), so deletion curves paint with exactly the same pixels."""
     obs = preprocess_observation(obs, model.config.image_resolution)
-    base = np.asarray(_baseline_frames(obs, options=_compiled_options(options or MapOptions(), ())))
+    base = np.asarray(_baseline_frames(obs, options=baseline_maps.compiled_options(options or MapOptions(), ())))
     return dict(zip(obs.images, base, strict=True))
 
 
@@ -698,14 +544,8 @@ def rescore_masks(
     obs, fed, _ = _prepare(model, obs, generated_ids)
     target, t = _rescore_target(fed, steps, weights)
     cams = tuple(obs.images)
-    unknown = set(masks) - set(cams)
-    if unknown:
-        raise ValueError(f"unknown cameras {sorted(unknown)}; the model's are {cams}")
-    grid = model.config.siglip.grid
-    per_camera = [None if c not in masks else np.asarray(masks[c], bool) for c in cams]
-    if not masks or any(m is not None and (m.ndim != 3 or m.shape[1:] != grid or not len(m)) for m in per_camera):
-        raise ValueError(f"masks must map cameras to non-empty bool [M, {grid[0]}, {grid[1]}] stacks")
-    variant_cams, variant_masks, where = _variants(per_camera, options.mask_chunk)
+    per_camera = baseline_maps.checked_masks(masks, cams, model.config.siglip.grid)
+    variant_cams, variant_masks, where = baseline_maps.variants(per_camera, options.mask_chunk)
     out = _baseline_kinds(
         model.params,
         obs,
@@ -715,7 +555,7 @@ def rescore_masks(
         variant_masks,
         cfg=model.config,
         kinds=("occlusion",),
-        options=_compiled_options(options, ("occlusion",)),
+        options=baseline_maps.compiled_options(options, ("occlusion",)),
         base_outputs=False,
     )
     scores = _scores_out(out["occlusion_scores"], t)

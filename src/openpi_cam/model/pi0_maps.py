@@ -12,14 +12,23 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from numpy.typing import ArrayLike
 
-from openpi_cam.model.attribution import gradcam_reduce
+from openpi_cam.model import baseline_maps
+from openpi_cam.model.attribution import (
+    BASELINE_KINDS,
+    DEFAULT_KINDS,
+    GRADIENT_KINDS,
+    IgCompleteness,
+    MapOptions,
+    check_kinds,
+    gradcam_reduce,
+)
 from openpi_cam.model.config import Pi0Config
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.paligemma import embed_images
@@ -41,53 +50,160 @@ class FlowMaps:
     score: np.ndarray  # float32 [B, T]
     targets: tuple[tuple[int, int], ...]  # (h, d) per explained target; CHUNK for the whole chunk
     actions: np.ndarray  # float32 [B, H, A]: x_0, the explained actions (equal to the served ones)
+    ig_completeness: IgCompleteness | None = None  # with "ig"; arrays [B, T]
+    options: MapOptions | None = None  # the options of the baseline kinds, when any was requested
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "targets"))
-def _flow_cams(params, obs, noise, *, cfg: Pi0Config, targets: tuple[tuple[int, int], ...]):
-    E = embed_images(params, obs, cfg)
-    x_0, vjp_fn = jax.vjp(lambda image_tokens: denoise(params, image_tokens, obs, noise, cfg), E)
+def _weights(x_0: jax.Array, targets: tuple[tuple[int, int], ...]) -> jax.Array:
+    """The fixed weighting of each target [T, B, H, A] (CHUNK: the explained chunk itself, held constant)."""
     weights = []
     for h, d in targets:
         if (h, d) == CHUNK:
             weights.append(jax.lax.stop_gradient(x_0))
         else:
             weights.append(jnp.zeros_like(x_0).at[:, h, d].set(1.0))
-    weights = jnp.stack(weights)  # [T, B, H, A]
+    return jnp.stack(weights)
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "targets"))
+def _flow_cams(params, obs, noise, *, cfg: Pi0Config, targets: tuple[tuple[int, int], ...]):
+    E = embed_images(params, obs, cfg)
+    x_0, vjp_fn = jax.vjp(lambda image_tokens: denoise(params, image_tokens, obs, noise, cfg), E)
+    weights = _weights(x_0, targets)  # [T, B, H, A]
     G = jax.lax.map(lambda w: vjp_fn(w)[0], weights)  # [T, B, C, N, D]
     alpha, cam, token_norm = gradcam_reduce(E, G)
     score = jnp.einsum("tbha,bha->bt", weights, x_0)
     return score, x_0, jnp.moveaxis(alpha, 0, 1), jnp.moveaxis(cam, 0, 1), jnp.moveaxis(token_norm, 0, 1)
 
 
-def maps_for_actions(model: Pi0, obs: Observation, noise: ArrayLike, targets: Sequence[tuple[int, int]]) -> FlowMaps:
-    """Grad-CAM and the gradient norm of each target ((h, d), or `CHUNK`) for the actions sampled from `noise`
-    [B, H, A] (the served call's noise: the explained x_0 is the returned one)."""
-    cfg = model.config
+@functools.partial(jax.jit, static_argnames=("cfg", "targets", "kinds", "options", "base_outputs"))
+def _flow_baseline_kinds(params, obs, noise, cams, masks, *, cfg: Pi0Config, targets, kinds, options, base_outputs):
+    """IG / occlusion of the targets' scores, each a fixed weighting of x_0 from the same noise (see
+    `baseline_maps.baseline_kinds`); with `base_outputs` also "score" [T, B] and "actions" [B, H, A]."""
+    E = embed_images(params, obs, cfg)
+    x_0 = denoise(params, E, obs, noise, cfg)
+    weights = _weights(x_0, targets)
+
+    def score_fn(image_tokens):
+        return jnp.einsum("tbha,bha->tb", weights, denoise(params, image_tokens, obs, noise, cfg).astype(jnp.float32))
+
+    out = baseline_maps.baseline_kinds(params, obs, cfg, score_fn, E, cams, masks, kinds, options)
+    if base_outputs:
+        out["score"], out["actions"] = jnp.einsum("tbha,bha->tb", weights, x_0), x_0
+    return out
+
+
+def _checked_targets(cfg: Pi0Config, targets: Sequence[tuple[int, int]]) -> tuple[tuple[int, int], ...]:
     targets = tuple((int(h), int(d)) for h, d in targets)
     for h, d in targets:
         if (h, d) != CHUNK and not (0 <= h < cfg.action_horizon and 0 <= d < cfg.action_dim):
             raise ValueError(f"action ({h}, {d}) outside the chunk [{cfg.action_horizon}, {cfg.action_dim}]")
     if not targets:
         raise ValueError("no targets to explain")
+    return targets
+
+
+def maps_for_actions(
+    model: Pi0,
+    obs: Observation,
+    noise: ArrayLike,
+    targets: Sequence[tuple[int, int]],
+    *,
+    kinds: Sequence[str] = DEFAULT_KINDS,
+    options: MapOptions | None = None,
+) -> FlowMaps:
+    """The requested map kinds of each target ((h, d), or `CHUNK`) for the actions sampled from `noise` [B, H, A]
+    (the served call's noise: the explained x_0 is the returned one). Grad-CAM and the gradient norm share one
+    backward pass per target; IG and occlusion compare with the baseline frame of `options`."""
+    cfg = model.config
+    targets = _checked_targets(cfg, targets)
+    kinds, options = check_kinds(kinds), options or MapOptions()
     obs = preprocess(obs, cfg)
     noise = jnp.asarray(noise, jnp.float32)
-    score, x_0, alpha, cam, token_norm = _flow_cams(model.params, obs, noise, cfg=cfg, targets=targets)
     cams, grid, n = tuple(obs.images), cfg.siglip.grid, cfg.siglip.num_tokens
-    cam, token_norm = np.asarray(cam), np.asarray(token_norm)  # [B, T, C, N]
-    grad_norm = np.sqrt(np.sum(np.square(token_norm.astype(np.float64)), axis=-1)).astype(np.float32)
 
-    def per_camera(x: np.ndarray) -> dict[str, np.ndarray]:
+    def per_camera(x: np.ndarray) -> dict[str, np.ndarray]:  # [B, T, C, N] -> camera -> [B, T, Hp, Wp]
         return {c: x[:, :, i].reshape(*x.shape[:2], *grid) for i, c in enumerate(cams)}
 
+    by_kind, alphas, grad_norms, completeness = {}, {}, {}, None
+    score = actions = None
+    if any(k in GRADIENT_KINDS for k in kinds):
+        score, actions, alpha, cam, token_norm = _flow_cams(model.params, obs, noise, cfg=cfg, targets=targets)
+        cam, token_norm = np.asarray(cam), np.asarray(token_norm)  # [B, T, C, N]
+        grad_norm = np.sqrt(np.sum(np.square(token_norm.astype(np.float64)), axis=-1)).astype(np.float32)
+        gradient_maps = {"gradcam": per_camera(cam), "gradnorm": per_camera(token_norm)}
+        by_kind.update({k: gradient_maps[k] for k in GRADIENT_KINDS if k in kinds})
+        alphas = {c: np.asarray(alpha)[:, :, i] for i, c in enumerate(cams)}
+        grad_norms = {c: grad_norm[:, :, i] for i, c in enumerate(cams)}
+    if any(k in BASELINE_KINDS for k in kinds):
+        first_outputs = score is None
+
+        def run(kinds, options, cam_ids, masks, first):
+            return _flow_baseline_kinds(
+                model.params,
+                obs,
+                noise,
+                cam_ids,
+                masks,
+                cfg=cfg,
+                targets=targets,
+                kinds=kinds,
+                options=options,
+                base_outputs=first_outputs and first,
+            )
+
+        extra = baseline_maps.collect(run, cams, grid, kinds, options)
+        batch_first = {k: {c: np.moveaxis(m, 0, 1) for c, m in extra[k].items()} for k in BASELINE_KINDS if k in extra}
+        by_kind.update(batch_first)
+        if "ig_check" in extra:
+            completeness = IgCompleteness(*(np.moveaxis(x, 0, 1) for x in extra["ig_check"]), steps=extra["ig_steps"])
+        if first_outputs:
+            score, actions = np.moveaxis(extra["score"], 0, 1), extra["actions"]
     return FlowMaps(
         cameras=cams,
-        by_kind={"gradcam": per_camera(cam), "gradnorm": per_camera(token_norm)},
-        alphas={c: np.asarray(alpha)[:, :, i] for i, c in enumerate(cams)},
-        grad_norms={c: grad_norm[:, :, i] for i, c in enumerate(cams)},
+        by_kind=by_kind,
+        alphas=alphas,
+        grad_norms=grad_norms,
         spans={c: (i * n, (i + 1) * n) for i, c in enumerate(cams)},
         valid={c: np.asarray(obs.image_masks[c], bool).reshape(-1) for c in cams},
         score=np.asarray(score),
         targets=targets,
-        actions=np.asarray(x_0),
+        actions=np.asarray(actions),
+        ig_completeness=completeness,
+        options=options if any(k in BASELINE_KINDS for k in kinds) else None,
     )
+
+
+def rescore_masks(
+    model: Pi0,
+    obs: Observation,
+    noise: ArrayLike,
+    masks: Mapping[str, ArrayLike],
+    targets: Sequence[tuple[int, int]],
+    *,
+    options: MapOptions | None = None,
+) -> dict[str, np.ndarray]:
+    """The targets' scores with patches painted by the baseline frame, one camera at a time, the whole denoising
+    re-run from the same noise; the weighting stays that of the unpainted call (CHUNK: its x_0). masks: camera ->
+    bool [M, Hp, Wp] (an all-False mask gives the unmodified score). -> camera -> [M, B, T]."""
+    cfg = model.config
+    targets = _checked_targets(cfg, targets)
+    options = options or MapOptions()
+    obs = preprocess(obs, cfg)
+    cams = tuple(obs.images)
+    per_camera = baseline_maps.checked_masks(masks, cams, cfg.siglip.grid)
+    cam_ids, variant_masks, where = baseline_maps.variants(per_camera, options.mask_chunk)
+    out = _flow_baseline_kinds(
+        model.params,
+        obs,
+        jnp.asarray(noise, jnp.float32),
+        cam_ids,
+        variant_masks,
+        cfg=cfg,
+        targets=targets,
+        kinds=("occlusion",),
+        options=baseline_maps.compiled_options(options, ("occlusion",)),
+        base_outputs=False,
+    )
+    scores = np.moveaxis(np.asarray(out["occlusion_scores"]), 1, 2)  # [K, B, T]
+    return {c: scores[s] for c, s in zip(cams, where, strict=True) if c in masks}

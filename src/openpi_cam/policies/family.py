@@ -16,7 +16,7 @@ import jax
 import numpy as np
 from jax.sharding import Mesh
 
-from openpi_cam.model.attribution import MAP_KINDS, MapKind
+from openpi_cam.model.attribution import DEFAULT_KINDS, MAP_KINDS, IgCompleteness, MapKind, MapOptions
 from openpi_cam.model.observation import Observation
 
 # What a map explains (the `--cam-target` values). pi0-FAST: `action-token`, `all-action-tokens`, `chunk` (sum of the
@@ -33,7 +33,9 @@ class ExplainRequest:
     target: Target = "action-token"
     action_index: int = 0  # pi0-FAST: which action token ("action-token"); pi0 / pi0.5: which horizon step ("action")
     action_dim_index: int = 0  # pi0 / pi0.5: which action dimension ("action")
-    kinds: tuple[MapKind, ...] = MAP_KINDS
+    kinds: tuple[MapKind, ...] = DEFAULT_KINDS
+    # The baseline frame, IG steps and occlusion regions of the "ig" / "occlusion" kinds.
+    options: MapOptions = dataclasses.field(default_factory=MapOptions)
 
     def __post_init__(self) -> None:
         if self.target not in TARGETS:
@@ -90,6 +92,26 @@ class Explainer(Protocol):
         """The same explainer with its parameters placed on every device of `mesh` (itself for None)."""
         ...
 
+    def rescore(
+        self,
+        observation: Observation,
+        outputs: np.ndarray,
+        sample_inputs: Mapping[str, np.ndarray],
+        explained: Mapping[str, Any],
+        masks: Mapping[str, np.ndarray],
+        options: MapOptions,
+    ) -> dict[str, np.ndarray]:
+        """The score a logged explanation explained (`explained`: its step metadata: target, decode steps or action
+        index), for one inference (B = 1) with patches painted by the baseline frame of `options`, one camera at a
+        time: masks camera -> bool [M, Hp, Wp] -> camera -> scores [M]. Raises `ExplainSkipped` for a target with
+        several scores."""
+        ...
+
+    def randomized(self, scope: Literal["llm", "all"], seed: int) -> Explainer:
+        """The same explainer over freshly initialised weights: the language model's only (`llm`: SigLIP kept), or
+        every weight (`all`); for the model randomisation test of a map kind."""
+        ...
+
 
 class OutputDecoder(Protocol):
     """Turns the model's raw output of one inference into a normalised action chunk."""
@@ -106,3 +128,25 @@ class Sampler(Protocol):
     def __call__(
         self, rng: jax.Array, observation: Observation, noise: np.ndarray | None
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]: ...
+
+
+def baseline_details(completeness: IgCompleteness | None, options: MapOptions | None, index: Any) -> dict[str, Any]:
+    """The step metadata of the baseline kinds for one explained row (`index` into the [B, ...] arrays): the
+    options they ran with and IG's completeness check (sum of attributions = score - baseline score)."""
+    details: dict[str, Any] = {}
+    if options is not None:
+        details["map_options"] = dataclasses.asdict(options)
+    if completeness is not None:
+
+        def at(x: np.ndarray) -> float | list[float]:
+            value = np.asarray(x, np.float64)[index]
+            return float(value) if np.ndim(value) == 0 else [float(v) for v in value]
+
+        details["ig_completeness"] = {
+            "score": at(completeness.score),
+            "baseline_score": at(completeness.baseline_score),
+            "attribution_sum": at(completeness.attribution_sum),
+            "relative_error": at(completeness.relative_error),
+            "steps": completeness.steps,
+        }
+    return details

@@ -13,6 +13,7 @@ import copy
 import dataclasses
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Any, Literal
 
 import jax
 import jax.numpy as jnp
@@ -21,11 +22,13 @@ import sentencepiece
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from openpi_cam.errors import InvalidRequest
+from openpi_cam.model.attribution import MapOptions
+from openpi_cam.model.init import randomized
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.pi0 import Pi0
-from openpi_cam.model.pi0_maps import CHUNK, maps_for_actions
+from openpi_cam.model.pi0_maps import CHUNK, maps_for_actions, rescore_masks
 from openpi_cam.policies.config import PolicyConfig
-from openpi_cam.policies.family import ExplainRequest, ExplainSkipped, Explanation, Sampler
+from openpi_cam.policies.family import ExplainRequest, ExplainSkipped, Explanation, Sampler, baseline_details
 from openpi_cam.tokenizers.paligemma import load_paligemma_tokenizer
 from openpi_cam.tokenizers.pi0 import Pi0PromptTokenizer
 from openpi_cam.transforms import PadStatesAndActions, PassActions, TokenizePrompt
@@ -68,7 +71,9 @@ class FlowExplainer:
             if not (target[0] < cfg.action_horizon and target[1] < cfg.action_dim):
                 reason = f"action {target} requested, the chunk is [{cfg.action_horizon}, {cfg.action_dim}]"
                 return [ExplainSkipped("action_index_out_of_range", reason)] * len(outputs)
-        res = maps_for_actions(self.model, observation, sample_inputs["noise"], [target])
+        res = maps_for_actions(
+            self.model, observation, sample_inputs["noise"], [target], kinds=request.kinds, options=request.options
+        )
         replay_diff = np.abs(res.actions - np.asarray(outputs, np.float32)).max(axis=(1, 2))
         grid = list(self.camera_grid)
         return [
@@ -84,10 +89,31 @@ class FlowExplainer:
                 details={
                     "action_index": None if target == CHUNK else list(target),
                     "replay_max_abs_diff": float(replay_diff[b]),
+                    **baseline_details(res.ig_completeness, res.options, (b, 0)),
                 },
             )
             for b in range(len(outputs))
         ]
+
+    def rescore(
+        self,
+        observation: Observation,
+        outputs: np.ndarray,
+        sample_inputs: Mapping[str, np.ndarray],
+        explained: Mapping[str, Any],
+        masks: Mapping[str, np.ndarray],
+        options: MapOptions,
+    ) -> dict[str, np.ndarray]:
+        index = explained.get("action_index")
+        target = CHUNK if explained["target"] == "chunk" else tuple(index)
+        noise = np.asarray(sample_inputs["noise"], np.float32)
+        scores = rescore_masks(self.model, observation, noise, masks, [target], options=options)
+        return {c: s[:, 0, 0] for c, s in scores.items()}
+
+    def randomized(self, scope: Literal["llm", "all"], seed: int) -> FlowExplainer:
+        model = copy.copy(self.model)
+        model.params = randomized(self.model.params, scope, jax.random.key(seed))
+        return FlowExplainer(model)
 
 
 @dataclasses.dataclass(frozen=True)

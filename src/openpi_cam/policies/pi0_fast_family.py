@@ -12,7 +12,7 @@ import copy
 import dataclasses
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import jax
 import numpy as np
@@ -21,12 +21,21 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.model import pi0_fast_maps
+from openpi_cam.model.attribution import MapOptions
 from openpi_cam.model.config import EOS_TOKEN
+from openpi_cam.model.init import randomized
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.pi0_fast import Pi0FAST
 from openpi_cam.model.pi0_fast_maps import GradCamResult
 from openpi_cam.policies.config import PolicyConfig
-from openpi_cam.policies.family import FALLBACK_TARGET, ExplainRequest, ExplainSkipped, Explanation, Sampler
+from openpi_cam.policies.family import (
+    FALLBACK_TARGET,
+    ExplainRequest,
+    ExplainSkipped,
+    Explanation,
+    Sampler,
+    baseline_details,
+)
 from openpi_cam.tokenizers.fast import FastActionTokenizer, resolve_fast_tokenizer_dir
 from openpi_cam.tokenizers.paligemma import load_paligemma_tokenizer
 from openpi_cam.tokenizers.pi0_fast import Pi0FastTokenizer
@@ -104,17 +113,20 @@ class FastExplainer:
         results: list[Explanation | ExplainSkipped | None] = [
             p if isinstance(p, ExplainSkipped) else None for p in plans
         ]
+        maps_args = {"kinds": request.kinds, "options": request.options}
         token_rows = [b for b, p in enumerate(plans) if isinstance(p, _RowPlan) and p.target in TOKEN_TARGETS]
         sequence_rows = [b for b, p in enumerate(plans) if isinstance(p, _RowPlan) and p.target in SEQUENCE_TARGETS]
         # Each group is one model call over the whole batch (rows outside it ride along on a harmless step), so that
         # every batch of one size shares one compilation per group.
         if token_rows:
-            res = pi0_fast_maps.gradcam_for_steps(self.model, observation, generated, _step_matrix(plans, token_rows))
+            res = pi0_fast_maps.gradcam_for_steps(
+                self.model, observation, generated, _step_matrix(plans, token_rows), **maps_args
+            )
             for b in token_rows:
                 results[b] = self._row(res, b, plans[b], request)  # type: ignore[arg-type]
         if sequence_rows:
             lists = [p.steps if b in sequence_rows else np.zeros(1, np.int32) for b, p in enumerate(plans)]
-            res = pi0_fast_maps.gradcam_for_chunk(self.model, observation, generated, lists)
+            res = pi0_fast_maps.gradcam_for_chunk(self.model, observation, generated, lists, **maps_args)
             for b in sequence_rows:
                 results[b] = self._row(res, b, plans[b], request)  # type: ignore[arg-type]
         return [r for r in results if r is not None]
@@ -130,22 +142,53 @@ class FastExplainer:
         else:
             index = (b, slice(0, t))
             score = [float(s) for s in res.score[b, :t]]
-        by_kind = {"gradcam": res.maps, "gradnorm": res.gradnorm_maps}
         grid = list(self.camera_grid)
+        details = {
+            "token_ids": [int(x) for x in np.asarray(res.token_ids)[b, :t]],
+            "decode_steps": [int(s) for s in plan.steps],
+            "positions": [int(p) for p in np.asarray(res.positions)[b, :t]],
+            "action_indices": plan.action_indices,
+        }
         return Explanation(
             target=plan.target,
-            maps={k: {c: np.asarray(m[index], np.float32) for c, m in by_kind[k].items()} for k in request.kinds},
+            maps={k: {c: np.asarray(m[index], np.float32) for c, m in res.by_kind[k].items()} for k in request.kinds},
             score=score,
             cameras={
                 c: {"valid": bool(res.valid[c][b]), "grid": grid, "span": list(res.spans[c])} for c in res.cameras
             },
-            details={
-                "token_ids": [int(x) for x in np.asarray(res.token_ids)[b, :t]],
-                "decode_steps": [int(s) for s in plan.steps],
-                "positions": [int(p) for p in np.asarray(res.positions)[b, :t]],
-                "action_indices": plan.action_indices,
-            },
+            details=details | baseline_details(res.ig_completeness, res.options, index),
         )
+
+    def rescore(
+        self,
+        observation: Observation,
+        outputs: np.ndarray,
+        sample_inputs: Mapping[str, np.ndarray],
+        explained: Mapping[str, Any],
+        masks: Mapping[str, np.ndarray],
+        options: MapOptions,
+    ) -> dict[str, np.ndarray]:
+        steps = np.asarray(explained["decode_steps"], np.int32)
+        target = explained["target"]
+        generated = np.asarray(outputs, np.int32).reshape(1, -1)
+        if target in SEQUENCE_TARGETS:
+            weights = np.zeros(generated.shape, np.float32)
+            weights[0, steps] = 1.0
+            scores = pi0_fast_maps.rescore_masks(
+                self.model, observation, generated, masks, weights=weights, options=options
+            )
+            return {c: s[:, 0] for c, s in scores.items()}
+        if target == "action-token":
+            scores = pi0_fast_maps.rescore_masks(
+                self.model, observation, generated, masks, steps=steps[:1], options=options
+            )
+            return {c: s[:, 0, 0] for c, s in scores.items()}
+        raise ExplainSkipped("multi_score_target", f"target {target!r} has one score per token; rescore needs one")
+
+    def randomized(self, scope: Literal["llm", "all"], seed: int) -> FastExplainer:
+        model = copy.copy(self.model)
+        model.params = randomized(self.model.params, scope, jax.random.key(seed))
+        return FastExplainer(model, self.tokenizer)
 
 
 def _step_matrix(plans: Sequence[_RowPlan | ExplainSkipped], rows: Sequence[int]) -> np.ndarray:

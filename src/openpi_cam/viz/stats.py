@@ -27,6 +27,8 @@ DEFAULT_MAP_KIND = "gradnorm"
 MAP_LABELS: dict[str, str] = {
     "gradcam": "Grad-CAM",
     "gradnorm": "gradient norm (unsigned sensitivity)",
+    "ig": "integrated gradients (vs baseline frame)",
+    "occlusion": "occlusion (score drop, baseline-painted)",
 }
 
 

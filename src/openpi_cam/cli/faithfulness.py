@@ -1,0 +1,112 @@
+"""`openpi-cam faithfulness RUN_DIR`: how faithful each map kind of a run is, re-scored by the model itself."""
+
+from __future__ import annotations
+
+import pathlib
+import sys
+from typing import Literal
+
+import tyro
+
+from openpi_cam.cam.faithfulness_run import FaithfulnessOptions, evaluate_run, format_report
+from openpi_cam.cam.runfmt import dumps, load_run
+from openpi_cam.errors import InvalidRequest
+from openpi_cam.policies import demo_reach
+from openpi_cam.policies.policy import Policy, create_policy
+from openpi_cam.viz.progress import progress as progress_bar
+
+
+def load_policy(
+    run_config: dict,
+    *,
+    config: str | None,
+    checkpoint_dir: pathlib.Path | None,
+    paligemma_tokenizer: pathlib.Path | None,
+    fast_tokenizer: pathlib.Path | None,
+    dtype: str | None,
+) -> Policy:
+    """The policy that served (or explained) a run: the bundled demo model when the run names a demo config and no
+    checkpoint is given, else `create_policy` with the run's recorded settings, each overridable."""
+    config = config or run_config.get("config")
+    if config is None:
+        raise ValueError("the run does not record its policy config; pass --config")
+    checkpoint = checkpoint_dir or run_config.get("checkpoint_dir")
+    demo_models = {c.name: model for model, c in demo_reach.DEMO_CONFIGS.items()}
+    if config in demo_models and checkpoint is None:
+        return demo_reach.create_demo_policy(model=demo_models[config])
+    if checkpoint is None:
+        raise ValueError("the run does not record its checkpoint; pass --checkpoint-dir")
+    return create_policy(
+        config,
+        checkpoint,
+        paligemma_tokenizer=paligemma_tokenizer or run_config.get("paligemma_tokenizer"),
+        fast_tokenizer=fast_tokenizer or run_config.get("fast_tokenizer"),
+        dtype=dtype or run_config.get("dtype") or "bfloat16",
+    )
+
+
+def main(
+    run_dir: tyro.conf.Positional[pathlib.Path],
+    checkpoint_dir: pathlib.Path | None = None,
+    config: str | None = None,
+    paligemma_tokenizer: pathlib.Path | None = None,
+    fast_tokenizer: pathlib.Path | None = None,
+    dtype: Literal["bfloat16", "float32"] | None = None,
+    randomize: Literal["none", "llm", "all"] = "llm",
+    baseline: Literal["run", "mean", "blur"] = "run",
+    max_steps: int | None = None,
+    random_orders: int = 8,
+    json_out: pathlib.Path | None = None,
+    progress: bool = True,
+) -> int:
+    """Re-score every logged step of RUN_DIR under interventions and report, per map kind and camera, how faithful
+    the maps are: deletion (k = 1, 2, 4, AUC) normalised by the single-patch occlusion optimum next to a random
+    order, top-1 agreement with occlusion, model randomisation against its null, and the pointing game where the
+    client sent ground-truth boxes. Needs steps logged with model frames (`--cam-save-frames model|both`).
+
+    Args:
+        run_dir: a CAM run directory.
+        checkpoint_dir: the checkpoint that served the run; default: the one the run records (or the bundled demo).
+        config: policy config; default: the one the run records.
+        paligemma_tokenizer: PaliGemma SentencePiece model; default: the run's, else the standard location.
+        fast_tokenizer: FAST tokenizer folder; default: the run's, else the standard location.
+        dtype: parameter dtype; default: the run's.
+        randomize: which weights the randomisation test re-initialises (`llm`: the language model and action
+            expert, SigLIP kept; `all`; `none` skips the test).
+        baseline: what deletion paints with: the baseline the run's ig / occlusion maps used (`run`), or one named.
+        max_steps: evaluate at most this many steps, evenly spread over the run.
+        random_orders: random patch orders averaged for the random reference.
+        json_out: also write the full report (every figure with its 95% bootstrap interval) as JSON here.
+        progress: show progress on stderr.
+    """
+    try:
+        run = load_run(run_dir)
+        policy = load_policy(
+            run.run_info.get("config") or {},
+            config=config,
+            checkpoint_dir=checkpoint_dir,
+            paligemma_tokenizer=paligemma_tokenizer,
+            fast_tokenizer=fast_tokenizer,
+            dtype=dtype,
+        )
+        opts = FaithfulnessOptions(
+            randomize=randomize, baseline=baseline, max_steps=max_steps, random_orders=random_orders
+        )
+
+        def show(items, n):
+            return progress_bar(items, n, "faithfulness", progress)
+
+        report = evaluate_run(run, policy.explainer, opts, progress=show)
+    except (FileNotFoundError, KeyError, ValueError, InvalidRequest, OSError) as e:
+        print(f"openpi-cam faithfulness: {e}", file=sys.stderr)
+        return 1
+    print(format_report(report))
+    if json_out is not None:
+        json_out.write_text(dumps(report, indent=2))
+    if report["steps_evaluated"] == 0:
+        print("openpi-cam faithfulness: no step could be re-scored", file=sys.stderr)
+        return 1
+    return 0
+
+
+__all__ = ["main"]

@@ -1,0 +1,203 @@
+"""Integrated gradients and occlusion for any PaliGemma-based family, given how the family scores image tokens.
+
+A family supplies `score_fn`: the explained scores [T, B] as a function of the image tokens E [B, C, N, D] (pi0-FAST:
+logits or log-probabilities of its generated tokens; pi0 / pi0.5: a weighting of the denoised chunk). Everything
+else is shared: the baseline frames (`attribution.baseline_images`), IG along E0 -> E with E0 the baseline frames'
+SigLIP tokens, and occlusion by painting one camera's patches with its baseline frame, re-encoding that camera and
+re-scoring. `baseline_kinds` runs inside the family's jitted program; `collect` runs on the host around it (the IG
+step doubling, the reduction of occlusion scores to maps).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from openpi_cam.model.attribution import (
+    BASELINE_KINDS,
+    MapOptions,
+    baseline_images,
+    completeness_met,
+    integrated_gradients,
+    iss_map,
+    paint,
+    random_region_masks,
+    region_map,
+    region_masks,
+)
+from openpi_cam.model.observation import Observation
+from openpi_cam.model.paligemma import VLMConfig, embed_images
+
+ScoreFn = Callable[[jax.Array], jax.Array]  # image tokens [B, C, N, D] -> scores [T, B]
+
+
+def camera_stack(obs: Observation) -> tuple[jax.Array, jax.Array]:
+    """images [C, B, H, W, 3] and validity [C, B] in camera order (every camera is at the model resolution)."""
+    images = jnp.stack([jnp.asarray(obs.images[c], jnp.float32) for c in obs.images])
+    valid = jnp.stack([jnp.asarray(obs.image_masks[c], bool).reshape(-1) for c in obs.images])
+    return images, valid
+
+
+def with_images(obs: Observation, images: Mapping[str, jax.Array]) -> Observation:
+    return dataclasses.replace(obs, images=dict(images))
+
+
+def _painted_scores(params, obs, cfg, score_fn, E, images, base, cams, masks, chunk) -> jax.Array:
+    """Scores with camera cams[k]'s patches masks[k] replaced by its baseline frame, that camera re-encoded by SigLIP
+    and the others' tokens kept. cams int32 [K], masks bool [K, Hp, Wp], K a multiple of `chunk` -> [K, T, B].
+
+    A chunk of variants runs vectorised (forward only, so `vmap` is safe here); the chunks run one after another
+    (`lax.map`), which bounds memory at chunk x B model runs for any number of masks."""
+    name = next(iter(obs.images))
+    select = jnp.arange(E.shape[1])[None, :, None, None]  # [1, C, 1, 1]
+
+    def one(cam, mask):
+        image = paint(images[cam], base[cam], mask, cfg.siglip.patch_size)  # [B, H, W, 3]
+        tokens = embed_images(params, with_images(obs, {name: image}), cfg)  # [B, 1, N, D]
+        return score_fn(jnp.where(select == cam, tokens, E))
+
+    k = cams.shape[0]
+    scores = jax.lax.map(
+        lambda chunk_args: jax.vmap(one)(*chunk_args),
+        (cams.reshape(k // chunk, chunk), masks.reshape(k // chunk, chunk, *masks.shape[1:])),
+    )
+    return scores.reshape(k, *scores.shape[2:])
+
+
+def baseline_kinds(
+    params: dict,
+    obs: Observation,
+    cfg: VLMConfig,
+    score_fn: ScoreFn,
+    E: jax.Array,
+    cams: jax.Array | None,
+    masks: jax.Array | None,
+    kinds: Sequence[str],
+    options: MapOptions,
+) -> dict[str, jax.Array]:
+    """Traced core (call inside a jitted program). Returns "ig" [T, B, C, N] with "ig_score" / "ig_baseline_score"
+    [T, B]; "occlusion_scores" [K, T, B] for the variants (cams, masks) of `variants`."""
+    images, valid = camera_stack(obs)
+    base = baseline_images(images, valid, options)  # [C, B, H, W, 3]
+    out = {}
+    if "ig" in kinds:
+        E0 = embed_images(params, with_images(obs, dict(zip(obs.images, base, strict=True))), cfg)
+        E0 = jnp.where(valid.T[:, :, None, None], E0, E)  # a masked camera is its own baseline
+        out["ig"], out["ig_score"], out["ig_baseline_score"] = integrated_gradients(
+            score_fn, E, E0, options.ig_rule, options.ig_steps
+        )
+    if "occlusion" in kinds:
+        out["occlusion_scores"] = _painted_scores(
+            params, obs, cfg, score_fn, E, images, base, cams, masks, options.mask_chunk
+        )
+    return out
+
+
+def frames(obs: Observation, options: MapOptions) -> jax.Array:
+    """The baseline frame of every camera [C, B, H, W, 3] (traced)."""
+    images, valid = camera_stack(obs)
+    return baseline_images(images, valid, options)
+
+
+def compiled_options(options: MapOptions, kinds: Sequence[str] = BASELINE_KINDS) -> MapOptions:
+    """The options the compiled program depends on: which masks occlusion uses is data (their count a shape), so
+    the mask-drawing fields are reset and e.g. a new seed reuses the compilation; so are the fields of kinds not
+    requested."""
+    defaults = MapOptions()
+    keep = {"baseline", "blur_sigma"}
+    keep |= {"ig_steps", "ig_rule"} if "ig" in kinds else set()
+    keep |= {"mask_chunk"} if "occlusion" in kinds else set()
+    reset = {f.name: getattr(defaults, f.name) for f in dataclasses.fields(MapOptions) if f.name not in keep}
+    return dataclasses.replace(options, **reset)
+
+
+def occlusion_masks(grid: tuple[int, int], options: MapOptions) -> np.ndarray:
+    """The masks occlusion paints one camera with (bool [M, Hp, Wp], True = painted): every region once, or the
+    random ISS masks drawn from the options' seed."""
+    if options.occlusion_mode == "regions":
+        return region_masks(grid, options.occlusion_region)
+    return random_region_masks(grid, options.occlusion_region, options.random_masks, options.keep_prob, options.seed)
+
+
+def variants(per_camera: Sequence[np.ndarray | None], chunk: int) -> tuple[jax.Array, jax.Array, list[slice]]:
+    """Flattens per-camera mask stacks into one variant list (cams [K], masks [K, Hp, Wp]) padded with no-op
+    variants to a multiple of `chunk`; slice c selects camera c's variants."""
+    cams, masks, where, start = [], [], [], 0
+    for c, m in enumerate(per_camera):
+        m = np.zeros((0,), bool) if m is None else np.asarray(m, bool)
+        if m.size:
+            cams.append(np.full(m.shape[0], c, np.int32))
+            masks.append(m)
+        where.append(slice(start, start + len(m)))
+        start += len(m)
+    cams, masks = np.concatenate(cams), np.concatenate(masks)
+    pad = -len(cams) % chunk
+    cams = np.concatenate([cams, np.zeros(pad, np.int32)])
+    masks = np.concatenate([masks, np.zeros((pad, *masks.shape[1:]), bool)])
+    return jnp.asarray(cams), jnp.asarray(masks), where
+
+
+def checked_masks(masks: Mapping[str, Any], cameras: Sequence[str], grid: tuple[int, int]) -> list[np.ndarray | None]:
+    """Masks given per camera name -> one bool [M, Hp, Wp] stack (or None) per camera, in camera order."""
+    unknown = set(masks) - set(cameras)
+    if unknown:
+        raise ValueError(f"unknown cameras {sorted(unknown)}; the model's are {tuple(cameras)}")
+    per_camera = [None if c not in masks else np.asarray(masks[c], bool) for c in cameras]
+    if not masks or any(m is not None and (m.ndim != 3 or m.shape[1:] != grid or not len(m)) for m in per_camera):
+        raise ValueError(f"masks must map cameras to non-empty bool [M, {grid[0]}, {grid[1]}] stacks")
+    return per_camera
+
+
+RunFn = Callable[[tuple[str, ...], MapOptions, Any, Any, bool], Mapping[str, Any]]
+
+
+def collect(
+    run: RunFn,
+    cameras: Sequence[str],
+    grid: tuple[int, int],
+    kinds: Sequence[str],
+    options: MapOptions,
+) -> dict[str, Any]:
+    """Runs the family's program `run(kinds, compiled options, cams, masks, first_call)` for the requested baseline
+    kinds and turns its output into maps; every array keeps the program's leading [T, B] axes.
+
+    Returns "ig" and "occlusion" (camera -> [T, B, Hp, Wp]), "ig_check" (score, baseline score, attribution sum,
+    each [T, B]), "ig_steps" (quadrature steps used), and whatever else the first call returned."""
+    kinds = tuple(k for k in BASELINE_KINDS if k in kinds)
+    variant_cams = variant_masks = masks = where = None
+    if "occlusion" in kinds:
+        masks = occlusion_masks(grid, options)
+        reference = np.zeros((1, *grid), bool)  # every camera's drops against its own unpainted re-run
+        stacks = [np.concatenate([reference, masks])] * len(cameras)
+        variant_cams, variant_masks, where = variants(stacks, options.mask_chunk)
+    out = run(kinds, compiled_options(options, kinds), variant_cams, variant_masks, True)
+    core = ("ig", "ig_score", "ig_baseline_score", "occlusion_scores")
+    res: dict[str, Any] = {k: np.asarray(v) for k, v in out.items() if k not in core}
+    if where is not None:
+        scores = np.asarray(out["occlusion_scores"], np.float64)  # [K, T, B]
+        reduce = region_map if options.occlusion_mode == "regions" else iss_map
+        res["occlusion"] = {
+            c: reduce(masks, scores[s][:1] - scores[s][1:]).astype(np.float32)
+            for c, s in zip(cameras, where, strict=True)
+        }
+    if "ig" in out:
+        steps = options.ig_steps
+        while True:
+            attr = np.asarray(out["ig"])  # [T, B, C, N]
+            check = (np.asarray(out["ig_score"]), np.asarray(out["ig_baseline_score"]))
+            check += (attr.astype(np.float64).sum(axis=(-2, -1)),)
+            met = options.ig_tolerance == 0 or completeness_met(*check, options.ig_tolerance)
+            if met or 2 * steps > options.ig_max_steps:
+                break
+            steps *= 2  # one more compiled program per doubling; only the rare sharp paths pay for it
+            refined = dataclasses.replace(options, ig_steps=steps)
+            out = run(("ig",), compiled_options(refined, ("ig",)), None, None, False)
+        res["ig"] = {c: attr[..., i, :].reshape(*attr.shape[:2], *grid) for i, c in enumerate(cameras)}
+        res["ig_check"] = check
+        res["ig_steps"] = steps
+    return res
