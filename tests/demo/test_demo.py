@@ -16,6 +16,7 @@ from openpi_cam.cam.runfmt import StepRecord, load_run
 from openpi_cam.demo import bundled, quality, sim, task, train
 from openpi_cam.demo.data import Batches, load_normalize
 from openpi_cam.demo.run import DemoOptions, run_demo
+from openpi_cam.model.attribution import MAP_KINDS
 from openpi_cam.policies import demo_reach
 
 
@@ -406,15 +407,15 @@ def test_run_figures_on_a_hand_made_run(tmp_path):
 
 
 def test_short_demo_run_is_readable(tmp_path):
-    """`openpi-cam demo` end to end at toy length: a readable run of both map kinds with the client's ground truth,
-    the episode file, and a report per kind listing every step."""
+    """`openpi-cam demo` end to end at toy length: a readable run of every map kind with the client's ground truth,
+    the episode file, a report per kind listing every step, and the faithfulness report of the run."""
     result = run_demo(DemoOptions(out=tmp_path, episodes=1, max_calls=2, seed=3))
     run = load_run(result.run_dir)
     (episode,) = result.episodes
     assert json.loads((result.run_dir / quality.EPISODES_FILE).read_text()) == result.episodes
     assert len(run.steps) == episode["calls"] >= 1 and not run.problems  # every inference explained and logged
     for step in run.steps:
-        assert step.map_kinds == ("gradcam", "gradnorm") and step.meta["target"] == "chunk"
+        assert step.map_kinds == MAP_KINDS and step.meta["target"] == "chunk"
         assert step.meta["malformed"] is None
         for kind in step.map_kinds:
             for cam in ("base_0_rgb", "wrist_0_rgb"):
@@ -423,7 +424,7 @@ def test_short_demo_run_is_readable(tmp_path):
         box = step.meta["extra"]["target_box"]
         assert box in step.meta["extra"]["block_boxes"] and len(box) == 4
         assert set(step.frames) == set(step.model_frames) == {"base_0_rgb", "wrist_0_rgb"}
-    assert set(result.reports) == {"gradcam", "gradnorm"}
+    assert set(result.reports) == set(MAP_KINDS)
     for kind, report in result.reports.items():
         doc = report.read_text()
         assert report.parent == result.run_dir / f"render-{kind}"
@@ -431,7 +432,10 @@ def test_short_demo_run_is_readable(tmp_path):
         assert f"0 of {len(run.steps)} steps" in doc  # no failures on the trained model
     figures = result.figures
     assert figures["episodes"] == 1 and figures["success_rate"] == float(episode["success"])
-    assert figures["steps"] == len(run.steps) and {k: f["steps"] for k, f in figures["maps"].items()} == {
-        "gradcam": len(run.steps),
-        "gradnorm": len(run.steps),
-    }
+    assert figures["steps"] == len(run.steps)
+    assert {k: f["steps"] for k, f in figures["maps"].items()} == dict.fromkeys(MAP_KINDS, len(run.steps))
+    # The run re-scores from its own files (exactly, up to float32 fusion order: 1e-4 at scores of magnitude ~10),
+    # and occlusion's own top patch is the single-patch optimum by construction.
+    report = result.faithfulness
+    assert report["steps_evaluated"] == len(run.steps) and report["score_replay_max_abs_diff"] < 1e-4
+    assert report["cameras"]["base_0_rgb"]["kinds"]["occlusion"]["deletion_k1"]["median"] == pytest.approx(1.0)

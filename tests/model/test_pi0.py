@@ -14,6 +14,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -22,10 +24,11 @@ import pytest
 from paths import GOLDEN_DIR
 
 from openpi_cam.model import pi0
+from openpi_cam.model.attribution import MapOptions, region_map, region_masks
 from openpi_cam.model.checkpoint import read_param_shapes
 from openpi_cam.model.config import check_param_tree, family_of, pi0_param_shapes
 from openpi_cam.model.observation import Observation
-from openpi_cam.model.pi0_maps import CHUNK, maps_for_actions
+from openpi_cam.model.pi0_maps import CHUNK, maps_for_actions, rescore_masks
 from openpi_cam.nested import flatten_dict
 
 REL = 5e-5
@@ -152,3 +155,54 @@ def test_bad_targets_are_refused_by_name():
         model.sample_actions(
             jax.random.key(0), dataclasses.replace(obs, images={"base_0_rgb": obs.images["base_0_rgb"]})
         )
+
+
+@pytest.mark.parametrize("family", ["pi0", "pi05"])
+def test_ig_and_occlusion_through_the_denoising_loop(family):
+    """The baseline kinds explain the same x_0 as the gradient kinds: IG's attributions add up to score(frame) -
+    score(baseline frame) (its completeness check), occlusion is the drop of exactly the re-scoring a user can run
+    (`rescore_masks`), and the masked camera gets nothing from either."""
+    model = load_model(family)
+    d, obs = load_case(family, "case_b")  # batch 1, left wrist masked
+    options = MapOptions(occlusion_region=4)  # 4 x 4 regions of 4 x 4 patches: 16 re-runs per camera
+    targets = [(0, 6), CHUNK]
+    res = maps_for_actions(model, obs, d["noise"], targets, kinds=("ig", "occlusion"), options=options)
+    assert set(res.by_kind) == {"ig", "occlusion"} and not res.alphas
+    assert_close(res.actions, d["actions"], REL, "explained actions without a gradient pass")
+    assert_close(res.score[:, 0], d["gc_h0_d6_score"], REL, "score of (0, 6)")
+    assert_close(res.score[:, 1], d["gc_chunk_score"], REL, "chunk score")
+
+    check = res.ig_completeness
+    gap = check.score - check.baseline_score
+    assert np.all(np.abs(gap[:, 1]) > 1.0)  # the baseline frame moves the chunk, so completeness says something
+    assert np.all(np.abs(check.attribution_sum - gap) <= options.ig_tolerance * np.maximum(np.abs(gap), 1e-3))
+    total = sum(res.by_kind["ig"][c].astype(np.float64).sum(axis=(-2, -1)) for c in CAMERAS)
+    np.testing.assert_allclose(total, check.attribution_sum, rtol=1e-5)  # float32 maps summed in float64
+    # Drops are differences of float32 scores of magnitude |s| from differently batched programs: 1e-5 |s| (measured
+    # differences <= 1e-6 |s|).
+    atol = 1e-5 * np.abs(res.score).max()
+    assert not res.by_kind["ig"]["left_wrist_0_rgb"].any()  # its tokens are its own baseline: no path, exactly 0
+    assert np.abs(res.by_kind["occlusion"]["left_wrist_0_rgb"]).max() <= atol  # painting it changes nothing
+    for kind in ("ig", "occlusion"):
+        assert np.abs(res.by_kind[kind]["base_0_rgb"]).max() > 100 * atol, kind
+
+    grid = model.config.siglip.grid
+    masks = region_masks(grid, 4)
+    painted = np.concatenate([np.zeros((1, *grid), bool), masks])
+    scores = rescore_masks(model, obs, d["noise"], {"base_0_rgb": painted}, targets, options=options)["base_0_rgb"]
+    assert_close(scores[0], res.score, REL, "unpainted re-score")
+    expected = region_map(masks, scores[:1] - scores[1:])  # [B, T, Hp, Wp]
+    np.testing.assert_allclose(res.by_kind["occlusion"]["base_0_rgb"], expected, rtol=0, atol=atol)
+
+
+def test_golden_command_checks_flow_matching_folders():
+    """`openpi-cam golden` reads a pi0 golden folder as upstream wrote it: 23 comparisons per case, all passing."""
+    done = subprocess.run(
+        [sys.executable, "-m", "openpi_cam", "golden", str(GOLDEN_DIR / "tiny_pi0")],
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    assert done.stdout.strip().splitlines()[-1] == "69 passed, 0 failed"
+    assert "ok   case_b   actions" in done.stdout and "ok   case_c   gc_chunk_cam" in done.stdout

@@ -25,6 +25,7 @@ def main(
     assets: pathlib.Path | None = None,
     maps: tuple[MapKind, ...] = MAP_KINDS,
     faithfulness: bool = True,
+    baseline: Literal["mean", "blur"] = "mean",
 ) -> int:
     """Run the bundled model end to end: server + side channel + simulated robot + rendered reports + figures.
 
@@ -41,9 +42,10 @@ def main(
         assets: directory holding the model (checkpoint/) and its tokenizers (default: the bundled ones of `model`).
         maps: which map kinds the side channel computes (all four by default, to compare them).
         faithfulness: re-score every step afterwards and print how faithful each map kind is.
+        baseline: the frame `ig` starts from and `occlusion` (and the faithfulness deletion) paints with.
     """
     opts = DemoOptions(
-        out, episodes, max_calls, execute, seed, target, render, videos, model, assets, maps, faithfulness
+        out, episodes, max_calls, execute, seed, target, render, videos, model, assets, maps, faithfulness, baseline
     )
     try:
         result = run_demo(opts)
@@ -55,6 +57,8 @@ def main(
     figures = result.figures
     print(f"pointing game over {figures['steps']} steps (the base camera's map peaks on the named block):")
     for kind, f in figures["maps"].items():
+        if not f["steps"]:
+            continue
         print(f"  {MAP_LABELS[kind]:>36}: {f['pointing_game']:.0%} (chance {f['pointing_chance']:.0%})")
     if result.faithfulness is not None:
         print()

@@ -34,7 +34,7 @@ from openpi_cam.cam.batching import explain_traces
 from openpi_cam.cam.runfmt import load_run
 from openpi_cam.demo import bundled, task
 from openpi_cam.demo.data import Batches, load_normalize
-from openpi_cam.model.attribution import MAP_KINDS
+from openpi_cam.model.attribution import DEFAULT_KINDS, MAP_KINDS
 from openpi_cam.model.pi0_fast import Pi0FAST, init_params
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import Explainer, ExplainRequest, Explanation
@@ -220,7 +220,7 @@ def map_figures(
     rng = np.random.default_rng(seed)
     size = task.TaskConfig().image_size
     fields = ("rho", "kept", "chance", "moved", "on_block", "block_chance")
-    figures = {k: {field: [] for field in fields} for k in MAP_KINDS}
+    figures = {k: {field: [] for field in fields} for k in DEFAULT_KINDS}  # the kinds `ExplainRequest` computes
     scenes = 0
     while scenes < samples:
         scene = task.random_scene(rng)

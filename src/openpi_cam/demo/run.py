@@ -15,7 +15,7 @@ from openpi_cam.cam.runfmt import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.demo import bundled, quality, sim
 from openpi_cam.demo.client import PolicyClient
-from openpi_cam.model.attribution import MAP_KINDS, MapKind
+from openpi_cam.model.attribution import MAP_KINDS, MapKind, MapOptions
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import Target
 from openpi_cam.serving.server import start_server_in_thread
@@ -59,6 +59,7 @@ class DemoOptions:
     assets: pathlib.Path | None = None  # None: the bundled model of `model`
     maps: tuple[MapKind, ...] = MAP_KINDS  # every kind, so the faithfulness table compares them all
     faithfulness: bool = True  # re-score every step and report how faithful each map kind is
+    baseline: Literal["mean", "blur"] = "mean"  # the baseline frame of the ig / occlusion maps
 
 
 @dataclasses.dataclass
@@ -77,7 +78,13 @@ def run_demo(opts: DemoOptions) -> DemoResult:
     assets = demo_reach.DEFAULT_ASSETS[opts.model] if opts.assets is None else opts.assets
     policy = demo_reach.create_demo_policy(model=opts.model, assets=assets)
     options = CAMOptions(
-        every_k=1, cam_dir=opts.out, save_frames="both", target=opts.target, maps=opts.maps, queue_size=64
+        every_k=1,
+        cam_dir=opts.out,
+        save_frames="both",
+        target=opts.target,
+        maps=opts.maps,
+        map_options=MapOptions(baseline=opts.baseline),
+        queue_size=64,
     )
     config = demo_reach.DEMO_CONFIGS[opts.model].name
     run_config = {"config": config, "demo": {"episodes": opts.episodes, "seed": opts.seed, "model": opts.model}}

@@ -1,0 +1,82 @@
+"""What each map kind costs next to the inference it explains, on a bundled demo model, measured side by side.
+
+For `--scenes` fresh demo scenes (after one compile scene), times `policy.infer` and one explanation per kind set
+(gradcam + gradnorm share a backward pass; ig; occlusion; all four) through the family's explainer, exactly what the
+side channel runs per explained request, interleaved scene by scene so that machine load hits every row alike.
+Prints medians and the ratio explanation / inference.
+
+    python benchmarks/bench_maps.py                       # pi0-FAST demo model, target chunk
+    python benchmarks/bench_maps.py --model pi05 --target action
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from openpi_cam.demo import bundled, task
+from openpi_cam.policies import demo_reach
+from openpi_cam.policies.family import ExplainRequest
+
+KIND_SETS = {
+    "gradcam+gradnorm": ("gradcam", "gradnorm"),
+    "ig": ("ig",),
+    "occlusion": ("occlusion",),
+    "all four": ("gradcam", "gradnorm", "ig", "occlusion"),
+}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--model", choices=["pi0_fast", "pi05"], default="pi0_fast")
+    parser.add_argument("--target", default="chunk")
+    parser.add_argument("--scenes", type=int, default=20)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+
+    policy = demo_reach.create_demo_policy(model=args.model)
+    explainer = policy.explainer
+    rng = np.random.default_rng(args.seed)
+    times: dict[str, list[float]] = {"infer": [], **{name: [] for name in KIND_SETS}}
+    ig_steps: list[int] = []
+    for scene_index in range(args.scenes + 1):
+        scene = task.random_scene(rng)
+        obs = bundled.policy_input(bundled.client_observation(task.observe(scene, task.random_start(rng, scene))))
+        t0 = time.perf_counter()
+        _, trace = policy.infer_traced(obs)
+        infer_s = time.perf_counter() - t0
+        outputs = np.asarray(trace.output)[None]
+        sample_inputs = {k: np.asarray(v)[None] for k, v in trace.sample_inputs.items()}
+        row = {"infer": infer_s}
+        for name, kinds in KIND_SETS.items():
+            request = ExplainRequest(args.target, kinds=kinds)
+            t0 = time.perf_counter()
+            [explanation] = explainer.explain(trace.observation, outputs, request, sample_inputs)
+            row[name] = time.perf_counter() - t0
+            if name == "ig":
+                ig_steps.append(explanation.details["ig_completeness"]["steps"])
+        if scene_index == 0:
+            continue  # compilation
+        for name, seconds in row.items():
+            times[name].append(seconds)
+
+    cpu = f"{os.cpu_count()} CPU cores" if sys.platform != "darwin" else platform.processor()
+    print(f"{args.model} demo model, target {args.target}, {args.scenes} scenes, {platform.machine()}, {cpu}")
+    infer = statistics.median(times["infer"])
+    print(f"{'':>18} {'median ms':>10} {'x inference':>12}")
+    for name, values in times.items():
+        med = statistics.median(values)
+        print(f"{name:>18} {med * 1e3:10.1f} {med / infer:12.1f}")
+    print(f"IG quadrature steps used: {dict(zip(*np.unique(ig_steps, return_counts=True), strict=True))}")
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    main()

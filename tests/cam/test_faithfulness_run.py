@@ -1,0 +1,142 @@
+"""`openpi-cam faithfulness` on runs the side channel wrote: steps rebuilt from their files re-score exactly, the
+interventions are the ones the live maps used, and the figures separate a faithful map from a random one.
+
+Runs on the bundled demo policies (pi0-FAST and pi0.5), whose actions depend on the observation (asserted first),
+with every map kind logged."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from cam_support import assert_pairwise_different, demo_obs, policy_part
+
+from openpi_cam.cam import faithfulness as fm
+from openpi_cam.cam.faithfulness_run import FaithfulnessOptions, evaluate_run, format_report, step_model_inputs
+from openpi_cam.cam.runfmt import load_run
+from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
+from openpi_cam.model.attribution import MAP_KINDS, MapOptions
+from openpi_cam.policies import demo_reach
+from openpi_cam.policies.family import ExplainSkipped
+
+SEEDS = (200, 201, 202, 203)
+# Re-running the explained score from the step file: the model frames are exact (uint8 frames through the same
+# float conversion), so only XLA's fusion order differs from the live call. Measured: <= 3e-6 on scores of
+# magnitude 1-10 (pi0-FAST chunk log-probs, pi0.5 actions); 1e-4 absolute is 10x above that at the largest score.
+REPLAY_ATOL = 1e-4
+
+
+def _logged_run(tmp_path, policy, target, save_frames="model", **request):
+    observations = [demo_obs(s) for s in SEEDS]
+    actions = [policy.infer(policy_part(o))["actions"] for o in observations]
+    assert_pairwise_different(actions)  # the steps are distinct inferences, so a mixed-up replay would show
+    options = CAMOptions(
+        every_k=1, cam_dir=tmp_path, save_frames=save_frames, target=target, maps=MAP_KINDS, queue_size=16, **request
+    )
+    family = "pi05" if policy.explainer.targets == ("action", "chunk") else "pi0_fast"
+    wrapped = wrap_policy_with_cam(policy, options, run_config={"config": demo_reach.DEMO_CONFIGS[family].name})
+    try:
+        for obs in observations:
+            wrapped.infer(obs)
+    finally:
+        wrapped.close()
+    return load_run(wrapped.run_dir)
+
+
+@pytest.fixture(scope="module")
+def pi05_policy():
+    return demo_reach.create_demo_policy(model="pi05")
+
+
+@pytest.mark.parametrize("family", ["pi0_fast", "pi05"])
+def test_steps_rescore_exactly_and_occlusion_is_its_own_optimum(tmp_path, demo_policy, pi05_policy, family):
+    policy, target = (demo_policy, "chunk") if family == "pi0_fast" else (pi05_policy, "action")
+    request = {"action_index": 3, "action_dim_index": 1} if target == "action" else {}
+    run = _logged_run(tmp_path, policy, target, **request)
+    assert len(run.steps) == len(SEEDS) and all(set(s.map_kinds) == set(MAP_KINDS) for s in run.steps)
+    report = evaluate_run(run, policy.explainer, FaithfulnessOptions(randomize="llm", random_orders=4))
+
+    assert report["steps_evaluated"] == len(SEEDS) and not report["skipped"]
+    assert report["score_replay_max_abs_diff"] < REPLAY_ATOL
+    valid = [c for c, info in run.steps[0].meta["cameras"].items() if info["valid"]]
+    assert set(report["cameras"]) == set(valid)
+    for camera, cam in report["cameras"].items():
+        kinds = cam["kinds"]
+        assert set(kinds) == {*MAP_KINDS, "random"}
+        # The logged occlusion map is the single-patch drop of the same painting, so its top patch *is* the optimum:
+        # exactly 1 at k = 1 in every step. A replay of other inputs, another camera's masks or another baseline
+        # would break the equality.
+        occlusion_k1 = kinds["occlusion"]["deletion_k1"]
+        assert occlusion_k1["n"] == cam["steps_with_positive_optimum"] > 0
+        assert occlusion_k1["median"] == pytest.approx(1.0, abs=1e-4)
+        assert occlusion_k1["mean"] == pytest.approx(1.0, abs=1e-4)
+        assert kinds["occlusion"]["top1_occlusion"]["mean"] == 1.0
+        # A random order's first patch is (on average) far from the optimum on these 4 x 4 grids.
+        assert kinds["random"]["deletion_k1"]["median"] < 0.5, camera
+        for kind in MAP_KINDS:
+            rand = kinds[kind].get("randomisation_abs_spearman")
+            assert rand is not None and rand["n"] >= 2, (camera, kind)  # the re-initialised model's maps vary
+    text = format_report(report)
+    assert "occlusion | 1.00" in text
+
+
+def test_logged_occlusion_maps_equal_the_single_patch_drops_rescored_offline(tmp_path, demo_policy):
+    """The live side channel's occlusion map and the offline re-scoring of one patch at a time agree value by value:
+    the step file holds everything the explained score depends on."""
+    run = _logged_run(tmp_path, demo_policy, "action-token", action_index=1)
+    for step in run.steps:
+        obs, outputs, sample_inputs = step_model_inputs(step)
+        cameras = list(step.meta["cameras"])
+        grid = step.maps_of("occlusion")[cameras[0]].shape
+        masks = dict.fromkeys(cameras, fm.single_patch_masks(grid))
+        painting = MapOptions(**step.meta["map_options"])
+        scores = demo_policy.explainer.rescore(obs, outputs, sample_inputs, step.meta, masks, painting)
+        for c in cameras:
+            drops = (scores[c][0] - scores[c][1:]).reshape(grid)
+            logged = step.maps_of("occlusion")[c]
+            # A drop is the difference of two float32 scores of magnitude |s| (a logit); the live program and this one
+            # batch the variants differently, so each score may round differently. Measured: <= 5.7e-6 at |s| ~ 3-12;
+            # 1e-5 |s| bounds that and stays far below the drops the map ranks (1e-3 - 3e-2 here).
+            atol = 1e-5 * max(abs(float(scores[c][0])), 1.0)
+            np.testing.assert_allclose(logged, drops, rtol=0, atol=atol)
+        assert abs(scores[cameras[0]][0] - step.meta["score"]) < REPLAY_ATOL
+
+
+def test_ig_completeness_is_stored_per_step_and_holds(tmp_path, demo_policy):
+    run = _logged_run(tmp_path, demo_policy, "chunk")
+    for step in run.steps:
+        check = step.meta["ig_completeness"]
+        total = sum(float(np.sum(m)) for m in step.maps_of("ig").values())
+        # The stored attribution sum is the logged ig maps' sum (float32 maps summed in float64: 1e-5 relative).
+        assert total == pytest.approx(check["attribution_sum"], rel=1e-5, abs=1e-6)
+        gap = check["score"] - check["baseline_score"]
+        assert abs(check["attribution_sum"] - gap) <= 0.02 * max(abs(gap), 1e-3)  # MapOptions.ig_tolerance
+        assert check["score"] == pytest.approx(step.meta["score"], abs=REPLAY_ATOL)
+        assert step.meta["map_options"]["baseline"] == "mean"
+
+
+def test_steps_without_model_frames_are_reported_not_replayable(tmp_path, demo_policy):
+    run = _logged_run(tmp_path, demo_policy, "chunk", save_frames="raw")
+    with pytest.raises(ExplainSkipped, match="frame"):
+        step_model_inputs(run.steps[0])
+    report = evaluate_run(run, demo_policy.explainer, FaithfulnessOptions(randomize="none"))
+    assert report["steps_evaluated"] == 0 and report["skipped"] == {"not_replayable": len(SEEDS)}
+
+
+def test_faithfulness_command_on_a_demo_run(tmp_path, demo_policy):
+    """The CLI finds the bundled model from the run's config, prints the table and writes the JSON report."""
+    run = _logged_run(tmp_path / "cam", demo_policy, "chunk")
+    out = tmp_path / "report.json"
+    cmd = [sys.executable, "-m", "openpi_cam", "faithfulness", str(run.run_dir), "--json-out", str(out)]
+    done = subprocess.run([*cmd, "--randomize", "none", "--no-progress"], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert "camera base_0_rgb" in done.stdout and "occlusion | 1.00" in done.stdout
+    report = json.loads(out.read_text())
+    assert report["steps_evaluated"] == len(SEEDS)
+    bad = subprocess.run(
+        [sys.executable, "-m", "openpi_cam", "faithfulness", str(tmp_path / "missing")], capture_output=True, text=True
+    )
+    assert bad.returncode == 1 and "openpi-cam faithfulness" in bad.stderr
