@@ -60,7 +60,7 @@ def main() -> None:
             t0 = time.perf_counter()
             [explanation] = explainer.explain(trace.observation, outputs, request, sample_inputs)
             row[name] = time.perf_counter() - t0
-            if name == "ig":
+            if name == "ig" and scene_index > 0:
                 ig_steps.append(explanation.details["ig_completeness"]["steps"])
         if scene_index == 0:
             continue  # compilation
@@ -74,7 +74,8 @@ def main() -> None:
     for name, values in times.items():
         med = statistics.median(values)
         print(f"{name:>18} {med * 1e3:10.1f} {med / infer:12.1f}")
-    print(f"IG quadrature steps used: {dict(zip(*np.unique(ig_steps, return_counts=True), strict=True))}")
+    counts = dict(zip(*np.unique(ig_steps, return_counts=True), strict=True))
+    print("IG quadrature points used (points: scenes):", {int(k): int(v) for k, v in counts.items()})
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ import functools
 import json
 import pathlib
 import sys
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -26,6 +27,7 @@ from openpi_cam.model import gemma, pi0, pi0_fast_maps, pi0_maps
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.pi0 import Pi0
 from openpi_cam.model.pi0_fast import Pi0FAST, embed_prefix, make_attn_mask, sample_tokens_jit
+from openpi_cam.nested import flatten_dict
 
 
 @dataclasses.dataclass(frozen=True)
@@ -241,6 +243,8 @@ def run_golden(
 ) -> list[Comparison]:
     """Every comparison of a golden folder; `scan` forces the layer-stack layout (None: the read-back default)."""
     folder = pathlib.Path(folder)
+    if not (folder / "config.json").is_file() and list(folder.glob("*_param_tree.json")):
+        return _run_param_trees(folder, verbose)
     config = json.loads((folder / "config.json").read_text())
     if "pi0_config" in config:
         return _run_flow_golden(folder, config, verbose)
@@ -269,7 +273,7 @@ def run_golden(
     return results
 
 
-def _cases(folder: pathlib.Path) -> list[tuple[str, dict]]:
+def read_cases(folder: pathlib.Path) -> list[tuple[str, dict]]:
     case_files = sorted(folder.glob("case_*.npz"))
     if not case_files:
         raise FileNotFoundError(f"no case_*.npz files in {folder}")
@@ -289,19 +293,41 @@ def _run_flow_golden(folder: pathlib.Path, config: dict, verbose: bool) -> list[
         max_token_len=data_cfg["max_token_len"],
     )
     results = []
-    for name, case in _cases(folder):
-        for comp in check_flow_case(model, name, case, list(config["camera_keys"])):
-            results.append(comp)
-            if verbose:
-                print(comp.line(), flush=True)
+    for name, case in read_cases(folder):
+        results += report(check_flow_case(model, name, case, list(config["camera_keys"])), verbose)
     return results
 
 
-def check_folder(folder: pathlib.Path) -> int:
-    """Prints every comparison of a golden folder and a verdict line; the exit status (1 on any mismatch or
-    unreadable input)."""
+def report(results: list[Comparison], verbose: bool) -> list[Comparison]:
+    if verbose:
+        for comp in results:
+            print(comp.line(), flush=True)
+    return results
+
+
+def _run_param_trees(folder: pathlib.Path, verbose: bool) -> list[Comparison]:
+    """Full-size parameter trees (`param_trees/`): the tree our initialiser builds for the architecture the shapes
+    describe (`jax.eval_shape`, no weights) has exactly upstream's paths and shapes."""
+    results = []
+    for path in sorted(folder.glob("*_param_tree.json")):
+        upstream = {k: tuple(v["shape"]) for k, v in json.loads(path.read_text())["leaves"].items()}
+        gemma_cfg, expert, siglip, pi05 = pi0.pi0_architecture_from_params(upstream)
+        cfg = pi0.Pi0Config(gemma_cfg, expert, siglip, pi05)
+        ours = flatten_dict(jax.eval_shape(functools.partial(pi0.init_params, cfg), jax.random.key(0)))
+        ours = {k: tuple(v.shape) for k, v in ours.items()}
+        differing = sorted(k for k in set(ours) | set(upstream) if ours.get(k) != upstream.get(k))
+        note = f"{len(upstream)} leaves" + (f"; first difference {differing[0]}" if differing else "")
+        results.append(
+            Comparison(path.stem, "tree", float(len(differing)), float(len(upstream)), 0.0, not differing, note)
+        )
+    return report(results, verbose)
+
+
+def check_folder(folder: pathlib.Path, run: Callable[[pathlib.Path], list[Comparison]] | None = None) -> int:
+    """Prints every comparison of a golden folder (`run`, default `run_golden`) and a verdict line; the exit status
+    (1 on any mismatch or unreadable input)."""
     try:
-        results = run_golden(folder)
+        results = (run or run_golden)(folder)
     except Exception as e:  # unreadable input is a failure of the check, reported in one line
         print(f"FAIL cannot check {folder}: {type(e).__name__}: {e}")
         return 1

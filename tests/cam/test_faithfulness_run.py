@@ -21,6 +21,7 @@ from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.model.attribution import MAP_KINDS, MapOptions
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import ExplainSkipped
+from openpi_cam.viz.stats import compute_stats, to_rows, view_steps
 
 SEEDS = (200, 201, 202, 203)
 # Re-running the explained score from the step file: the model frames are exact (uint8 frames through the same
@@ -140,3 +141,22 @@ def test_faithfulness_command_on_a_demo_run(tmp_path, demo_policy):
         [sys.executable, "-m", "openpi_cam", "faithfulness", str(tmp_path / "missing")], capture_output=True, text=True
     )
     assert bad.returncode == 1 and "openpi-cam faithfulness" in bad.stderr
+
+
+def test_nuisance_mass_ratio_in_stats_uses_the_clients_box(tmp_path, demo_policy):
+    """`openpi-cam stats` reports the share of each map's positive mass outside the box the client sent, on the
+    camera the box belongs to (the first one) only. Expected value by hand: the demo's 64 px frames are not
+    letterboxed, so patch (r, c) covers pixels [16 r, 16 r + 16) x [16 c, 16 c + 16)."""
+    run = _logged_run(tmp_path, demo_policy, "chunk")
+    rows = to_rows(compute_stats(view_steps(run.steps, "gradnorm")))
+    seen = []
+    for step, row in zip(run.steps, rows, strict=True):
+        x0, y0, x1, y1 = step.meta["extra"]["target_box"]
+        edges = np.arange(4) * 16
+        inside = ((edges < y1) & (edges + 16 > y0))[:, None] & ((edges < x1) & (edges + 16 > x0))[None, :]
+        m = np.maximum(step.maps_of("gradnorm")["base_0_rgb"].astype(np.float64), 0)
+        expected = 1.0 - m[inside].sum() / m.sum()
+        assert row["base_0_rgb/nuisance_mass"] == pytest.approx(expected, abs=1e-12)
+        assert row["wrist_0_rgb/nuisance_mass"] is None  # no box for the wrist view
+        seen.append(expected)
+    assert max(seen) > min(seen)  # different scenes, different ratios

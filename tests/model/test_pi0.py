@@ -79,7 +79,9 @@ def test_architecture_and_family_read_from_the_checkpoint(family):
     assert (model.config.gemma.width, model.config.expert.width, model.config.expert.depth) == (64, 32, 2)
 
 
-@pytest.mark.parametrize("name", ["pi0_param_tree.json", "pi05_param_tree.json", "pi0_lora_param_tree.json"])
+@pytest.mark.parametrize(
+    "name", ["pi0_param_tree.json", "pi05_param_tree.json", "pi0_lora_param_tree.json", "pi05_lora_param_tree.json"]
+)
 def test_full_size_trees_equal_upstreams(name):
     """The tree our config builds (through `jax.eval_shape` of our initialiser, no weights) is upstream's."""
     leaves = json.loads((GOLDEN_DIR / "param_trees" / name).read_text())["leaves"]
@@ -195,14 +197,21 @@ def test_ig_and_occlusion_through_the_denoising_loop(family):
     np.testing.assert_allclose(res.by_kind["occlusion"]["base_0_rgb"], expected, rtol=0, atol=atol)
 
 
-def test_golden_command_checks_flow_matching_folders():
-    """`openpi-cam golden` reads a pi0 golden folder as upstream wrote it: 23 comparisons per case, all passing."""
+@pytest.mark.parametrize(
+    ("folder", "expected"),
+    [
+        ("tiny_pi0", 69),  # 3 cases x (3 SigLIP + iterates + velocities + actions + loss + 4 targets x 4 arrays)
+        ("tiny_policy_pi0_libero", 22),  # 2 cases x (2 prompt arrays + 3 images + 3 masks + state + output + actions)
+        ("param_trees", 4),  # pi0, pi0.5 and their LoRA variants
+    ],
+)
+def test_golden_command_checks_the_flow_matching_folders(folder, expected):
+    """`openpi-cam golden` reads each new golden folder as upstream wrote it and passes on all of its comparisons."""
     done = subprocess.run(
-        [sys.executable, "-m", "openpi_cam", "golden", str(GOLDEN_DIR / "tiny_pi0")],
+        [sys.executable, "-m", "openpi_cam", "golden", str(GOLDEN_DIR / folder)],
         capture_output=True,
         text=True,
         timeout=900,
     )
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
-    assert done.stdout.strip().splitlines()[-1] == "69 passed, 0 failed"
-    assert "ok   case_b   actions" in done.stdout and "ok   case_c   gc_chunk_cam" in done.stdout
+    assert done.stdout.strip().splitlines()[-1] == f"{expected} passed, 0 failed"

@@ -16,7 +16,8 @@ Conventions shared by every function:
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 from scipy import stats
@@ -219,3 +220,27 @@ def nuisance_mass_ratio(cam_map: np.ndarray, relevant_cells: np.ndarray) -> floa
     1 - their share of patches); NaN without positive mass."""
     inside = mass_on_target(cam_map, relevant_cells)
     return 1.0 - inside
+
+
+def target_cells(
+    meta: Mapping[str, Any], camera: str, grid: tuple[int, int], model_hw: Sequence[int] | None
+) -> np.ndarray | None:
+    """The patches of the ground-truth box a client sent with a step (`cam_extra/target_box`: x0, y0, x1, y1 in the
+    client image of `cam_extra/target_camera`, default the step's first camera), on `camera`'s model frame of size
+    `model_hw` (taken from the camera's letterbox geometry when the step has it). None when the step has no box for
+    that camera. -> bool [Hp, Wp]"""
+    extra = meta.get("extra") or {}
+    cameras = meta.get("cameras") or {}
+    box = extra.get("target_box")
+    if box is None or camera != extra.get("target_camera", next(iter(cameras), None)):
+        return None
+    x0, y0, x1, y1 = (float(v) for v in box)
+    geometry = (cameras.get(camera) or {}).get("geometry")
+    if geometry:  # client pixels -> model pixels through the letterbox
+        sx, sy = geometry["resized_w"] / geometry["orig_w"], geometry["resized_h"] / geometry["orig_h"]
+        x0, x1 = geometry["pad_left"] + x0 * sx, geometry["pad_left"] + x1 * sx
+        y0, y1 = geometry["pad_top"] + y0 * sy, geometry["pad_top"] + y1 * sy
+        model_hw = (geometry["model_h"], geometry["model_w"])
+    if model_hw is None:
+        return None
+    return box_cells((x0, y0, x1, y1), grid, (int(model_hw[0]), int(model_hw[1])))

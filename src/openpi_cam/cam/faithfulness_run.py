@@ -30,7 +30,6 @@ import numpy as np
 
 from openpi_cam.cam import faithfulness as fm
 from openpi_cam.cam.runfmt import CAMRun, CAMStep
-from openpi_cam.image_tools import LetterboxGeometry
 from openpi_cam.model.attribution import MAP_KINDS, MapOptions
 from openpi_cam.model.observation import Observation
 from openpi_cam.policies.family import Explainer, ExplainRequest, ExplainSkipped
@@ -83,25 +82,6 @@ def _painting(step: CAMStep, baseline: str) -> MapOptions:
     return MapOptions(baseline=baseline)
 
 
-def _target_cells(step: CAMStep, camera: str, grid: tuple[int, int]) -> np.ndarray | None:
-    """The ground-truth box's patches on `camera`'s model frame, or None without a box for that camera."""
-    extra = step.meta.get("extra") or {}
-    box = extra.get("target_box")
-    cameras = step.meta.get("cameras") or {}
-    if box is None or camera != extra.get("target_camera", next(iter(cameras), None)):
-        return None
-    frame = step.model_frames.get(camera)
-    if frame is None:
-        return None
-    x0, y0, x1, y1 = (float(v) for v in box)
-    geometry = (cameras.get(camera) or {}).get("geometry")
-    if geometry:  # client pixels -> model pixels through the letterbox
-        g = LetterboxGeometry(**geometry)
-        x0, x1 = g.pad_left + x0 / g.scale_x, g.pad_left + x1 / g.scale_x
-        y0, y1 = g.pad_top + y0 / g.scale_y, g.pad_top + y1 / g.scale_y
-    return fm.box_cells((x0, y0, x1, y1), grid, frame.shape[:2])
-
-
 @dataclasses.dataclass
 class _CameraRecord:
     """One (step, camera): what the summary aggregates."""
@@ -128,6 +108,11 @@ def _masks(order_by_kind: Mapping[str, np.ndarray], grid: tuple[int, int], k_max
         where[name] = slice(start, start + len(block))
         start += len(block)
     return np.concatenate(list(blocks.values())), where
+
+
+def _cells(step: CAMStep, camera: str, grid: tuple[int, int]) -> np.ndarray | None:
+    frame = step.model_frames.get(camera)
+    return fm.target_cells(step.meta, camera, grid, None if frame is None else frame.shape[:2])
 
 
 def _evenly(steps: Sequence[CAMStep], limit: int | None) -> list[CAMStep]:
@@ -192,7 +177,7 @@ def evaluate_run(
             deletion["random"] = random / optimum if optimum > 0 else None
             maps = {k: fm.reduce_map(step.maps_of(k)[c]) for k in kinds}
             records.setdefault(c, []).append(
-                _CameraRecord(step.seq, optimum, single, deletion, maps, _target_cells(step, c, grid))
+                _CameraRecord(step.seq, optimum, single, deletion, maps, _cells(step, c, grid))
             )
         if random_explainer is not None:
             request = ExplainRequest(
@@ -279,11 +264,19 @@ def format_report(report: Mapping[str, Any]) -> str:
         f"unpainted re-run vs logged score: max |diff| {report['score_replay_max_abs_diff']}",
         "deletion = score drop after painting the map's top-k patches / the best single patch's drop (median; "
         "occlusion's own map is 1.00 at k=1); rand |rho| = |Spearman| with the map of a re-initialised model "
-        "(lower is better; null = unrelated steps)",
+        "(lower is better; null = unrelated steps); rho occl = Spearman with the occlusion map (median)",
     ]
     for camera, cam in report["cameras"].items():
         ks = report["options"]["ks"]
-        columns = ["kind", *[f"del k={k}" for k in ks], "del AUC", "top-1 = occl", "rand |rho| (null)", "pointing"]
+        columns = [
+            "kind",
+            *[f"del k={k}" for k in ks],
+            "del AUC",
+            "top-1 = occl",
+            "rho occl",
+            "rand |rho| (null)",
+            "pointing",
+        ]
         head = " | ".join(columns)
         lines += ["", f"camera {camera} ({cam['steps_with_positive_optimum']}/{cam['steps']} steps scored)", head]
         for kind, e in cam["kinds"].items():
@@ -294,6 +287,9 @@ def format_report(report: Mapping[str, Any]) -> str:
             if e.get("pointing"):
                 point = f"{_fmt(e['pointing'], 'share')} (chance {e['pointing_chance']:.0%})"
             cells = [kind, *[_fmt(e[f"deletion_k{k}"]) for k in ks], _fmt(e["deletion_auc"])]
-            cells += [_fmt(e.get("top1_occlusion"), "share") if kind != "random" else "-", rand, point]
+            if kind == "random":
+                cells += ["-", "-", rand, point]
+            else:
+                cells += [_fmt(e.get("top1_occlusion"), "share"), _fmt(e.get("spearman_occlusion")), rand, point]
             lines.append(" | ".join(cells))
     return "\n".join(lines)

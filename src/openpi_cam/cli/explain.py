@@ -12,9 +12,9 @@ from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.offline import ExplainOptions, Replay, explain_replays, open_source, resume_mismatch
 from openpi_cam.cam.records import SaveFrames
 from openpi_cam.cam.runfmt import RUN_JSON, load_run
-from openpi_cam.cli.options import parse_action_index
+from openpi_cam.cli.options import map_options, parse_action_index
 from openpi_cam.errors import InvalidRequest
-from openpi_cam.model.attribution import MAP_KINDS, MapKind, MapOptions
+from openpi_cam.model.attribution import MAP_KINDS, MapKind
 from openpi_cam.policies import demo_reach  # noqa: F401  (registers the bundled demo_reach config)
 from openpi_cam.policies.family import Target
 from openpi_cam.policies.policy import create_policy
@@ -32,6 +32,8 @@ def main(
     action_index: str = "0",
     maps: tuple[MapKind, ...] = MAP_KINDS,
     baseline: Literal["mean", "blur"] = "mean",
+    occlusion_region: int = 1,
+    occlusion_masks: int = 0,
     save_frames: SaveFrames = "both",
     batch_size: int = 8,
     limit: int | None = None,
@@ -58,6 +60,10 @@ def main(
         maps: which kinds of map to compute (README, "Which map to trust"); all four by default.
         baseline: the frame IG starts from and occlusion paints with: the frame's mean colour (measured more
             faithful on the demo model) or a Gaussian-blurred copy (sigma 8 px).
+        occlusion_region: side of an occlusion region in patches (1: every patch alone, C x (N + 1) re-runs per
+            step; a 224 px camera has 256 patches).
+        occlusion_masks: 0: every region once; M > 0: M random region masks per camera, scored with the
+            Interventional Significance Score (for large grids).
         save_frames: which camera frames to store next to the maps (`raw`/`both` keep the run re-explainable).
         batch_size: observations explained per model call, split over all local devices.
         limit: explain at most this many observations not yet in the run (resume later for the rest).
@@ -79,6 +85,8 @@ def main(
         "checkpoint_dir": str(pathlib.Path(checkpoint_dir).resolve()),
         "dtype": dtype,
         "source": str(source.resolve()),
+        "paligemma_tokenizer": None if paligemma_tokenizer is None else str(paligemma_tokenizer.resolve()),
+        "fast_tokenizer": None if fast_tokenizer is None else str(fast_tokenizer.resolve()),
     }
     try:
         index, dim_index = parse_action_index(action_index)
@@ -88,11 +96,20 @@ def main(
             "action_dim_index": dim_index,
             "maps": list(maps),
             "baseline": baseline,
+            "occlusion_region": occlusion_region,
+            "occlusion_masks": occlusion_masks,
             "save_frames": save_frames,
         }
         replays, total = open_source(source, nested_keys=nested_keys)
         options = ExplainOptions(
-            target, index, dim_index, tuple(maps), save_frames, batch_size, limit, MapOptions(baseline=baseline)
+            target,
+            index,
+            dim_index,
+            tuple(maps),
+            save_frames,
+            batch_size,
+            limit,
+            map_options(baseline, occlusion_region, occlusion_masks),
         )
         if resume_dir is not None:
             run_info = load_run(resume_dir, load_arrays=False).run_info

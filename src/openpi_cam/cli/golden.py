@@ -7,13 +7,16 @@ import pathlib
 import tyro
 
 from openpi_cam.golden import check_folder
+from openpi_cam.policies.golden_policy import is_policy_folder, run_policy_golden
 
 
 def main(folder: tyro.conf.Positional[pathlib.Path]) -> int:
-    """Check the model against an upstream golden folder (config.json, checkpoint/params, case_*.npz): one line per
-    compared array, exit status 1 on any mismatch or unreadable input.
+    """Check against an upstream golden folder: one line per compared array (max |ours - ref| against a bound
+    relative to max |ref|), exit status 1 on any mismatch or unreadable input.
 
     Args:
-        folder: a golden folder laid out like `shared/golden/tiny_pi0_fast`.
+        folder: a model-level golden folder (config.json, checkpoint/params, case_*.npz: `tiny_pi0_fast`, `tiny_pi0`,
+            `tiny_pi05`), a policy-level one (case.json: `tiny_policy_pi05_droid`, `tiny_policy_pi0_libero`), or
+            `param_trees/` (full-size parameter trees).
     """
-    return check_folder(folder)
+    return check_folder(folder, run_policy_golden if is_policy_folder(folder) else None)

@@ -13,8 +13,8 @@ from typing import Literal
 
 from openpi_cam.cam.records import SaveFrames
 from openpi_cam.cam.side_channel import CAMOptions, CAMPolicy, wrap_policy_with_cam
-from openpi_cam.cli.options import parse_action_index
-from openpi_cam.model.attribution import DEFAULT_KINDS, MapKind, MapOptions
+from openpi_cam.cli.options import map_options, parse_action_index
+from openpi_cam.model.attribution import DEFAULT_KINDS, MapKind
 from openpi_cam.model.config import MAX_DECODING_STEPS
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import Target
@@ -44,6 +44,8 @@ def main(
     cam_action_index: str = "0",
     cam_maps: tuple[MapKind, ...] = DEFAULT_KINDS,
     cam_baseline: Literal["mean", "blur"] = "mean",
+    cam_occlusion_region: int = 1,
+    cam_occlusion_masks: int = 0,
     cam_queue_size: int = 8,
     cam_max_steps: int | None = None,
     cam_max_mb: float | None = None,
@@ -75,6 +77,8 @@ def main(
             `gradnorm` cost one backward pass together; `ig` (about 8x an inference on the demo model) and
             `occlusion` (one re-run per patch and camera) are opt-in live.
         cam_baseline: the frame `ig` starts from and `occlusion` paints with: the frame's mean colour or a blurred copy.
+        cam_occlusion_region: side of an `occlusion` region in patches (1: every patch alone).
+        cam_occlusion_masks: 0: every region once; M > 0: M random region masks per camera (ISS), for large grids.
         cam_queue_size: pending Grad-CAM jobs before new ones are dropped (inference never waits).
         cam_max_steps: stop recording after this many steps (None = no limit).
         cam_max_mb: stop recording once the run directory holds this many MB (None = no limit).
@@ -130,7 +134,7 @@ def main(
             action_index=action_index,
             action_dim_index=action_dim_index,
             maps=cam_maps,
-            map_options=MapOptions(baseline=cam_baseline),
+            map_options=map_options(cam_baseline, cam_occlusion_region, cam_occlusion_masks),
             queue_size=cam_queue_size,
             max_steps=cam_max_steps,
             max_bytes=None if cam_max_mb is None else int(cam_max_mb * 1024 * 1024),

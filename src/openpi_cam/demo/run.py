@@ -11,7 +11,7 @@ import time
 from typing import Any, Literal
 
 from openpi_cam.cam.faithfulness_run import FaithfulnessOptions, evaluate_run
-from openpi_cam.cam.runfmt import load_run
+from openpi_cam.cam.runfmt import dumps, load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.demo import bundled, quality, sim
 from openpi_cam.demo.client import PolicyClient
@@ -43,6 +43,9 @@ def run_episodes(url: str, episodes: int, *, seed: int, max_calls: int, execute:
                 }
             )
     return results
+
+
+FAITHFULNESS_FILE = "faithfulness.json"  # the run's faithfulness report, beside its steps
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,7 +87,7 @@ def run_demo(opts: DemoOptions) -> DemoResult:
         target=opts.target,
         maps=opts.maps,
         map_options=MapOptions(baseline=opts.baseline),
-        queue_size=64,
+        queue_size=max(64, opts.episodes * opts.max_calls),  # room for every request: the demo logs each one
     )
     config = demo_reach.DEMO_CONFIGS[opts.model].name
     run_config = {"config": config, "demo": {"episodes": opts.episodes, "seed": opts.seed, "model": opts.model}}
@@ -112,4 +115,5 @@ def run_demo(opts: DemoOptions) -> DemoResult:
     faithfulness = None
     if opts.faithfulness:
         faithfulness = evaluate_run(load_run(run_dir), policy.explainer, FaithfulnessOptions(randomize="llm"))
+        (run_dir / FAITHFULNESS_FILE).write_text(dumps(faithfulness, indent=2))
     return DemoResult(run_dir, episodes, quality.run_figures(run_dir), reports, time.time() - t0, faithfulness)

@@ -32,10 +32,11 @@ COMPLETENESS_FLOOR = 1e-3
 class MapOptions:
     """How the baseline-based maps are computed. Hashable: jitted programs take it as a static argument.
 
-    Defaults were chosen by measurement on the bundled demo model over 100 scenes (docs/MAP_KINDS.md). The mean-colour frame is the default baseline because it removes what the policy reads: a frame
-    blurred with sigma <= 16 px moves the chunk's log-probability by only 0.02-0.34 nats (median), so blur-based
-    maps explain a residual; with the mean frame (5.2 nats) IG and occlusion peak on the named block in 95% / 87%
-    of steps (blur, sigma 8: 63% / 66%; chance 16%). Blur stays available (Zhang et al.'s replacement)."""
+    Defaults were chosen by measurement on the bundled demo model over 100 scenes (docs/MAP_KINDS.md). The
+    mean-colour frame is the default baseline because it removes what the policy reads: a frame blurred with
+    sigma <= 16 px moves the chunk's log-probability by only 0.02-0.34 nats (median), so blur-based maps explain a
+    residual; with the mean frame (5.2 nats) IG and occlusion peak on the named block in 95% / 87% of steps (blur,
+    sigma 8: 63% / 66%; chance 16%). Blur stays available (Zhang et al.'s replacement)."""
 
     baseline: str = "mean"  # "mean": the frame's per-channel mean colour; "blur": a Gaussian-blurred copy
     blur_sigma: float = 8.0  # pixels at the model resolution (the demo: half a 16 px patch)

@@ -221,6 +221,18 @@ def _connection_section(
         flags,
     )
     score = timeline_svg("score", steps, [("score", "#dddddd", [st.score for st in steps], "")], flags)
+    boxed = [c for c in cams if any(not math.isnan(col(c, "nuisance_mass")[i]) for i in range(len(steps)))]
+    nuisance = (
+        timeline_svg(
+            "nuisance mass ratio (map mass outside the client's target box; lower is better)",
+            steps,
+            [(c, colors[c], col(c, "nuisance_mass"), "") for c in boxed],
+            flags,
+            (0.0, 1.0),
+        )
+        if boxed
+        else ""
+    )
     conn_flags = [(st, flags[st.seq]) for st in steps if st.seq in flags]
     flag_items = "".join(
         f'<li><a href="#step-{st.seq}">seq {st.seq} (step {st.step})</a>: {_e("; ".join(r))}</li>'
@@ -240,7 +252,7 @@ def _connection_section(
     )
     return (
         f'<section class="conn" id="conn-{_e(conn)}"><h2>connection {_e(conn)} · {len(steps)} steps</h2>{media}'
-        f"{share}{peaks}{score}"
+        f"{share}{peaks}{score}{nuisance}"
         f"<h3>flagged steps ({len(conn_flags)})</h3><ul>{flag_items or '<li>none</li>'}</ul>"
         f'<div class="thumbs">{thumbs}</div></section>'
     )

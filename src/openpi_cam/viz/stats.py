@@ -17,6 +17,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from openpi_cam.cam.faithfulness import nuisance_mass_ratio, target_cells
 from openpi_cam.cam.runfmt import MAP_PREFIXES, CAMStep
 from openpi_cam.viz.overlay import StepView, reduce_tokens
 
@@ -101,6 +102,9 @@ class CameraStats:
     peak_value: float
     peak_shift: float  # Euclidean peak displacement (cells) from this camera's previous step on the connection
     peak_stayed: bool | None  # None on a connection's first step or when either peak is missing
+    # Share of the map's positive mass outside the ground-truth box the client sent (`cam_extra/target_box`; Zhang
+    # et al.'s nuisance mass ratio); NaN for cameras without a box.
+    nuisance_mass: float = math.nan
 
 
 @dataclasses.dataclass(frozen=True)
@@ -172,6 +176,9 @@ def compute_stats(steps: Iterable[StepView]) -> list[StepStats]:
         cameras: dict[str, CameraStats] = {}
         for c in names:
             cs = _camera_stats(maps[c], valid[c], total)
+            cells = None if maps[c] is None else target_cells(meta, c, maps[c].shape, None)
+            if cs.valid and cells is not None:
+                cs = dataclasses.replace(cs, nuisance_mass=nuisance_mass_ratio(maps[c], cells))
             key = (connection, c)
             if key in last_peak:
                 prev = last_peak[key]
@@ -235,6 +242,7 @@ def to_rows(stats: Sequence[StepStats]) -> list[dict[str, Any]]:
                 f"{c}/peak_value": _nan_to_none(cs.peak_value) if cs is not None else None,
                 f"{c}/peak_shift": _nan_to_none(cs.peak_shift) if cs is not None else None,
                 f"{c}/peak_stayed": cs.peak_stayed if cs is not None else None,
+                f"{c}/nuisance_mass": _nan_to_none(cs.nuisance_mass) if cs is not None else None,
             }
         rows.append(row)
     return rows
