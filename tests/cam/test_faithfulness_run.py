@@ -16,11 +16,14 @@ from cam_support import assert_pairwise_different, demo_obs, policy_part
 
 from openpi_cam.cam import faithfulness as fm
 from openpi_cam.cam.faithfulness_run import FaithfulnessOptions, evaluate_run, format_report, step_model_inputs
+from openpi_cam.cam.logger import CAMLogger
+from openpi_cam.cam.offline import ExplainOptions, Replay, explain_replays
 from openpi_cam.cam.runfmt import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.model.attribution import MAP_KINDS, MapOptions
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import ExplainSkipped
+from openpi_cam.viz.render import RenderOptions, render_run
 from openpi_cam.viz.stats import compute_stats, to_rows, view_steps
 
 SEEDS = (200, 201, 202, 203)
@@ -62,6 +65,8 @@ def test_steps_rescore_exactly_and_occlusion_is_its_own_optimum(tmp_path, demo_p
 
     assert report["steps_evaluated"] == len(SEEDS) and not report["skipped"]
     assert report["score_replay_max_abs_diff"] < REPLAY_ATOL
+    ig = report["ig_completeness"]  # from the steps' stored checks (MapOptions.ig_tolerance: 2%)
+    assert ig["steps"] == len(SEEDS) and ig["max_relative_error"] <= 0.02
     valid = [c for c, info in run.steps[0].meta["cameras"].items() if info["valid"]]
     assert set(report["cameras"]) == set(valid)
     for camera, cam in report["cameras"].items():
@@ -160,3 +165,29 @@ def test_nuisance_mass_ratio_in_stats_uses_the_clients_box(tmp_path, demo_policy
         assert row["wrist_0_rgb/nuisance_mass"] is None  # no box for the wrist view
         seen.append(expected)
     assert max(seen) > min(seen)  # different scenes, different ratios
+
+
+def test_offline_explain_render_stats_and_faithfulness_on_a_pi05_run(tmp_path, pi05_policy):
+    """The run tools know no family: a pi0.5 policy explained offline (action target, all four kinds) gives a run that
+    renders, has statistics and re-scores exactly, with maps of the very chunks the replays returned."""
+    observations = [demo_obs(s) for s in SEEDS[:3]]
+    replays = [
+        Replay(f"obs{i}", "offline", i, policy_part(o), {"target_box": o["cam_extra/target_box"].tolist()})
+        for i, o in enumerate(observations)
+    ]
+    options = ExplainOptions(target="action", action_index=2, action_dim_index=1, maps=MAP_KINDS, batch_size=2)
+    with CAMLogger(tmp_path / "cam", run_config={"config": "demo_reach_pi05"}, checkpoint="demo", options={}) as log:
+        summary = explain_replays(pi05_policy, replays, options, log, mesh=None)
+    assert summary["completed"] == 3
+    run = load_run(log.run_dir)
+    for step in run.steps:
+        assert step.meta["action_index"] == [2, 1] and set(step.map_kinds) == set(MAP_KINDS)
+        assert step.meta["replay_max_abs_diff"] < 1e-4  # the explained chunk is the returned one (float32 re-run)
+    result = render_run(run, tmp_path / "render", RenderOptions(map="ig", videos=False, progress=False))
+    assert result.report is not None and "nuisance mass ratio" in result.report.read_text()
+    rows = to_rows(compute_stats(view_steps(run.steps, "occlusion")))
+    assert [r["seq"] for r in rows] == [0, 1, 2] and all(r["base_0_rgb/nuisance_mass"] is not None for r in rows)
+    report = evaluate_run(run, pi05_policy.explainer, FaithfulnessOptions(randomize="none", random_orders=2))
+    assert report["steps_evaluated"] == 3 and report["score_replay_max_abs_diff"] < REPLAY_ATOL
+    occlusion = report["cameras"]["base_0_rgb"]["kinds"]["occlusion"]["deletion_k1"]
+    assert occlusion["median"] == pytest.approx(1.0, abs=1e-4)

@@ -237,12 +237,30 @@ def _report(run, records, randomised, skipped, replay_diffs, opts) -> dict[str, 
             per_kind[kind] = entry
         cameras[c] = {"steps": len(recs), "steps_with_positive_optimum": len(usable), "kinds": per_kind}
     return {
+        "ig_completeness": _ig_summary(run),
         "run_dir": str(run.run_dir),
         "options": dataclasses.asdict(opts),
         "steps_evaluated": max((len(r) for r in records.values()), default=0),
         "skipped": skipped,
         "score_replay_max_abs_diff": max(replay_diffs, default=None),
         "cameras": cameras,
+    }
+
+
+def _ig_summary(run: CAMRun) -> dict[str, Any] | None:
+    """IG's completeness over the run's logged steps (as the side channel stored it): the largest and median
+    relative error |sum of attributions - (score - baseline score)| / |score - baseline score|, and the quadrature
+    points used."""
+    checks = [s.meta["ig_completeness"] for s in run.steps if s.meta.get("ig_completeness")]
+    if not checks:
+        return None
+    errors = np.concatenate([np.ravel(np.asarray(c["relative_error"], np.float64)) for c in checks])
+    points, counts = np.unique([int(c["steps"]) for c in checks], return_counts=True)
+    return {
+        "steps": len(checks),
+        "max_relative_error": float(errors.max()),
+        "median_relative_error": float(np.median(errors)),
+        "quadrature_points": {int(p): int(n) for p, n in zip(points, counts, strict=True)},
     }
 
 
@@ -262,6 +280,14 @@ def format_report(report: Mapping[str, Any]) -> str:
         f"faithfulness of {report['run_dir']}: {report['steps_evaluated']} steps re-scored"
         + (f", skipped {report['skipped']}" if report["skipped"] else ""),
         f"unpainted re-run vs logged score: max |diff| {report['score_replay_max_abs_diff']}",
+        *(
+            [
+                f"IG completeness over {ig['steps']} steps: relative error max {ig['max_relative_error']:.2%}, median "
+                f"{ig['median_relative_error']:.3%}; quadrature points (points: steps) {ig['quadrature_points']}"
+            ]
+            if (ig := report.get("ig_completeness"))
+            else []
+        ),
         "deletion = score drop after painting the map's top-k patches / the best single patch's drop (median; "
         "occlusion's own map is 1.00 at k=1); rand |rho| = |Spearman| with the map of a re-initialised model "
         "(lower is better; null = unrelated steps); rho occl = Spearman with the occlusion map (median)",
