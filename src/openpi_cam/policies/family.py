@@ -8,15 +8,17 @@ inputs and outputs of a served call and gets one `Explanation` (or `ExplainSkipp
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from collections.abc import Mapping
 from typing import Any, Literal, Protocol, get_args
 
 import jax
 import numpy as np
-from jax.sharding import Mesh
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from openpi_cam.model.attribution import DEFAULT_KINDS, MAP_KINDS, IgCompleteness, MapKind, MapOptions
+from openpi_cam.model.init import randomized
 from openpi_cam.model.observation import Observation
 
 # What a map explains (the `--cam-target` values). pi0-FAST: `action-token`, `all-action-tokens`, `chunk` (sum of the
@@ -150,3 +152,30 @@ def baseline_details(completeness: IgCompleteness | None, options: MapOptions | 
             "steps": completeness.steps,
         }
     return details
+
+
+class ModelExplainer:
+    """What every family's explainer shares: a model whose `params` can be swapped (placed on a mesh, or randomised)
+    while everything else stays; a subclass says how to rebuild itself around another model (`_with_model`)."""
+
+    model: Any  # the family's model: `config`, `params`, `camera_grid`
+
+    def _with_model(self, model: Any) -> Explainer:
+        raise NotImplementedError
+
+    def _with_params(self, params: dict) -> Explainer:
+        model = copy.copy(self.model)
+        model.params = params
+        return self._with_model(model)
+
+    @property
+    def camera_grid(self) -> tuple[int, int]:
+        return self.model.camera_grid
+
+    def on_mesh(self, mesh: Mesh | None) -> Explainer:
+        if mesh is None:
+            return self  # type: ignore[return-value]
+        return self._with_params(jax.device_put(self.model.params, NamedSharding(mesh, PartitionSpec())))
+
+    def randomized(self, scope: Literal["llm", "all"], seed: int) -> Explainer:
+        return self._with_params(randomized(self.model.params, scope, jax.random.key(seed)))

@@ -9,32 +9,36 @@ difference is stored per step as `replay_max_abs_diff`).
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import sentencepiece
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.model.attribution import MapOptions
-from openpi_cam.model.init import randomized
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.pi0 import Pi0
 from openpi_cam.model.pi0_maps import CHUNK, maps_for_actions, rescore_masks
 from openpi_cam.policies.config import PolicyConfig
-from openpi_cam.policies.family import ExplainRequest, ExplainSkipped, Explanation, Sampler, baseline_details
+from openpi_cam.policies.family import (
+    ExplainRequest,
+    ExplainSkipped,
+    Explanation,
+    ModelExplainer,
+    Sampler,
+    baseline_details,
+)
 from openpi_cam.tokenizers.paligemma import load_paligemma_tokenizer
 from openpi_cam.tokenizers.pi0 import Pi0PromptTokenizer
 from openpi_cam.transforms import PadStatesAndActions, PassActions, TokenizePrompt
 
 
-class FlowExplainer:
+class FlowExplainer(ModelExplainer):
     """Explains pi0 / pi0.5 action chunks: target `action` (dimension d at horizon step h) or `chunk`."""
 
     targets = ("action", "chunk")
@@ -42,15 +46,7 @@ class FlowExplainer:
     def __init__(self, model: Pi0) -> None:
         self.model = model
 
-    @property
-    def camera_grid(self) -> tuple[int, int]:
-        return self.model.camera_grid
-
-    def on_mesh(self, mesh: Mesh | None) -> FlowExplainer:
-        if mesh is None:
-            return self
-        model = copy.copy(self.model)
-        model.params = jax.device_put(self.model.params, NamedSharding(mesh, PartitionSpec()))
+    def _with_model(self, model: Any) -> FlowExplainer:
         return FlowExplainer(model)
 
     def explain(
@@ -109,11 +105,6 @@ class FlowExplainer:
         noise = np.asarray(sample_inputs["noise"], np.float32)
         scores = rescore_masks(self.model, observation, noise, masks, [target], options=options)
         return {c: s[:, 0, 0] for c, s in scores.items()}
-
-    def randomized(self, scope: Literal["llm", "all"], seed: int) -> FlowExplainer:
-        model = copy.copy(self.model)
-        model.params = randomized(self.model.params, scope, jax.random.key(seed))
-        return FlowExplainer(model)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -8,22 +8,19 @@ log-probabilities of every token the model emitted, up to and including EOS.
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import jax
 import numpy as np
 import sentencepiece
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.model import pi0_fast_maps
 from openpi_cam.model.attribution import MapOptions
 from openpi_cam.model.config import EOS_TOKEN
-from openpi_cam.model.init import randomized
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.pi0_fast import Pi0FAST
 from openpi_cam.model.pi0_fast_maps import GradCamResult
@@ -33,6 +30,7 @@ from openpi_cam.policies.family import (
     ExplainRequest,
     ExplainSkipped,
     Explanation,
+    ModelExplainer,
     Sampler,
     baseline_details,
 )
@@ -76,7 +74,7 @@ def _plan(tokenizer: Pi0FastTokenizer, tokens: np.ndarray, request: ExplainReque
     return _RowPlan(request.target, steps, list(range(steps.size)))
 
 
-class FastExplainer:
+class FastExplainer(ModelExplainer):
     """Explains pi0-FAST generations; every call explains a whole batch (a single inference is a batch of one)."""
 
     targets = (*TOKEN_TARGETS, *SEQUENCE_TARGETS)
@@ -85,15 +83,7 @@ class FastExplainer:
         self.model = model
         self.tokenizer = tokenizer
 
-    @property
-    def camera_grid(self) -> tuple[int, int]:
-        return self.model.camera_grid
-
-    def on_mesh(self, mesh: Mesh | None) -> FastExplainer:
-        if mesh is None:
-            return self
-        model = copy.copy(self.model)
-        model.params = jax.device_put(self.model.params, NamedSharding(mesh, PartitionSpec()))
+    def _with_model(self, model: Any) -> FastExplainer:
         return FastExplainer(model, self.tokenizer)
 
     def explain(
@@ -184,11 +174,6 @@ class FastExplainer:
             )
             return {c: s[:, 0, 0] for c, s in scores.items()}
         raise ExplainSkipped("multi_score_target", f"target {target!r} has one score per token; rescore needs one")
-
-    def randomized(self, scope: Literal["llm", "all"], seed: int) -> FastExplainer:
-        model = copy.copy(self.model)
-        model.params = randomized(self.model.params, scope, jax.random.key(seed))
-        return FastExplainer(model, self.tokenizer)
 
 
 def _step_matrix(plans: Sequence[_RowPlan | ExplainSkipped], rows: Sequence[int]) -> np.ndarray:
