@@ -10,21 +10,26 @@ policy answers every request with the same fallback chunk, so with it the served
 from __future__ import annotations
 
 import asyncio
+import base64
 import contextlib
+import dataclasses
 import itertools
 import json
+import os
 import signal
 import socket
 import subprocess
 import sys
 import threading
 import time
+import tracemalloc
 import urllib.error
 import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import msgpack
 import numpy as np
 import pytest
 from client_env import collect, run_client, spawn_client
@@ -39,7 +44,7 @@ from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import ExplainRequest
 from openpi_cam.policies.policy import create_policy
 from openpi_cam.serving import RequestContext, msgpack_numpy
-from openpi_cam.serving.server import PolicyServer, RunningServer, start_server_in_thread
+from openpi_cam.serving.server import PEER_TIMEOUT_S, PolicyServer, RunningServer, start_server_in_thread
 
 # Runs in the client venv (numpy 1.x, openpi_client 0.1.x). argv[1] is a JSON object of arguments.
 CLIENT_PRELUDE = r"""
@@ -361,6 +366,32 @@ def test_wire_format_rejects_malformed_requests_naming_the_problem(payload: byte
     assert expected in str(info.value)
 
 
+def test_decoding_stops_at_its_budget_before_allocating_the_frame():
+    """A 1.9 MB frame of two million empty maps (~140 bytes of Python objects each: 137 MB measured when decoded in
+    full) is refused once the container budget is spent. Measured peak of the refused decode: 0.7 MB (tracemalloc);
+    the bound 8 MB is 4x the frame itself, far below a full decode."""
+    payload = msgpack.packb({"junk": [{}] * 2_000_000})
+    tracemalloc.start()
+    try:
+        with pytest.raises(InvalidRequest, match="more than 10000 maps and lists"):
+            msgpack_numpy.unpack_request(payload)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 8 * 2**20
+    limits = msgpack_numpy.DecodeLimits(max_containers=3, max_depth=2, max_arrays=1, max_key_chars=4)
+    assert msgpack_numpy.unpack_request(msgpack.packb({"a": [1], "b": {"c": 2}}), limits) == {"a": [1], "b": {"c": 2}}
+    for obj, message in (
+        ({"a": [1], "b": [2], "c": [3]}, "more than 3 maps and lists"),
+        ({"a": [[1]]}, "deeper than 2 levels"),
+        ({"a": np.zeros(1), "b": np.ones(1)}, "more than 1 arrays"),  # (each array is a map and a shape list)
+        ({"abcde": 1}, "longer than 4 characters"),
+    ):
+        with pytest.raises(InvalidRequest, match=message):
+            budget = dataclasses.replace(limits, max_containers=10) if "arrays" in message else limits
+            msgpack_numpy.unpack_request(msgpack_numpy.packb(obj), budget)
+
+
 def test_responses_pack_jax_arrays_and_refuse_unsendable_dtypes():
     import jax.numpy as jnp
 
@@ -583,6 +614,8 @@ def test_side_channel_leaves_the_response_bytes_alone(demo_policy, demo_observat
 
 
 BAD_REQUESTS = r"""
+import functools
+
 JOINT = "observation/joint_position"
 IMAGE = "observation/exterior_image_1_left"
 policy = connect()
@@ -595,6 +628,8 @@ def with_field(key, value):
 
 def without(key):
     return {k: v for k, v in good.items() if k != key}
+
+nested = functools.reduce(lambda a, _: [a], range(500), 0)  # msgpack's packer stops at 512 levels
 
 def crafted(obs):
     # Plain msgpack with hand-made array maps: the client's own packer refuses these dtypes.
@@ -617,6 +652,13 @@ cases = {
     "image_shape": lambda: policy.infer(with_field(IMAGE, good[IMAGE][..., 0])),
     "image_dtype": lambda: policy.infer(with_field(IMAGE, good[IMAGE].astype(np.int32))),
     "non_finite_state": lambda: policy.infer(with_field(JOINT, np.array([0.1, np.nan, 0, 0, 0, 0, 0]))),
+    # Hostile frames (issue 20): amplification, deep nesting, huge strings echoed back, a dtype JAX cannot take.
+    "many_empty_maps": lambda: infer_raw(policy, crafted(with_field("junk", [{}] * 300_000))),
+    "deep_nesting": lambda: infer_raw(policy, crafted(with_field("junk", nested))),
+    "huge_dtype": lambda: infer_raw(policy, crafted(with_field(JOINT, arr(b"\0" * 56, "<f8" + " " * 1_000_000, [7])))),
+    "huge_shape": lambda: infer_raw(policy, crafted(with_field(IMAGE, arr(b"", "|u1", [1] * 1_000_000)))),
+    "huge_key": lambda: infer_raw(policy, crafted(with_field("k" * 1_000_000, 1))),
+    "float128": lambda: infer_raw(policy, crafted(with_field(JOINT, arr(b"\0" * 112, "<f16", [7])))),
 }
 results = {}
 for name, fn in cases.items():
@@ -642,7 +684,15 @@ BAD_REQUEST_EXPECTATIONS = {
     "image_shape": ("invalid_request", "observation/exterior_image_1_left"),
     "image_dtype": ("invalid_request", "int32"),
     "non_finite_state": ("invalid_request", "NaN"),
+    "many_empty_maps": ("decode", "more than 10000 maps and lists"),
+    "deep_nesting": ("decode", "deeper than 32 levels"),
+    "huge_dtype": ("decode", "unsupported array dtype"),
+    "huge_shape": ("decode", "malformed array shape"),
+    "huge_key": ("decode", "longer than 1024 characters"),
+    "float128": ("decode", "128-bit f numbers"),
 }
+# The longest error text any of them may send back: the message quotes at most 60 characters of a value.
+MAX_ERROR_CHARS = 400
 
 
 def test_bad_requests_get_named_errors_and_the_connection_keeps_working(policy):
@@ -659,6 +709,7 @@ def test_bad_requests_get_named_errors_and_the_connection_keeps_working(policy):
         # The real client raises a text frame as RuntimeError("Error in inference server:\n<frame>").
         assert error.startswith("RuntimeError: Error in inference server:\nInvalidRequest: "), (name, error)
         assert expected in error, (name, error)
+        assert len(error) <= MAX_ERROR_CHARS, (name, len(error))  # a 1 MB value is not echoed back
         assert result[name]["after_shape"] == [10, 8], name
 
     n = len(BAD_REQUEST_EXPECTATIONS)
@@ -973,3 +1024,44 @@ def test_serve_with_cam_flags_writes_an_explained_closed_run(demo_observations, 
             for camera, want in explanation.maps[kind].items():
                 assert logged[camera].shape == (4, 4)
                 np.testing.assert_allclose(logged[camera], want, rtol=1e-6, atol=1e-6 * np.abs(want).max())
+
+
+def _stalled_peer(port: int) -> socket.socket:
+    """A websocket client that completes the opening handshake and then never reads or answers again (a robot process
+    that hung): the server's metadata frame and close frame go unanswered."""
+    sock = socket.create_connection(("127.0.0.1", port))
+    key = base64.b64encode(os.urandom(16)).decode()
+    sock.sendall(
+        (
+            f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+            f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n"
+        ).encode()
+    )
+    head = b""
+    while b"\r\n\r\n" not in head:
+        head += sock.recv(1)
+    assert head.startswith(b"HTTP/1.1 101"), head
+    return sock
+
+
+def test_sigterm_with_stalled_peers_exits_within_the_deadline_and_closes_the_run(demo_observations, tmp_path):
+    """Three peers that stopped answering, and a run with explained steps: SIGTERM closes every connection at once
+    (each gets PEER_TIMEOUT_S to answer the close frame), drains the side channel and writes the closed manifest.
+    Before: the closes ran one after another, 10 s each (websockets' default): measured 30.7 s with three stalled
+    peers. The bound is PEER_TIMEOUT_S for the closes plus 8 s for the drain and the interpreter's exit (measured
+    total: under 11 s for the whole test, server start included)."""
+    cam_dir = tmp_path / "cam"
+    cam = ["--cam-every-k", "1", "--cam-dir", str(cam_dir)]
+    with serve_subprocess(tmp_path, "--dtype", "float32", *cam) as (proc, port, log_path):
+        collect(send_observations(port, tmp_path / "client", demo_observations[:2]))
+        peers = [_stalled_peer(port) for _ in range(3)]
+        start = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(60) == 0, log_path.read_text()
+        elapsed = time.monotonic() - start
+        for peer in peers:
+            peer.close()
+    assert elapsed < PEER_TIMEOUT_S + 8, (elapsed, log_path.read_text())
+    (run_dir,) = list_runs(cam_dir)
+    manifest = read_json(run_dir / MANIFEST_JSON)
+    assert manifest is not None and manifest["closed"] is True and manifest["num_steps"] == 2

@@ -39,6 +39,11 @@ from openpi_cam.serving import RequestContext, msgpack_numpy
 logger = logging.getLogger(__name__)
 
 DEFAULT_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
+LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
+# A peer gets this long to read a reply, and to answer our close frame, before its connection is dropped: a robot that
+# stopped reading must not hold the server (or its shutdown) forever. Shutdown thus ends within the in-flight request,
+# plus PEER_TIMEOUT_S for the closes (all connections at once), plus the policy's drain.
+PEER_TIMEOUT_S = 2.0
 _MAX_ERROR_TEXT = 2000  # characters of an unexpected exception's message sent to the client without debug
 
 
@@ -155,6 +160,12 @@ class PolicyServer:
         """Serves until `request_stop()`; then stops accepting, finishes in-flight requests and closes the policy."""
         self._loop = asyncio.get_running_loop()
         self._stop_event = asyncio.Event()
+        if self._api_key is None and self._host not in LOOPBACK_HOSTS:
+            logger.warning(
+                "listening on %s without an API key: anyone who can reach this port can send observations and read "
+                "/stats (pass --api-key, or --host 127.0.0.1 to serve this machine only)",
+                self._host,
+            )
         executor = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="policy-infer")
         try:
             async with ws_server.serve(
@@ -163,6 +174,10 @@ class PolicyServer:
                 self._port,
                 compression=None,
                 max_size=self._max_message_bytes,
+                # A robot sends one request and waits for the answer: one queued frame per connection bounds what a
+                # connection can make the server hold to about one message (websockets' default queues 16).
+                max_queue=1,
+                close_timeout=PEER_TIMEOUT_S,
                 process_request=self._process_request,
             ) as server:
                 self.bound_port = server.sockets[0].getsockname()[1]
@@ -181,10 +196,10 @@ class PolicyServer:
         logger.info("shutting down: no new connections; finishing %d open", len(self._connections))
         self._stopping = True
         server.close(close_connections=False)
-        # Idle connections close now; busy ones close themselves once their response is sent.
-        for conn in list(self._connections.values()):
-            if not conn.busy:
-                await conn.websocket.close(websockets.CloseCode.GOING_AWAY, "server shutting down")
+        # Idle connections close now, all at once (each waits at most PEER_TIMEOUT_S for the peer's answer); busy ones
+        # close themselves once their response is sent.
+        idle = [conn.websocket for conn in self._connections.values() if not conn.busy]
+        await asyncio.gather(*(ws.close(websockets.CloseCode.GOING_AWAY, "server shutting down") for ws in idle))
         await server.wait_closed()
 
     # ---------------------------------------------------------------- HTTP side
@@ -247,7 +262,12 @@ class PolicyServer:
                 context = RequestContext(conn.id, request_index)
                 reply, infer_ms = await self._answer(frame, context, prev_total_ms, executor)
                 try:
-                    await websocket.send(reply)
+                    await asyncio.wait_for(websocket.send(reply), PEER_TIMEOUT_S)
+                except TimeoutError:
+                    self._stats.errors["send_timeout"] += 1
+                    logger.warning("%s dropped: reply not read within %.0f s", conn.id, PEER_TIMEOUT_S)
+                    websocket.transport.abort()
+                    break
                 finally:
                     conn.busy = False
                 if infer_ms is not None:
@@ -280,7 +300,8 @@ class PolicyServer:
             if isinstance(frame, str):
                 kind = "text_frame"
                 raise InvalidRequest("expected a binary msgpack frame, got a text frame")
-            obs = msgpack_numpy.unpack_request(frame)
+            # Off the event loop: a large frame must not stall /healthz and the other connections while it decodes.
+            obs = await asyncio.to_thread(msgpack_numpy.unpack_request, frame)
             kind = "invalid_request"
             result, infer_ms = await asyncio.get_running_loop().run_in_executor(executor, self._infer, obs, context)
             kind = "internal"
@@ -293,8 +314,9 @@ class PolicyServer:
             return msgpack_numpy.packb({**result, "server_timing": timing}), infer_ms
         except InvalidRequest as e:
             self._stats.errors[kind] += 1
-            logger.info("%s request %d rejected: %s", context.connection_id, context.request_index, e)
-            return f"InvalidRequest: {e}", None
+            text = str(e)[:_MAX_ERROR_TEXT]  # messages quote short prefixes; this bounds whatever else they hold
+            logger.info("%s request %d rejected: %s", context.connection_id, context.request_index, text)
+            return f"InvalidRequest: {text}", None
         except Exception as e:
             self._stats.errors["internal"] += 1
             logger.exception("%s request %d failed", context.connection_id, context.request_index)
