@@ -363,3 +363,27 @@ def test_float_channels_first_client_images_are_logged_as_uint8_frames(demo_poli
     first, second = load_run(wrapped.run_dir).steps
     np.testing.assert_array_equal(first.frames["base_0_rgb"], image)
     np.testing.assert_array_equal(second.frames["base_0_rgb"], image)
+
+
+def test_cam_extra_values_are_bounded_per_value_and_per_step(tmp_path, demo_policy):
+    """A client cannot make the server store megabytes per request through `cam_extra/`: values over the limits are
+    dropped, named in the step's `extra_dropped` and counted; the rest is kept; the response is the policy's."""
+    obs = demo_obs(300)
+    big = {"cam_extra/blob": "x" * 1_000_000, "cam_extra/huge_array": np.zeros(100_000, np.float32)}
+    options = CAMOptions(every_k=1, cam_dir=tmp_path, save_frames="none", max_extra_bytes=2_000)
+    wrapped = wrap_policy_with_cam(demo_policy, options)
+    filler = {f"cam_extra/note{i}": "y" * 400 for i in range(8)}  # 8 x ~410 bytes: the last ones pass 2,000 bytes
+    try:
+        response = wrapped.infer({**obs, **big, **filler})
+    finally:
+        wrapped.close()
+    np.testing.assert_array_equal(response["actions"], demo_policy.infer(policy_part(obs))["actions"])
+    (step,) = load_run(wrapped.run_dir).steps
+    extra = step.meta["extra"]
+    assert extra["target_box"] == obs["cam_extra/target_box"].tolist()  # small values kept as sent
+    assert "blob" not in extra and "huge_array" not in extra
+    kept_notes = [k for k in extra if k.startswith("note")]
+    assert 0 < len(kept_notes) < 8 and extra["extra_dropped"][:2] == ["blob", "huge_array"]
+    assert set(extra["extra_dropped"][2:]) == {f"note{i}" for i in range(8)} - set(kept_notes)
+    assert wrapped.stats()["gradcam"]["extra_dropped"] == 1
+    assert "/" not in wrapped.stats()["gradcam"]["run"]  # /stats names the run, not the server's paths

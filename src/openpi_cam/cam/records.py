@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from typing import Any, Literal
 
 import numpy as np
@@ -29,6 +30,25 @@ def jsonable(value: Any) -> Any:
     """A client value (numpy scalar or array) as plain JSON data for the step metadata."""
     arr = np.asarray(value)
     return arr.item() if arr.ndim == 0 else arr.tolist()
+
+
+def bounded_extra(
+    extra: dict[str, Any], max_value_bytes: int, max_total_bytes: int
+) -> tuple[dict[str, Any], list[str]]:
+    """The `cam_extra/` values as JSON data, each at most `max_value_bytes` and together at most `max_total_bytes`
+    (JSON-encoded, in key order), and the keys dropped for exceeding them (their names cut to 60 characters)."""
+    kept, dropped, total = {}, [], 0
+    for key, value in extra.items():
+        if np.size(value) > max_value_bytes:  # no element takes less than one byte in JSON: too large unseen
+            dropped.append(key[:60])
+            continue
+        data = jsonable(value)
+        size = len(json.dumps(data, default=str)) + len(key)
+        if size > max_value_bytes or total + size > max_total_bytes:
+            dropped.append(key[:60])
+            continue
+        kept[key], total = data, total + size
+    return kept, dropped
 
 
 def model_frame_uint8(image: Any) -> np.ndarray:

@@ -20,7 +20,7 @@ from typing import Any, Protocol
 
 from openpi_cam.cam.batching import explain_traces
 from openpi_cam.cam.logger import CAMLogger
-from openpi_cam.cam.records import SAVE_FRAMES, SaveFrames, jsonable, split_extra, step_record
+from openpi_cam.cam.records import SAVE_FRAMES, SaveFrames, bounded_extra, split_extra, step_record
 from openpi_cam.counters import WarnOnceCounter
 from openpi_cam.model.attribution import MapKind, MapOptions
 from openpi_cam.policies.family import Explainer, ExplainRequest, ExplainSkipped, Target
@@ -61,6 +61,10 @@ class CAMOptions:
     max_steps: int | None = None
     max_bytes: int | None = None
     drain_timeout: float = 30.0  # seconds `close()` waits for queued jobs
+    # `cam_extra/` values a client may have stored per step (JSON-encoded sizes); larger values are dropped, counted
+    # and named in the step's `extra_dropped`, so no client can make the server store megabytes per request.
+    max_extra_value_bytes: int = 16 * 1024
+    max_extra_bytes: int = 64 * 1024
 
     def __post_init__(self) -> None:
         if self.every_k < 0 or self.queue_size < 1:
@@ -125,7 +129,11 @@ class CAMPolicy:
         response, trace = self._policy.infer_traced(obs)
         self.count("scheduled")
         try:
-            job = _Job(trace, connection, step, time.time(), {k: jsonable(v) for k, v in extra.items()})
+            kept, dropped = bounded_extra(extra, self._options.max_extra_value_bytes, self._options.max_extra_bytes)
+            if dropped:
+                self.count("extra_dropped", f"cam_extra values over the size limits dropped: {dropped[:3]}")
+                kept["extra_dropped"] = dropped
+            job = _Job(trace, connection, step, time.time(), kept)
             self._queue.put_nowait(job)
         except queue.Full:
             self.count("dropped_queue_full", "queue full, job dropped")
@@ -180,7 +188,7 @@ class CAMPolicy:
         cam["queued"] = self._queue.qsize()
         if self._logger is not None:
             cam["logger"] = self._logger.counters
-            cam["run_dir"] = str(self._logger.run_dir)
+            cam["run"] = self._logger.run_dir.name  # the name only: /stats does not reveal the server's paths
         return {**self._policy.stats(), "gradcam": cam}
 
     def close(self, timeout: float | None = None) -> None:
