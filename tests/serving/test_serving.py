@@ -32,9 +32,11 @@ from typing import Any
 import msgpack
 import numpy as np
 import pytest
+import websockets
 from client_env import collect, run_client, spawn_client
 from demo_inputs import demo_observation
 from paths import REPO_ROOT
+from websockets.sync.client import connect
 
 from openpi_cam.cam.batching import explain_traces
 from openpi_cam.cam.runfmt import MANIFEST_JSON, list_runs, load_run, read_json
@@ -1065,3 +1067,25 @@ def test_sigterm_with_stalled_peers_exits_within_the_deadline_and_closes_the_run
     (run_dir,) = list_runs(cam_dir)
     manifest = read_json(run_dir / MANIFEST_JSON)
     assert manifest is not None and manifest["closed"] is True and manifest["num_steps"] == 2
+
+
+def test_connections_beyond_the_cap_are_refused_with_try_again_later(policy):
+    """With `max_connections` open, a further connection is closed at once with code 1013 and counted, and a slot
+    that frees up is usable again: what one client can make the server buffer stays bounded."""
+    running = start_server_in_thread(policy, metadata={"m": 1}, close_policy_on_stop=False, max_connections=2)
+    try:
+        holders = [_stalled_peer(running.port) for _ in range(2)]
+        with connect(f"ws://127.0.0.1:{running.port}") as ws, pytest.raises(websockets.ConnectionClosed) as closed:
+            ws.recv(timeout=10)
+        assert closed.value.rcvd is not None and closed.value.rcvd.code == 1013
+        holders.pop().close()
+        deadline = time.monotonic() + 10
+        while get_stats(running.port)["connections"]["open"] > 1 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        with connect(f"ws://127.0.0.1:{running.port}") as ws:
+            assert msgpack_numpy.unpackb(ws.recv(timeout=10)) == {"m": 1}  # the metadata frame: served again
+        assert get_stats(running.port)["errors"]["too_many_connections"] == 1
+    finally:
+        for holder in holders:
+            holder.close()
+        running.stop()

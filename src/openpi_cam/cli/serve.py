@@ -35,6 +35,7 @@ def main(
     api_key: str | None = None,
     dtype: Literal["bfloat16", "float32"] | None = None,
     max_message_mb: float = 64.0,
+    max_connections: int = 64,
     debug: bool = False,
     stop_at_action_end: bool = False,
     cam_every_k: int = 0,
@@ -64,6 +65,7 @@ def main(
         api_key: if set, clients must send `Authorization: Api-Key <key>` (openpi-client's `api_key=`).
         dtype: parameter and compute dtype; default bfloat16 for a checkpoint, as upstream serves.
         max_message_mb: largest accepted request frame; larger ones close the connection (code 1009).
+        max_connections: open connections at most; further ones are closed at once (code 1013, try again later).
         debug: send tracebacks of unexpected errors to clients.
         stop_at_action_end: stop decoding at the end of the action string instead of running to EOS.
         cam_every_k: record Grad-CAM for every k-th request (0 = off).
@@ -158,6 +160,7 @@ def main(
         metadata=metadata,
         api_key=api_key,
         max_message_bytes=int(max_message_mb * 1024 * 1024),
+        max_connections=max_connections,
         debug=debug,
     )
     server.serve_forever()

@@ -118,9 +118,12 @@ class PolicyServer:
         latency_window: int = 1000,
         close_policy_on_stop: bool = True,
         close_timeout: float = 60.0,
+        max_connections: int = 64,
     ) -> None:
-        if max_message_bytes <= 0:
-            raise ValueError(f"max_message_bytes must be positive, got {max_message_bytes}")
+        if max_message_bytes <= 0 or max_connections < 1:
+            raise ValueError(
+                f"max_message_bytes and max_connections must be positive, got {max_message_bytes}, {max_connections}"
+            )
         self._policy = policy
         self._host = host
         self._port = port
@@ -130,6 +133,9 @@ class PolicyServer:
         self._debug = debug
         self._close_policy_on_stop = close_policy_on_stop
         self._close_timeout = close_timeout
+        # Each connection may hold one queued frame of up to max_message_bytes: this caps what clients can make the
+        # server buffer at max_connections x max_message_bytes.
+        self._max_connections = max_connections
         self._stats = ServerStats(latency_window)
         self._connections: dict[str, _Connection] = {}
         self._connection_ids = itertools.count()
@@ -244,6 +250,11 @@ class PolicyServer:
     # ---------------------------------------------------------------- websocket side
 
     async def _handle(self, websocket: ws_server.ServerConnection, executor: concurrent.futures.Executor) -> None:
+        if len(self._connections) >= self._max_connections:
+            self._stats.errors["too_many_connections"] += 1
+            logger.warning("refused a connection from %s: %d open", websocket.remote_address, len(self._connections))
+            await websocket.close(websockets.CloseCode.TRY_AGAIN_LATER, "too many connections")
+            return
         conn = _Connection(id=f"conn{next(self._connection_ids):04d}", websocket=websocket)
         self._connections[conn.id] = conn
         self._stats.connections_total += 1
