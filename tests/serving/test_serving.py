@@ -46,7 +46,13 @@ from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import ExplainRequest
 from openpi_cam.policies.policy import create_policy
 from openpi_cam.serving import RequestContext, msgpack_numpy
-from openpi_cam.serving.server import PEER_TIMEOUT_S, PolicyServer, RunningServer, start_server_in_thread
+from openpi_cam.serving.server import (
+    AUTH_FREE_FAILURES,
+    PEER_TIMEOUT_S,
+    PolicyServer,
+    RunningServer,
+    start_server_in_thread,
+)
 
 # Runs in the client venv (numpy 1.x, openpi_client 0.1.x). argv[1] is a JSON object of arguments.
 CLIENT_PRELUDE = r"""
@@ -1089,3 +1095,24 @@ def test_connections_beyond_the_cap_are_refused_with_try_again_later(policy):
         for holder in holders:
             holder.close()
         running.stop()
+
+
+def test_wrong_api_keys_are_answered_ever_slower(policy):
+    """Guessing keys: the first AUTH_FREE_FAILURES misses from an address are answered at once, the following ones
+    wait 0.2, 0.4, 0.8 s ... (capped at AUTH_MAX_DELAY_S); the right key is not delayed."""
+    running = start_server_in_thread(policy, api_key="s3cret", close_policy_on_stop=False)
+    base = f"http://127.0.0.1:{running.port}/stats"
+    try:
+        waits = []
+        for _ in range(AUTH_FREE_FAILURES + 3):
+            start = time.monotonic()
+            assert http_get(base, headers={"Authorization": "Api-Key guess"})[0] == 401
+            waits.append(time.monotonic() - start)
+        start = time.monotonic()
+        assert http_get(base, headers={"Authorization": "Api-Key s3cret"})[0] == 200
+        right = time.monotonic() - start
+    finally:
+        running.stop()
+    # The delays are sleeps the server adds: lower bounds hold whatever the machine's load.
+    assert all(w >= d for w, d in zip(waits[AUTH_FREE_FAILURES:], (0.2, 0.4, 0.8), strict=True)), waits
+    assert right < waits[-1]  # the right key does not inherit the address's back-off (0.8 s above)

@@ -44,6 +44,10 @@ LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
 # stopped reading must not hold the server (or its shutdown) forever. Shutdown thus ends within the in-flight request,
 # plus PEER_TIMEOUT_S for the closes (all connections at once), plus the policy's drain.
 PEER_TIMEOUT_S = 2.0
+# Wrong API keys: the first AUTH_FREE_FAILURES per client address are answered at once, then each answer waits
+# 0.2, 0.4, ... up to AUTH_MAX_DELAY_S seconds (a robot with a typo is told quickly; guessing is slowed down).
+AUTH_FREE_FAILURES = 5
+AUTH_MAX_DELAY_S = 5.0
 _MAX_ERROR_TEXT = 2000  # characters of an unexpected exception's message sent to the client without debug
 
 
@@ -136,6 +140,7 @@ class PolicyServer:
         # Each connection may hold one queued frame of up to max_message_bytes: this caps what clients can make the
         # server buffer at max_connections x max_message_bytes.
         self._max_connections = max_connections
+        self._auth_failures: dict[str, int] = {}  # client address -> wrong API keys so far
         self._stats = ServerStats(latency_window)
         self._connections: dict[str, _Connection] = {}
         self._connection_ids = itertools.count()
@@ -224,7 +229,13 @@ class PolicyServer:
             return connection.respond(http.HTTPStatus.OK, "OK\n")
         if not self._authorized(request):
             self._stats.errors["unauthorized"] += 1
-            logger.warning("refused %s from %s: missing or wrong API key", path, connection.remote_address)
+            host = str(connection.remote_address[0]) if connection.remote_address else "?"
+            failures = self._auth_failures[host] = self._auth_failures.get(host, 0) + 1
+            if failures <= AUTH_FREE_FAILURES or failures & (failures - 1) == 0:  # then once per doubling
+                logger.warning("refused %s from %s: missing or wrong API key (%d times)", path, host, failures)
+            # Back-off per client address: guessing keys gets slower with every miss (the answer, not the server).
+            if failures > AUTH_FREE_FAILURES:
+                await asyncio.sleep(min(AUTH_MAX_DELAY_S, 0.1 * 2 ** (failures - AUTH_FREE_FAILURES)))
             return connection.respond(
                 http.HTTPStatus.UNAUTHORIZED,
                 "missing or wrong API key: send the header 'Authorization: Api-Key <key>'\n",
