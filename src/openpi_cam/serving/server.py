@@ -230,6 +230,8 @@ class PolicyServer:
         if not self._authorized(request):
             self._stats.errors["unauthorized"] += 1
             host = str(connection.remote_address[0]) if connection.remote_address else "?"
+            if len(self._auth_failures) >= 10_000 and host not in self._auth_failures:
+                self._auth_failures.clear()  # bounded memory whatever the number of addresses
             failures = self._auth_failures[host] = self._auth_failures.get(host, 0) + 1
             if failures <= AUTH_FREE_FAILURES or failures & (failures - 1) == 0:  # then once per doubling
                 logger.warning("refused %s from %s: missing or wrong API key (%d times)", path, host, failures)
