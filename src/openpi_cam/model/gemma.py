@@ -130,5 +130,7 @@ def forward(
         h = h + feed_forward(rms_norm(h, p["pre_ffw_norm"]["scale"]), p["mlp"])
         return h, (k_cache, v_cache)
 
+    if cfg.remat:
+        layer = jax.checkpoint(layer)
     x, (k, v) = jax.lax.scan(layer, x, (params["layers"], cache.k, cache.v), unroll=not cfg.scan)
     return rms_norm(x, params["final_norm"]["scale"]), KVCache(k, v, cache.idx + t)
