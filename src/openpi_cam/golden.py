@@ -203,6 +203,10 @@ FLOW_GRAD_REL = 1e-4
 FLOW_TARGETS = {"gc_h0_d0": (0, 0), "gc_h0_d6": (0, 6), "gc_h9_d3": (9, 3), "gc_chunk": pi0_maps.CHUNK}
 
 
+# One compiled program per model config for every case (a fresh `jax.jit` per case would retrace each time).
+_denoise_recorded = jax.jit(functools.partial(pi0.denoise, record=True), static_argnames="cfg")
+
+
 def check_flow_case(model: Pi0, name: str, d: dict, cameras: list[str]) -> list[Comparison]:
     """One pi0 / pi0.5 golden case: SigLIP tokens, every Euler iterate and velocity, the actions, the training loss
     for the case's explicit noise and time, and the gradient targets' scores, channel weights, maps and norms."""
@@ -217,8 +221,8 @@ def check_flow_case(model: Pi0, name: str, d: dict, cameras: list[str]) -> list[
     E = np.asarray(model.embed_images(obs))
     out += [compare(name, f"siglip_{c}", E[:, i], d[f"siglip_{c}"], rel=FLOW_REL) for i, c in enumerate(cameras)]
     steps = d["v_t_steps"].shape[1]  # x_t_steps also holds x_0 after the last step
-    record = jax.jit(functools.partial(pi0.denoise, cfg=model.config, record=True))
-    x_0, (xs, vs, _) = record(model.params, jnp.asarray(E), pi0.preprocess(obs, model.config), jnp.asarray(d["noise"]))
+    prepared = pi0.preprocess(obs, model.config)
+    x_0, (xs, vs, _) = _denoise_recorded(model.params, jnp.asarray(E), prepared, jnp.asarray(d["noise"]), model.config)
     out.append(compare(name, "x_t_steps", xs, d["x_t_steps"][:, :steps], rel=FLOW_REL))
     out.append(compare(name, "v_t_steps", vs, d["v_t_steps"], rel=FLOW_REL))
     out.append(compare(name, "actions", x_0, d["actions"], rel=FLOW_REL))

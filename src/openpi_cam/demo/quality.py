@@ -28,9 +28,9 @@ from typing import Any
 
 import jax
 import numpy as np
-from scipy.stats import spearmanr
 
 from openpi_cam.cam.batching import explain_traces
+from openpi_cam.cam.faithfulness import box_cells, spearman
 from openpi_cam.cam.runfmt import load_run
 from openpi_cam.demo import bundled, task
 from openpi_cam.demo.data import Batches, load_normalize
@@ -54,11 +54,7 @@ def peak_cell(cam_map: np.ndarray) -> tuple[int, int]:
 
 def cells_overlapping(box: tuple[int, ...], grid: tuple[int, int], image_size: int) -> np.ndarray:
     """Boolean [Hp, Wp]: which patches share at least one pixel with the box (x0, y0, x1, y1), end exclusive."""
-    x0, y0, x1, y1 = box
-    ph, pw = image_size / grid[0], image_size / grid[1]
-    rows = (np.arange(grid[0]) * ph < y1) & ((np.arange(grid[0]) + 1) * ph > y0)
-    cols = (np.arange(grid[1]) * pw < x1) & ((np.arange(grid[1]) + 1) * pw > x0)
-    return rows[:, None] & cols[None, :]
+    return box_cells(box, grid, image_size)
 
 
 def peak_in(cam_map: np.ndarray, cells: np.ndarray) -> bool:
@@ -198,13 +194,6 @@ def _explain(explainer: Explainer, trace: InferenceTrace, target: str) -> Explan
 
 def _trace(policy: Policy, obs: dict[str, Any]) -> InferenceTrace:
     return policy.infer_traced(bundled.policy_input(obs))[1]
-
-
-def spearman(a: np.ndarray, b: np.ndarray) -> float:
-    a, b = np.ravel(a), np.ravel(b)
-    if np.ptp(a) == 0 or np.ptp(b) == 0:
-        return float("nan")
-    return float(spearmanr(a, b).statistic)
 
 
 def map_figures(
