@@ -99,6 +99,8 @@ class CAMPolicy:
         self._events = WarnOnceCounter(logger, "Grad-CAM side channel")
         self._steps: dict[str, int] = {}  # per-connection inference index
         self._closed = False
+        self._closer: threading.Thread | None = None  # started by begin_close: drains, then writes the manifest
+        self._deadline = 0.0
         self._worker = threading.Thread(target=self._work, name="gradcam-worker", daemon=True)
         self._worker.start()
 
@@ -134,7 +136,11 @@ class CAMPolicy:
                 self.count("extra_dropped", f"cam_extra values over the size limits dropped: {dropped[:3]}")
                 kept["extra_dropped"] = dropped
             job = _Job(trace, connection, step, time.time(), kept)
-            self._queue.put_nowait(job)
+            with self._lock:  # a job queued behind close's end marker would be lost without a trace
+                if self._closed:
+                    self.count("not_queued_closing", "the side channel closed while this inference ran")
+                else:
+                    self._queue.put_nowait(job)
         except queue.Full:
             self.count("dropped_queue_full", "queue full, job dropped")
         except Exception as e:  # the side channel never reaches the client
@@ -191,25 +197,39 @@ class CAMPolicy:
             cam["run"] = self._logger.run_dir.name  # the name only: /stats does not reveal the server's paths
         return {**self._policy.stats(), "gradcam": cam}
 
-    def close(self, timeout: float | None = None) -> None:
-        """Stops scheduling, drains queued jobs up to the deadline, writes the final manifest."""
-        if self._closed:
-            return
-        self._closed = True
-        deadline = time.monotonic() + (self._options.drain_timeout if timeout is None else timeout)
-        while time.monotonic() < deadline:
+    def begin_close(self, timeout: float | None = None) -> None:
+        """Stops scheduling and starts the drain without waiting: queued jobs are explained until `timeout` seconds
+        from now, then the final manifest is written. The server calls this as soon as it is asked to stop, so the
+        drain runs while connections are still closing (a container's stop grace period is short). Idempotent."""
+        with self._lock:
+            if self._closer is not None:
+                return
+            self._closed = True  # `infer` checks it under the same lock: nothing is queued behind the end marker
+            self._deadline = time.monotonic() + (self._options.drain_timeout if timeout is None else timeout)
+            self._closer = threading.Thread(target=self._drain, name="gradcam-drain", daemon=True)
+            self._closer.start()
+
+    def _drain(self) -> None:
+        while time.monotonic() < self._deadline:
             try:
-                self._queue.put(None, timeout=max(0.0, deadline - time.monotonic()))
+                self._queue.put(None, timeout=max(0.0, self._deadline - time.monotonic()))
                 break
             except queue.Full:
                 continue
-        self._worker.join(max(0.0, deadline - time.monotonic()))
+        self._worker.join(max(0.0, self._deadline - time.monotonic()))
         if self._worker.is_alive():
             self.count("unfinished_at_shutdown", "shutdown deadline passed with jobs pending")
         if self._logger is not None:
             self._logger.set_external_counters(self._events.snapshot())
             self._logger.close()
-        self._policy.close(timeout)
+
+    def close(self, timeout: float | None = None) -> None:
+        """Stops scheduling, drains queued jobs up to the deadline (counted from `begin_close` when that came first),
+        writes the final manifest, then closes the wrapped policy."""
+        self.begin_close(timeout)
+        assert self._closer is not None
+        self._closer.join(max(0.0, self._deadline - time.monotonic()))
+        self._policy.close(max(0.0, self._deadline - time.monotonic()))
 
 
 def wrap_policy_with_cam(

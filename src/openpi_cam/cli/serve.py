@@ -50,6 +50,7 @@ def main(
     cam_queue_size: int = 8,
     cam_max_steps: int | None = None,
     cam_max_mb: float | None = None,
+    cam_drain_timeout: float = 5.0,
 ) -> int:
     """Serve a pi0-FAST checkpoint over websockets (openpi-client compatible), optionally logging Grad-CAM.
 
@@ -84,10 +85,16 @@ def main(
         cam_queue_size: pending Grad-CAM jobs before new ones are dropped (inference never waits).
         cam_max_steps: stop recording after this many steps (None = no limit).
         cam_max_mb: stop recording once the run directory holds this many MB (None = no limit).
+        cam_drain_timeout: on SIGTERM, seconds the side channel keeps explaining queued jobs (counted from the
+            signal, while connections close) before the run's manifest is closed: SIGTERM exits within this, the
+            in-flight inference and 2 s for unresponsive peers, inside a container's 10 s stop grace period.
     """
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if max_message_mb <= 0:
         print(f"openpi-cam serve: --max-message-mb must be positive, got {max_message_mb}", file=sys.stderr)
+        return 2
+    if cam_drain_timeout < 0:
+        print(f"openpi-cam serve: --cam-drain-timeout must be >= 0, got {cam_drain_timeout}", file=sys.stderr)
         return 2
     if cam_every_k < 0:
         print(f"openpi-cam serve: --cam-every-k must be >= 0, got {cam_every_k}", file=sys.stderr)
@@ -162,6 +169,7 @@ def main(
         max_message_bytes=int(max_message_mb * 1024 * 1024),
         max_connections=max_connections,
         debug=debug,
+        close_timeout=cam_drain_timeout,
     )
     server.serve_forever()
     return 0

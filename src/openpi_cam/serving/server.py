@@ -105,8 +105,9 @@ def _json_default(obj: Any) -> Any:
 class PolicyServer:
     """Serves `policy` over websockets; see the module docstring for the protocol.
 
-    `policy` needs `infer(obs, context)`; `stats()` (merged into `/stats`) and `close(timeout)` (called on shutdown)
-    are used when present.
+    `policy` needs `infer(obs, context)`; `stats()` (merged into `/stats`), `begin_close(timeout)` (called as soon as a
+    stop is requested, must not block) and `close(timeout)` (called once in-flight requests are answered) are used
+    when present.
     """
 
     def __init__(
@@ -195,6 +196,11 @@ class PolicyServer:
                 if on_ready is not None:
                     on_ready(self.bound_port)
                 await self._stop_event.wait()
+                begin_close = getattr(self._policy, "begin_close", None)
+                if self._close_policy_on_stop and callable(begin_close):
+                    # The drain (e.g. the side channel's queued explanations) starts now and runs while connections
+                    # close; `close` below waits for it within the same deadline.
+                    begin_close(self._close_timeout)
                 await self._shutdown(server)
         finally:
             executor.shutdown(wait=True)
