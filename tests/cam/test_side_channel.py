@@ -387,3 +387,59 @@ def test_cam_extra_values_are_bounded_per_value_and_per_step(tmp_path, demo_poli
     assert set(extra["extra_dropped"][2:]) == {f"note{i}" for i in range(8)} - set(kept_notes)
     assert wrapped.stats()["gradcam"]["extra_dropped"] == 1
     assert "/" not in wrapped.stats()["gradcam"]["run"]  # /stats names the run, not the server's paths
+
+
+# Counts the XLA compilations of the first request and its explanation in a fresh interpreter (the compiled-program
+# caches of this test process are warm already).
+_FIRST_REQUEST_COMPILES = r"""
+import json, sys, tempfile
+import jax.monitoring
+compiles = []
+jax.monitoring.register_event_duration_secs_listener(
+    lambda name, secs, **kw: compiles.append(name) if name.endswith("backend_compile_duration") else None
+)
+from demo_inputs import demo_observation
+from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
+from openpi_cam.policies import demo_reach
+
+cam = wrap_policy_with_cam(demo_reach.create_demo_policy(), CAMOptions(every_k=1, cam_dir=tempfile.mkdtemp()))
+warmed = cam.warm_up() if sys.argv[1] == "warm" else None
+before = len(compiles)
+cam.infer(demo_observation(5))
+cam.close(120)
+print(json.dumps({"warmed": warmed, "compiles": len(compiles) - before, "stats": cam.stats()["gradcam"]}))
+"""
+
+
+def test_warm_up_compiles_what_the_first_request_and_its_explanation_need():
+    """`serve` warms up before listening: after `CAMPolicy.warm_up()` the first request and its explanation compile
+    nothing. Without the warm-up the same script counts compilations (18 + 4 measured), so the check can fail."""
+    counts = {}
+    for mode in ("cold", "warm"):
+        env = {
+            **os.environ,
+            "PYTHONPATH": os.pathsep.join([str(REPO_ROOT / "tests" / "support"), str(REPO_ROOT / "src")]),
+        }
+        proc = subprocess.run(
+            [sys.executable, "-c", _FIRST_REQUEST_COMPILES, mode], capture_output=True, text=True, env=env, timeout=300
+        )
+        assert proc.returncode == 0, proc.stderr
+        counts[mode] = json.loads(proc.stdout.strip().splitlines()[-1])
+        assert counts[mode]["stats"]["completed"] == 1, counts[mode]  # the request was explained in both modes
+    assert counts["cold"]["compiles"] > 0, counts
+    assert counts["warm"]["warmed"] == "inference and the action-token explanation", counts
+    assert counts["warm"]["compiles"] == 0, counts
+
+
+def test_warm_up_leaves_the_served_rng_stream_and_counters_alone():
+    """pi0.5 draws its noise from the policy's rng: a warmed-up policy serves the first request exactly as a fresh one
+    does (the same observation served twice gives different actions, so a consumed rng split would show)."""
+    from openpi_cam.policies import demo_reach
+
+    obs = policy_part(demo_obs(7))
+    warmed, fresh = demo_reach.create_demo_policy(model="pi05"), demo_reach.create_demo_policy(model="pi05")
+    assert warmed.warm_up() is not None
+    first = fresh.infer(obs)["actions"]
+    assert not np.array_equal(fresh.infer(obs)["actions"], first)  # the stream moves between calls
+    np.testing.assert_array_equal(warmed.infer(obs)["actions"], first)
+    assert warmed.stats() == {"requests": 1, "malformed": {}}

@@ -1004,6 +1004,8 @@ def test_serve_with_cam_flags_writes_an_explained_closed_run(demo_observations, 
     cam = ["--cam-every-k", "1", "--cam-dir", str(cam_dir), "--cam-target", "action-token", "--cam-action-index", "2"]
     observations = demo_observations[:3]
     with serve_subprocess(tmp_path, *files, *cam) as (proc, port, log_path):
+        # Compiled before /healthz answered (tests/cam checks that the first request then compiles nothing).
+        assert "warmed up inference and the action-token explanation in" in log_path.read_text()
         collect(send_observations(port, tmp_path / "client", observations))
         _stop(proc, log_path)
     # In process, the policy exactly as `serve` builds it from those flags (the checkpoint's 256-step decoding).

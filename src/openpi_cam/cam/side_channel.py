@@ -42,6 +42,8 @@ class TracedPolicy(Protocol):
 
     def infer_traced(self, obs: Mapping[str, Any]) -> tuple[dict[str, Any], InferenceTrace]: ...
 
+    def warm_up(self) -> InferenceTrace | None: ...
+
     def stats(self) -> dict[str, Any]: ...
 
     def close(self, timeout: float | None = None) -> None: ...
@@ -230,6 +232,23 @@ class CAMPolicy:
         assert self._closer is not None
         self._closer.join(max(0.0, self._deadline - time.monotonic()))
         self._policy.close(max(0.0, self._deadline - time.monotonic()))
+
+    def warm_up(self) -> str:
+        """Compiles inference and, when steps are recorded, the configured explanation on the robot's example
+        observation, before the server reports ready; nothing is logged or counted. Returns what was warmed."""
+        trace = self._policy.warm_up()
+        if trace is None:
+            return "nothing (the robot transform offers no example observation)"
+        if self._logger is None or self._options.every_k == 0:
+            return "inference"
+        (exp,) = explain_traces(self._policy.explainer, [trace], self._options.request)
+        if isinstance(exp, ExplainSkipped):
+            return f"inference (the example's explanation was skipped: {exp})"
+        if trace.malformed_reason is not None:
+            # The example's generation holds no action tokens: the fallback target was compiled, not the configured
+            # one (the side channel's first well-formed request compiles that, off the robot's path).
+            return f"inference and the {exp.target} explanation (the example's generation: {trace.malformed_reason})"
+        return f"inference and the {exp.target} explanation"
 
 
 def wrap_policy_with_cam(

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import sys
+import time
 from pathlib import Path
 from typing import Literal
 
@@ -51,6 +52,7 @@ def main(
     cam_max_steps: int | None = None,
     cam_max_mb: float | None = None,
     cam_drain_timeout: float = 5.0,
+    warm_up: bool = True,
 ) -> int:
     """Serve a pi0-FAST checkpoint over websockets (openpi-client compatible), optionally logging Grad-CAM.
 
@@ -88,8 +90,12 @@ def main(
         cam_drain_timeout: on SIGTERM, seconds the side channel keeps explaining queued jobs (counted from the
             signal, while connections close) before the run's manifest is closed: SIGTERM exits within this, the
             in-flight inference and 2 s for unresponsive peers, inside a container's 10 s stop grace period.
+        warm_up: compile inference (and the side channel's explanation) on the robot's example observation before
+            listening, so `/healthz` answers only once the first request will not wait for compilation.
     """
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    # force: importing orbax has already put a WARNING-level handler on the root logger, which
+    # would otherwise swallow the server's INFO lines (readiness, connections, shutdown).
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s", force=True)
     if max_message_mb <= 0:
         print(f"openpi-cam serve: --max-message-mb must be positive, got {max_message_mb}", file=sys.stderr)
         return 2
@@ -160,6 +166,10 @@ def main(
         served = wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=str(checkpoint_dir))
         logger.info("Grad-CAM on: every %d requests, target %s, writing to %s", cam_every_k, cam_target, cam_dir)
 
+    if warm_up:
+        start = time.monotonic()
+        warmed = served.warm_up() if isinstance(served, CAMPolicy) else _warm_up_inference(policy)
+        logger.info("warmed up %s in %.1f s", warmed, time.monotonic() - start)
     server = PolicyServer(
         served,
         host=host,
@@ -173,3 +183,7 @@ def main(
     )
     server.serve_forever()
     return 0
+
+
+def _warm_up_inference(policy: Policy) -> str:
+    return "inference" if policy.warm_up() is not None else "nothing (the robot transform offers no example)"

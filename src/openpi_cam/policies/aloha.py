@@ -117,6 +117,9 @@ class AlohaInputs:
         present = {k for k, v in images.items() if v is not None} if isinstance(images, Mapping) else set()
         return {name: key if key.split("/", 1)[1] in present else None for name, key in CAMERA_SOURCES.items()}
 
+    def example(self) -> dict[str, Any]:
+        return make_aloha_example()
+
     def __call__(self, data: DataDict) -> DataDict:
         state = parse_vector(require(data, STATE_KEY), STATE_KEY, dim=STATE_DIM)
         state = decode_state(state, adapt_to_pi=self.adapt_to_pi)

@@ -38,6 +38,9 @@ class DroidInputs:
     def camera_sources_for(self, obs: Mapping[str, object]) -> dict[str, str | None]:
         return dict(self.camera_sources)
 
+    def example(self) -> dict[str, object]:
+        return make_droid_example()
+
     def __call__(self, data: DataDict) -> DataDict:
         joints = parse_vector(require(data, JOINT_POSITION_KEY), JOINT_POSITION_KEY, dim=JOINT_DIM)
         # Upstream accepts the gripper position as a scalar or a length-1 vector.
@@ -62,3 +65,15 @@ class DroidInputs:
 class DroidOutputs:
     def __call__(self, data: DataDict) -> DataDict:
         return {"actions": np.asarray(data["actions"][..., :ACTION_DIM])}
+
+
+def make_droid_example(height: int = 180, width: int = 320, seed: int = 0) -> dict[str, object]:
+    """A random observation shaped like what upstream's DROID client sends (its cameras' 180 x 320 frames)."""
+    rng = np.random.default_rng(seed)
+    return {
+        EXTERIOR_IMAGE_KEY: rng.integers(256, size=(height, width, 3), dtype=np.uint8),
+        WRIST_IMAGE_KEY: rng.integers(256, size=(height, width, 3), dtype=np.uint8),
+        JOINT_POSITION_KEY: rng.random(JOINT_DIM),
+        GRIPPER_POSITION_KEY: rng.random(1),
+        "prompt": "do something",
+    }

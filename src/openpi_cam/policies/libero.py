@@ -31,6 +31,9 @@ class LiberoInputs(FixedCameraSources):
     CAMERA_SOURCES = CAMERA_SOURCES
     family: Family = "pi0_fast"
 
+    def example(self) -> dict[str, Any]:
+        return make_libero_example()
+
     def __call__(self, data: DataDict) -> DataDict:
         base = parse_image(require(data, IMAGE_KEY), IMAGE_KEY)
         wrist = parse_image(require(data, WRIST_IMAGE_KEY), WRIST_IMAGE_KEY)

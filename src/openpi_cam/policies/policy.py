@@ -26,7 +26,7 @@ from openpi_cam.policies.config import PolicyConfig, resolve_config
 from openpi_cam.policies.family import Explainer, OutputDecoder, Sampler
 from openpi_cam.policies.pi0_family import FlowParts, build_pi0
 from openpi_cam.policies.pi0_fast_family import FastParts, build_pi0_fast
-from openpi_cam.policies.robot import RobotInputs
+from openpi_cam.policies.robot import RobotInputs, example_observation
 from openpi_cam.tokenizers.fast import FastActionTokenizer
 from openpi_cam.transforms import (
     DataDict,
@@ -155,11 +155,40 @@ class Policy:
         camera_sources = self._robot_inputs.camera_sources_for(obs)
         inputs, pre_resize_images, prompt = self._apply_inputs(_copy_containers(obs))
 
-        # Like upstream: a leading batch axis on every leaf (jax pytree order, i.e. cameras sorted by name), then the
-        # policy's rng is split once per call.
-        batched = jax.tree.map(lambda x: jnp.asarray(x)[np.newaxis, ...], inputs)
+        # Like upstream: the policy's rng is split once per call.
         with self._lock:
             self._rng, sample_rng = jax.random.split(self._rng)
+        outputs, trace = self._run(inputs, pre_resize_images, prompt, camera_sources, sample_rng, noise)
+        self._malformed.count(_REQUESTS)
+        if trace.malformed_reason is not None:
+            self._malformed.count(trace.malformed_reason, "the model's output decodes to no actions")
+        return outputs, trace
+
+    def warm_up(self) -> InferenceTrace | None:
+        """Compiles inference for the served shapes by running the robot's example observation (model inputs have
+        fixed shapes whatever the client's image size), so the first request does not wait for XLA. The policy's rng
+        stream and counters are untouched: served actions stay upstream's. Returns the example's trace (the side
+        channel warms its explanation with it), or None when the robot transform offers no example."""
+        example = example_observation(self._robot_inputs)
+        if example is None:
+            return None
+        camera_sources = self._robot_inputs.camera_sources_for(example)
+        inputs, pre_resize_images, prompt = self._apply_inputs(example)
+        with self._lock:
+            _, sample_rng = jax.random.split(self._rng)  # compiles the per-request split; self._rng is not advanced
+        return self._run(inputs, pre_resize_images, prompt, camera_sources, sample_rng, None)[1]
+
+    def _run(
+        self,
+        inputs: DataDict,
+        pre_resize_images: dict[str, np.ndarray],
+        prompt: str,
+        camera_sources: Mapping[str, str | None],
+        sample_rng: jax.Array,
+        noise: np.ndarray | None,
+    ) -> tuple[dict[str, Any], InferenceTrace]:
+        # A leading batch axis on every leaf (jax pytree order, i.e. cameras sorted by name), as upstream.
+        batched = jax.tree.map(lambda x: jnp.asarray(x)[np.newaxis, ...], inputs)
         observation = Observation.from_dict(batched)
 
         start = time.monotonic()
@@ -171,9 +200,6 @@ class Policy:
         actions, reason = self._decoder.extract(output)
         outputs = self._output_transform({"state": state, "actions": actions})
         outputs["policy_timing"] = {"infer_ms": model_time * 1000}
-        self._malformed.count(_REQUESTS)
-        if reason is not None:
-            self._malformed.count(reason, "the model's output decodes to no actions")
 
         cameras = observation.camera_names
         trace = InferenceTrace(

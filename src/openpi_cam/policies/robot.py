@@ -35,6 +35,13 @@ class RobotInputs(Protocol):
     def __call__(self, data: DataDict) -> DataDict: ...
 
 
+def example_observation(robot_inputs: RobotInputs) -> dict[str, Any] | None:
+    """A client observation the robot's transform accepts (random pixels, every key and shape a real client sends;
+    serving shapes do not depend on the values), from its optional ``example()``; None where it has none."""
+    example = getattr(robot_inputs, "example", None)
+    return example() if callable(example) else None
+
+
 class FixedCameraSources:
     """For robots whose camera layout is the same for every observation: subclasses set ``CAMERA_SOURCES``."""
 
@@ -94,6 +101,18 @@ class GenericInputs:
 
     def camera_sources_for(self, obs: Mapping[str, Any]) -> dict[str, str | None]:
         return dict(self.cameras)
+
+    def example(self) -> dict[str, Any] | None:
+        """Random 224 x 224 frames and state; None without a declared ``state_dim`` (its size is then unknown)."""
+        if self.state_dim is None:
+            return None
+        rng = np.random.default_rng(0)
+        obs: dict[str, Any] = {self.state_key: rng.random(self.state_dim), "prompt": "do something"}
+        for key in self.cameras.values():
+            if key is not None:
+                image = rng.integers(256, size=(224, 224, 3), dtype=np.uint8)
+                obs[key] = np.moveaxis(image, -1, 0) if self.channels_first else image
+        return obs
 
     def __call__(self, data: DataDict) -> DataDict:
         state = parse_vector(lookup(data, self.state_key), self.state_key, dim=self.state_dim)
