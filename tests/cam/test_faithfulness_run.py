@@ -156,7 +156,7 @@ def test_nuisance_mass_ratio_in_stats_uses_the_clients_box(tmp_path, demo_policy
     rows = to_rows(compute_stats(view_steps(run.steps, "gradnorm")))
     seen = []
     for step, row in zip(run.steps, rows, strict=True):
-        x0, y0, x1, y1 = step.meta["extra"]["target_box"]
+        x0, y0, x1, y1 = step.extra["target_box"]
         edges = np.arange(4) * 16
         inside = ((edges < y1) & (edges + 16 > y0))[:, None] & ((edges < x1) & (edges + 16 > x0))[None, :]
         m = np.maximum(step.maps_of("gradnorm")["base_0_rgb"].astype(np.float64), 0)

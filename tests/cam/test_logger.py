@@ -109,8 +109,8 @@ def test_round_trip_with_numpy_alone(tmp_path):
     lg.close()
 
     run_info = json.loads((lg.run_dir / "run.json").read_text())
-    assert SCHEMA_VERSION == 2
-    assert run_info["schema_version"] == 2 and run_info["run_id"] == lg.run_dir.name
+    assert SCHEMA_VERSION == 3
+    assert run_info["schema_version"] == 3 and run_info["run_id"] == lg.run_dir.name
     assert run_info["config"] == {"policy": "droid"} and run_info["checkpoint"] == "gs://ckpt/pi0_fast"
     assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z", run_info["started_at"])
     assert re.fullmatch(r"\d{8}-\d{6}-[0-9a-f]{6}", lg.run_dir.name)
@@ -142,7 +142,7 @@ def test_round_trip_with_numpy_alone(tmp_path):
         assert (
             meta
             == {
-                "schema_version": 2,
+                "schema_version": 3,
                 "run_id": lg.run_dir.name,
                 "seq": seq,
                 "connection": "c0",
@@ -599,3 +599,36 @@ def test_list_runs_ignores_non_runs(tmp_path):
     assert list_runs(tmp_path) == [lg.run_dir]
     shutil.rmtree(lg.run_dir / "steps")
     assert load_run(lg.run_dir).steps == []
+
+
+def test_cam_extra_arrays_are_stored_as_arrays_within_byte_limits(tmp_path):
+    """Numeric `cam_extra/` arrays go to the step file as `extra/<key>` with their dtype, byte order and shape; other
+    values (and arrays under keys unfit for a file member name) stay JSON in meta. Limits count the bytes as stored:
+    a 16,000-element int8 array passes a 16 KiB per-value limit that its JSON text (~3 bytes per element) would not."""
+    from openpi_cam.cam.records import bounded_extra, split_extra_values
+
+    joint = np.arange(7, dtype=">f8") / 3  # big-endian, as some clients send
+    depth = np.ones((125, 128), np.int8)
+    extra = {"obs/joint": joint, "depth": depth, "note": "hi", "scalar": np.float32(0.5), "../up": np.arange(3)}
+    kept, dropped = bounded_extra(extra, max_value_bytes=16 * 1024, max_total_bytes=64 * 1024)
+    assert dropped == [] and set(kept) == set(extra)
+    assert bounded_extra(extra, max_value_bytes=8 * 1024, max_total_bytes=64 * 1024)[1] == ["depth"]
+    assert bounded_extra(extra, max_value_bytes=16 * 1024, max_total_bytes=16_090)[1] == ["../up"]  # in key order
+    values, arrays = split_extra_values(kept)
+    assert set(arrays) == {"obs/joint", "depth"}
+    assert values == {"note": "hi", "scalar": 0.5, "../up": [0, 1, 2]}
+
+    lg = new_logger(tmp_path)
+    record = make_record(0)
+    record.meta["extra"], record.meta["extra_arrays"] = values, sorted(arrays)
+    record.extra_arrays = arrays
+    assert lg.log_step(record)
+    lg.close()
+    (step,) = load_run(lg.run_dir, load_arrays=False).steps
+    assert step.meta["extra"] == values
+    for key, sent in arrays.items():
+        stored = step.extra[key]
+        assert stored.dtype == sent.dtype and stored.shape == sent.shape
+        np.testing.assert_array_equal(stored, sent)
+    with np.load(step.file) as z:
+        assert {"extra/obs/joint", "extra/depth"} <= set(z.files)

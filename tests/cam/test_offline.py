@@ -150,7 +150,7 @@ def test_policy_records_become_a_cam_run_and_replay(demo_policy, tmp_path):
     assert [(s.seq, s.meta["connection"], s.meta["step"]) for s in run.steps] == [(i, "records", i) for i in range(3)]
     for step, obs in zip(run.steps, observations, strict=True):
         assert step.meta["extra"][SOURCE_KEY] == f"step_{step.seq}.npy"
-        np.testing.assert_allclose(step.meta["extra"][STATE_KEY], obs[STATE_KEY])
+        np.testing.assert_array_equal(step.extra[STATE_KEY], obs[STATE_KEY])  # an array, stored as one
         np.testing.assert_array_equal(step.frames["base_0_rgb"], obs["observation/image"])
         np.testing.assert_array_equal(step.frames["wrist_0_rgb"], obs["observation/wrist_image"])
         assert step.maps_of("gradcam")["base_0_rgb"].shape == tuple(step.meta["cameras"]["base_0_rgb"]["grid"])
@@ -167,7 +167,7 @@ def test_policy_records_become_a_cam_run_and_replay(demo_policy, tmp_path):
     assert len(run2.steps) == 3
     for a, b in zip(run.steps, run2.steps, strict=True):
         assert b.meta["extra"][SOURCE_KEY] == f"steps/{a.seq:08d}.npz"
-        assert b.meta["extra"][STATE_KEY] == a.meta["extra"][STATE_KEY]
+        np.testing.assert_array_equal(b.extra[STATE_KEY], a.extra[STATE_KEY])
         assert (b.meta["connection"], b.meta["step"], b.meta["prompt"]) == (
             a.meta["connection"],
             a.meta["step"],

@@ -113,8 +113,13 @@ def test_real_client_side_channel_on_same_actions_and_complete_run(tmp_path, dem
         assert meta["token_ids"] == [int(generated[action_steps[2]])]
         assert meta["score"] == pytest.approx(float(direct.score[0]), rel=1e-5)
         assert meta["prompt"] == obs["prompt"] and meta["connection"].startswith("conn")
-        assert meta["extra"]["target_box"] == obs["cam_extra/target_box"].tolist()
-        assert meta["extra"]["block_boxes"] == obs["cam_extra/block_boxes"].tolist()
+        # Numeric arrays are stored as arrays (dtype and shape kept), the rest as JSON in meta.
+        assert meta["extra_arrays"] == ["block_boxes", "target_box"]
+        assert "target_box" not in meta["extra"] and meta["extra"]["block_colors"] == obs["cam_extra/block_colors"]
+        for key in ("target_box", "block_boxes"):
+            sent, stored = obs[f"cam_extra/{key}"], step.extra[key]
+            assert stored.dtype == sent.dtype and stored.shape == sent.shape
+            np.testing.assert_array_equal(stored, sent)
 
 
 @pytest.mark.parametrize("every_k", [0, 1, 2])
@@ -379,9 +384,11 @@ def test_cam_extra_values_are_bounded_per_value_and_per_step(tmp_path, demo_poli
         wrapped.close()
     np.testing.assert_array_equal(response["actions"], demo_policy.infer(policy_part(obs))["actions"])
     (step,) = load_run(wrapped.run_dir).steps
-    extra = step.meta["extra"]
-    assert extra["target_box"] == obs["cam_extra/target_box"].tolist()  # small values kept as sent
-    assert "blob" not in extra and "huge_array" not in extra
+    extra = step.extra
+    np.testing.assert_array_equal(extra["target_box"], obs["cam_extra/target_box"])  # small values kept as sent
+    assert (
+        "blob" not in extra and "huge_array" not in extra and step.meta["extra_arrays"] == ["block_boxes", "target_box"]
+    )
     kept_notes = [k for k in extra if k.startswith("note")]
     assert 0 < len(kept_notes) < 8 and extra["extra_dropped"][:2] == ["blob", "huge_array"]
     assert set(extra["extra_dropped"][2:]) == {f"note{i}" for i in range(8)} - set(kept_notes)

@@ -421,8 +421,8 @@ def test_short_demo_run_is_readable(tmp_path):
             for cam in ("base_0_rgb", "wrist_0_rgb"):
                 m = step.maps_of(kind)[cam]
                 assert m.shape == (4, 4) and np.isfinite(m).all()
-        box = step.meta["extra"]["target_box"]
-        assert box in step.meta["extra"]["block_boxes"] and len(box) == 4
+        box, blocks = step.extra["target_box"], step.extra["block_boxes"]  # stored as int32 arrays
+        assert box.shape == (4,) and (blocks == box).all(axis=1).any()
         assert set(step.frames) == set(step.model_frames) == {"base_0_rgb", "wrist_0_rgb"}
     assert set(result.reports) == set(MAP_KINDS)
     for kind, report in result.reports.items():

@@ -1140,3 +1140,177 @@ def test_wrong_api_keys_are_answered_ever_slower(policy):
     # The delays are sleeps the server adds: lower bounds hold whatever the machine's load.
     assert all(w >= d for w, d in zip(waits[AUTH_FREE_FAILURES:], (0.2, 0.4, 0.8), strict=True)), waits
     assert right < waits[-1]  # the right key does not inherit the address's back-off (0.8 s above)
+
+
+def droid_obs_bytes(rng: np.random.Generator, size: tuple[int, int]) -> bytes:
+    """A DROID observation as the client packs it (our packer writes the client's bytes)."""
+    obs = {
+        "observation/exterior_image_1_left": rng.integers(256, size=(*size, 3), dtype=np.uint8),
+        "observation/wrist_image_left": rng.integers(256, size=(64, 96, 3), dtype=np.uint8),
+        "observation/joint_position": rng.random(7),
+        "observation/gripper_position": rng.random(1),
+        "prompt": "do something",
+    }
+    return msgpack_numpy.packb(obs)
+
+
+def _proc_status_bytes(pid: int, field: str) -> int:
+    """A memory figure of a process from /proc (VmRSS: resident now; VmHWM: peak resident since start or reset)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) * 1024
+    raise KeyError(field)
+
+
+# A robot that keeps working while the hostile clients run: paced good requests on its own connection.
+ROBOT = r"""
+import time
+policy = connect()
+rng = np.random.RandomState(1)
+shapes, latencies = [], []
+for _ in range(ARGS["n"]):
+    start = time.monotonic()
+    shapes.append(list(policy.infer(droid_obs(rng, size=(64, 96)))["actions"].shape))
+    latencies.append(time.monotonic() - start)
+    time.sleep(0.1)
+done(shapes=shapes, latencies=latencies)
+"""
+
+# Requests that try to make the server store or hold a lot: cam_extra/ bloat, then a flood of frames near the size
+# limit on a connection that never reads its replies.
+HOSTILE_EXTRA = r"""
+policy = connect()
+good = droid_obs(np.random.RandomState(2), size=(64, 96))
+shapes = []
+for extra in ({"cam_extra/blob": "x" * 8_000_000}, {"cam_extra/array": np.zeros(1_000_000, np.float32)}):
+    shapes.append(list(policy.infer({**good, **extra})["actions"].shape))
+# 15 million empty maps in 15 MB: decoded whole, ~2 GB of Python objects; the decoder stops at its container budget.
+maps = b"\xdd" + (15_000_000).to_bytes(4, "big") + b"\x80" * 15_000_000
+error = error_of(lambda: infer_raw(policy, b"\x81\xa4junk" + maps))
+done(shapes=shapes, error=error)
+"""
+
+
+FLOOD_FRAMES = 10
+HOSTILE_EXTRA_PEAK_FRAMES = 8  # what the hostile probes may add to plain serving's peak, in message-limit units
+
+
+def test_hostile_clients_against_a_served_process_stay_within_memory_log_and_disk_bounds(tiny_policy_files, tmp_path):
+    """`openpi-cam serve` (tiny DROID checkpoint, side channel on, 16 MiB message limit), first serving a robot alone,
+    then the same robot while every hostile probe runs at once: the 19 bad-request classes (amplifying frames, deep
+    nesting, megabyte strings, unsendable dtypes), cam_extra bloat (an 8 MB string, a 4 MB array), 15 million empty
+    maps in one 15 MB frame (~2 GB of objects if decoded whole), and a peer sending 10 frames of ~14.5 MiB without
+    ever reading its replies. Bounds, against measurements on the 2-core machine:
+    - the server's peak resident memory in the hostile phase exceeds plain serving's by less than 8 message limits
+      (128 MiB; plain serving's own peak, the explanation's working set, measured 308-316 MB above the idle server;
+      the hostile phase measured 240-313 MB, i.e. no more than plain serving);
+    - the server log grows by less than 32 KiB (measured about 4.2 KB: one line per rejected request, each quoting at
+      most 60 characters of a client value);
+    - no step file is more than 64 KiB (the cam_extra limit) above the largest step of a request without extras;
+    - the robot on its own connection gets all 30 answers meanwhile, and every bad request its short named error."""
+    limit_mb = 16
+    cam_dir = tmp_path / "cam"
+    files = [
+        "--checkpoint-dir", str(tiny_policy_files.checkpoint), "--dtype", "float32",
+        "--paligemma-tokenizer", str(tiny_policy_files.paligemma_tokenizer),
+        "--fast-tokenizer", str(tiny_policy_files.fast_tokenizer),
+        "--max-message-mb", str(limit_mb), "--cam-every-k", "1", "--cam-dir", str(cam_dir),
+        "--cam-save-frames", "none",
+    ]  # fmt: skip
+    with serve_subprocess(tmp_path, *files) as (proc, port, log_path):
+
+        def reset_peak() -> int:
+            Path(f"/proc/{proc.pid}/clear_refs").write_text("5")  # VmHWM := VmRSS: the next peak is this phase's
+            return _proc_status_bytes(proc.pid, "VmRSS")
+
+        robot_args = json.dumps({"port": port, "n": 30})
+        # Plain serving first: the robot alone (its explanations' working set is part of any peak).
+        rss = reset_peak()
+        plain_robot = collect(spawn_client(client_script(ROBOT), robot_args))
+        plain_growth = _proc_status_bytes(proc.pid, "VmHWM") - rss
+        log_before = log_path.stat().st_size
+        # ~14.5 MiB: a 2250 x 2250 image, under the limit; packed as the client would.
+        flood_obs = droid_obs_bytes(np.random.default_rng(3), size=(2250, 2250))
+        assert 14 * 2**20 < len(flood_obs) < limit_mb * 2**20
+        flooder = connect(f"ws://127.0.0.1:{port}", max_size=None)
+        flooder.recv(timeout=10)  # the metadata frame; replies are never read from here on
+        rss = reset_peak()
+        flood = threading.Thread(target=lambda: [flooder.send(flood_obs) for _ in range(FLOOD_FRAMES)], daemon=True)
+        flood.start()
+        clients = [
+            spawn_client(client_script(ROBOT), robot_args),
+            spawn_client(client_script(BAD_REQUESTS), json.dumps({"port": port})),
+            spawn_client(client_script(HOSTILE_EXTRA), json.dumps({"port": port})),
+        ]
+        robot_result, bad_result, bloat_result = (collect(c) for c in clients)
+        flood.join(120)
+        deadline = time.monotonic() + 120
+        while get_stats(port)["requests"] < 2 * 30 + 2 * len(BAD_REQUEST_EXPECTATIONS) + 3 + FLOOD_FRAMES:
+            assert time.monotonic() < deadline, get_stats(port)
+            time.sleep(0.2)
+        hostile_growth = _proc_status_bytes(proc.pid, "VmHWM") - rss
+        log_growth = log_path.stat().st_size - log_before
+        flooder.close()
+        _stop(proc, log_path)
+
+    print(
+        f"peak growth: plain {plain_growth / 2**20:.1f} MB, hostile {hostile_growth / 2**20:.1f} MB; log {log_growth} B"
+    )
+    assert plain_robot["shapes"] == [[10, 8]] * 30
+    assert robot_result["shapes"] == [[10, 8]] * 30
+    assert all(r["after_shape"] == [10, 8] for r in bad_result["results"].values()), bad_result
+    assert all(r["error"] is not None and len(r["error"]) <= MAX_ERROR_CHARS for r in bad_result["results"].values())
+    assert bloat_result["shapes"] == [[10, 8]] * 2 and "more than 10000 maps and lists" in bloat_result["error"]
+    assert hostile_growth - plain_growth < HOSTILE_EXTRA_PEAK_FRAMES * limit_mb * 2**20, (hostile_growth, plain_growth)
+    assert log_growth < 32 * 1024, log_growth
+    run = load_run(list_runs(cam_dir)[0], load_arrays=False)
+    sizes = {s.seq: s.file.stat().st_size for s in run.steps}
+    plain = max(sizes[s.seq] for s in run.steps if not s.meta["extra"] and not s.meta["extra_arrays"])
+    assert max(sizes.values()) <= plain + 64 * 1024, sizes
+
+
+def _masked_binary_frame(payload: bytes) -> bytes:
+    """One client-to-server websocket binary frame (clients must mask; RFC 6455 section 5.2)."""
+    mask = os.urandom(4)
+    n = len(payload)
+    length = bytes([0x80 | n]) if n < 126 else bytes([0x80 | 126]) + n.to_bytes(2, "big")
+    if n >= 2**16:
+        length = bytes([0x80 | 127]) + n.to_bytes(8, "big")
+    data = np.frombuffer(payload, np.uint8) ^ np.resize(np.frombuffer(mask, np.uint8), n)
+    return b"\x82" + length + mask + data.tobytes()
+
+
+class _LargeReplies:
+    """The real policy with a 64 MB array added to every response: more than the socket buffers of both ends hold."""
+
+    metadata: dict = {}  # noqa: RUF012
+
+    def __init__(self, inner: Any) -> None:
+        self.inner = inner
+
+    def infer(self, obs: dict, context: RequestContext | None = None) -> dict:
+        return {**self.inner.infer(obs, context), "padding": np.zeros(64 * 2**20, np.uint8)}
+
+
+def test_a_peer_that_never_reads_its_reply_is_dropped_and_the_stop_completes(policy):
+    """A robot process that hung after sending a request: its reply cannot be sent. The server gives it PEER_TIMEOUT_S,
+    drops the connection (counted `send_timeout`), keeps serving others, and stops promptly. Before the send timeout,
+    the handler waited forever and `stop()` never returned."""
+    running = start_server_in_thread(_LargeReplies(policy), close_policy_on_stop=False)
+    obs = droid_obs_bytes(np.random.default_rng(0), size=(64, 96))
+    peer = _stalled_peer(running.port)
+    try:
+        peer.sendall(_masked_binary_frame(obs))  # and never reads again
+        deadline = time.monotonic() + 60
+        while get_stats(running.port)["errors"].get("send_timeout", 0) < 1:
+            assert time.monotonic() < deadline, get_stats(running.port)
+            time.sleep(0.1)
+        with connect(f"ws://127.0.0.1:{running.port}", max_size=None) as ws:  # others are served meanwhile and after
+            ws.recv(timeout=10)
+            ws.send(obs)
+            assert msgpack_numpy.unpackb(ws.recv(timeout=60))["actions"].shape == (10, 8)
+        start = time.monotonic()
+    finally:
+        running.stop(timeout=60)
+        peer.close()
+    assert time.monotonic() - start < PEER_TIMEOUT_S + 5

@@ -223,13 +223,18 @@ def nuisance_mass_ratio(cam_map: np.ndarray, relevant_cells: np.ndarray) -> floa
 
 
 def target_cells(
-    meta: Mapping[str, Any], camera: str, grid: tuple[int, int], model_hw: Sequence[int] | None
+    meta: Mapping[str, Any],
+    camera: str,
+    grid: tuple[int, int],
+    model_hw: Sequence[int] | None,
+    extra: Mapping[str, Any] | None = None,
 ) -> np.ndarray | None:
     """The patches of the ground-truth box a client sent with a step (`cam_extra/target_box`: x0, y0, x1, y1 in the
     client image of `cam_extra/target_camera`, default the step's first camera), on `camera`'s model frame of size
     `model_hw` (taken from the camera's letterbox geometry when the step has it). None when the step has no box for
-    that camera. -> bool [Hp, Wp]"""
-    extra = meta.get("extra") or {}
+    that camera. `extra`: the step's `cam_extra/` values (`CAMStep.extra`: arrays included); default: those in meta.
+    -> bool [Hp, Wp]"""
+    extra = (meta.get("extra") or {}) if extra is None else extra
     cameras = meta.get("cameras") or {}
     box = extra.get("target_box")
     if box is None or camera != extra.get("target_camera", next(iter(cameras), None)):

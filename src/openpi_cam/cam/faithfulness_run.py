@@ -59,7 +59,7 @@ class FaithfulnessOptions:
 def step_model_inputs(step: CAMStep) -> tuple[Observation, np.ndarray, dict[str, np.ndarray]]:
     """(observation [B = 1], raw output [1, ...], sampler inputs [1, ...]) of a logged step, as the model saw them.
 
-    Needs the model frames (`--cam-save-frames model|both`) and the `input/` arrays (schema version 2)."""
+    Needs the model frames (`--cam-save-frames model|both`) and the `input/` arrays (schema version 2 or later)."""
     inputs, frames, cameras = step.inputs, step.model_frames, step.meta.get("cameras") or {}
     missing = [c for c in cameras if c not in frames] + [k for k in ("output", "state") if k not in inputs]
     if not cameras or missing:
@@ -112,7 +112,7 @@ def _masks(order_by_kind: Mapping[str, np.ndarray], grid: tuple[int, int], k_max
 
 def _cells(step: CAMStep, camera: str, grid: tuple[int, int]) -> np.ndarray | None:
     frame = step.model_frames.get(camera)
-    return fm.target_cells(step.meta, camera, grid, None if frame is None else frame.shape[:2])
+    return fm.target_cells(step.meta, camera, grid, None if frame is None else frame.shape[:2], step.extra)
 
 
 def _evenly(steps: Sequence[CAMStep], limit: int | None) -> list[CAMStep]:

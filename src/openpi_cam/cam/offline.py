@@ -30,7 +30,7 @@ from jax.sharding import Mesh
 
 from openpi_cam.cam.batching import data_mesh, explain_traces
 from openpi_cam.cam.logger import CAMLogger
-from openpi_cam.cam.records import EXTRA_PREFIX, SaveFrames, jsonable, split_extra, step_record
+from openpi_cam.cam.records import EXTRA_PREFIX, SaveFrames, split_extra, step_record
 from openpi_cam.cam.runfmt import RUN_JSON, load_run
 from openpi_cam.cam.side_channel import TracedPolicy
 from openpi_cam.model.attribution import MapKind, MapOptions
@@ -57,7 +57,7 @@ class Replay:
     connection: str
     step: int
     obs: dict[str, Any]  # what the policy receives
-    extra: dict[str, Any]  # JSON-able values stored in the step's meta["extra"]
+    extra: dict[str, Any]  # the `cam_extra/` values stored with the step (numeric arrays as arrays)
     recorded_actions: np.ndarray | None = None  # actions the original inference returned, if known
     timestamp: float | None = None  # the original request time, if known
 
@@ -83,12 +83,6 @@ class ExplainOptions:
         return ExplainRequest(self.target, self.action_index, self.action_dim_index, tuple(self.maps), self.map_options)
 
 
-def split_extra_json(obs: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
-    """(what the policy receives, the `cam_extra/` values as JSON), as the side channel splits a live request."""
-    obs, extra = split_extra(dict(obs))
-    return obs, {k: jsonable(v) for k, v in extra.items()}
-
-
 def record_observation(record: Mapping[str, Any], nested: bool) -> dict[str, Any]:
     """The client observation of a PolicyRecorder record.
 
@@ -109,7 +103,7 @@ def iter_policy_records(folder: pathlib.Path, nested: bool) -> Iterator[Replay]:
     for n, path in files:
         # Upstream stores each record as a pickled object array: only open records from a source you trust.
         record = np.load(path, allow_pickle=True).item()
-        obs, extra = split_extra_json(record_observation(record, nested))
+        obs, extra = split_extra(record_observation(record, nested))
         actions = record.get("outputs/actions")
         yield Replay(path.name, "records", n, obs, extra, None if actions is None else np.asarray(actions))
 
@@ -129,7 +123,7 @@ def iter_run_steps(run_dir: pathlib.Path) -> Iterator[Replay]:
         # The step's extras were the client's cam_extra/ values: the policy gets them back at their keys, and they
         # stay extras of the new step so that the new run is replayable too. An earlier explain's source id is not
         # an observation.
-        extra = {k: v for k, v in (meta.get("extra") or {}).items() if k != SOURCE_KEY}
+        extra = {k: v for k, v in step.extra.items() if k != SOURCE_KEY}
         obs.update({k: np.asarray(v) for k, v in extra.items()})
         if meta.get("prompt"):
             obs["prompt"] = meta["prompt"]

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import re
+from collections.abc import Mapping
 from typing import Any, Literal
 
 import numpy as np
@@ -16,6 +18,7 @@ SAVE_FRAMES: tuple[str, ...] = ("none", "raw", "model", "both")
 # Observation keys with this prefix are not passed to the policy; their values go into the step's `extra` metadata
 # (e.g. the demo's ground-truth target box).
 EXTRA_PREFIX = "cam_extra/"
+_ARRAY_KEY = re.compile(r"[A-Za-z0-9_.\-/]+")
 
 
 def split_extra(obs: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -32,22 +35,47 @@ def jsonable(value: Any) -> Any:
     return arr.item() if arr.ndim == 0 else arr.tolist()
 
 
+def is_extra_array(key: str, value: Any) -> bool:
+    """Whether a `cam_extra/` value is stored as an array in the step file (`extra/<key>`): a numeric array (not a
+    scalar) under a key an npz member can safely be named after."""
+    return (
+        isinstance(value, np.ndarray)
+        and value.ndim >= 1
+        and value.dtype.kind in "biuf"
+        and len(key) <= 200
+        and _ARRAY_KEY.fullmatch(key) is not None
+        and all(part not in ("", ".", "..") for part in key.split("/"))
+    )
+
+
+def split_extra_values(extra: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """(the values for meta["extra"] as JSON data, the numeric arrays for the step file) of `cam_extra/` values."""
+    arrays = {k: v for k, v in extra.items() if is_extra_array(k, v)}
+    return {k: jsonable(v) for k, v in extra.items() if k not in arrays}, arrays
+
+
+def _stored_size(key: str, value: Any) -> int:
+    if is_extra_array(key, value):
+        return value.nbytes + len(key)
+    return len(json.dumps(jsonable(value), default=str)) + len(key)
+
+
 def bounded_extra(
     extra: dict[str, Any], max_value_bytes: int, max_total_bytes: int
 ) -> tuple[dict[str, Any], list[str]]:
-    """The `cam_extra/` values as JSON data, each at most `max_value_bytes` and together at most `max_total_bytes`
-    (JSON-encoded, in key order), and the keys dropped for exceeding them (their names cut to 60 characters)."""
+    """The `cam_extra/` values that fit: each at most `max_value_bytes` and together at most `max_total_bytes` as
+    stored (an array's bytes, other values' JSON text; in key order), and the keys dropped for exceeding them (their
+    names cut to 60 characters)."""
     kept, dropped, total = {}, [], 0
     for key, value in extra.items():
-        if np.size(value) > max_value_bytes:  # no element takes less than one byte in JSON: too large unseen
-            dropped.append(key[:60])
-            continue
-        data = jsonable(value)
-        size = len(json.dumps(data, default=str)) + len(key)
+        # No value takes less than one byte per element (per character for text) as stored: a too large one is
+        # refused before it is converted or encoded (an 8 MB string would pass through ~50 MB of copies).
+        least = len(value) if isinstance(value, str | bytes) else np.size(value)
+        size = max_value_bytes + 1 if least > max_value_bytes else _stored_size(key, value)
         if size > max_value_bytes or total + size > max_total_bytes:
             dropped.append(key[:60])
             continue
-        kept[key], total = data, total + size
+        kept[key], total = value, total + size
     return kept, dropped
 
 
@@ -88,10 +116,12 @@ def step_record(
     step: int,
     timestamp: float,
     save_frames: SaveFrames,
-    extra: dict[str, Any],
+    extra: Mapping[str, Any],
     explain_ms: float,
 ) -> StepRecord:
-    """The logger record of one explained inference, in the layout docs/FORMAT.md describes."""
+    """The logger record of one explained inference, in the layout docs/FORMAT.md describes; `extra`: the client's
+    `cam_extra/` values (numeric arrays go to the step file, the rest to meta["extra"])."""
+    extra_values, extra_arrays = split_extra_values(extra)
     frames = {}
     if save_frames in ("raw", "both"):
         frames = {c: client_frame_uint8(im) for c, im in trace.raw_images.items() if im is not None}
@@ -115,6 +145,8 @@ def step_record(
         "cameras": cameras,
         "malformed": trace.malformed_reason,
         "explain_ms": round(explain_ms, 3),
-        "extra": extra,
+        "extra": extra_values,
+        "extra_arrays": sorted(extra_arrays),  # stored as `extra/<key>` in the step file
     }
-    return StepRecord(connection, step, timestamp, exp.maps, frames, model_frames, model_inputs(trace), meta)
+    inputs = model_inputs(trace)
+    return StepRecord(connection, step, timestamp, exp.maps, frames, model_frames, inputs, meta, extra_arrays)

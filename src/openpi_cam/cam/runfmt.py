@@ -27,7 +27,9 @@ log = logging.getLogger(__name__)
 
 # 2: maps of several kinds (`<kind prefix><camera>`), the model inputs (`input/`), target `generated-tokens` and
 # `malformed` in meta. Version 1 runs (only `cam/` and `gradnorm/` maps) read unchanged.
-SCHEMA_VERSION = 2
+# 3: numeric `cam_extra/` arrays are stored as `extra/<key>` arrays (listed in meta["extra_arrays"]), no longer as JSON
+# in meta["extra"]; `CAMStep.extra` merges both, so version 2 runs read the same.
+SCHEMA_VERSION = 3
 RUN_JSON = "run.json"
 INDEX_JSONL = "index.jsonl"
 MANIFEST_JSON = "manifest.json"
@@ -37,6 +39,7 @@ MAP_PREFIXES: dict[str, str] = {"gradcam": "cam/", "gradnorm": "gradnorm/", "ig"
 FRAME_PREFIX = "frame/"
 MODEL_FRAME_PREFIX = "frame_model/"
 INPUT_PREFIX = "input/"  # the explained call's non-image model inputs (token ids, masks, generated output)
+EXTRA_ARRAY_PREFIX = "extra/"  # numeric arrays a client sent under `cam_extra/` (other values: meta["extra"])
 META_KEY = "meta"
 
 _STEP_FILE_RE = re.compile(r"^(\d{8,})\.npz$")
@@ -139,6 +142,7 @@ class StepRecord:
     model_frames: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
     inputs: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
     meta: dict[str, Any] = dataclasses.field(default_factory=dict)
+    extra_arrays: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)  # stored as `extra/<key>`
 
 
 # Fields of the step JSON that the writer owns; StepRecord.meta must not set them.
@@ -185,6 +189,7 @@ def record_arrays(record: StepRecord) -> dict[str, np.ndarray]:
     arrays |= {FRAME_PREFIX + c: a for c, a in _checked_images(record.frames, "frames").items()}
     arrays |= {MODEL_FRAME_PREFIX + c: a for c, a in _checked_images(record.model_frames, "model_frames").items()}
     arrays |= {INPUT_PREFIX + k: np.asarray(v) for k, v in record.inputs.items()}
+    arrays |= {EXTRA_ARRAY_PREFIX + k: np.asarray(v) for k, v in record.extra_arrays.items()}
     return arrays
 
 
@@ -205,15 +210,17 @@ class StepArrays:
     frames: dict[str, np.ndarray]
     model_frames: dict[str, np.ndarray]
     inputs: dict[str, np.ndarray]
+    extra: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
 
 
 def _split_arrays(npz: Any) -> StepArrays:
-    arrays = StepArrays({}, {}, {}, {})
+    arrays = StepArrays({}, {}, {}, {}, {})
     prefixes = [(p, arrays.maps.setdefault(k, {})) for k, p in MAP_PREFIXES.items()]
     prefixes += [
         (FRAME_PREFIX, arrays.frames),
         (MODEL_FRAME_PREFIX, arrays.model_frames),
         (INPUT_PREFIX, arrays.inputs),
+        (EXTRA_ARRAY_PREFIX, arrays.extra),
     ]
     for key in npz.files:
         for prefix, target in prefixes:
@@ -266,6 +273,13 @@ class CAMStep:
     @property
     def inputs(self) -> dict[str, np.ndarray]:
         return self.arrays().inputs
+
+    @property
+    def extra(self) -> dict[str, Any]:
+        """What the client sent under `cam_extra/`: the JSON values of meta["extra"] and the numeric arrays."""
+        values = dict(self.meta.get("extra") or {})
+        # Steps list their array extras in meta: the file is read only when there are some.
+        return {**values, **self.arrays().extra} if self.meta.get("extra_arrays") else values
 
     def __repr__(self) -> str:
         return f"CAMStep(seq={self.seq}, file={str(self.file)!r})"

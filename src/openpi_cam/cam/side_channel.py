@@ -63,7 +63,8 @@ class CAMOptions:
     max_steps: int | None = None
     max_bytes: int | None = None
     drain_timeout: float = 30.0  # seconds `close()` waits for queued jobs
-    # `cam_extra/` values a client may have stored per step (JSON-encoded sizes); larger values are dropped, counted
+    # `cam_extra/` values a client may have stored per step (sizes as stored: an array's bytes, other values' JSON);
+    # larger values are dropped, counted
     # and named in the step's `extra_dropped`, so no client can make the server store megabytes per request.
     max_extra_value_bytes: int = 16 * 1024
     max_extra_bytes: int = 64 * 1024
@@ -132,6 +133,10 @@ class CAMPolicy:
             return self._policy.infer(obs, context)
         response, trace = self._policy.infer_traced(obs)
         self.count("scheduled")
+        if self._options.save_frames not in ("raw", "both"):
+            # A queued job keeps only model-size inputs: client frames (up to the message limit each) are not held
+            # while the job waits when they will not be written.
+            trace = dataclasses.replace(trace, raw_images=dict.fromkeys(trace.raw_images))
         try:
             kept, dropped = bounded_extra(extra, self._options.max_extra_value_bytes, self._options.max_extra_bytes)
             if dropped:

@@ -52,6 +52,8 @@ def main(
     cam_max_steps: int | None = None,
     cam_max_mb: float | None = None,
     cam_drain_timeout: float = 5.0,
+    cam_max_extra_value_kb: float = 16.0,
+    cam_max_extra_kb: float = 64.0,
     warm_up: bool = True,
 ) -> int:
     """Serve a pi0-FAST checkpoint over websockets (openpi-client compatible), optionally logging Grad-CAM.
@@ -90,12 +92,16 @@ def main(
         cam_drain_timeout: on SIGTERM, seconds the side channel keeps explaining queued jobs (counted from the
             signal, while connections close) before the run's manifest is closed: SIGTERM exits within this, the
             in-flight inference and 2 s for unresponsive peers, inside a container's 10 s stop grace period.
+        cam_max_extra_value_kb: largest `cam_extra/` value a step stores (an array's bytes, other values' JSON);
+            larger ones are dropped and named in the step's `extra_dropped`.
+        cam_max_extra_kb: all `cam_extra/` values a step stores together.
         warm_up: compile inference (and the side channel's explanation) on the robot's example observation before
             listening, so `/healthz` answers only once the first request will not wait for compilation.
     """
-    # force: importing orbax has already put a WARNING-level handler on the root logger, which
-    # would otherwise swallow the server's INFO lines (readiness, connections, shutdown).
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s", force=True)
+    # force: importing orbax has already put a handler on the root logger; ours gives every line a time stamp. INFO
+    # for this package only (readiness, connections, shutdown); libraries stay at WARNING.
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s", force=True)
+    logging.getLogger("openpi_cam").setLevel(logging.INFO)
     if max_message_mb <= 0:
         print(f"openpi-cam serve: --max-message-mb must be positive, got {max_message_mb}", file=sys.stderr)
         return 2
@@ -153,6 +159,8 @@ def main(
             queue_size=cam_queue_size,
             max_steps=cam_max_steps,
             max_bytes=None if cam_max_mb is None else int(cam_max_mb * 1024 * 1024),
+            max_extra_value_bytes=int(cam_max_extra_value_kb * 1024),
+            max_extra_bytes=int(cam_max_extra_kb * 1024),
         )
         run_config = {
             "config": config,

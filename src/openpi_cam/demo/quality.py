@@ -77,12 +77,12 @@ def object_pointing(cam_map: np.ndarray, boxes: list[tuple[int, ...]], image_siz
 def run_figures(run_dir: Path, image_size: int = task.TaskConfig().image_size) -> dict[str, Any]:
     """Success rate (from the demo's episode file) and, per map kind, the pointing game over every logged step."""
     run = load_run(run_dir)
-    labelled = [s for s in run.steps if (s.meta.get("extra") or {}).get("target_box") is not None]
+    labelled = [s for s in run.steps if s.extra.get("target_box") is not None]
     per_kind = {}
     for kind in MAP_KINDS:
         hit, cell_chance, area_chance, on_block, block_chance = [], [], [], [], []
         for step in labelled:
-            extra = step.meta["extra"]
+            extra = step.extra
             box = tuple(extra["target_box"])
             cam_map = step.maps_of(kind).get(BASE_CAMERA)
             if cam_map is None:

@@ -24,6 +24,7 @@ class StepView(Protocol):
     maps: Mapping[str, np.ndarray]
     frames: Mapping[str, np.ndarray]
     model_frames: Mapping[str, np.ndarray]
+    extra: Mapping[str, Any]  # the client's `cam_extra/` values (`CAMStep.extra`)
 
 
 def reduce_tokens(cam: np.ndarray) -> np.ndarray:

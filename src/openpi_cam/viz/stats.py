@@ -42,6 +42,7 @@ class LoadedView:
     maps: Mapping[str, np.ndarray]
     frames: Mapping[str, np.ndarray]
     model_frames: Mapping[str, np.ndarray]
+    extra: Mapping[str, Any]
 
 
 class MapView:
@@ -56,7 +57,9 @@ class MapView:
 
     def loaded(self) -> LoadedView:
         arrays = self._step.lazy().arrays()
-        return LoadedView(self.seq, self.meta, arrays.maps.get(self.kind, {}), arrays.frames, arrays.model_frames)
+        extra = {**(self.meta.get("extra") or {}), **arrays.extra}  # as CAMStep.extra, from the arrays read here
+        maps = arrays.maps.get(self.kind, {})
+        return LoadedView(self.seq, self.meta, maps, arrays.frames, arrays.model_frames, extra)
 
     @property
     def maps(self) -> Mapping[str, np.ndarray]:
@@ -69,6 +72,10 @@ class MapView:
     @property
     def model_frames(self) -> Mapping[str, np.ndarray]:
         return self._step.lazy().model_frames
+
+    @property
+    def extra(self) -> Mapping[str, Any]:
+        return self._step.lazy().extra
 
 
 class MissingMaps(ValueError):
@@ -176,7 +183,7 @@ def compute_stats(steps: Iterable[StepView]) -> list[StepStats]:
         cameras: dict[str, CameraStats] = {}
         for c in names:
             cs = _camera_stats(maps[c], valid[c], total)
-            cells = None if maps[c] is None else target_cells(meta, c, maps[c].shape, None)
+            cells = None if maps[c] is None else target_cells(meta, c, maps[c].shape, None, s.extra)
             if cs.valid and cells is not None:
                 cs = dataclasses.replace(cs, nuisance_mass=nuisance_mass_ratio(maps[c], cells))
             key = (connection, c)
