@@ -1314,3 +1314,38 @@ def test_a_peer_that_never_reads_its_reply_is_dropped_and_the_stop_completes(pol
         running.stop(timeout=60)
         peer.close()
     assert time.monotonic() - start < PEER_TIMEOUT_S + 5
+
+
+def test_requests_past_the_global_buffer_cap_close_their_connection_with_try_again_later(policy):
+    """Many connections each within the message limit could still make the server hold more than it can: request
+    bytes in progress over all connections are capped. With 1 MiB allowed and one 0.7 MiB request held in the model,
+    a second 0.7 MiB request on another connection is refused (1013, counted `server_busy`); once the first is
+    answered the same request is served."""
+    gated = GatedPolicy(policy)
+    running = start_server_in_thread(
+        gated, close_policy_on_stop=False, max_message_bytes=2**20, max_buffered_bytes=2**20
+    )
+    frame = droid_obs_bytes(np.random.default_rng(0), size=(400, 600))
+    assert 0.6 * 2**20 < len(frame) < 0.8 * 2**20
+    try:
+        gated.gate.clear()
+        with connect(f"ws://127.0.0.1:{running.port}", max_size=None) as first:
+            first.recv(timeout=10)
+            first.send(frame)
+            assert gated.entered.wait(60)
+            with connect(f"ws://127.0.0.1:{running.port}", max_size=None) as second:
+                second.recv(timeout=10)
+                second.send(frame)
+                with pytest.raises(websockets.ConnectionClosed) as closed:
+                    second.recv(timeout=10)
+            assert closed.value.rcvd is not None and closed.value.rcvd.code == 1013
+            gated.gate.set()
+            assert msgpack_numpy.unpackb(first.recv(timeout=60))["actions"].shape == (10, 8)
+        with connect(f"ws://127.0.0.1:{running.port}", max_size=None) as third:
+            third.recv(timeout=10)
+            third.send(frame)
+            assert msgpack_numpy.unpackb(third.recv(timeout=60))["actions"].shape == (10, 8)
+        assert get_stats(running.port)["errors"] == {"server_busy": 1}
+    finally:
+        gated.gate.set()
+        running.stop()

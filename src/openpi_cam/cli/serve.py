@@ -37,6 +37,7 @@ def main(
     dtype: Literal["bfloat16", "float32"] | None = None,
     max_message_mb: float = 64.0,
     max_connections: int = 64,
+    max_buffered_mb: float = 256.0,
     debug: bool = False,
     stop_at_action_end: bool = False,
     cam_every_k: int = 0,
@@ -71,6 +72,8 @@ def main(
         dtype: parameter and compute dtype; default bfloat16 for a checkpoint, as upstream serves.
         max_message_mb: largest accepted request frame; larger ones close the connection (code 1009).
         max_connections: open connections at most; further ones are closed at once (code 1013, try again later).
+        max_buffered_mb: request bytes being handled at once over all connections (decoding, waiting for the model,
+            computing); a request that would pass it closes its connection (code 1013). At least --max-message-mb.
         debug: send tracebacks of unexpected errors to clients.
         stop_at_action_end: stop decoding at the end of the action string instead of running to EOS.
         cam_every_k: record Grad-CAM for every k-th request (0 = off).
@@ -102,8 +105,12 @@ def main(
     # for this package only (readiness, connections, shutdown); libraries stay at WARNING.
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s", force=True)
     logging.getLogger("openpi_cam").setLevel(logging.INFO)
-    if max_message_mb <= 0:
-        print(f"openpi-cam serve: --max-message-mb must be positive, got {max_message_mb}", file=sys.stderr)
+    if max_message_mb <= 0 or max_buffered_mb < max_message_mb:
+        print(
+            "openpi-cam serve: need 0 < --max-message-mb <= --max-buffered-mb, "
+            f"got {max_message_mb} and {max_buffered_mb}",
+            file=sys.stderr,
+        )
         return 2
     if cam_drain_timeout < 0:
         print(f"openpi-cam serve: --cam-drain-timeout must be >= 0, got {cam_drain_timeout}", file=sys.stderr)
@@ -186,6 +193,7 @@ def main(
         api_key=api_key,
         max_message_bytes=int(max_message_mb * 1024 * 1024),
         max_connections=max_connections,
+        max_buffered_bytes=int(max_buffered_mb * 1024 * 1024),
         debug=debug,
         close_timeout=cam_drain_timeout,
     )

@@ -39,6 +39,7 @@ from openpi_cam.serving import RequestContext, msgpack_numpy
 logger = logging.getLogger(__name__)
 
 DEFAULT_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
+DEFAULT_MAX_BUFFERED_BYTES = 256 * 1024 * 1024
 LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
 # A peer gets this long to read a reply, and to answer our close frame, before its connection is dropped: a robot that
 # stopped reading must not hold the server (or its shutdown) forever. Shutdown thus ends within the in-flight request,
@@ -124,10 +125,12 @@ class PolicyServer:
         close_policy_on_stop: bool = True,
         close_timeout: float = 60.0,
         max_connections: int = 64,
+        max_buffered_bytes: int = DEFAULT_MAX_BUFFERED_BYTES,
     ) -> None:
-        if max_message_bytes <= 0 or max_connections < 1:
+        if max_message_bytes <= 0 or max_connections < 1 or max_buffered_bytes < max_message_bytes:
             raise ValueError(
-                f"max_message_bytes and max_connections must be positive, got {max_message_bytes}, {max_connections}"
+                "max_message_bytes and max_connections must be positive and max_buffered_bytes >= max_message_bytes, "
+                f"got {max_message_bytes}, {max_connections}, {max_buffered_bytes}"
             )
         self._policy = policy
         self._host = host
@@ -141,6 +144,10 @@ class PolicyServer:
         # Each connection may hold one queued frame of up to max_message_bytes: this caps what clients can make the
         # server buffer at max_connections x max_message_bytes.
         self._max_connections = max_connections
+        # Request frames being decoded, waiting for the model or computing, all connections together: a frame that
+        # would take the total past this is refused (its connection closed with 1013), whatever the connection count.
+        self._max_buffered_bytes = max_buffered_bytes
+        self._buffered_bytes = 0
         self._auth_failures: dict[str, int] = {}  # client address -> wrong API keys so far
         self._stats = ServerStats(latency_window)
         self._connections: dict[str, _Connection] = {}
@@ -287,10 +294,23 @@ class PolicyServer:
                 wait_start = time.monotonic()
                 frame = await websocket.recv()
                 start = time.monotonic()
+                if self._buffered_bytes + len(frame) > self._max_buffered_bytes:
+                    self._stats.errors["server_busy"] += 1
+                    logger.warning(
+                        "%s closed: %d bytes of requests in progress, %d more would pass --max-buffered-mb",
+                        conn.id, self._buffered_bytes, len(frame),
+                    )  # fmt: skip
+                    await websocket.close(websockets.CloseCode.TRY_AGAIN_LATER, "server busy: too many bytes queued")
+                    break
                 conn.busy = True
                 self._stats.requests += 1
                 context = RequestContext(conn.id, request_index)
-                reply, infer_ms = await self._answer(frame, context, prev_total_ms, executor)
+                self._buffered_bytes += len(frame)
+                try:
+                    reply, infer_ms = await self._answer(frame, context, prev_total_ms, executor)
+                finally:
+                    self._buffered_bytes -= len(frame)
+                del frame
                 try:
                     await asyncio.wait_for(websocket.send(reply), PEER_TIMEOUT_S)
                 except TimeoutError:
