@@ -377,3 +377,26 @@ def test_rematerialised_layers_give_the_same_maps(tiny):
             scale = np.abs(m).max() + np.abs(want.gradnorm_maps[camera]).max()
             np.testing.assert_allclose(got.maps[camera], m, rtol=0, atol=1e-5 * scale)
             np.testing.assert_allclose(got.gradnorm_maps[camera], want.gradnorm_maps[camera], rtol=0, atol=1e-5 * scale)
+
+
+def test_pixel_space_ig_completeness_and_patch_order(demo):
+    """`ig_space="pixels"`: the path runs between the frames through SigLIP; attributions summed per patch still add
+    up to score - baseline score (2% target), a masked camera gets zeros, and patchify / unpatchify keep SigLIP's
+    row-major patch order (a transposed grid would move the attribution of an edited patch elsewhere)."""
+    images = np.random.default_rng(0).normal(size=(2, 1, 32, 48, 3)).astype(np.float32)
+    patches = attribution.patchify(jnp.asarray(images), 16)
+    assert patches.shape == (1, 2, 6, 16 * 16 * 3)
+    np.testing.assert_array_equal(patches[0, 1, 4].reshape(16, 16, 3), images[1, 0, 16:32, 16:32])  # row 1, col 1
+    np.testing.assert_array_equal(attribution.unpatchify(patches, 16, (32, 48)), images)
+
+    options = MapOptions(ig_space="pixels")
+    obs = dataclasses.replace(demo.obs, image_masks={**demo.obs.image_masks, "wrist_0_rgb": np.array([True, False])})
+    res = maps.gradcam_for_chunk(demo.model, obs, demo.generated, demo.chunk_rows, kinds=("ig",), options=options)
+    check = res.ig_completeness
+    assert np.all(np.abs(check.score - check.baseline_score) > 1e-2)
+    assert np.all(check.relative_error <= 0.02), check.relative_error
+    np.testing.assert_array_equal(res.by_kind["ig"]["wrist_0_rgb"][1], 0.0)
+    assert np.abs(res.by_kind["ig"]["base_0_rgb"]).max() > 0
+    # A different path, not the token-space map under another name.
+    tokens = maps.gradcam_for_chunk(demo.model, obs, demo.generated, demo.chunk_rows, kinds=("ig",))
+    assert not np.allclose(res.by_kind["ig"]["base_0_rgb"], tokens.by_kind["ig"]["base_0_rgb"])

@@ -1349,3 +1349,30 @@ def test_requests_past_the_global_buffer_cap_close_their_connection_with_try_aga
     finally:
         gated.gate.set()
         running.stop()
+
+
+def test_sigterm_during_a_long_explanation_exits_cleanly_with_the_run_closed(tiny_policy_files, tmp_path):
+    """An explanation longer than `--cam-drain-timeout` (exhaustive occlusion on the tiny DROID checkpoint's 3 x 256
+    patches: seconds per step) is still computing when the drain deadline passes. The server writes the closed
+    manifest, says so, and exits with 0 without the interpreter's teardown: a teardown under a running XLA computation
+    can abort the process ("terminate called after throwing an instance of ..."; seen at the end of a demo run whose
+    drain passed its deadline), and whether it does depends on timing, so the log line is what is checked."""
+    cam_dir = tmp_path / "cam"
+    files = [
+        "--checkpoint-dir", str(tiny_policy_files.checkpoint), "--dtype", "float32",
+        "--paligemma-tokenizer", str(tiny_policy_files.paligemma_tokenizer),
+        "--fast-tokenizer", str(tiny_policy_files.fast_tokenizer),
+        "--cam-every-k", "1", "--cam-dir", str(cam_dir), "--cam-maps", "occlusion", "--cam-drain-timeout", "0.5",
+        "--no-warm-up",
+    ]  # fmt: skip
+    with serve_subprocess(tmp_path, *files) as (proc, port, log_path):
+        assert collect(spawn_client(client_script(ROBOT), json.dumps({"port": port, "n": 1})))["shapes"] == [[10, 8]]
+        time.sleep(1.0)  # the explanation (and its compilation) is under way
+        proc.send_signal(signal.SIGTERM)
+        exit_code = proc.wait(CONTAINER_GRACE_S)
+    log = log_path.read_text()
+    assert exit_code == 0, log
+    assert "exiting with an explanation still computing" in log
+    manifest = read_json(list_runs(cam_dir)[0] / MANIFEST_JSON)
+    assert manifest is not None and manifest["closed"] is True and manifest["num_steps"] == 0
+    assert manifest["counters"]["external"]["unfinished_at_shutdown"] == 1

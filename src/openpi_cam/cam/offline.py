@@ -43,7 +43,8 @@ _RECORD_RE = re.compile(r"^step_(\d+)\.npy$")
 SOURCE_KEY = "source"  # meta["extra"] key holding the id of the record a step explains
 # run.json fields that must match for a resumed run to stay one consistent explanation of one source.
 _RESUME_CONFIG_KEYS = ("config", "checkpoint_dir", "dtype", "source")
-_RESUME_OPTION_KEYS = ("target", "action_index", "action_dim_index", "maps", "baseline")
+_RESUME_OPTION_KEYS = ("target", "action_index", "action_dim_index", "maps", "baseline", "ig_space")
+_UNRECORDED_OPTIONS = {"ig_space": "tokens"}  # what runs written before an option existed used
 
 # Wraps the replays with a progress display: (replays, how many) -> the same replays.
 Progress = Callable[[Iterator["Replay"], int], Iterator["Replay"]]
@@ -222,6 +223,7 @@ def resume_mismatch(run_info: Mapping[str, Any], run_config: dict[str, Any], opt
         for k in _RESUME_CONFIG_KEYS
         if old_config.get(k) != run_config[k]
     ]
+    old_options = {**_UNRECORDED_OPTIONS, **old_options}
     return diffs + [
         f"{k}: {old_options.get(k)!r} != {options.get(k)!r}"
         for k in _RESUME_OPTION_KEYS

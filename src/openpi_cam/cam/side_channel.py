@@ -238,6 +238,11 @@ class CAMPolicy:
         self._closer.join(max(0.0, self._deadline - time.monotonic()))
         self._policy.close(max(0.0, self._deadline - time.monotonic()))
 
+    @property
+    def computing(self) -> bool:
+        """Whether the worker is still running (after `close`: an explanation outlived the drain deadline)."""
+        return self._worker.is_alive()
+
     def warm_up(self) -> str:
         """Compiles inference and, when steps are recorded, the configured explanation on the robot's example
         observation, before the server reports ready; nothing is logged or counted. Returns what was warmed."""

@@ -26,6 +26,7 @@ def main(
     maps: tuple[MapKind, ...] = MAP_KINDS,
     faithfulness: bool = True,
     baseline: Literal["mean", "blur"] = "mean",
+    ig_space: Literal["tokens", "pixels"] = "tokens",
 ) -> int:
     """Run the bundled model end to end: server + side channel + simulated robot + rendered reports + figures.
 
@@ -43,9 +44,24 @@ def main(
         maps: which map kinds the side channel computes (all four by default, to compare them).
         faithfulness: re-score every step afterwards and print how faithful each map kind is.
         baseline: the frame `ig` starts from and `occlusion` (and the faithfulness deletion) paints with.
+        ig_space: where the `ig` path runs: between the SigLIP tokens of the baseline frame and the frame, or between
+            the frames' pixels (through SigLIP).
     """
     opts = DemoOptions(
-        out, episodes, max_calls, execute, seed, target, render, videos, model, assets, maps, faithfulness, baseline
+        out,
+        episodes,
+        max_calls,
+        execute,
+        seed,
+        target,
+        render,
+        videos,
+        model,
+        assets,
+        maps,
+        faithfulness,
+        baseline,
+        ig_space,
     )
     try:
         result = run_demo(opts)

@@ -34,6 +34,7 @@ def main(
     baseline: Literal["mean", "blur"] = "mean",
     occlusion_region: int = 1,
     occlusion_masks: int = 0,
+    ig_space: Literal["tokens", "pixels"] = "tokens",
     save_frames: SaveFrames = "both",
     batch_size: int = 8,
     limit: int | None = None,
@@ -64,6 +65,8 @@ def main(
             step; a 224 px camera has 256 patches).
         occlusion_masks: 0: every region once; M > 0: M random region masks per camera, scored with the
             Interventional Significance Score (for large grids).
+        ig_space: where the IG path runs: between the SigLIP tokens of the baseline frame and the frame, or between
+            the frames' pixels, through SigLIP (README, "Map kinds").
         save_frames: which camera frames to store next to the maps (`raw`/`both` keep the run re-explainable).
         batch_size: observations explained per model call, split over all local devices.
         limit: explain at most this many observations not yet in the run (resume later for the rest).
@@ -98,6 +101,7 @@ def main(
             "baseline": baseline,
             "occlusion_region": occlusion_region,
             "occlusion_masks": occlusion_masks,
+            "ig_space": ig_space,
             "save_frames": save_frames,
         }
         replays, total = open_source(source, nested_keys=nested_keys)
@@ -109,7 +113,7 @@ def main(
             save_frames,
             batch_size,
             limit,
-            map_options(baseline, occlusion_region, occlusion_masks),
+            map_options(baseline, occlusion_region, occlusion_masks, ig_space),
         )
         if resume_dir is not None:
             run_info = load_run(resume_dir, load_arrays=False).run_info

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 from openpi_cam.model.attribution import MapOptions
 
 
@@ -14,13 +16,14 @@ def parse_action_index(text: str) -> tuple[int, int]:
     return int(parts[0]), int(parts[1]) if len(parts) == 2 else 0
 
 
-def map_options(baseline: str, occlusion_region: int, occlusion_masks: int) -> MapOptions:
+def map_options(
+    baseline: str, occlusion_region: int, occlusion_masks: int, ig_space: str = MapOptions.ig_space
+) -> MapOptions:
     """The `ig` / `occlusion` options of the command-line flags: `occlusion_masks` 0 paints every region once,
     M > 0 draws M random region masks per camera (Interventional Significance Score)."""
     if occlusion_masks < 0:
         raise ValueError(f"--occlusion-masks must be >= 0, got {occlusion_masks}")
+    options = MapOptions(baseline=baseline, occlusion_region=occlusion_region, ig_space=ig_space)
     if occlusion_masks:
-        return MapOptions(
-            baseline=baseline, occlusion_region=occlusion_region, occlusion_mode="random", random_masks=occlusion_masks
-        )
-    return MapOptions(baseline=baseline, occlusion_region=occlusion_region)
+        return dataclasses.replace(options, occlusion_mode="random", random_masks=occlusion_masks)
+    return options

@@ -7,6 +7,7 @@ request path; see docs/FORMAT.md).
 from __future__ import annotations
 
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -49,6 +50,7 @@ def main(
     cam_baseline: Literal["mean", "blur"] = "mean",
     cam_occlusion_region: int = 1,
     cam_occlusion_masks: int = 0,
+    cam_ig_space: Literal["tokens", "pixels"] = "tokens",
     cam_queue_size: int = 8,
     cam_max_steps: int | None = None,
     cam_max_mb: float | None = None,
@@ -89,6 +91,7 @@ def main(
         cam_baseline: the frame `ig` starts from and `occlusion` paints with: the frame's mean colour or a blurred copy.
         cam_occlusion_region: side of an `occlusion` region in patches (1: every patch alone).
         cam_occlusion_masks: 0: every region once; M > 0: M random region masks per camera (ISS), for large grids.
+        cam_ig_space: where the `ig` path runs: SigLIP tokens or the frames' pixels (README, "Map kinds").
         cam_queue_size: pending Grad-CAM jobs before new ones are dropped (inference never waits).
         cam_max_steps: stop recording after this many steps (None = no limit).
         cam_max_mb: stop recording once the run directory holds this many MB (None = no limit).
@@ -162,7 +165,7 @@ def main(
             action_index=action_index,
             action_dim_index=action_dim_index,
             maps=cam_maps,
-            map_options=map_options(cam_baseline, cam_occlusion_region, cam_occlusion_masks),
+            map_options=map_options(cam_baseline, cam_occlusion_region, cam_occlusion_masks, cam_ig_space),
             queue_size=cam_queue_size,
             max_steps=cam_max_steps,
             max_bytes=None if cam_max_mb is None else int(cam_max_mb * 1024 * 1024),
@@ -198,6 +201,12 @@ def main(
         close_timeout=cam_drain_timeout,
     )
     server.serve_forever()
+    if isinstance(served, CAMPolicy) and served.computing:
+        # The manifest is written; an explanation still runs in XLA on the worker thread, and interpreter shutdown
+        # under a running XLA computation aborts the process. Exit without the interpreter's teardown instead.
+        logger.warning("exiting with an explanation still computing past --cam-drain-timeout (its step is not written)")
+        logging.shutdown()
+        os._exit(0)
     return 0
 
 

@@ -48,6 +48,9 @@ def run_episodes(url: str, episodes: int, *, seed: int, max_calls: int, execute:
 FAITHFULNESS_FILE = "faithfulness.json"  # the run's faithfulness report, beside its steps
 
 
+DRAIN_S = 3600.0  # how long the end of a demo run may spend explaining requests still queued
+
+
 @dataclasses.dataclass(frozen=True)
 class DemoOptions:
     out: pathlib.Path = pathlib.Path("demo_runs")
@@ -63,6 +66,7 @@ class DemoOptions:
     maps: tuple[MapKind, ...] = MAP_KINDS  # every kind, so the faithfulness table compares them all
     faithfulness: bool = True  # re-score every step and report how faithful each map kind is
     baseline: Literal["mean", "blur"] = "mean"  # the baseline frame of the ig / occlusion maps
+    ig_space: Literal["tokens", "pixels"] = "tokens"  # where the IG path runs (MapOptions.ig_space)
 
 
 @dataclasses.dataclass
@@ -86,20 +90,21 @@ def run_demo(opts: DemoOptions) -> DemoResult:
         save_frames="both",
         target=opts.target,
         maps=opts.maps,
-        map_options=MapOptions(baseline=opts.baseline),
+        map_options=MapOptions(baseline=opts.baseline, ig_space=opts.ig_space),
         queue_size=max(64, opts.episodes * opts.max_calls),  # room for every request: the demo logs each one
     )
     config = demo_reach.DEMO_CONFIGS[opts.model].name
     run_config = {"config": config, "demo": {"episodes": opts.episodes, "seed": opts.seed, "model": opts.model}}
     checkpoint = str(assets / demo_reach.CHECKPOINT.name)
     cam = wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=checkpoint)
-    server = start_server_in_thread(cam, metadata=policy.metadata)
+    # The demo explains every request: the drain at the end is the rest of the run's work, not a shutdown grace.
+    server = start_server_in_thread(cam, metadata=policy.metadata, close_timeout=DRAIN_S)
     try:
         episodes = run_episodes(
             server.url, opts.episodes, seed=opts.seed, max_calls=opts.max_calls, execute=opts.execute
         )
     finally:
-        server.stop()  # closes the side channel too, which drains its queue
+        server.stop(timeout=DRAIN_S + 60)  # closes the side channel too, which drains its queue
     if cam.run_dir is None:
         raise OSError(f"the side channel could not create a run directory under {opts.out}; see the log")
     run_dir = cam.run_dir

@@ -23,6 +23,7 @@ import numpy as np
 BASELINES = ("blur", "mean")
 IG_RULES = ("gauss-legendre", "midpoint", "trapezoid", "right-riemann")
 OCCLUSION_MODES = ("regions", "random")
+IG_SPACES = ("tokens", "pixels")
 # Score gaps below this are not resolved relative to themselves: float32 evaluations of the same logits (magnitude
 # ~10) differ by up to ~5e-4 (golden README), so 2% of a smaller gap would be rounding noise.
 COMPLETENESS_FLOOR = 1e-3
@@ -49,6 +50,9 @@ class MapOptions:
     # 0 keeps ig_steps fixed. A path with a sharp turn (attention switching) defeats any fixed rule on a few steps.
     ig_tolerance: float = 0.02
     ig_max_steps: int = 128
+    # "tokens": the path runs between the SigLIP tokens of the baseline frame and of the frame (what the LLM reads);
+    # "pixels": between the frames themselves, through SigLIP (the original IG; attributions summed per patch).
+    ig_space: str = "tokens"
     # 1: every patch alone, which is exact, defines the deletion metric's optimum and costs C x (N + 1) model runs.
     occlusion_region: int = 1  # side of a square occlusion region, in patches
     occlusion_mode: str = "regions"  # "regions": every region once (exact); "random": Bernoulli masks (ISS)
@@ -62,6 +66,8 @@ class MapOptions:
             raise ValueError(f"baseline must be one of {BASELINES}, got {self.baseline!r}")
         if self.ig_rule not in IG_RULES:
             raise ValueError(f"ig_rule must be one of {IG_RULES}, got {self.ig_rule!r}")
+        if self.ig_space not in IG_SPACES:
+            raise ValueError(f"ig_space must be one of {IG_SPACES}, got {self.ig_space!r}")
         if self.occlusion_mode not in OCCLUSION_MODES:
             raise ValueError(f"occlusion_mode must be one of {OCCLUSION_MODES}, got {self.occlusion_mode!r}")
         if self.blur_sigma < 0 or self.ig_steps < 1 or self.occlusion_region < 1 or self.mask_chunk < 1:
@@ -213,10 +219,26 @@ def per_score_grads(vjp_fn: Callable, scores: jax.Array) -> jax.Array:
     return jax.lax.map(lambda cot: vjp_fn(cot)[0], cotangents)
 
 
+def patchify(images: jax.Array, patch: int) -> jax.Array:
+    """[C, B, H, W, 3] -> [B, C, N, patch * patch * 3], patches in SigLIP's token order (row-major)."""
+    c, b, h, w, ch = images.shape
+    x = images.reshape(c, b, h // patch, patch, w // patch, patch, ch)
+    return jnp.einsum("cbipjqk->bcijpqk", x).reshape(b, c, (h // patch) * (w // patch), patch * patch * ch)
+
+
+def unpatchify(patches: jax.Array, patch: int, hw: tuple[int, int]) -> jax.Array:
+    """The inverse of `patchify`: [B, C, N, patch * patch * 3] -> [C, B, H, W, 3]."""
+    b, c = patches.shape[:2]
+    h, w = hw
+    x = patches.reshape(b, c, h // patch, w // patch, patch, patch, -1)
+    return jnp.einsum("bcijpqk->cbipjqk", x).reshape(c, b, h, w, x.shape[-1])
+
+
 def integrated_gradients(
     score_fn: Callable[[jax.Array], jax.Array], E: jax.Array, E0: jax.Array, rule: str, steps: int
 ) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Integrated gradients over the image tokens, with its completeness terms.
+    """Integrated gradients over the image tokens (or any [B, C, N, D] input, e.g. patchified pixels), with its
+    completeness terms.
 
     score_fn maps tokens [B, C, N, D] to scores [T, B]. attr[t, b, c, n] = sum_d (E - E0)[b, c, n, d] *
     int_0^1 dscore_t/dE (E0 + a (E - E0))[b, c, n, d] da, the integral by `quadrature(rule, steps)`. Completeness:

@@ -26,9 +26,11 @@ from openpi_cam.model.attribution import (
     integrated_gradients,
     iss_map,
     paint,
+    patchify,
     random_region_masks,
     region_map,
     region_masks,
+    unpatchify,
 )
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.paligemma import VLMConfig, embed_images
@@ -85,7 +87,19 @@ def baseline_kinds(
     images, valid = camera_stack(obs)
     base = baseline_images(images, valid, options)  # [C, B, H, W, 3]
     out = {}
-    if "ig" in kinds:
+    if "ig" in kinds and options.ig_space == "pixels":
+        patch, hw = cfg.siglip.patch_size, images.shape[2:4]
+
+        def pixel_score(x: jax.Array) -> jax.Array:  # patchified frames [B, C, N, P] -> scores [T, B]
+            frames = unpatchify(x, patch, hw)
+            return score_fn(embed_images(params, with_images(obs, dict(zip(obs.images, frames, strict=True))), cfg))
+
+        X, X0 = patchify(images, patch), patchify(base, patch)
+        X0 = jnp.where(valid.T[:, :, None, None], X0, X)  # a masked camera is its own baseline
+        out["ig"], out["ig_score"], out["ig_baseline_score"] = integrated_gradients(
+            pixel_score, X, X0, options.ig_rule, options.ig_steps
+        )
+    elif "ig" in kinds:
         E0 = embed_images(params, with_images(obs, dict(zip(obs.images, base, strict=True))), cfg)
         E0 = jnp.where(valid.T[:, :, None, None], E0, E)  # a masked camera is its own baseline
         out["ig"], out["ig_score"], out["ig_baseline_score"] = integrated_gradients(
@@ -110,7 +124,7 @@ def compiled_options(options: MapOptions, kinds: Sequence[str] = BASELINE_KINDS)
     requested."""
     defaults = MapOptions()
     keep = {"baseline", "blur_sigma"}
-    keep |= {"ig_steps", "ig_rule"} if "ig" in kinds else set()
+    keep |= {"ig_steps", "ig_rule", "ig_space"} if "ig" in kinds else set()
     keep |= {"mask_chunk"} if "occlusion" in kinds else set()
     reset = {f.name: getattr(defaults, f.name) for f in dataclasses.fields(MapOptions) if f.name not in keep}
     return dataclasses.replace(options, **reset)
