@@ -64,8 +64,8 @@ class CAMOptions:
     max_bytes: int | None = None
     drain_timeout: float = 30.0  # seconds `close()` waits for queued jobs
     # `cam_extra/` values a client may have stored per step (sizes as stored: an array's bytes, other values' JSON);
-    # larger values are dropped, counted
-    # and named in the step's `extra_dropped`, so no client can make the server store megabytes per request.
+    # larger values are dropped, counted and named in the step's `extra_dropped`, so no client can make the server
+    # store megabytes per request.
     max_extra_value_bytes: int = 16 * 1024
     max_extra_bytes: int = 64 * 1024
 
