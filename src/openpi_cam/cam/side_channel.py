@@ -78,6 +78,9 @@ class CAMOptions:
     # None: no limit of its own, the fair drop at `queue_size` applies (every request is explained when there is room).
     per_connection: int | None = None
     stats_window: int = 1000  # written steps the lag percentiles in `/stats` are computed over
+    # The worker starts a phase only once no inference has run for this long: an inference's reply is still being
+    # packed and sent for a few ms after `infer` returns, and the robot would feel an explanation competing with it.
+    settle_ms: float = 10.0
     max_steps: int | None = None
     max_bytes: int | None = None
     drain_timeout: float = 30.0  # seconds `close()` waits for queued jobs
@@ -87,8 +90,8 @@ class CAMOptions:
     max_extra_bytes: int = 64 * 1024
 
     def __post_init__(self) -> None:
-        if self.every_k < 0 or self.queue_size < 1 or self.stats_window < 1:
-            raise ValueError("every_k >= 0, queue_size >= 1 and stats_window >= 1 are required")
+        if self.every_k < 0 or self.queue_size < 1 or self.stats_window < 1 or self.settle_ms < 0:
+            raise ValueError("every_k >= 0, queue_size >= 1, stats_window >= 1 and settle_ms >= 0 are required")
         if self.per_connection is not None and self.per_connection < 1:
             raise ValueError(f"per_connection must be >= 1 or None, got {self.per_connection}")
         if self.save_frames not in SAVE_FRAMES:
@@ -184,6 +187,7 @@ class CAMPolicy:
         self._cond = threading.Condition(self._lock)
         self._pending = _Pending(options.queue_size, options.per_connection)
         self._inflight = 0  # inferences inside `infer` right now
+        self._last_end = 0.0  # time.monotonic() when the last one returned
         self._finishing = False  # set by the drain: the worker exits once nothing is pending
         self._timings: collections.deque[JobTiming] = collections.deque(maxlen=options.stats_window)
         self._events = WarnOnceCounter(logger, "Grad-CAM side channel")
@@ -248,6 +252,7 @@ class CAMPolicy:
         finally:
             with self._cond:
                 self._inflight -= 1
+                self._last_end = time.monotonic()
                 if self._inflight == 0:
                     self._cond.notify_all()
 
@@ -262,23 +267,38 @@ class CAMPolicy:
                 self.count(f"worker_error_{type(e).__name__}", f"the worker raised {type(e).__name__}: {e}")
 
     def _next_job(self) -> tuple[_Job | None, float]:
-        """Blocks until a job is pending and no inference is in flight; returns it with the time of that decision,
-        taken under the lock (an inference may begin right after it: the explanation cannot wait for it any more).
-        None: drained, time to exit."""
+        """Blocks until a job is pending and no inference has run for `settle_ms`; returns it with the time of that
+        decision, taken under the lock (an inference may begin right after it: the explanation cannot wait for it any
+        more). None: drained, time to exit."""
         with self._cond:
             while True:
-                if self._pending.size and not self._inflight:
-                    return self._pending.pop_oldest(), time.monotonic()
-                if not self._pending.size and self._finishing:
+                if self._pending.size:
+                    if self._settled_or_wait():
+                        return self._pending.pop_oldest(), time.monotonic()
+                elif self._finishing:
                     return None, time.monotonic()
-                self._cond.wait()
+                else:
+                    self._cond.wait()
 
     def _wait_for_no_inference(self) -> float:
-        """Between the explanation and the write: lets an inference that started meanwhile finish first. Returns the
-        time no inference was in flight, taken under the lock."""
+        """Between the explanation and the write: lets an inference that started meanwhile finish (and settle)
+        first. Returns the time of that decision, taken under the lock."""
         with self._cond:
-            self._cond.wait_for(lambda: not self._inflight)
+            while not self._settled_or_wait():
+                pass  # it waited: check again
             return time.monotonic()
+
+    def _settled_or_wait(self) -> bool:
+        """With the lock held: True once no inference is in flight and none has ended within `settle_ms`; otherwise
+        waits (until an inference ends, or the settle time runs out) and returns False so the caller checks again."""
+        if self._inflight:
+            self._cond.wait()
+            return False
+        remaining = self._last_end + self._options.settle_ms / 1000.0 - time.monotonic()
+        if remaining > 0:
+            self._cond.wait(remaining)
+            return False
+        return True
 
     def _process(self, job: _Job, started: float) -> None:
         try:
