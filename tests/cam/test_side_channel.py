@@ -462,8 +462,10 @@ def test_disk_failure_mid_run_is_counted_and_earlier_steps_survive(demo_policy, 
     assert {p.name: p.read_bytes() for p in moved.iterdir()} == saved
 
 
+# The loop pauses like a robot executing its chunk: the side channel explains only in pauses (settle_ms).
 KILL_SCRIPT = r"""
 import sys
+import time
 sys.path.insert(0, sys.argv[2])
 from cam_support import demo_obs
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
@@ -474,6 +476,7 @@ print(wrapped.run_dir, flush=True)
 i = 0
 while True:
     wrapped.infer(demo_obs(i)); i += 1
+    time.sleep(0.03)
 """
 
 
