@@ -7,9 +7,10 @@ inside the side channel is counted per kind and logged once.
 
 The robot must not feel the side channel, so the worker yields to inference: `infer` brackets every inference
 (scheduled or not), and the worker starts an explanation, and later the writing of its step, only while no inference
-is in flight (a condition variable, no polling). An explanation is one compiled JAX call and cannot be pre-empted: an
-inference that arrives while one runs shares the CPU with it until it ends. A server that infers without pause
-therefore explains nothing until it pauses (`oldest_pending_ms` in `/stats` shows it).
+is in flight and none has ended within `settle_ms` (the reply is still being sent then): a condition variable, woken
+when the last inference ends, with the settle time as its only timeout. An explanation is one compiled JAX call and
+cannot be pre-empted: an inference that arrives while one runs shares the CPU with it until it ends. A server that
+infers without such pauses therefore explains nothing until it pauses (`oldest_pending_ms` in `/stats` shows it).
 
 Overload is shared fairly across connections (`_Pending`):
 - at most `queue_size` jobs are pending in all: a job arriving at the cap removes the oldest pending job of the
@@ -77,7 +78,7 @@ class CAMOptions:
     # Pending jobs per connection: a newer job supersedes that connection's oldest (e.g. 1: only the newest waits).
     # None: no limit of its own, the fair drop at `queue_size` applies (every request is explained when there is room).
     per_connection: int | None = None
-    stats_window: int = 1000  # written steps the lag percentiles in `/stats` are computed over
+    stats_window: int = 1000  # jobs whose timings are kept (`timings()`); `/stats` lag percentiles are over these
     # The worker starts a phase only once no inference has run for this long: an inference's reply is still being
     # packed and sent for a few ms after `infer` returns, and the robot would feel an explanation competing with it.
     settle_ms: float = 10.0
