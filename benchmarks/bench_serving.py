@@ -1,63 +1,46 @@
-"""Serving latency with the Grad-CAM side channel off vs on (every step), measured side by side in one run.
+"""Serving latency with the Grad-CAM side channel off vs on (every request), interleaved in one run.
 
-    python benchmarks/bench_serving.py [--requests 30 --pause-ms 300 --target action-token]
+    python benchmarks/bench_serving.py [--requests 200 --pause-ms 500 --block 10 --target action-token]
 
 Two servers on loopback over the same policy (the bundled demo model, whose generations hold action tokens to
-explain): plain, and wrapped with `--cam-every-k 1`. A websocket client speaking the openpi-client
-protocol sends the same observations to each, in two patterns: paced (pausing `--pause-ms` between requests, as a
-robot executing its action chunk would) and back to back. Printed: request latency p50 / p99 per mode, the on/off
-ratios, and Grad-CAM jobs completed per second of wall time.
+explain): plain, and wrapped with the side channel explaining every request (`every_k=1`). One websocket client
+speaking the openpi-client protocol keeps a connection to each and alternates between them in blocks of `--block`
+requests (off-on, then on-off, ...), so drift in the machine's load falls on both modes alike; never both at once,
+which would make them compete. Before each block the side channel is left to finish its jobs, so an "on" block's
+explanations are not charged to the "off" block after it. Two patterns, each with `--requests` requests per mode:
+
+- robot cadence: a pause of `--pause-ms` after each answer (a DROID robot executes a chunk for about 0.5 s);
+- back to back: no pause (the side channel then finds few gaps between inferences).
+
+Printed per pattern and mode: p50 / p99 of the round-trip latency the client measures; the on/off ratios of p50 and
+p99 with bootstrap 95% intervals (requests resampled within each mode); explanations completed of those scheduled;
+and the explanation lag (from an inference's end to its step on disk) p50 / p99 / max.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import platform
-import statistics
 import tempfile
 import time
 from typing import Any
 
 import numpy as np
-from websockets.sync.client import connect
+from websockets.sync.client import ClientConnection, connect
 
-from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
+from openpi_cam.cam.side_channel import CAMOptions, CAMPolicy, wrap_policy_with_cam
 from openpi_cam.policies import demo_reach
 from openpi_cam.serving import msgpack_numpy
 from openpi_cam.serving.server import start_server_in_thread
 
-
-def percentile(values: list[float], q: float) -> float:
-    return float(np.percentile(np.asarray(values), q))
-
-
-def drive(port: int, observations: list[dict[str, Any]], pause_s: float) -> list[float]:
-    """Round-trip latency (ms) of each request, as a client measures it."""
-    latencies = []
-    with connect(f"ws://127.0.0.1:{port}", max_size=None, compression=None) as ws:
-        ws.recv()  # metadata
-        for obs in observations:
-            t0 = time.perf_counter()
-            ws.send(msgpack_numpy.packb(obs))
-            reply = ws.recv()
-            latencies.append((time.perf_counter() - t0) * 1e3)
-            if isinstance(reply, str):
-                raise RuntimeError(reply)
-            time.sleep(pause_s)
-    return latencies
+# Counters that end a scheduled job (each job ends in exactly one of them); the rest (extra_dropped, ...) do not.
+_OUTCOMES = ("completed", "not_logged", "dropped_queue_full", "superseded", "not_queued_closing")
+_OUTCOME_PREFIXES = ("failed_", "skipped_", "log_error_", "worker_error_", "enqueue_error_")
 
 
-def wait_drained(wrapped, timeout: float = 300.0) -> None:
-    deadline = time.time() + timeout
-    while time.time() < deadline:
-        stats = wrapped.stats()["gradcam"]
-        finished = sum(v for k, v in stats.items() if isinstance(v, int) and k != "scheduled" and k != "queued")
-        if stats.get("queued", 0) == 0 and finished >= stats.get("scheduled", 0):
-            return
-        time.sleep(0.05)
-
-
-def demo_setup(n: int, seed: int = 0):
+def demo_setup(n: int, seed: int = 0) -> tuple[Any, list[dict[str, Any]]]:
     """The bundled demo policy and `n` client observations of random scenes (with their `cam_extra/` truth)."""
     from openpi_cam.demo import bundled, task
 
@@ -69,58 +52,144 @@ def demo_setup(n: int, seed: int = 0):
     return demo_reach.create_demo_policy(), observations
 
 
+def open_client(stack: contextlib.ExitStack, port: int) -> ClientConnection:
+    ws = stack.enter_context(connect(f"ws://127.0.0.1:{port}", max_size=None, compression=None))
+    ws.recv()  # the metadata frame
+    return ws
+
+
+def request(ws: ClientConnection, obs: dict[str, Any]) -> float:
+    """One round trip as the client measures it, in ms."""
+    t0 = time.perf_counter()
+    ws.send(msgpack_numpy.packb(obs))
+    reply = ws.recv()
+    elapsed = (time.perf_counter() - t0) * 1e3
+    if isinstance(reply, str):
+        raise RuntimeError(reply)
+    return elapsed
+
+
+def ended_jobs(counters: dict[str, Any]) -> int:
+    return sum(
+        v for k, v in counters.items() if isinstance(v, int) and (k in _OUTCOMES or k.startswith(_OUTCOME_PREFIXES))
+    )
+
+
+def wait_settled(wrapped: CAMPolicy, timeout: float = 300.0) -> None:
+    """Until every scheduled job has ended (written, dropped or failed): the worker is idle."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        counters = wrapped.stats()["gradcam"]
+        if counters["queued"] == 0 and ended_jobs(counters) >= counters.get("scheduled", 0):
+            return
+        time.sleep(0.01)
+    raise TimeoutError("the side channel did not finish its jobs")
+
+
+def bootstrap_ratio(on: np.ndarray, off: np.ndarray, q: float, rng: np.random.Generator, n: int) -> tuple[float, ...]:
+    """The ratio of the q-th percentiles (on / off) and its percentile-bootstrap 95% interval."""
+    ratios = [np.percentile(rng.choice(on, on.size), q) / np.percentile(rng.choice(off, off.size), q) for _ in range(n)]
+    lo, hi = np.percentile(ratios, [2.5, 97.5])
+    return float(np.percentile(on, q) / np.percentile(off, q)), float(lo), float(hi)
+
+
+def run_pattern(
+    ports: dict[str, int], wrapped: CAMPolicy, observations: list[dict[str, Any]], n: int, block: int, pause_s: float
+) -> dict[str, Any]:
+    """`n` requests per mode, alternating modes in blocks (off-on, on-off, ...), the side channel settled before
+    each block."""
+    latencies: dict[str, list[float]] = {"off": [], "on": []}
+    before = wrapped.stats()["gradcam"]
+    started = time.monotonic()
+    with contextlib.ExitStack() as stack:
+        clients = {mode: open_client(stack, port) for mode, port in ports.items()}
+        sent = 0
+        for pair in range(-(-n // block)):
+            order = ("off", "on") if pair % 2 == 0 else ("on", "off")
+            count = min(block, n - sent)
+            for mode in order:
+                wait_settled(wrapped)
+                for i in range(count):
+                    latencies[mode].append(request(clients[mode], observations[(sent + i) % len(observations)]))
+                    time.sleep(pause_s)
+            sent += count
+        wait_settled(wrapped)
+    after = wrapped.stats()["gradcam"]
+    lags = [t.lag_ms for t in wrapped.timings() if t.inference_end >= started and t.lag_ms is not None]
+    return {
+        "latencies": {mode: np.asarray(v) for mode, v in latencies.items()},
+        "scheduled": after.get("scheduled", 0) - before.get("scheduled", 0),
+        "completed": after.get("completed", 0) - before.get("completed", 0),
+        "lags": np.asarray(lags),
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--requests", type=int, default=30)
-    ap.add_argument("--pause-ms", type=float, default=300.0)
+    ap.add_argument("--requests", type=int, default=200, help="requests per mode and pattern")
+    ap.add_argument("--pause-ms", type=float, default=500.0, help="pause after each answer at robot cadence")
+    ap.add_argument("--block", type=int, default=10, help="requests per mode before switching")
     ap.add_argument("--target", default="action-token", choices=["action-token", "all-action-tokens", "chunk"])
+    ap.add_argument("--bootstrap", type=int, default=2000, help="bootstrap resamples")
+    ap.add_argument("--scenes", type=int, default=50, help="distinct observations, sent in turn")
+    ap.add_argument("--settle-ms", type=float, default=CAMOptions.settle_ms, help="the side channel's settle_ms")
     args = ap.parse_args()
+    # The window of timings must hold every job of a pattern (the lag is read from it).
+    window = 2 * args.requests + 100
 
-    policy, observations = demo_setup(args.requests)
-    for obs in observations[:2]:  # compile inference before timing
-        policy.infer({k: v for k, v in obs.items() if not k.startswith("cam_extra/")})
+    load_before = os.getloadavg()
+    policy, observations = demo_setup(args.scenes)
     with tempfile.TemporaryDirectory() as cam_dir:
-        options = CAMOptions(every_k=1, cam_dir=cam_dir, target=args.target, queue_size=4)
+        options = CAMOptions(
+            every_k=1, cam_dir=cam_dir, target=args.target, stats_window=window, settle_ms=args.settle_ms
+        )
         wrapped = wrap_policy_with_cam(policy, options)
         plain_server = start_server_in_thread(policy, close_policy_on_stop=False)
         cam_server = start_server_in_thread(wrapped, close_policy_on_stop=False)
+        ports = {"off": plain_server.port, "on": cam_server.port}
         try:
-            drive(plain_server.port, observations[:2], 0.0)  # warm both servers (connections, compilation)
-            drive(cam_server.port, observations[:2], 0.0)
-            wait_drained(wrapped)
-            results = {}
-            for pattern, pause in (("paced", args.pause_ms / 1e3), ("back-to-back", 0.0)):
-                for mode, server in (("off", plain_server), ("on", cam_server)):
-                    before = wrapped.stats()["gradcam"].get("completed", 0)
-                    t0 = time.perf_counter()
-                    lat = drive(server.port, observations, pause)
-                    wait_drained(wrapped)  # jobs/s counts until the last job of this mode is written
-                    wall = time.perf_counter() - t0
-                    done = wrapped.stats()["gradcam"].get("completed", 0) - before
-                    results[pattern, mode] = (lat, wall, done)
+            # Warm-up: compiles inference and explanation, opens the run directory.
+            run_pattern(ports, wrapped, observations, 3, 3, 0.05)
+            results = {
+                "robot cadence": run_pattern(
+                    ports, wrapped, observations, args.requests, args.block, args.pause_ms / 1e3
+                ),
+                "back to back": run_pattern(ports, wrapped, observations, args.requests, args.block, 0.0),
+            }
         finally:
             plain_server.stop()
             cam_server.stop()
             wrapped.close(60)
-        stats = wrapped.stats()["gradcam"]
+        counters = wrapped.stats()["gradcam"]
+    load_after = os.getloadavg()
+
+    rng = np.random.default_rng(0)
     print(
-        f"machine: {platform.machine()}, {__import__('os').cpu_count()} cores; {args.requests} requests per mode; "
-        f"target {args.target}; pause {args.pause_ms:.0f} ms (paced)"
+        f"machine: {platform.machine()}, {os.cpu_count()} cores; load average (1/5/15 min) before "
+        f"{'/'.join(f'{x:.2f}' for x in load_before)}, after {'/'.join(f'{x:.2f}' for x in load_after)}"
     )
-    print("| pattern | side channel | p50 ms | p99 ms | Grad-CAM jobs done | jobs / s |")
-    print("| --- | --- | --- | --- | --- | --- |")
-    for (pattern, mode), (lat, wall, done) in results.items():
+    print(
+        f"{args.requests} requests per mode and pattern, blocks of {args.block}, target {args.target}, robot cadence "
+        f"pause {args.pause_ms:.0f} ms, settle {args.settle_ms:.0f} ms, {args.bootstrap} bootstrap resamples"
+    )
+    columns = ["pattern", "side channel", "p50 ms", "p99 ms", "p50 on/off [95% CI]", "p99 on/off [95% CI]"]
+    columns += ["explained", "lag ms p50 / p99 / max"]
+    print("| " + " | ".join(columns) + " |")
+    print("|" + " --- |" * len(columns))
+    for pattern, res in results.items():
+        off, on = res["latencies"]["off"], res["latencies"]["on"]
+        r50, lo50, hi50 = bootstrap_ratio(on, off, 50, rng, args.bootstrap)
+        r99, lo99, hi99 = bootstrap_ratio(on, off, 99, rng, args.bootstrap)
+        lags = res["lags"]
+        lag = "/".join(f"{x:.1f}" for x in (*np.percentile(lags, [50, 99]), lags.max())) if lags.size else "none"
+        print(f"| {pattern} | off | {np.percentile(off, 50):.1f} | {np.percentile(off, 99):.1f} | | | | |")
         print(
-            f"| {pattern} | {mode} | {statistics.median(lat):.1f} | {percentile(lat, 99):.1f} | {done} | "
-            f"{done / wall:.2f} |"
+            f"| {pattern} | on | {np.percentile(on, 50):.1f} | {np.percentile(on, 99):.1f} | "
+            f"{r50:.3f} [{lo50:.3f}, {hi50:.3f}] | {r99:.3f} [{lo99:.3f}, {hi99:.3f}] | "
+            f"{res['completed']} / {res['scheduled']} | {lag} |"
         )
-    for pattern in ("paced", "back-to-back"):
-        off, on = results[pattern, "off"][0], results[pattern, "on"][0]
-        print(
-            f"{pattern}: p50 on/off = {statistics.median(on) / statistics.median(off):.2f}, "
-            f"p99 on/off = {percentile(on, 99) / percentile(off, 99):.2f}"
-        )
-    print(f"side-channel counters: { {k: v for k, v in stats.items() if k not in ('logger', 'run_dir')} }")
+    shown = {k: v for k, v in counters.items() if k not in ("logger", "run", "lag_ms")}
+    print(f"side-channel counters (warm-up included): {shown}")
 
 
 if __name__ == "__main__":

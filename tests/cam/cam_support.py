@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 import urllib.request
 from pathlib import Path
 from typing import Any
@@ -65,6 +66,28 @@ class WithExplainer:
 
     def close(self, timeout: float | None = None) -> None:
         pass
+
+
+class TimedPolicy(WithExplainer):
+    """A real policy served as is, recording when each of its inferences ran (`time.monotonic()` intervals)."""
+
+    def __init__(self, policy: Any) -> None:
+        super().__init__(policy, policy.explainer)
+        self.intervals: list[tuple[float, float]] = []
+
+    def infer(self, obs: dict, context: object = None) -> dict:
+        start = time.monotonic()
+        try:
+            return self.inner.infer(obs, context)
+        finally:
+            self.intervals.append((start, time.monotonic()))
+
+    def infer_traced(self, obs: dict) -> tuple[dict, Any]:
+        start = time.monotonic()
+        try:
+            return self.inner.infer_traced(obs)
+        finally:
+            self.intervals.append((start, time.monotonic()))
 
 
 class GatedExplainer:

@@ -1002,6 +1002,9 @@ def test_serve_with_cam_flags_writes_an_explained_closed_run(demo_observations, 
         "--fast-tokenizer", str(demo_reach.FAST_TOKENIZER),
     ]  # fmt: skip
     cam = ["--cam-every-k", "1", "--cam-dir", str(cam_dir), "--cam-target", "action-token", "--cam-action-index", "2"]
+    # The side channel explains in the client's pauses and at shutdown; the first explanation compiles (seconds on a
+    # loaded 2-core machine), more than the 5 s default drain of a container stop: this test wants every step.
+    cam += ["--cam-drain-timeout", "120"]
     observations = demo_observations[:3]
     with serve_subprocess(tmp_path, *files, *cam) as (proc, port, log_path):
         # Compiled before /healthz answered (tests/cam checks that the first request then compiles nothing).

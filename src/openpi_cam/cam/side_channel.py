@@ -1,22 +1,39 @@
 """The Grad-CAM side channel around a policy: decides when to explain and what to log; never changes actions.
 
 Scheduled inferences run through `infer_traced`, which returns the very response `infer` would plus the exact model
-inputs and outputs of that call. A job carrying them goes into a bounded queue; one background worker has the
-policy's explainer compute the maps and hands the record to the `CAMLogger`. The response never waits for the
-worker; a full queue drops the new job (counted); every failure inside the side channel is counted per kind and
-logged once.
+inputs and outputs of that call. A job carrying them becomes pending; one background worker has the policy's explainer
+compute the maps and hands the record to the `CAMLogger`. The response never waits for the worker; every failure
+inside the side channel is counted per kind and logged once.
+
+The robot must not feel the side channel, so the worker yields to inference: `infer` brackets every inference
+(scheduled or not), and the worker starts an explanation, and later the writing of its step, only while no inference
+is in flight and none has ended within `settle_ms` (the reply is still being sent then): a condition variable, woken
+when the last inference ends, with the settle time as its only timeout. An explanation is one compiled JAX call and
+cannot be pre-empted: an inference that arrives while one runs shares the CPU with it until it ends. A server that
+infers without such pauses therefore explains nothing until it pauses (`oldest_pending_ms` in `/stats` shows it).
+
+Overload is shared fairly across connections (`_Pending`):
+- at most `queue_size` jobs are pending in all: a job arriving at the cap removes the oldest pending job of the
+  connection that then holds the most (the arriving job counts; ties: the connection whose oldest job is oldest;
+  counted `dropped_queue_full`), so a flooding connection loses its own jobs, never a quieter connection's;
+- optionally (`per_connection`, default no limit) each connection keeps at most that many pending jobs: a newer job
+  from the same connection replaces its oldest pending one (counted `superseded`), so its maps stay current;
+- the worker serves oldest-first across connections (the pending job whose inference ended first), which is FIFO
+  within a connection and bounds any job's wait by the jobs pending ahead of it.
 """
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import logging
 import pathlib
-import queue
 import threading
 import time
 from collections.abc import Mapping
 from typing import Any, Protocol
+
+import numpy as np
 
 from openpi_cam.cam.batching import explain_traces
 from openpi_cam.cam.logger import CAMLogger
@@ -59,7 +76,14 @@ class CAMOptions:
     action_dim_index: int = 0  # pi0 / pi0.5: which action dimension ("action")
     maps: tuple[MapKind, ...] = ("gradcam", "gradnorm")  # which map kinds each explained step carries
     map_options: MapOptions = dataclasses.field(default_factory=MapOptions)  # of the "ig" / "occlusion" kinds
-    queue_size: int = 8
+    queue_size: int = 8  # pending jobs in all (module docstring: which one a full queue drops)
+    # Pending jobs per connection: a newer job supersedes that connection's oldest (e.g. 1: only the newest waits).
+    # None: no limit of its own, the fair drop at `queue_size` applies (every request is explained when there is room).
+    per_connection: int | None = None
+    stats_window: int = 1000  # jobs whose timings are kept (`timings()`); `/stats` lag percentiles are over these
+    # The worker starts a phase only once no inference has run for this long: an inference's reply is still being
+    # packed and sent for a few ms after `infer` returns, and the robot would feel an explanation competing with it.
+    settle_ms: float = 10.0
     max_steps: int | None = None
     max_bytes: int | None = None
     drain_timeout: float = 30.0  # seconds `close()` waits for queued jobs
@@ -70,8 +94,10 @@ class CAMOptions:
     max_extra_bytes: int = 64 * 1024
 
     def __post_init__(self) -> None:
-        if self.every_k < 0 or self.queue_size < 1:
-            raise ValueError("every_k >= 0 and queue_size >= 1 are required")
+        if self.every_k < 0 or self.queue_size < 1 or self.stats_window < 1 or self.settle_ms < 0:
+            raise ValueError("every_k >= 0, queue_size >= 1, stats_window >= 1 and settle_ms >= 0 are required")
+        if self.per_connection is not None and self.per_connection < 1:
+            raise ValueError(f"per_connection must be >= 1 or None, got {self.per_connection}")
         if self.save_frames not in SAVE_FRAMES:
             raise ValueError(f"save_frames must be one of {SAVE_FRAMES}, got {self.save_frames!r}")
         self.request  # noqa: B018  (validates target, action_index and map kinds at construction)
@@ -86,8 +112,70 @@ class _Job:
     trace: InferenceTrace
     connection: str
     step: int
-    timestamp: float
+    timestamp: float  # wall clock, for the step record
     extra: dict[str, Any]
+    ended: float  # time.monotonic() when the inference returned: lag and ages are measured from here
+
+
+@dataclasses.dataclass(frozen=True)
+class JobTiming:
+    """When the worker handled one job, on the `time.monotonic()` clock. `writing` and `written` are None when the job
+    ended before its step was written (skipped, failed)."""
+
+    connection: str
+    step: int
+    inference_end: float
+    started: float  # the explanation began (no inference was in flight)
+    explained: float
+    writing: float | None = None  # the step's record and write began (no inference was in flight)
+    written: float | None = None
+
+    @property
+    def lag_ms(self) -> float | None:
+        """From the inference's end to the step being written."""
+        return None if self.written is None else (self.written - self.inference_end) * 1000.0
+
+
+class _Pending:
+    """The pending jobs, per connection, under the fair rule of the module docstring. Not thread-safe: `CAMPolicy`
+    holds its lock around every call."""
+
+    def __init__(self, cap: int, per_connection: int | None) -> None:
+        self._cap = cap
+        self._per_connection = per_connection
+        self._by_connection: dict[str, collections.deque[_Job]] = {}  # oldest first; no empty deques kept
+        self.size = 0
+
+    def add(self, job: _Job) -> tuple[int, int]:
+        """Adds `job`; returns (superseded, dropped): how many older jobs left to make room, by reason."""
+        mine = self._by_connection.setdefault(job.connection, collections.deque())
+        superseded = 0
+        if self._per_connection is not None and len(mine) >= self._per_connection:
+            mine.popleft()
+            self.size -= 1
+            superseded = 1
+        mine.append(job)
+        self.size += 1
+        dropped = 0
+        while self.size > self._cap:
+            # The new job counts toward its own connection: a flooder at a tie pays for its own surplus.
+            busiest = max(self._by_connection.values(), key=lambda q: (len(q), -q[0].ended))
+            self._pop(busiest)
+            dropped += 1
+        return superseded, dropped
+
+    def pop_oldest(self) -> _Job:
+        return self._pop(min(self._by_connection.values(), key=lambda q: q[0].ended))
+
+    def oldest_end(self) -> float | None:
+        return min((q[0].ended for q in self._by_connection.values()), default=None)
+
+    def _pop(self, jobs: collections.deque[_Job]) -> _Job:
+        job = jobs.popleft()
+        self.size -= 1
+        if not jobs:
+            del self._by_connection[job.connection]
+        return job
 
 
 class CAMPolicy:
@@ -97,8 +185,15 @@ class CAMPolicy:
         self._policy = policy
         self._options = options
         self._logger = cam_logger
-        self._queue: queue.Queue[_Job | None] = queue.Queue(maxsize=options.queue_size)
         self._lock = threading.Lock()
+        # Guards the fields below with `_lock`; notified when the last in-flight inference ends and when the drain
+        # begins: the two events the waiting worker acts on.
+        self._cond = threading.Condition(self._lock)
+        self._pending = _Pending(options.queue_size, options.per_connection)
+        self._inflight = 0  # inferences inside `infer` right now
+        self._last_end = 0.0  # time.monotonic() when the last one returned
+        self._finishing = False  # set by the drain: the worker exits once nothing is pending
+        self._timings: collections.deque[JobTiming] = collections.deque(maxlen=options.stats_window)
         self._events = WarnOnceCounter(logger, "Grad-CAM side channel")
         self._steps: dict[str, int] = {}  # per-connection inference index
         self._closed = False
@@ -119,8 +214,8 @@ class CAMPolicy:
     def run_dir(self) -> pathlib.Path | None:
         return None if self._logger is None else self._logger.run_dir
 
-    def count(self, kind: str, message: str | None = None) -> None:
-        self._events.count(kind, message)
+    def count(self, kind: str, message: str | None = None, *, n: int = 1) -> None:
+        self._events.count(kind, message, n=n)
 
     def infer(self, obs: dict[str, Any], context: object = None) -> dict[str, Any]:
         obs, extra = split_extra(obs)
@@ -128,57 +223,110 @@ class CAMPolicy:
         with self._lock:
             step = self._steps.get(connection, 0)
             self._steps[connection] = step + 1
-        every_k = self._options.every_k
-        if self._logger is None or self._closed or every_k == 0 or step % every_k:
-            return self._policy.infer(obs, context)
-        response, trace = self._policy.infer_traced(obs)
-        self.count("scheduled")
-        if self._options.save_frames not in ("raw", "both"):
-            # A queued job keeps only model-size inputs: client frames (up to the message limit each) are not held
-            # while the job waits when they will not be written.
-            trace = dataclasses.replace(trace, raw_images=dict.fromkeys(trace.raw_images))
+            self._inflight += 1  # from here until the finally below, the worker starts nothing
         try:
-            kept, dropped = bounded_extra(extra, self._options.max_extra_value_bytes, self._options.max_extra_bytes)
-            if dropped:
-                self.count("extra_dropped", f"cam_extra values over the size limits dropped: {dropped[:3]}")
-                kept["extra_dropped"] = dropped
-            job = _Job(trace, connection, step, time.time(), kept)
-            with self._lock:  # a job queued behind close's end marker would be lost without a trace
-                if self._closed:
-                    self.count("not_queued_closing", "the side channel closed while this inference ran")
-                else:
-                    self._queue.put_nowait(job)
-        except queue.Full:
-            self.count("dropped_queue_full", "queue full, job dropped")
-        except Exception as e:  # the side channel never reaches the client
-            self.count(f"enqueue_error_{type(e).__name__}", f"could not queue a job: {e}")
-        return response
+            every_k = self._options.every_k
+            if self._logger is None or self._closed or every_k == 0 or step % every_k:
+                return self._policy.infer(obs, context)
+            response, trace = self._policy.infer_traced(obs)
+            ended = time.monotonic()
+            self.count("scheduled")
+            if self._options.save_frames not in ("raw", "both"):
+                # A pending job keeps only model-size inputs: client frames (up to the message limit each) are not
+                # held while the job waits when they will not be written.
+                trace = dataclasses.replace(trace, raw_images=dict.fromkeys(trace.raw_images))
+            try:
+                kept, dropped = bounded_extra(extra, self._options.max_extra_value_bytes, self._options.max_extra_bytes)
+                if dropped:
+                    self.count("extra_dropped", f"cam_extra values over the size limits dropped: {dropped[:3]}")
+                    kept["extra_dropped"] = dropped
+                job = _Job(trace, connection, step, time.time(), kept, ended)
+                with self._lock:  # a job queued after the drain began would be lost without a trace
+                    if self._closed:
+                        self.count("not_queued_closing", "the side channel closed while this inference ran")
+                    else:
+                        superseded, dropped_jobs = self._pending.add(job)
+                        if superseded:
+                            self.count("superseded", n=superseded)
+                        if dropped_jobs:
+                            self.count(
+                                "dropped_queue_full",
+                                "queue full: the oldest job of the connection with the most pending jobs dropped",
+                                n=dropped_jobs,
+                            )
+            except Exception as e:  # the side channel never reaches the client
+                self.count(f"enqueue_error_{type(e).__name__}", f"could not queue a job: {e}")
+            return response
+        finally:
+            with self._cond:
+                self._inflight -= 1
+                self._last_end = time.monotonic()
+                if self._inflight == 0:
+                    self._cond.notify_all()
 
     def _work(self) -> None:
         while True:
-            job = self._queue.get()
+            job, started = self._next_job()
+            if job is None:
+                return
             try:
-                if job is None:
-                    return
-                self._process(job)
+                self._process(job, started)
             except Exception as e:  # a bug in the side channel must not stop the worker (or reach a client)
                 self.count(f"worker_error_{type(e).__name__}", f"the worker raised {type(e).__name__}: {e}")
-            finally:
-                self._queue.task_done()
 
-    def _process(self, job: _Job) -> None:
-        t0 = time.perf_counter()
+    def _next_job(self) -> tuple[_Job | None, float]:
+        """Blocks until a job is pending and no inference has run for `settle_ms`; returns it with the time of that
+        decision, taken under the lock (an inference may begin right after it: the explanation cannot wait for it any
+        more). None: drained, time to exit."""
+        with self._cond:
+            while True:
+                if self._pending.size:
+                    if self._settled_or_wait():
+                        return self._pending.pop_oldest(), time.monotonic()
+                elif self._finishing:
+                    return None, time.monotonic()
+                else:
+                    self._cond.wait()
+
+    def _wait_for_no_inference(self) -> float:
+        """Between the explanation and the write: lets an inference that started meanwhile finish (and settle)
+        first. Returns the time of that decision, taken under the lock."""
+        with self._cond:
+            while not self._settled_or_wait():
+                pass  # it waited: check again
+            return time.monotonic()
+
+    def _settled_or_wait(self) -> bool:
+        """With the lock held: True once no inference is in flight and none has ended within `settle_ms`; otherwise
+        waits (until an inference ends, or the settle time runs out) and returns False so the caller checks again."""
+        if self._inflight:
+            self._cond.wait()
+            return False
+        remaining = self._last_end + self._options.settle_ms / 1000.0 - time.monotonic()
+        if remaining > 0:
+            self._cond.wait(remaining)
+            return False
+        return True
+
+    def _process(self, job: _Job, started: float) -> None:
         try:
             (exp,) = explain_traces(self._policy.explainer, [job.trace], self._options.request)
         except Exception as e:
+            self._record(JobTiming(job.connection, job.step, job.ended, started, time.monotonic()))
             self.count(f"failed_{type(e).__name__}", f"explaining raised {type(e).__name__}: {e}")
             return
+        explained = time.monotonic()
+        timing = JobTiming(job.connection, job.step, job.ended, started, explained)
         if isinstance(exp, ExplainSkipped):
+            self._record(timing)
             self.count(f"skipped_{exp.kind}", str(exp))
             return
         if job.trace.malformed_reason is not None:
             self.count("explained_malformed")
-        explain_ms = (time.perf_counter() - t0) * 1000.0
+        explain_ms = (explained - started) * 1000.0
+        # Building the record and writing it hold the GIL and the disk for milliseconds: a second phase, started
+        # only while no inference is in flight either.
+        writing = self._wait_for_no_inference()
         try:
             record = step_record(
                 job.trace,
@@ -192,13 +340,36 @@ class CAMPolicy:
             )
             logged = self._logger.log_step(record)  # type: ignore[union-attr]  (no jobs without a logger)
         except Exception as e:
+            self._record(dataclasses.replace(timing, writing=writing))
             self.count(f"log_error_{type(e).__name__}", f"logging a step raised {type(e).__name__}: {e}")
             return
+        written = time.monotonic() if logged else None
+        self._record(dataclasses.replace(timing, writing=writing, written=written))
         self.count("completed" if logged else "not_logged")
+
+    def _record(self, timing: JobTiming) -> None:
+        with self._lock:
+            self._timings.append(timing)
+
+    def timings(self) -> list[JobTiming]:
+        """The last `stats_window` jobs the worker handled, oldest first: when each phase began and ended."""
+        with self._lock:
+            return list(self._timings)
 
     def stats(self) -> dict[str, Any]:
         cam: dict[str, Any] = self._events.snapshot()
-        cam["queued"] = self._queue.qsize()
+        now = time.monotonic()
+        with self._lock:
+            cam["queued"] = self._pending.size
+            oldest = self._pending.oldest_end()
+            lags = [t.lag_ms for t in self._timings if t.lag_ms is not None]
+        # How far behind the served inferences the run is: from an inference's end to its step on disk, over the
+        # last written steps, and how long the oldest job still pending has waited (None: nothing pending).
+        cam["lag_ms"] = None
+        if lags:
+            p50, p99 = np.percentile(np.asarray(lags), [50, 99])
+            cam["lag_ms"] = {"window": len(lags), "p50": float(p50), "p99": float(p99), "max": max(lags)}
+        cam["oldest_pending_ms"] = None if oldest is None else (now - oldest) * 1000.0
         if self._logger is not None:
             cam["logger"] = self._logger.counters
             cam["run"] = self._logger.run_dir.name  # the name only: /stats does not reveal the server's paths
@@ -217,12 +388,9 @@ class CAMPolicy:
             self._closer.start()
 
     def _drain(self) -> None:
-        while time.monotonic() < self._deadline:
-            try:
-                self._queue.put(None, timeout=max(0.0, self._deadline - time.monotonic()))
-                break
-            except queue.Full:
-                continue
+        with self._cond:  # the worker explains what is pending, then exits
+            self._finishing = True
+            self._cond.notify_all()
         self._worker.join(max(0.0, self._deadline - time.monotonic()))
         if self._worker.is_alive():
             self.count("unfinished_at_shutdown", "shutdown deadline passed with jobs pending")

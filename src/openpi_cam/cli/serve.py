@@ -92,7 +92,7 @@ def main(
         cam_occlusion_region: side of an `occlusion` region in patches (1: every patch alone).
         cam_occlusion_masks: 0: every region once; M > 0: M random region masks per camera (ISS), for large grids.
         cam_ig_space: where the `ig` path runs: SigLIP tokens or the frames' pixels (README, "Map kinds").
-        cam_queue_size: pending Grad-CAM jobs before new ones are dropped (inference never waits).
+        cam_queue_size: pending Grad-CAM jobs in all; at the cap the busiest connection's oldest one is dropped.
         cam_max_steps: stop recording after this many steps (None = no limit).
         cam_max_mb: stop recording once the run directory holds this many MB (None = no limit).
         cam_drain_timeout: on SIGTERM, seconds the side channel keeps explaining queued jobs (counted from the
