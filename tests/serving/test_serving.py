@@ -1002,6 +1002,7 @@ def test_serve_with_cam_flags_writes_an_explained_closed_run(demo_observations, 
         "--fast-tokenizer", str(demo_reach.FAST_TOKENIZER),
     ]  # fmt: skip
     cam = ["--cam-every-k", "1", "--cam-dir", str(cam_dir), "--cam-target", "action-token", "--cam-action-index", "2"]
+    cam += ["--cam-per-connection", "4", "--cam-settle-ms", "5"]
     # The side channel explains in the client's pauses and at shutdown; the first explanation compiles (seconds on a
     # loaded 2-core machine), more than the 5 s default drain of a container stop: this test wants every step.
     cam += ["--cam-drain-timeout", "120"]
@@ -1022,6 +1023,7 @@ def test_serve_with_cam_flags_writes_an_explained_closed_run(demo_observations, 
     (run_dir,) = list_runs(cam_dir)
     manifest = read_json(run_dir / MANIFEST_JSON)
     assert manifest is not None and manifest["closed"] is True and manifest["num_steps"] == len(observations)
+    assert (manifest["options"]["per_connection"], manifest["options"]["settle_ms"]) == (4, 5.0)  # the flags arrived
     run = load_run(run_dir)
     assert [(s.meta["connection"], s.meta["step"]) for s in run.steps] == [("conn0000", i) for i in range(3)]
     request = ExplainRequest("action-token", 2, kinds=("gradcam", "gradnorm"))

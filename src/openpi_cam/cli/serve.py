@@ -52,6 +52,8 @@ def main(
     cam_occlusion_masks: int = 0,
     cam_ig_space: Literal["tokens", "pixels"] = "tokens",
     cam_queue_size: int = 8,
+    cam_per_connection: int | None = None,
+    cam_settle_ms: float = 10.0,
     cam_max_steps: int | None = None,
     cam_max_mb: float | None = None,
     cam_drain_timeout: float = 5.0,
@@ -93,6 +95,9 @@ def main(
         cam_occlusion_masks: 0: every region once; M > 0: M random region masks per camera (ISS), for large grids.
         cam_ig_space: where the `ig` path runs: SigLIP tokens or the frames' pixels (README, "Map kinds").
         cam_queue_size: pending Grad-CAM jobs in all; at the cap the busiest connection's oldest one is dropped.
+        cam_per_connection: pending jobs per connection at most (a newer one supersedes the oldest); None: no limit.
+        cam_settle_ms: the worker starts an explanation only this long after the last inference ended (the reply is
+            still being sent then).
         cam_max_steps: stop recording after this many steps (None = no limit).
         cam_max_mb: stop recording once the run directory holds this many MB (None = no limit).
         cam_drain_timeout: on SIGTERM, seconds the side channel keeps explaining queued jobs (counted from the
@@ -167,6 +172,8 @@ def main(
             maps=cam_maps,
             map_options=map_options(cam_baseline, cam_occlusion_region, cam_occlusion_masks, cam_ig_space),
             queue_size=cam_queue_size,
+            per_connection=cam_per_connection,
+            settle_ms=cam_settle_ms,
             max_steps=cam_max_steps,
             max_bytes=None if cam_max_mb is None else int(cam_max_mb * 1024 * 1024),
             max_extra_value_bytes=int(cam_max_extra_value_kb * 1024),
