@@ -230,6 +230,12 @@ def _split_arrays(npz: Any) -> StepArrays:
     return arrays
 
 
+def client_extra(meta: Mapping[str, Any], arrays: StepArrays | None) -> dict[str, Any]:
+    """What the client sent under `cam_extra/`: the JSON values of meta["extra"] and, from `arrays`, the numeric
+    arrays (None: the step lists none, so its file need not be read)."""
+    return {**(meta.get("extra") or {}), **({} if arrays is None else arrays.extra)}
+
+
 def _read_meta(npz: Any) -> dict[str, Any]:
     return json.loads(str(npz[META_KEY][()]))
 
@@ -276,10 +282,8 @@ class CAMStep:
 
     @property
     def extra(self) -> dict[str, Any]:
-        """What the client sent under `cam_extra/`: the JSON values of meta["extra"] and the numeric arrays."""
-        values = dict(self.meta.get("extra") or {})
-        # Steps list their array extras in meta: the file is read only when there are some.
-        return {**values, **self.arrays().extra} if self.meta.get("extra_arrays") else values
+        """`client_extra` of this step; its file is read only when meta lists array extras."""
+        return client_extra(self.meta, self.arrays() if self.meta.get("extra_arrays") else None)
 
     def __repr__(self) -> str:
         return f"CAMStep(seq={self.seq}, file={str(self.file)!r})"

@@ -18,7 +18,7 @@ from typing import Any, Literal
 import numpy as np
 
 from openpi_cam.cam.faithfulness import nuisance_mass_ratio, target_cells
-from openpi_cam.cam.runfmt import MAP_PREFIXES, CAMStep
+from openpi_cam.cam.runfmt import MAP_PREFIXES, CAMStep, client_extra
 from openpi_cam.viz.overlay import StepView, reduce_tokens
 
 # What render, the report and the demo draw unless told otherwise: the map that measured most faithful on the demo
@@ -57,8 +57,7 @@ class MapView:
 
     def loaded(self) -> LoadedView:
         arrays = self._step.lazy().arrays()
-        extra = {**(self.meta.get("extra") or {}), **arrays.extra}  # as CAMStep.extra, from the arrays read here
-        maps = arrays.maps.get(self.kind, {})
+        maps, extra = arrays.maps.get(self.kind, {}), client_extra(self.meta, arrays)
         return LoadedView(self.seq, self.meta, maps, arrays.frames, arrays.model_frames, extra)
 
     @property
