@@ -372,7 +372,8 @@ _DATA_PARALLEL = textwrap.dedent(
     sys.path[:0] = sys.argv[2:3]
     import jax, numpy as np
     from cam_support import demo_obs, policy_part
-    from openpi_cam.cam.batching import data_mesh, explain_traces, shard_batch, stack_observations
+    from openpi_cam.cam.batching import data_mesh, explain_traces, shard_batch
+    from openpi_cam.model.observation import stack_observations
     from openpi_cam.policies import demo_reach
     from openpi_cam.policies.family import ExplainRequest
 

@@ -7,6 +7,10 @@ completeness and logged-logit checks also run on the golden tiny upstream model 
 from __future__ import annotations
 
 import dataclasses
+import json
+import os
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -400,3 +404,33 @@ def test_pixel_space_ig_completeness_and_patch_order(demo):
     # A different path, not the token-space map under another name.
     tokens = maps.gradcam_for_chunk(demo.model, obs, demo.generated, demo.chunk_rows, kinds=("ig",))
     assert not np.allclose(res.by_kind["ig"]["base_0_rgb"], tokens.by_kind["ig"]["base_0_rgb"])
+
+
+_SPREAD = r"""
+import json
+import jax, jax.numpy as jnp, numpy as np
+from jax.sharding import Mesh
+from openpi_cam.model.sharding import BATCH_AXIS, spread
+
+f = jax.jit(lambda x: spread(x.reshape(2, 8, 3), 1) * 2.0)
+x = jnp.arange(48.0).reshape(16, 3)
+alone = f(x)
+with jax.set_mesh(Mesh(np.array(jax.devices()), (BATCH_AXIS,))):
+    spread_out = f(x)
+print(json.dumps({
+    "alone": len(alone.sharding.device_set),
+    "spread": len(spread_out.sharding.device_set),
+    "axis": list(spread_out.sharding.spec)[:2],
+    "equal": bool(np.array_equal(np.asarray(alone), np.asarray(spread_out))),
+}))
+"""
+
+
+def test_spread_splits_the_axis_over_the_ambient_mesh_only():
+    """Occlusion's painted variants are spread over the devices of an ambient data mesh (`spread` in
+    `baseline_maps`): with two host devices the chosen axis lands on both, without a mesh nothing moves."""
+    env = os.environ | {"XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu"}
+    proc = subprocess.run([sys.executable, "-c", _SPREAD], capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert out == {"alone": 1, "spread": 2, "axis": [None, "batch"], "equal": True}, out

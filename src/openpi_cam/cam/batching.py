@@ -9,34 +9,22 @@ explainer's params are replicated once (`Explainer.on_mesh`), and the jitted map
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from openpi_cam.model.observation import Observation
+from openpi_cam.model.observation import Observation, pad_rows, stack_observations
+from openpi_cam.model.sharding import BATCH_AXIS
 from openpi_cam.policies.family import Explainer, ExplainRequest, ExplainSkipped, Explanation
 from openpi_cam.policies.policy import InferenceTrace
-
-BATCH_AXIS = "batch"
 
 
 def data_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh | None:
     """A 1-D mesh over the local devices, or None when there is only one (nothing to shard)."""
     devices = list(jax.local_devices() if devices is None else devices)
     return Mesh(np.array(devices), (BATCH_AXIS,)) if len(devices) > 1 else None
-
-
-def stack_observations(observations: Sequence[Observation]) -> Observation:
-    """B=1 observations of one config -> one [B, ...] observation (same cameras and shapes in every row)."""
-    return jax.tree.map(lambda *x: np.concatenate([np.asarray(a) for a in x]), *observations)
-
-
-def pad_rows(x: np.ndarray, rows: int) -> np.ndarray:
-    """Repeats the last row until `x` has `rows` rows (padding rows are computed and then dropped)."""
-    x = np.asarray(x)
-    return x if x.shape[0] == rows else np.concatenate([x, np.repeat(x[-1:], rows - x.shape[0], axis=0)])
 
 
 def shard_batch(observation: Observation, mesh: Mesh | None, pad_to: int = 0) -> tuple[Observation, int]:
@@ -63,9 +51,23 @@ def explain_traces(
 
     With a `mesh`, `explainer` must already be placed on it (`explainer.on_mesh(mesh)`). `pad_to`: pad the batch to
     this many rows (e.g. the batch size, so that a short last batch reuses the compiled program)."""
-    if not traces:
+    rows = [(t.observation, np.asarray(t.output), t.sample_inputs) for t in traces]
+    return explain_rows(explainer, rows, request, mesh=mesh, pad_to=pad_to)
+
+
+def explain_rows(
+    explainer: Explainer,
+    rows: Sequence[tuple[Observation, np.ndarray, Mapping[str, np.ndarray]]],
+    request: ExplainRequest,
+    *,
+    mesh: Mesh | None = None,
+    pad_to: int = 0,
+) -> list[Explanation | ExplainSkipped]:
+    """`explain_traces` for rows given as (observation [B = 1], raw output without its batch axis, sampler inputs
+    without it), e.g. rebuilt from logged steps."""
+    if not rows:
         return []
-    observation, padded = shard_batch(stack_observations([t.observation for t in traces]), mesh, pad_to)
-    outputs = pad_rows(np.stack([np.asarray(t.output) for t in traces]), padded)
-    drawn = {k: pad_rows(np.stack([t.sample_inputs[k] for t in traces]), padded) for k in traces[0].sample_inputs}
-    return explainer.explain(observation, outputs, request, drawn)[: len(traces)]
+    observation, padded = shard_batch(stack_observations([obs for obs, _, _ in rows]), mesh, pad_to)
+    outputs = pad_rows(np.stack([np.asarray(out) for _, out, _ in rows]), padded)
+    drawn = {k: pad_rows(np.stack([np.asarray(r[2][k]) for r in rows]), padded) for k in rows[0][2]}
+    return explainer.explain(observation, outputs, request, drawn)[: len(rows)]

@@ -21,18 +21,22 @@ optimum); means come with 95% bootstrap intervals. The pure metrics are `cam.fai
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import Any, Literal
 
+import jax
 import numpy as np
+from jax.sharding import Mesh
 
 from openpi_cam.cam import faithfulness as fm
+from openpi_cam.cam.batching import data_mesh, explain_rows
 from openpi_cam.cam.runfmt import CAMRun, CAMStep
 from openpi_cam.model.attribution import MAP_KINDS, MapOptions
 from openpi_cam.model.observation import Observation
-from openpi_cam.policies.family import Explainer, ExplainRequest, ExplainSkipped
+from openpi_cam.policies.family import Explainer, ExplainRequest, ExplainSkipped, Explanation
 
 _OBS_INPUTS = ("state", "tokenized_prompt", "tokenized_prompt_mask", "token_ar_mask")
 _SAMPLER_INPUTS = ("noise",)
@@ -50,10 +54,13 @@ class FaithfulnessOptions:
     seed: int = 0  # random orders, bootstrap and the re-initialisation
     max_steps: int | None = None  # evaluate at most this many steps (evenly spread over the run)
     baseline: Literal["run", "mean", "blur"] = "run"  # painting: "run" = the baseline the run's ig/occlusion used
+    batch_size: int = 8  # steps per call of the randomised model (padded to a multiple of the device count)
 
     def __post_init__(self) -> None:
         if not self.ks or min(self.ks) < 1 or max(self.ks) > self.max_k or self.random_orders < 1:
             raise ValueError("deletion depths must lie in [1, max_k] and random_orders >= 1")
+        if self.batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
 
 
 def step_model_inputs(step: CAMStep) -> tuple[Observation, np.ndarray, dict[str, np.ndarray]]:
@@ -136,15 +143,25 @@ def evaluate_run(
     opts: FaithfulnessOptions = FaithfulnessOptions(),
     *,
     progress: Progress | None = None,
+    mesh: Mesh | Literal["auto"] | None = "auto",
 ) -> dict[str, Any]:
     """The faithfulness report of a run (JSON-able): per map kind and camera, deletion, agreement with occlusion,
-    randomisation and pointing figures, plus what was skipped and why."""
+    randomisation and pointing figures, plus what was skipped and why.
+
+    Work is spread over the local devices as in offline explanation (`mesh`: "auto" = all of them, None = one): each
+    step's painted variants are split over them, and the randomised model explains `opts.batch_size` steps per call,
+    their rows sharded."""
+    mesh = data_mesh() if mesh == "auto" else mesh
+    explainer = explainer.on_mesh(mesh)
     steps = _evenly([s for s in run.steps if s.meta.get("map_kinds")], opts.max_steps)
     skipped: dict[str, int] = {}
     replay_diffs: list[float] = []
     records: dict[str, list[_CameraRecord]] = {}
-    random_explainer = None if opts.randomize == "none" else explainer.randomized(opts.randomize, opts.seed)
+    random_explainer = None
+    if opts.randomize != "none":
+        random_explainer = explainer.randomized(opts.randomize, opts.seed).on_mesh(mesh)
     randomised: dict[tuple[str, str], list[tuple[np.ndarray, np.ndarray]]] = {}
+    waiting: list[_RandomisationRow] = []
     iterator: Iterator[CAMStep] = iter(steps)
     if progress is not None:
         iterator = progress(iterator, len(steps))
@@ -160,7 +177,8 @@ def evaluate_run(
                 order = {k: fm.patch_order(step.maps_of(k)[c]) for k in kinds}
                 per_camera[c], where = _masks(order, grid, k_max, opts.random_orders, opts.seed)
             painting = _painting(step, opts.baseline)
-            scores = explainer.rescore(obs, outputs, sample_inputs, step.meta, per_camera, painting)
+            with jax.set_mesh(mesh) if mesh is not None else contextlib.nullcontext():
+                scores = explainer.rescore(obs, outputs, sample_inputs, step.meta, per_camera, painting)
         except ExplainSkipped as e:
             skipped[e.kind] = skipped.get(e.kind, 0) + 1
             continue
@@ -186,12 +204,55 @@ def evaluate_run(
                 kinds=tuple(kinds),
                 options=painting,
             )
-            [other] = random_explainer.explain(obs, outputs, request, sample_inputs)
-            if not isinstance(other, ExplainSkipped):
-                for k in kinds:
-                    for c in cameras:
-                        randomised.setdefault((k, c), []).append((step.maps_of(k)[c], other.maps[k][c]))
-    return _report(run, records, randomised, skipped, replay_diffs, opts)
+            row = (obs, outputs[0], {k: v[0] for k, v in sample_inputs.items()})
+            waiting.append(_RandomisationRow(step, kinds, cameras, request, row))
+            if len(waiting) == opts.batch_size:
+                _explain_randomised(random_explainer, waiting, randomised, mesh, opts.batch_size)
+    if random_explainer is not None:
+        _explain_randomised(random_explainer, waiting, randomised, mesh, opts.batch_size)
+    report = _report(run, records, randomised, skipped, replay_diffs, opts)
+    report["devices"] = 1 if mesh is None else int(mesh.devices.size)
+    return report
+
+
+@dataclasses.dataclass
+class _RandomisationRow:
+    """A re-scored step waiting for its explanation by the randomised model."""
+
+    step: CAMStep
+    kinds: list[str]
+    cameras: list[str]
+    request: ExplainRequest
+    row: tuple[Observation, np.ndarray, dict[str, np.ndarray]]
+
+
+def _explain_randomised(
+    explainer: Explainer,
+    waiting: list[_RandomisationRow],
+    randomised: dict[tuple[str, str], list[tuple[np.ndarray, np.ndarray]]],
+    mesh: Mesh | None,
+    batch_size: int,
+) -> None:
+    """Explains the waiting steps with the randomised model, one call per request (padded to `batch_size` rows, so
+    every call reuses one program), and pairs each map with the step's own, in step order; empties `waiting`."""
+    results: dict[int, Explanation | ExplainSkipped] = {}
+    by_request: dict[ExplainRequest, list[int]] = {}
+    for i, w in enumerate(waiting):
+        by_request.setdefault(w.request, []).append(i)
+    for request, members in by_request.items():
+        rows = [waiting[i].row for i in members]
+        for i, result in zip(
+            members, explain_rows(explainer, rows, request, mesh=mesh, pad_to=batch_size), strict=True
+        ):
+            results[i] = result
+    for i, w in enumerate(waiting):
+        other = results[i]
+        if isinstance(other, ExplainSkipped):
+            continue
+        for k in w.kinds:
+            for c in w.cameras:
+                randomised.setdefault((k, c), []).append((w.step.maps_of(k)[c], other.maps[k][c]))
+    waiting.clear()
 
 
 def _request_indices(meta: Mapping[str, Any]) -> tuple[int, int]:

@@ -56,6 +56,7 @@ def main(
     baseline: Literal["run", "mean", "blur"] = "run",
     max_steps: int | None = None,
     random_orders: int = 8,
+    batch_size: int = 8,
     json_out: pathlib.Path | None = None,
     progress: bool = True,
 ) -> int:
@@ -76,6 +77,7 @@ def main(
         baseline: what deletion paints with: the baseline the run's ig / occlusion maps used (`run`), or one named.
         max_steps: evaluate at most this many steps, evenly spread over the run.
         random_orders: random patch orders averaged for the random reference.
+        batch_size: steps per call of the randomised model (sharded over all local devices, like `explain`).
         json_out: also write the full report (every figure with its 95% bootstrap interval) as JSON here.
         progress: show progress on stderr.
     """
@@ -90,7 +92,11 @@ def main(
             dtype=dtype,
         )
         opts = FaithfulnessOptions(
-            randomize=randomize, baseline=baseline, max_steps=max_steps, random_orders=random_orders
+            randomize=randomize,
+            baseline=baseline,
+            max_steps=max_steps,
+            random_orders=random_orders,
+            batch_size=batch_size,
         )
 
         def show(items, n):

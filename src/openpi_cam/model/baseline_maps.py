@@ -34,6 +34,7 @@ from openpi_cam.model.attribution import (
 )
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.paligemma import VLMConfig, embed_images
+from openpi_cam.model.sharding import spread
 
 ScoreFn = Callable[[jax.Array], jax.Array]  # image tokens [B, C, N, D] -> scores [T, B]
 
@@ -64,10 +65,10 @@ def _painted_scores(params, obs, cfg, score_fn, E, images, base, cams, masks, ch
         return score_fn(jnp.where(select == cam, tokens, E))
 
     k = cams.shape[0]
-    scores = jax.lax.map(
-        lambda chunk_args: jax.vmap(one)(*chunk_args),
-        (cams.reshape(k // chunk, chunk), masks.reshape(k // chunk, chunk, *masks.shape[1:])),
-    )
+    # Under a data mesh the variants of each chunk are spread over the devices (they never interact).
+    chunked_cams = spread(cams.reshape(k // chunk, chunk), 1)
+    chunked_masks = spread(masks.reshape(k // chunk, chunk, *masks.shape[1:]), 1)
+    scores = jax.lax.map(lambda chunk_args: jax.vmap(one)(*chunk_args), (chunked_cams, chunked_masks))
     return scores.reshape(k, *scores.shape[2:])
 
 

@@ -72,3 +72,14 @@ def preprocess_observation(
         mask = obs.image_masks.get(name)
         masks[name] = jnp.ones(batch_shape, jnp.bool_) if mask is None else jnp.asarray(mask)
     return dataclasses.replace(obs, images=images, image_masks=masks)
+
+
+def stack_observations(observations: Sequence[Observation]) -> Observation:
+    """B=1 observations of one config -> one [B, ...] observation (same cameras and shapes in every row)."""
+    return jax.tree.map(lambda *x: np.concatenate([np.asarray(a) for a in x]), *observations)
+
+
+def pad_rows(x: np.ndarray, rows: int) -> np.ndarray:
+    """Repeats the last row until `x` has `rows` rows (padding rows are computed and then dropped)."""
+    x = np.asarray(x)
+    return x if x.shape[0] == rows else np.concatenate([x, np.repeat(x[-1:], rows - x.shape[0], axis=0)])

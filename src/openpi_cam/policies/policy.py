@@ -20,7 +20,7 @@ from openpi_cam.errors import InvalidRequest
 from openpi_cam.image_tools import LetterboxGeometry, letterbox_geometry
 from openpi_cam.model.checkpoint import read_param_shapes
 from openpi_cam.model.config import MAX_DECODING_STEPS, family_of
-from openpi_cam.model.observation import Observation
+from openpi_cam.model.observation import Observation, pad_rows, stack_observations
 from openpi_cam.normalize import load_checkpoint_norm_stats
 from openpi_cam.policies.config import PolicyConfig, resolve_config
 from openpi_cam.policies.family import Explainer, OutputDecoder, Sampler
@@ -68,10 +68,6 @@ def batch_bucket(rows: int) -> int:
     if rows < 1:
         raise ValueError(f"a model call needs at least one request, got {rows}")
     return 1 << (rows - 1).bit_length()
-
-
-def _concat(*rows: Any) -> Any:
-    return np.concatenate([np.asarray(r) for r in rows])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -266,12 +262,14 @@ class Policy:
         """One model call for requests of one input signature, padded to a batch bucket (padding rows repeat the
         last request; their outputs are dropped); then each row's output transforms and trace."""
         rows = len(requests)
-        pad = batch_bucket(rows) - rows
-        observations = [r.observation for r in requests] + [requests[-1].observation] * pad
-        stacked = observations[0] if len(observations) == 1 else jax.tree.map(_concat, *observations)
+        padded = batch_bucket(rows)
+        observation = requests[0].observation
+        if padded > 1:
+            stacked = stack_observations([r.observation for r in requests])
+            observation = jax.tree.map(lambda x: pad_rows(x, padded), stacked)
         start = time.monotonic()
         try:
-            raw, drawn = self._sample(list(rngs) + [rngs[-1]] * pad, stacked, noise)
+            raw, drawn = self._sample(list(rngs) + [rngs[-1]] * (padded - rows), observation, noise)
         except Exception as e:  # every row of this call failed the same way
             return [e] * rows
         model_time = time.monotonic() - start
