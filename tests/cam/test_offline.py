@@ -369,7 +369,7 @@ def test_logger_resume_rejects_a_directory_that_is_not_a_run(tmp_path):
 _DATA_PARALLEL = textwrap.dedent(
     """
     import sys
-    sys.path[:0] = sys.argv[2:3]
+    sys.path[:0] = sys.argv[2:4]
     import jax, numpy as np
     from cam_support import demo_obs, policy_part
     from openpi_cam.cam.batching import data_mesh, explain_traces, shard_batch
@@ -400,7 +400,14 @@ def test_data_parallel_over_two_host_devices_matches_one_device(tmp_path):
         "PYTHONPATH": os.pathsep.join([str(REPO / "src"), os.environ.get("PYTHONPATH", "")]),
     }
     proc = subprocess.run(
-        [sys.executable, "-c", _DATA_PARALLEL, str(result), str(pathlib.Path(__file__).parent)],
+        [
+            sys.executable,
+            "-c",
+            _DATA_PARALLEL,
+            str(result),
+            str(pathlib.Path(__file__).parent),
+            str(REPO / "tests" / "support"),
+        ],
         env=env,
         capture_output=True,
         text=True,
