@@ -13,7 +13,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from real_clients import read_packed  # noqa: F401  (re-exported to the cam tests)
 
 from openpi_cam.demo import bundled, task
 from openpi_cam.policies.family import Explainer

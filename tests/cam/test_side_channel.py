@@ -26,13 +26,12 @@ from cam_support import (
     assert_pairwise_different,
     demo_obs,
     policy_part,
-    read_packed,
     strip_timing,
     write_packed,
 )
 from client_env import run_client
 from paths import REPO_ROOT
-from real_clients import get_stats
+from real_clients import get_stats, read_packed
 
 from openpi_cam.cam.runfmt import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam

@@ -215,7 +215,8 @@ def main(
         start = time.monotonic()
         sizes = (1,) if batch_window_ms is None else tuple(1 << i for i in range(max_batch.bit_length()))
         warmed = served.warm_up(sizes) if isinstance(served, CAMPolicy) else _warm_up_inference(policy, sizes)
-        logger.info("warmed up %s (batch sizes %s) in %.1f s", warmed, list(sizes), time.monotonic() - start)
+        batches = "" if batch_window_ms is None else f" (batch sizes {list(sizes)})"
+        logger.info("warmed up %s in %.1f s%s", warmed, time.monotonic() - start, batches)
     server = PolicyServer(
         served,
         host=host,
