@@ -7,14 +7,13 @@ so "same actions" checks can tell one request's response from another's.
 
 from __future__ import annotations
 
-import json
 import threading
 import time
-import urllib.request
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from real_clients import read_packed  # noqa: F401  (re-exported to the cam tests)
 
 from openpi_cam.demo import bundled, task
 from openpi_cam.policies.family import Explainer
@@ -121,15 +120,6 @@ class GatedExplainer:
 
 def write_packed(path: Path, value: Any) -> None:
     path.write_bytes(msgpack_numpy.packb(value))
-
-
-def read_packed(path: Path) -> Any:
-    return msgpack_numpy.unpackb(path.read_bytes())
-
-
-def get_stats(port: int) -> dict:
-    with urllib.request.urlopen(f"http://127.0.0.1:{port}/stats", timeout=10) as response:
-        return json.loads(response.read().decode())
 
 
 # Run in the client venv (numpy<2, the real openpi-client): sends every packed observation in ARGS["dir"], in order,

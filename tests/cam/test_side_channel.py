@@ -25,7 +25,6 @@ from cam_support import (
     WithExplainer,
     assert_pairwise_different,
     demo_obs,
-    get_stats,
     policy_part,
     read_packed,
     strip_timing,
@@ -33,6 +32,7 @@ from cam_support import (
 )
 from client_env import run_client
 from paths import REPO_ROOT
+from real_clients import get_stats
 
 from openpi_cam.cam.runfmt import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
@@ -567,21 +567,28 @@ jax.monitoring.register_event_duration_secs_listener(
 from demo_inputs import demo_observation
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.policies import demo_reach
+from openpi_cam.serving import RequestContext
 
 cam = wrap_policy_with_cam(demo_reach.create_demo_policy(), CAMOptions(every_k=1, cam_dir=tempfile.mkdtemp()))
-warmed = cam.warm_up() if sys.argv[1] == "warm" else None
+warmed = None if sys.argv[1] == "cold" else cam.warm_up((1, 2, 4) if sys.argv[1] == "warm-batched" else (1,))
 before = len(compiles)
 cam.infer(demo_observation(5))
+single = len(compiles) - before
+# Then three robots at once, as batched serving calls it (three rows run at batch size 4).
+cam.infer_batch([demo_observation(s) for s in (6, 7, 8)], [RequestContext(f"conn{i}", 0) for i in range(3)])
+batch = len(compiles) - before - single
 cam.close(120)
-print(json.dumps({"warmed": warmed, "compiles": len(compiles) - before, "stats": cam.stats()["gradcam"]}))
+print(json.dumps({"warmed": warmed, "single": single, "batch": batch, "stats": cam.stats()["gradcam"]}))
 """
 
 
 def test_warm_up_compiles_what_the_first_request_and_its_explanation_need():
     """`serve` warms up before listening: after `CAMPolicy.warm_up()` the first request and its explanation compile
-    nothing. Without the warm-up the same script counts compilations (18 + 4 measured), so the check can fail."""
+    nothing, and with batched serving's sizes warmed (1, 2, 4) neither does a batch of three. Without the warm-up the
+    same script counts compilations (18 + 4 measured), and a batch size that was not warmed compiles, so each check
+    can fail."""
     counts = {}
-    for mode in ("cold", "warm"):
+    for mode in ("cold", "warm", "warm-batched"):
         env = {
             **os.environ,
             "PYTHONPATH": os.pathsep.join([str(REPO_ROOT / "tests" / "support"), str(REPO_ROOT / "src")]),
@@ -591,10 +598,11 @@ def test_warm_up_compiles_what_the_first_request_and_its_explanation_need():
         )
         assert proc.returncode == 0, proc.stderr
         counts[mode] = json.loads(proc.stdout.strip().splitlines()[-1])
-        assert counts[mode]["stats"]["completed"] == 1, counts[mode]  # the request was explained in both modes
-    assert counts["cold"]["compiles"] > 0, counts
+        assert counts[mode]["stats"]["completed"] == 4, counts[mode]  # every request was explained in every mode
+    assert counts["cold"]["single"] > 0, counts
     assert counts["warm"]["warmed"] == "inference and the action-token explanation", counts
-    assert counts["warm"]["compiles"] == 0, counts
+    assert counts["warm"]["single"] == 0 and counts["warm"]["batch"] > 0, counts
+    assert counts["warm-batched"]["single"] == 0 and counts["warm-batched"]["batch"] == 0, counts
 
 
 def test_warm_up_leaves_the_served_rng_stream_and_counters_alone():

@@ -307,6 +307,22 @@ def test_stop_tokens_finish_each_row_on_its_own(tiny_fast_model: Pi0FAST, stop: 
     assert not np.asarray(tokens)[:, last + 1 :].any()
 
 
+@pytest.mark.parametrize("stop", [261, 678])
+def test_rows_alone_decodes_each_row_as_a_batch_of_one(tiny_fast_model: Pi0FAST, stop: int):
+    """Batched serving's decode (`rows_alone`): case_c's two rows reach the stop token at different steps; each row of
+    the batch equals that row decoded alone, zeros after its own stop included. Without `rows_alone` the row that
+    stops first keeps decoding until the other stops (what the assertion below would catch)."""
+    case = load_case("case_c")
+    obs = golden.load_observation(case, CAMERAS)
+    decode = functools.partial(tiny_fast_model.sample_actions, max_decoding_steps=16, stop_token_ids=(stop,))
+    alone = np.concatenate([np.asarray(decode(jax.random.key(0), jax.tree.map(lambda x, b=b: x[b : b + 1], obs)))
+                            for b in range(2)])  # fmt: skip
+    batched = np.asarray(decode(jax.random.key(0), obs, rows_alone=True))
+    np.testing.assert_array_equal(batched, alone)
+    upstream_rule = np.asarray(decode(jax.random.key(0), obs))
+    assert not np.array_equal(upstream_rule, alone)  # the case really tells the two rules apart
+
+
 def test_temperature_sampling_is_seeded(tiny_fast_model: Pi0FAST):
     obs = golden.load_observation(load_case("case_a"), CAMERAS)
     a = np.asarray(tiny_fast_model.sample_actions(jax.random.key(3), obs, max_decoding_steps=8, temperature=1.0))

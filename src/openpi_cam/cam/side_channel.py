@@ -30,7 +30,7 @@ import logging
 import pathlib
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any, Protocol
 
 import numpy as np
@@ -59,7 +59,11 @@ class TracedPolicy(Protocol):
 
     def infer_traced(self, obs: Mapping[str, Any]) -> tuple[dict[str, Any], InferenceTrace]: ...
 
-    def warm_up(self) -> InferenceTrace | None: ...
+    def infer_batch_traced(
+        self, observations: Sequence[Mapping[str, Any]]
+    ) -> list[tuple[dict[str, Any], InferenceTrace] | Exception]: ...
+
+    def warm_up(self, batch_sizes: Sequence[int] = (1,)) -> InferenceTrace | None: ...
 
     def stats(self) -> dict[str, Any]: ...
 
@@ -219,50 +223,89 @@ class CAMPolicy:
 
     def infer(self, obs: dict[str, Any], context: object = None) -> dict[str, Any]:
         obs, extra = split_extra(obs)
-        connection = str(getattr(context, "connection_id", "local"))
-        with self._lock:
-            step = self._steps.get(connection, 0)
-            self._steps[connection] = step + 1
-            self._inflight += 1  # from here until the finally below, the worker starts nothing
+        ((connection, step, scheduled),) = self._begin_inference([context])
         try:
-            every_k = self._options.every_k
-            if self._logger is None or self._closed or every_k == 0 or step % every_k:
+            if not scheduled:
                 return self._policy.infer(obs, context)
             response, trace = self._policy.infer_traced(obs)
-            ended = time.monotonic()
-            self.count("scheduled")
-            if self._options.save_frames not in ("raw", "both"):
-                # A pending job keeps only model-size inputs: client frames (up to the message limit each) are not
-                # held while the job waits when they will not be written.
-                trace = dataclasses.replace(trace, raw_images=dict.fromkeys(trace.raw_images))
-            try:
-                kept, dropped = bounded_extra(extra, self._options.max_extra_value_bytes, self._options.max_extra_bytes)
-                if dropped:
-                    self.count("extra_dropped", f"cam_extra values over the size limits dropped: {dropped[:3]}")
-                    kept["extra_dropped"] = dropped
-                job = _Job(trace, connection, step, time.time(), kept, ended)
-                with self._lock:  # a job queued after the drain began would be lost without a trace
-                    if self._closed:
-                        self.count("not_queued_closing", "the side channel closed while this inference ran")
-                    else:
-                        superseded, dropped_jobs = self._pending.add(job)
-                        if superseded:
-                            self.count("superseded", n=superseded)
-                        if dropped_jobs:
-                            self.count(
-                                "dropped_queue_full",
-                                "queue full: the oldest job of the connection with the most pending jobs dropped",
-                                n=dropped_jobs,
-                            )
-            except Exception as e:  # the side channel never reaches the client
-                self.count(f"enqueue_error_{type(e).__name__}", f"could not queue a job: {e}")
+            self._enqueue(trace, connection, step, extra, time.monotonic())
             return response
         finally:
-            with self._cond:
-                self._inflight -= 1
-                self._last_end = time.monotonic()
-                if self._inflight == 0:
-                    self._cond.notify_all()
+            self._end_inference()
+
+    def infer_batch(
+        self, observations: Sequence[dict[str, Any]], contexts: Sequence[object]
+    ) -> list[dict[str, Any] | Exception]:
+        """Batched serving: one model call for requests of several connections, each answered (or its exception
+        returned in its slot) as `infer` would; scheduled ones are explained like any other."""
+        split = [split_extra(obs) for obs in observations]
+        rows = self._begin_inference(contexts)
+        try:
+            results = self._policy.infer_batch_traced([obs for obs, _ in split])
+            ended = time.monotonic()
+            responses: list[dict[str, Any] | Exception] = []
+            for (_, extra), (connection, step, scheduled), result in zip(split, rows, results, strict=True):
+                if isinstance(result, Exception):
+                    responses.append(result)
+                    continue
+                response, trace = result
+                if scheduled:
+                    self._enqueue(trace, connection, step, extra, ended)
+                responses.append(response)
+            return responses
+        finally:
+            self._end_inference()
+
+    def _begin_inference(self, contexts: Sequence[object]) -> list[tuple[str, int, bool]]:
+        """Counts one inference in flight (the worker starts nothing until it ends) and numbers its requests per
+        connection: (connection, step, whether the step is explained) per request."""
+        every_k = self._options.every_k
+        rows = []
+        with self._lock:
+            self._inflight += 1
+            for context in contexts:
+                connection = str(getattr(context, "connection_id", "local"))
+                step = self._steps.get(connection, 0)
+                self._steps[connection] = step + 1
+                off = self._logger is None or self._closed or every_k == 0 or step % every_k
+                rows.append((connection, step, not off))
+        return rows
+
+    def _end_inference(self) -> None:
+        with self._cond:
+            self._inflight -= 1
+            self._last_end = time.monotonic()
+            if self._inflight == 0:
+                self._cond.notify_all()
+
+    def _enqueue(self, trace: InferenceTrace, connection: str, step: int, extra: dict[str, Any], ended: float) -> None:
+        """Queues the explanation of one served inference; never raises (the side channel never reaches a client)."""
+        self.count("scheduled")
+        if self._options.save_frames not in ("raw", "both"):
+            # A pending job keeps only model-size inputs: client frames (up to the message limit each) are not held
+            # while the job waits when they will not be written.
+            trace = dataclasses.replace(trace, raw_images=dict.fromkeys(trace.raw_images))
+        try:
+            kept, dropped = bounded_extra(extra, self._options.max_extra_value_bytes, self._options.max_extra_bytes)
+            if dropped:
+                self.count("extra_dropped", f"cam_extra values over the size limits dropped: {dropped[:3]}")
+                kept["extra_dropped"] = dropped
+            job = _Job(trace, connection, step, time.time(), kept, ended)
+            with self._lock:  # a job queued after the drain began would be lost without a trace
+                if self._closed:
+                    self.count("not_queued_closing", "the side channel closed while this inference ran")
+                    return
+                superseded, dropped_jobs = self._pending.add(job)
+            if superseded:
+                self.count("superseded", n=superseded)
+            if dropped_jobs:
+                self.count(
+                    "dropped_queue_full",
+                    "queue full: the oldest job of the connection with the most pending jobs dropped",
+                    n=dropped_jobs,
+                )
+        except Exception as e:
+            self.count(f"enqueue_error_{type(e).__name__}", f"could not queue a job: {e}")
 
     def _work(self) -> None:
         while True:
@@ -411,10 +454,11 @@ class CAMPolicy:
         """Whether the worker is still running (after `close`: an explanation outlived the drain deadline)."""
         return self._worker.is_alive()
 
-    def warm_up(self) -> str:
-        """Compiles inference and, when steps are recorded, the configured explanation on the robot's example
-        observation, before the server reports ready; nothing is logged or counted. Returns what was warmed."""
-        trace = self._policy.warm_up()
+    def warm_up(self, batch_sizes: Sequence[int] = (1,)) -> str:
+        """Compiles inference (at each of `batch_sizes`) and, when steps are recorded, the configured explanation on
+        the robot's example observation, before the server reports ready; nothing is logged or counted. Returns what
+        was warmed."""
+        trace = self._policy.warm_up(batch_sizes)
         if trace is None:
             return "nothing (the robot transform offers no example observation)"
         if self._logger is None or self._options.every_k == 0:

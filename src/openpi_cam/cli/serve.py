@@ -60,6 +60,8 @@ def main(
     cam_max_extra_value_kb: float = 16.0,
     cam_max_extra_kb: float = 64.0,
     warm_up: bool = True,
+    batch_window_ms: float | None = None,
+    max_batch: int = 8,
 ) -> int:
     """Serve a pi0-FAST checkpoint over websockets (openpi-client compatible), optionally logging Grad-CAM.
 
@@ -108,6 +110,11 @@ def main(
         cam_max_extra_kb: all `cam_extra/` values a step stores together.
         warm_up: compile inference (and the side channel's explanation) on the robot's example observation before
             listening, so `/healthz` answers only once the first request will not wait for compilation.
+        batch_window_ms: serve a fleet in batches: requests from all connections arriving within this many ms of the
+            first share one model call, each row answered as if served alone (README, "Serving a fleet"). None: one
+            request per model call, as upstream.
+        max_batch: requests per batched call at most, a power of two (calls run at power-of-two batch sizes: one
+            compiled program each, all compiled at warm-up).
     """
     # force: importing orbax has already put a handler on the root logger; ours gives every line a time stamp. INFO
     # for this package only (readiness, connections, shutdown); libraries stay at WARNING.
@@ -122,6 +129,13 @@ def main(
         return 2
     if cam_drain_timeout < 0:
         print(f"openpi-cam serve: --cam-drain-timeout must be >= 0, got {cam_drain_timeout}", file=sys.stderr)
+        return 2
+    if batch_window_ms is not None and (batch_window_ms < 0 or max_batch < 1 or max_batch & (max_batch - 1)):
+        print(
+            f"openpi-cam serve: need --batch-window-ms >= 0 and --max-batch a power of two, got {batch_window_ms} "
+            f"and {max_batch}",
+            file=sys.stderr,
+        )
         return 2
     if cam_every_k < 0:
         print(f"openpi-cam serve: --cam-every-k must be >= 0, got {cam_every_k}", file=sys.stderr)
@@ -191,10 +205,17 @@ def main(
         served = wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=str(checkpoint_dir))
         logger.info("Grad-CAM on: every %d requests, target %s, writing to %s", cam_every_k, cam_target, cam_dir)
 
+    if batch_window_ms is not None and policy.model.family != "pi0_fast":
+        logger.warning(
+            "batched %s serving: actions match serving each request alone only to floating-point rounding (batched "
+            "matrix products round differently; README, 'Serving a fleet')",
+            policy.model.family,
+        )
     if warm_up:
         start = time.monotonic()
-        warmed = served.warm_up() if isinstance(served, CAMPolicy) else _warm_up_inference(policy)
-        logger.info("warmed up %s in %.1f s", warmed, time.monotonic() - start)
+        sizes = (1,) if batch_window_ms is None else tuple(1 << i for i in range(max_batch.bit_length()))
+        warmed = served.warm_up(sizes) if isinstance(served, CAMPolicy) else _warm_up_inference(policy, sizes)
+        logger.info("warmed up %s (batch sizes %s) in %.1f s", warmed, list(sizes), time.monotonic() - start)
     server = PolicyServer(
         served,
         host=host,
@@ -206,6 +227,8 @@ def main(
         max_buffered_bytes=int(max_buffered_mb * 1024 * 1024),
         debug=debug,
         close_timeout=cam_drain_timeout,
+        batch_window_ms=batch_window_ms,
+        max_batch=max_batch,
     )
     server.serve_forever()
     if isinstance(served, CAMPolicy) and served.computing:
@@ -217,5 +240,5 @@ def main(
     return 0
 
 
-def _warm_up_inference(policy: Policy) -> str:
-    return "inference" if policy.warm_up() is not None else "nothing (the robot transform offers no example)"
+def _warm_up_inference(policy: Policy, batch_sizes: tuple[int, ...]) -> str:
+    return "inference" if policy.warm_up(batch_sizes) is not None else "nothing (the robot transform offers no example)"

@@ -99,13 +99,18 @@ def sample_tokens(
     temperature: float,
     stop_token_ids: tuple[int, ...] = (),
     record_logits: bool = False,
+    rows_alone: bool = False,
 ) -> tuple[jax.Array, jax.Array, jax.Array | None]:
     """Prefill then KV-cache decoding in one compiled while-loop, as upstream's `sample_actions`.
 
     Returns (tokens int32 [B, S], number of loop iterations run, and with `record_logits` the logits that chose each
     token [B, S, V], for parity checks). Decoding stops when every row's current token is EOS; with
     `stop_token_ids` (opt-in, not upstream) a row is also finished once it has emitted one of them, and decoding
-    stops when every row has finished."""
+    stops when every row has finished. `rows_alone` (batched serving) makes each row's tokens what decoding it in a
+    batch of one gives: a row is finished at its own EOS (or stop token) and its later slots stay zero, as they would
+    after the loop stopped for it alone (upstream's rule, every row at EOS at the same step, only agrees for B = 1)."""
+    if rows_alone and temperature > 0.0:
+        raise ValueError("rows_alone decodes greedily only: sampling would need one rng per row")
     llm = params["PaliGemma"]["llm"]
     obs = preprocess_observation(obs, cfg.image_resolution)
     x, input_mask, ar_mask = embed_prefix(params, embed_images(params, obs, cfg), obs, cfg)
@@ -124,8 +129,10 @@ def sample_tokens(
         else:
             token = jnp.argmax(last_logit, axis=-1)
         token = token.astype(jnp.int32)  # [B]
+        if rows_alone:
+            token = jnp.where(finished, 0, token)
         tokens = tokens.at[:, step].set(token)
-        if stop_token_ids:
+        if rows_alone or stop_token_ids:
             finished = finished | jnp.isin(token, stop_ids)
             done = jnp.all(finished)
         else:
@@ -156,7 +163,8 @@ def sample_tokens(
 
 # One compiled program per (shape, config, decoding settings); shared by every model object.
 sample_tokens_jit = jax.jit(
-    sample_tokens, static_argnames=("cfg", "max_decoding_steps", "temperature", "stop_token_ids", "record_logits")
+    sample_tokens,
+    static_argnames=("cfg", "max_decoding_steps", "temperature", "stop_token_ids", "record_logits", "rows_alone"),
 )
 
 
@@ -258,8 +266,10 @@ class Pi0FAST:
         max_decoding_steps: int = MAX_DECODING_STEPS,
         temperature: float = 0.0,
         stop_token_ids: Sequence[int] = (),
+        rows_alone: bool = False,
     ) -> jax.Array:
-        """Generated token ids, int32 [B, max_decoding_steps] (zeros after the loop stopped), as upstream."""
+        """Generated token ids, int32 [B, max_decoding_steps] (zeros after the loop stopped), as upstream;
+        `rows_alone`: each row as decoded in a batch of one (`sample_tokens`)."""
         return sample_tokens_jit(
             self.params,
             observation,
@@ -268,6 +278,7 @@ class Pi0FAST:
             max_decoding_steps=int(max_decoding_steps),
             temperature=float(temperature),
             stop_token_ids=tuple(int(t) for t in stop_token_ids),
+            rows_alone=rows_alone,
         )[0]
 
     def embed_images(self, observation: Observation) -> jax.Array:

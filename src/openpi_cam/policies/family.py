@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any, Literal, Protocol, get_args
 
 import jax
@@ -124,11 +124,12 @@ class OutputDecoder(Protocol):
 
 
 class Sampler(Protocol):
-    """A family's inference: (raw output [B, ...], what else was drawn, e.g. {"noise": [B, H, A]}); `noise` None
-    draws it from `rng` as upstream does."""
+    """A family's inference over B requests: (raw output [B, ...], what else was drawn, e.g. {"noise": [B, H, A]}).
+    Row i is what sampling request i alone with `rngs[i]` gives (B = 1 is upstream's call); `noise` None draws it
+    from the rngs as upstream does."""
 
     def __call__(
-        self, rng: jax.Array, observation: Observation, noise: np.ndarray | None
+        self, rngs: Sequence[jax.Array], observation: Observation, noise: np.ndarray | None
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]: ...
 
 

@@ -10,7 +10,7 @@ difference is stored per step as `replay_max_abs_diff`).
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -141,17 +141,20 @@ def build_pi0(
             f"action projections have {model.config.action_dim}"
         )
 
-    def sample(rng: jax.Array, observation: Observation, noise: np.ndarray | None) -> tuple[np.ndarray, dict]:
+    def sample(
+        rngs: Sequence[jax.Array], observation: Observation, noise: np.ndarray | None
+    ) -> tuple[np.ndarray, dict]:
         shape = (observation.state.shape[0], model.config.action_horizon, model.config.action_dim)
         if noise is None:
-            drawn = jax.random.normal(rng, shape)  # what upstream's sample_actions draws from the same key
+            # Each row's noise is what upstream's sample_actions draws from that request's key for a batch of one.
+            drawn = jnp.concatenate([jax.random.normal(rng, (1, *shape[1:])) for rng in rngs])
         elif np.size(noise) != np.prod(shape):
             raise InvalidRequest(
                 f"noise must have shape {list(shape[1:])} (horizon, action dim), got {np.shape(noise)}"
             )
         else:
             drawn = jnp.asarray(noise, jnp.float32).reshape(shape)
-        actions = jax.block_until_ready(model.sample_actions(rng, observation, noise=drawn))
+        actions = jax.block_until_ready(model.sample_actions(rngs[0], observation, noise=drawn))
         return np.asarray(actions), {"noise": np.asarray(drawn)}
 
     tokenize = (TokenizePrompt(tokenizer, config.discrete_state_input), PadStatesAndActions(config.action_dim))

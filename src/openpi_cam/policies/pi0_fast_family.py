@@ -224,10 +224,16 @@ def build_pi0_fast(
     )
     stop_ids = tuple(tokenizer.end_of_action_token_ids) if stop_at_action_end else ()
 
-    def sample(rng: jax.Array, observation: Observation, noise: np.ndarray | None) -> tuple[np.ndarray, dict]:
+    def sample(
+        rngs: Sequence[jax.Array], observation: Observation, noise: np.ndarray | None
+    ) -> tuple[np.ndarray, dict]:
         if noise is not None:
             raise InvalidRequest("pi0-FAST decodes tokens: it takes no noise")
-        tokens = model.sample_actions(rng, observation, max_decoding_steps=max_decoding_steps, stop_token_ids=stop_ids)
+        # Greedy decoding draws nothing from the rng; `rows_alone` ends each row at its own EOS, as if served alone
+        # (for one row it is upstream's loop).
+        tokens = model.sample_actions(
+            rngs[0], observation, max_decoding_steps=max_decoding_steps, stop_token_ids=stop_ids, rows_alone=True
+        )
         return np.asarray(jax.block_until_ready(tokens)).astype(np.int32), {}
 
     decoder = ExtractFASTActions(tokenizer, action_horizon=config.action_horizon, action_dim=config.action_dim)

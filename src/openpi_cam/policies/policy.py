@@ -62,6 +62,35 @@ class InferenceTrace:
         return self.observation.camera_names
 
 
+def batch_bucket(rows: int) -> int:
+    """The batch size a model call of `rows` requests runs at: the next power of two, so that a batched server
+    compiles one program per bucket (1, 2, 4, 8, ...) rather than one per request count."""
+    if rows < 1:
+        raise ValueError(f"a model call needs at least one request, got {rows}")
+    return 1 << (rows - 1).bit_length()
+
+
+def _concat(*rows: Any) -> Any:
+    return np.concatenate([np.asarray(r) for r in rows])
+
+
+@dataclasses.dataclass(frozen=True)
+class _Prepared:
+    """One request after the input transforms: the model input (B = 1) and what its trace needs."""
+
+    observation: Observation
+    state: np.ndarray  # the state the output transforms see
+    pre_resize_images: dict[str, np.ndarray]
+    prompt: str
+    camera_sources: Mapping[str, str | None]
+
+    @property
+    def signature(self) -> tuple:
+        """What must agree for two requests to share a model call: tree structure, shapes and dtypes."""
+        leaves, treedef = jax.tree.flatten(self.observation)
+        return treedef, tuple((np.shape(x), np.asarray(x).dtype.str) for x in leaves)
+
+
 def _copy_containers(tree: Any) -> Any:
     # Transforms may modify dicts in place; the client's own containers must stay untouched (upstream copies too).
     if isinstance(tree, Mapping):
@@ -144,9 +173,76 @@ class Policy:
         """Upstream's `Policy.infer`; `noise` [horizon, action dim] fixes a flow-matching policy's noise."""
         return self.infer_traced(obs, noise=noise)[0]
 
+    def infer_batch(
+        self, observations: Sequence[Mapping[str, Any]], contexts: Sequence[object] = ()
+    ) -> list[dict[str, Any] | Exception]:
+        """Batched serving (`infer_batch_traced`) without the traces: one response or exception per request."""
+        return [r if isinstance(r, Exception) else r[0] for r in self.infer_batch_traced(observations)]
+
     def infer_traced(
         self, obs: Mapping[str, Any], *, noise: np.ndarray | None = None
     ) -> tuple[dict[str, Any], InferenceTrace]:
+        request = self._prepare(obs)
+        with self._lock:  # like upstream: the policy's rng is split once per call
+            self._rng, sample_rng = jax.random.split(self._rng)
+        (result,) = self._serve([request], [sample_rng], noise)
+        if isinstance(result, Exception):
+            raise result
+        return result
+
+    def infer_batch_traced(
+        self, observations: Sequence[Mapping[str, Any]]
+    ) -> list[tuple[dict[str, Any], InferenceTrace] | Exception]:
+        """Several requests (e.g. from different robots) in one model call per input shape. Row i gets what
+        `infer_traced(observations[i])` returns when the requests are served one after another in this order: the
+        rng is split once per valid request, in order, and the sampler decodes each row as if alone. A request that
+        fails gets its exception in its slot; the others are still served."""
+        results: list[tuple[dict[str, Any], InferenceTrace] | Exception | None] = []
+        prepared: list[tuple[int, _Prepared]] = []
+        for i, obs in enumerate(observations):
+            try:
+                prepared.append((i, self._prepare(obs)))
+                results.append(None)
+            except Exception as e:  # this request's own problem: its slot says so, the batch goes on
+                results.append(e)
+        with self._lock:
+            rngs = []
+            for _ in prepared:
+                self._rng, sample_rng = jax.random.split(self._rng)
+                rngs.append(sample_rng)
+        # Rows are stacked only when their model inputs have the same shapes (a robot with another camera set or
+        # state size is its own group).
+        groups: dict[Any, list[int]] = {}
+        for k, (_, request) in enumerate(prepared):
+            groups.setdefault(request.signature, []).append(k)
+        for members in groups.values():
+            served = self._serve([prepared[k][1] for k in members], [rngs[k] for k in members], None)
+            for k, result in zip(members, served, strict=True):
+                results[prepared[k][0]] = result
+        return results  # type: ignore[return-value]  (every slot is filled above)
+
+    def warm_up(self, batch_sizes: Sequence[int] = (1,)) -> InferenceTrace | None:
+        """Compiles inference for the served shapes (and each of `batch_sizes`, for batched serving) by running the
+        robot's example observation (model inputs have fixed shapes whatever the client's image size), so the first
+        request does not wait for XLA. The policy's rng stream and counters are untouched: served actions stay
+        upstream's. Returns the example's trace (the side channel warms its explanation with it), or None when the
+        robot transform offers no example."""
+        example = example_observation(self._robot_inputs)
+        if example is None:
+            return None
+        request = self._prepare(example)
+        with self._lock:
+            _, sample_rng = jax.random.split(self._rng)  # compiles the per-request split; self._rng is not advanced
+        traces = []
+        for size in sorted({batch_bucket(n) for n in batch_sizes}):
+            result = self._serve([request] * size, [sample_rng] * size, None, count=False)[0]
+            if isinstance(result, Exception):
+                raise result
+            traces.append(result[1])
+        return traces[0]
+
+    def _prepare(self, obs: Mapping[str, Any]) -> _Prepared:
+        """Validates one request and runs the input transforms (on a copy: the client's containers stay as sent)."""
         if not isinstance(obs, Mapping):
             raise InvalidRequest(f"an observation must be a dict, got {type(obs).__name__}")
         if "actions" in obs:
@@ -154,62 +250,61 @@ class Policy:
             raise InvalidRequest("'actions' must not be sent with an observation")
         camera_sources = self._robot_inputs.camera_sources_for(obs)
         inputs, pre_resize_images, prompt = self._apply_inputs(_copy_containers(obs))
-
-        # Like upstream: the policy's rng is split once per call.
-        with self._lock:
-            self._rng, sample_rng = jax.random.split(self._rng)
-        outputs, trace = self._run(inputs, pre_resize_images, prompt, camera_sources, sample_rng, noise)
-        self._malformed.count(_REQUESTS)
-        if trace.malformed_reason is not None:
-            self._malformed.count(trace.malformed_reason, "the model's output decodes to no actions")
-        return outputs, trace
-
-    def warm_up(self) -> InferenceTrace | None:
-        """Compiles inference for the served shapes by running the robot's example observation (model inputs have
-        fixed shapes whatever the client's image size), so the first request does not wait for XLA. The policy's rng
-        stream and counters are untouched: served actions stay upstream's. Returns the example's trace (the side
-        channel warms its explanation with it), or None when the robot transform offers no example."""
-        example = example_observation(self._robot_inputs)
-        if example is None:
-            return None
-        camera_sources = self._robot_inputs.camera_sources_for(example)
-        inputs, pre_resize_images, prompt = self._apply_inputs(example)
-        with self._lock:
-            _, sample_rng = jax.random.split(self._rng)  # compiles the per-request split; self._rng is not advanced
-        return self._run(inputs, pre_resize_images, prompt, camera_sources, sample_rng, None)[1]
-
-    def _run(
-        self,
-        inputs: DataDict,
-        pre_resize_images: dict[str, np.ndarray],
-        prompt: str,
-        camera_sources: Mapping[str, str | None],
-        sample_rng: jax.Array,
-        noise: np.ndarray | None,
-    ) -> tuple[dict[str, Any], InferenceTrace]:
         # A leading batch axis on every leaf (jax pytree order, i.e. cameras sorted by name), as upstream.
         batched = jax.tree.map(lambda x: jnp.asarray(x)[np.newaxis, ...], inputs)
-        observation = Observation.from_dict(batched)
+        return _Prepared(Observation.from_dict(batched), np.asarray(batched["state"][0]), pre_resize_images, prompt,
+                         camera_sources)  # fmt: skip
 
+    def _serve(
+        self,
+        requests: Sequence[_Prepared],
+        rngs: Sequence[jax.Array],
+        noise: np.ndarray | None,
+        *,
+        count: bool = True,
+    ) -> list[tuple[dict[str, Any], InferenceTrace] | Exception]:
+        """One model call for requests of one input signature, padded to a batch bucket (padding rows repeat the
+        last request; their outputs are dropped); then each row's output transforms and trace."""
+        rows = len(requests)
+        pad = batch_bucket(rows) - rows
+        observations = [r.observation for r in requests] + [requests[-1].observation] * pad
+        stacked = observations[0] if len(observations) == 1 else jax.tree.map(_concat, *observations)
         start = time.monotonic()
-        raw, drawn = self._sample(sample_rng, observation, noise)
+        try:
+            raw, drawn = self._sample(list(rngs) + [rngs[-1]] * pad, stacked, noise)
+        except Exception as e:  # every row of this call failed the same way
+            return [e] * rows
         model_time = time.monotonic() - start
+        results: list[tuple[dict[str, Any], InferenceTrace] | Exception] = []
+        for i, request in enumerate(requests):
+            try:
+                results.append(self._finish(request, raw[i], {k: v[i] for k, v in drawn.items()}, model_time))
+            except Exception as e:
+                results.append(e)
+                continue
+            if count:
+                self._malformed.count(_REQUESTS)
+                if (reason := results[-1][1].malformed_reason) is not None:
+                    self._malformed.count(reason, "the model's output decodes to no actions")
+        return results
 
-        output = np.asarray(raw[0])
-        state = np.asarray(batched["state"][0])
+    def _finish(
+        self, request: _Prepared, raw: np.ndarray, drawn: dict[str, np.ndarray], model_time: float
+    ) -> tuple[dict[str, Any], InferenceTrace]:
+        output = np.asarray(raw)
         actions, reason = self._decoder.extract(output)
-        outputs = self._output_transform({"state": state, "actions": actions})
+        outputs = self._output_transform({"state": request.state, "actions": actions})
         outputs["policy_timing"] = {"infer_ms": model_time * 1000}
-
-        cameras = observation.camera_names
+        cameras = request.observation.camera_names
+        images, sources = request.pre_resize_images, request.camera_sources
         trace = InferenceTrace(
-            observation=observation,
+            observation=request.observation,
             output=output,
-            sample_inputs={k: np.asarray(v)[0] for k, v in drawn.items()},
-            raw_images={c: None if camera_sources.get(c) is None else pre_resize_images[c] for c in cameras},
-            camera_sources={c: camera_sources.get(c) for c in cameras},
-            geometry={c: letterbox_geometry(*pre_resize_images[c].shape[-3:-1], *self._resolution) for c in cameras},
-            prompt=prompt,
+            sample_inputs={k: np.asarray(v) for k, v in drawn.items()},
+            raw_images={c: None if sources.get(c) is None else images[c] for c in cameras},
+            camera_sources={c: sources.get(c) for c in cameras},
+            geometry={c: letterbox_geometry(*images[c].shape[-3:-1], *self._resolution) for c in cameras},
+            prompt=request.prompt,
             malformed_reason=reason,
         )
         return outputs, trace

@@ -35,6 +35,7 @@ import websockets.asyncio.server as ws_server
 
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.serving import RequestContext, msgpack_numpy
+from openpi_cam.serving.batching import RequestBatcher
 
 logger = logging.getLogger(__name__)
 
@@ -106,9 +107,10 @@ def _json_default(obj: Any) -> Any:
 class PolicyServer:
     """Serves `policy` over websockets; see the module docstring for the protocol.
 
-    `policy` needs `infer(obs, context)`; `stats()` (merged into `/stats`), `begin_close(timeout)` (called as soon as a
-    stop is requested, must not block) and `close(timeout)` (called once in-flight requests are answered) are used
-    when present.
+    `policy` needs `infer(obs, context)`, and `infer_batch(observations, contexts)` with `batch_window_ms` (requests
+    from all connections arriving within that many ms share one call of up to `max_batch`: `serving.batching`).
+    `stats()` (merged into `/stats`), `begin_close(timeout)` (called as soon as a stop is requested, must not block)
+    and `close(timeout)` (called once in-flight requests are answered) are used when present.
     """
 
     def __init__(
@@ -126,13 +128,24 @@ class PolicyServer:
         close_timeout: float = 60.0,
         max_connections: int = 64,
         max_buffered_bytes: int = DEFAULT_MAX_BUFFERED_BYTES,
+        batch_window_ms: float | None = None,
+        max_batch: int = 8,
     ) -> None:
         if max_message_bytes <= 0 or max_connections < 1 or max_buffered_bytes < max_message_bytes:
             raise ValueError(
                 "max_message_bytes and max_connections must be positive and max_buffered_bytes >= max_message_bytes, "
                 f"got {max_message_bytes}, {max_connections}, {max_buffered_bytes}"
             )
+        if batch_window_ms is not None and not callable(getattr(policy, "infer_batch", None)):
+            raise ValueError(f"batched serving needs a policy with infer_batch; {type(policy).__name__} has none")
+        if batch_window_ms is not None and (batch_window_ms < 0 or max_batch < 1):
+            raise ValueError(
+                f"batch_window_ms >= 0 and max_batch >= 1 are required, got {batch_window_ms}, {max_batch}"
+            )
         self._policy = policy
+        self._batch_window_ms = batch_window_ms
+        self._max_batch = max_batch
+        self._batcher: RequestBatcher | None = None
         self._host = host
         self._port = port
         self._metadata_frame = msgpack_numpy.packb(metadata or {})  # fails here, not per connection
@@ -186,6 +199,16 @@ class PolicyServer:
                 self._host,
             )
         executor = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="policy-infer")
+        batching: asyncio.Task | None = None
+        if self._batch_window_ms is not None:
+            self._batcher = RequestBatcher(
+                self._policy,  # type: ignore[arg-type]  (checked in __init__)
+                executor,
+                window_s=self._batch_window_ms / 1000,
+                max_batch=self._max_batch,
+                open_connections=lambda: len(self._connections),
+            )
+            batching = asyncio.create_task(self._batcher.run())
         try:
             async with ws_server.serve(
                 lambda ws: self._handle(ws, executor),
@@ -210,6 +233,8 @@ class PolicyServer:
                     begin_close(self._close_timeout)
                 await self._shutdown(server)
         finally:
+            if batching is not None:
+                batching.cancel()  # every connection has been answered and closed by now
             executor.shutdown(wait=True)
         close = getattr(self._policy, "close", None)
         if self._close_policy_on_stop and callable(close):
@@ -264,6 +289,8 @@ class PolicyServer:
     async def stats(self) -> dict[str, Any]:
         """The `/stats` document: server counters plus `policy.stats()` under "policy"."""
         snapshot = self._stats.snapshot(len(self._connections))
+        if self._batcher is not None:
+            snapshot["batching"] = self._batcher.stats()
         policy_stats = getattr(self._policy, "stats", None)
         if callable(policy_stats):
             try:
@@ -353,7 +380,11 @@ class PolicyServer:
             # Off the event loop: a large frame must not stall /healthz and the other connections while it decodes.
             obs = await asyncio.to_thread(msgpack_numpy.unpack_request, frame)
             kind = "invalid_request"
-            result, infer_ms = await asyncio.get_running_loop().run_in_executor(executor, self._infer, obs, context)
+            if self._batcher is not None:
+                result, infer_ms = await self._batcher.infer(obs, context)
+            else:
+                loop = asyncio.get_running_loop()
+                result, infer_ms = await loop.run_in_executor(executor, self._infer, obs, context)
             kind = "internal"
             if not isinstance(result, dict):
                 raise TypeError(f"policy returned {type(result).__name__}, expected a dict")
