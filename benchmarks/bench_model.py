@@ -1,135 +1,243 @@
-"""Model and Grad-CAM timings for a small pi0-FAST, measured side by side in one run.
+"""What an explanation costs next to the forward pass it explains, for a pi0-FAST of medium size, side by side in one
+run; with `--upstream-python` / `--upstream-src` also upstream's own prefill on the same weights and inputs.
 
-    python benchmarks/bench_model.py [--width 256 --depth 4 --steps 64 --repeats 5]
+    python benchmarks/bench_model.py                       # issue 19's medium model: ours only
+    python benchmarks/bench_model.py --upstream-python /path/upstream_env/bin/python --upstream-src /path/openpi
 
-Prints a table: prefill time, per-token decode time, compilations over repeated calls, and the Grad-CAM ratios
-(one token vs inference, one token vs the prefill forward, all action tokens in one call vs a per-token loop).
-Random weights: timings do not depend on the values, and greedy decoding runs all `--steps` (no EOS early stop
-unless it happens to be sampled, which the table reports).
+Model (defaults): Gemma width 512 x depth 4 (4 heads of 128, one KV head, MLP 2048) with PaliGemma's vocabulary
+(257152), SigLIP width 256 x depth 4, 3 cameras x 256 tokens + 48 prompt tokens = 816 prefix tokens, float32, random
+weights (timings do not depend on the values). The decode has upstream's 256 slots and generated `--generated` tokens
+(random ids fed back: teacher forcing does not depend on where they came from); "action tokens" are the last
+`--tokens` of them. Rows:
+  prefill                ours vs upstream's (same tokens: the last slot's logits are compared), both keeping the
+                         last slot's logits and the KV cache of prefix + 256 slots
+  teacher-forced forward SigLIP + prefix + the generated tokens up to the last one, the explained logit: what an
+                         explanation of the last generated token differentiates (its replay, cut as it cuts it)
+  one token              gradcam + gradnorm of the last generated token; also with the replay at all 256 slots (the
+                         cut at the last explained step disabled, the other savings kept)
+  action tokens          all of them in one call (one forward, one backward each) vs a loop of one-token calls
+Every row runs in each of `--rounds` rounds (rows interleaved); ratios are of medians.
 """
 
 from __future__ import annotations
 
 import argparse
 import functools
+import json
+import os
 import platform
 import statistics
+import subprocess
+import tempfile
 import time
+from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
+from openpi_cam.model import gemma as gemma_lib
 from openpi_cam.model import pi0_fast_maps as maps
-from openpi_cam.model.config import GemmaConfig, Pi0FASTConfig, SiglipConfig
-from openpi_cam.model.observation import Observation
-from openpi_cam.model.pi0_fast import Pi0FAST, embed_images, embed_prefix, init_params, prefill, sample_tokens_jit
+from openpi_cam.model.checkpoint import save_params
+from openpi_cam.model.config import MAX_DECODING_STEPS, GemmaConfig, Pi0FASTConfig, SiglipConfig
+from openpi_cam.model.observation import Observation, preprocess_observation
+from openpi_cam.model.pi0_fast import Pi0FAST, embed_images, embed_prefix, init_params, prefill, replay_prelogits
+
+CAMERAS = ("base_0_rgb", "base_1_rgb", "wrist_0_rgb")
 
 
-def timed(fn, repeats: int) -> float:
-    """Median wall time of `fn()` (blocking on its result), after one warm-up call."""
+def timed(fn, repeats: int) -> list[float]:
+    """Wall times of `fn()` (blocking on its result), after one warm-up call."""
     jax.block_until_ready(fn())
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         jax.block_until_ready(fn())
         times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+    return times
 
 
-def make_observation(cfg: Pi0FASTConfig, cameras: int, prompt_len: int, seed: int = 0) -> Observation:
-    rng = np.random.default_rng(seed)
+def inputs(cfg: Pi0FASTConfig, prompt_len: int) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(0)
     size = cfg.siglip.image_size
-    images = {f"cam{i}": rng.uniform(-1, 1, (1, size, size, 3)).astype(np.float32) for i in range(cameras)}
+    out = {}
+    for c in CAMERAS:
+        out[f"image_{c}"] = (rng.integers(0, 256, (1, size, size, 3)) / 255 * 2 - 1).astype(np.float32)
+        out[f"image_mask_{c}"] = np.ones(1, bool)
     tokens = np.zeros((1, cfg.max_token_len), np.int32)
     tokens[0, :prompt_len] = rng.integers(2, cfg.gemma.vocab_size, prompt_len)
-    mask = np.arange(cfg.max_token_len)[None] < prompt_len
+    out["tokenized_prompt"] = tokens
+    out["tokenized_prompt_mask"] = np.arange(cfg.max_token_len)[None] < prompt_len
+    out["token_ar_mask"] = np.zeros_like(tokens)
+    out["token_loss_mask"] = np.zeros((1, cfg.max_token_len), bool)
+    out["state"] = np.zeros((1, cfg.action_dim), np.float32)
+    return out
+
+
+def observation(data: dict[str, np.ndarray]) -> Observation:
     return Observation(
-        images=images,
-        image_masks={k: np.ones(1, bool) for k in images},
-        state=np.zeros((1, cfg.action_dim), np.float32),
-        tokenized_prompt=tokens,
-        tokenized_prompt_mask=mask,
-        token_ar_mask=np.zeros_like(tokens),
-        token_loss_mask=np.zeros_like(mask),
+        images={c: data[f"image_{c}"] for c in CAMERAS},
+        image_masks={c: data[f"image_mask_{c}"] for c in CAMERAS},
+        state=data["state"],
+        tokenized_prompt=data["tokenized_prompt"],
+        tokenized_prompt_mask=data["tokenized_prompt_mask"],
+        token_ar_mask=data["token_ar_mask"],
+        token_loss_mask=data["token_loss_mask"],
     )
+
+
+def upstream_spec(cfg: Pi0FASTConfig, work: Path, steps: int) -> Path:
+    g, s = cfg.gemma, cfg.siglip
+    spec = {
+        "params_dir": str(work / "params"),
+        "inputs": str(work / "inputs.npz"),
+        "cameras": list(CAMERAS),
+        "action_dim": cfg.action_dim,
+        "action_horizon": cfg.action_horizon,
+        "max_token_len": cfg.max_token_len,
+        "max_decoding_steps": steps,
+        "architecture": {
+            "llm": {k: getattr(g, k) for k in ("width", "depth", "mlp_dim", "num_heads", "num_kv_heads", "head_dim")}
+            | {"vocab_size": g.vocab_size},
+            "siglip": {"width": s.width, "depth": s.depth, "mlp_dim": s.mlp_dim, "num_heads": s.num_heads},
+        },
+    }
+    path = work / "spec.json"
+    path.write_text(json.dumps(spec))
+    return path
+
+
+def run_upstream(args: argparse.Namespace, spec: Path) -> dict:
+    script = Path(__file__).with_name("upstream_fast_prefill.py")
+    cmd = [str(args.upstream_python), str(script), "--upstream-src", str(args.upstream_src), "--spec", str(spec)]
+    cmd += ["--repeats", str(args.repeats)]
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}  # upstream's environment, not ours
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env)
+    return json.loads(out.stdout.splitlines()[-1])
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--width", type=int, default=256)
+    ap.add_argument("--width", type=int, default=512)
     ap.add_argument("--depth", type=int, default=4)
-    ap.add_argument("--vision-width", type=int, default=64)
-    ap.add_argument("--vocab", type=int, default=4096)
-    ap.add_argument("--cameras", type=int, default=3)
-    ap.add_argument("--steps", type=int, default=64, help="max_decoding_steps")
-    ap.add_argument("--tokens", type=int, default=8, help="action tokens explained in the all-tokens comparison")
-    ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--dtype", default="float32")
+    ap.add_argument("--vision-width", type=int, default=256)
+    ap.add_argument("--vision-depth", type=int, default=4)
+    ap.add_argument("--vocab", type=int, default=257_152)
+    ap.add_argument("--prompt-len", type=int, default=48)
+    ap.add_argument("--steps", type=int, default=MAX_DECODING_STEPS, help="max_decoding_steps (KV cache slots)")
+    ap.add_argument("--generated", type=int, default=32, help="tokens the decode generated (of --steps)")
+    ap.add_argument("--tokens", type=int, default=16, help="action tokens: the last ones generated")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--rounds", type=int, default=2, help="interleaved rounds of every row")
+    ap.add_argument("--upstream-python", type=Path)
+    ap.add_argument("--upstream-src", type=Path)
     args = ap.parse_args()
+    load_before = f"{os.getloadavg()[0]:.2f}"
 
-    gemma = GemmaConfig(args.width, args.depth, 4 * args.width, 4, 1, args.width // 4, args.vocab)
-    siglip = SiglipConfig(args.vision_width, 2, 4 * args.vision_width, 2, 14, 224, args.width)
-    cfg = Pi0FASTConfig(gemma=gemma, siglip=siglip, action_dim=8, action_horizon=10, max_token_len=48, dtype=args.dtype)
+    w = args.width
+    gemma = GemmaConfig(w, args.depth, 4 * w, 4, 1, w // 4, args.vocab)
+    siglip = SiglipConfig(args.vision_width, args.vision_depth, 4 * args.vision_width, 4, 14, 224, w)
+    cfg = Pi0FASTConfig(gemma, siglip, action_dim=8, action_horizon=10, max_token_len=args.prompt_len, dtype="float32")
     model = Pi0FAST(cfg, init_params(cfg, jax.random.key(0)))
-    obs = make_observation(cfg, args.cameras, prompt_len=30)
-    key = jax.random.key(0)
+    data = inputs(cfg, args.prompt_len)
+    obs = observation(data)
+    pobs = preprocess_observation(obs, cfg.image_resolution)
+    generated = np.zeros((1, args.steps), np.int32)
+    generated[0, : args.generated] = np.random.default_rng(1).integers(2, args.vocab, args.generated)
+    last = args.generated - 1
+    action_steps = list(range(args.generated - args.tokens, args.generated))
+    llm = model.params["PaliGemma"]["llm"]
 
     @functools.partial(jax.jit, static_argnames=("steps",))
-    def prefill_only(params, obs, steps):
+    def our_prefill(params, obs, steps):
         x, m, ar = embed_prefix(params, embed_images(params, obs, cfg), obs, cfg)
-        return prefill(params, x, m, ar, cfg, steps)[0]
+        last_pre, cache, _, _ = prefill(params, x, m, ar, cfg, steps)
+        return gemma_lib.logits_from_prelogits(params["PaliGemma"]["llm"], last_pre), cache
 
-    t_prefill = timed(lambda: prefill_only(model.params, obs, args.steps), args.repeats)
-    t_infer = timed(lambda: model.sample_actions(key, obs, max_decoding_steps=args.steps), args.repeats)
-    tokens, n_run, _ = sample_tokens_jit(
-        model.params, obs, key, cfg=cfg, max_decoding_steps=args.steps, temperature=0.0
-    )
-    n_run = int(n_run)
-    compiles_before = sample_tokens_jit._cache_size()
-    for seed in range(3):  # new inputs of the same shape must reuse the compiled decode loop
-        jax.block_until_ready(
-            model.sample_actions(key, make_observation(cfg, args.cameras, 30, seed + 1), max_decoding_steps=args.steps)
-        )
-    decode_compiles = sample_tokens_jit._cache_size() - compiles_before
-    per_token = (t_infer - t_prefill) / max(n_run, 1)
+    @functools.partial(jax.jit, static_argnames=("decode_len",))
+    def forward(params, obs, fed, step, decode_len):
+        pre = replay_prelogits(params, embed_images(params, obs, cfg), obs, fed, cfg, decode_len)[:, step]
+        return jnp.einsum("bd,bd->b", pre, llm["embedder"]["input_embedding"][fed[:, step]])
 
-    steps = list(range(min(args.tokens, n_run)))
-    t_one = timed(lambda: maps.gradcam_for_action_token(model, obs, tokens, steps[-1]).score, args.repeats)
-    t_all = timed(lambda: maps.gradcam_for_steps(model, obs, tokens, steps).score, args.repeats)
-    t_loop = timed(
-        lambda: [maps.gradcam_for_action_token(model, obs, tokens, k).score for k in steps], max(1, args.repeats // 2)
-    )
-    t_chunk = timed(lambda: maps.gradcam_for_chunk(model, obs, tokens, steps).score, args.repeats)
-    cam_before = maps._token_cams._cache_size()
-    for k in range(n_run):  # every step of the request: no new compilation
-        maps.gradcam_for_action_token(model, obs, tokens, k)
-    cam_compiles = maps._token_cams._cache_size() - cam_before
+    fed = jnp.asarray(generated[:, : maps.replay_length(last, args.steps)])
+    rows = {
+        "prefill": lambda: our_prefill(model.params, pobs, args.steps),
+        "forward": lambda: forward(model.params, pobs, fed, last, args.steps),
+        "one": lambda: maps.gradcam_for_action_token(model, obs, generated, last).score,
+        "one_full": lambda: full_length(lambda: maps.gradcam_for_action_token(model, obs, generated, last).score),
+        "all": lambda: maps.gradcam_for_steps(model, obs, generated, action_steps).score,
+        "loop": lambda: [maps.gradcam_for_action_token(model, obs, generated, k).score for k in action_steps],
+    }
+    before = maps._token_cams._cache_size()
+    for k in range(args.generated):  # every step of the request, one token at a time
+        maps.gradcam_for_action_token(model, obs, generated, k)
+    compiles = maps._token_cams._cache_size() - before
 
-    prefix = args.cameras * siglip.num_tokens + 48
+    work = Path(tempfile.mkdtemp(prefix="bench_model_"))
+    spec = None
+    if args.upstream_python and args.upstream_src:
+        save_params(work / "params", model.params)
+        np.savez(work / "inputs.npz", **data)
+        spec = upstream_spec(cfg, work, args.steps)
+    times: dict[str, list[float]] = {k: [] for k in rows}
+    upstream = []
+    for _ in range(args.rounds):
+        for name, fn in rows.items():
+            times[name] += timed(fn, 1 if name in ("all", "loop") else args.repeats)
+        if spec is not None:
+            upstream.append(run_upstream(args, spec))
+    t = {k: statistics.median(v) for k, v in times.items()}
+    ours_last = np.asarray(our_prefill(model.params, pobs, args.steps)[0])
+
     print(
-        f"machine: {platform.machine()} {platform.processor() or ''}, {jax.devices()[0].device_kind}, "
-        f"jax {jax.__version__}, {args.dtype}"
+        f"machine: {platform.machine()}, {os.cpu_count()} cores, {jax.devices()[0].device_kind}, jax {jax.__version__}"
     )
+    print(f"load average before / after: {load_before} / {os.getloadavg()[0]:.2f}")
+    prefix = len(CAMERAS) * siglip.num_tokens + args.prompt_len
     print(
-        f"model: LLM width {args.width} depth {args.depth} vocab {args.vocab}; SigLIP width {args.vision_width}; "
-        f"{args.cameras} cameras -> prefix {prefix} tokens; max_decoding_steps {args.steps} ({n_run} run)"
+        f"model: Gemma {w} x {args.depth}, vocab {args.vocab}; SigLIP {args.vision_width} x {args.vision_depth}; "
+        f"{len(CAMERAS)} cameras -> prefix {prefix} tokens; float32; {args.steps} decode slots, {args.generated} "
+        f"generated; medians of {args.rounds} rounds x {args.repeats} (action tokens: x 1)"
     )
-    rows = [
-        ("prefill forward (ms)", t_prefill * 1e3),
-        ("inference = prefill + decode (ms)", t_infer * 1e3),
-        ("decode per token (ms)", per_token * 1e3),
-        ("decode compilations for 3 new same-shape inputs", decode_compiles),
-        ("Grad-CAM one token (ms)", t_one * 1e3),
-        ("  / inference", t_one / t_infer),
-        ("  / prefill forward", t_one / t_prefill),
-        (f"Grad-CAM {len(steps)} tokens, one call (ms)", t_all * 1e3),
-        (f"Grad-CAM {len(steps)} tokens, per-token loop (ms)", t_loop * 1e3),
-        ("  one call / loop", t_all / t_loop),
-        ("Grad-CAM chunk (ms)", t_chunk * 1e3),
-        (f"Grad-CAM compilations over all {n_run} steps after warm-up", cam_compiles),
+    table = [("prefill, ours (ms)", f"{1e3 * t['prefill']:.0f}")]
+    if upstream:
+        up = statistics.median(u["prefill_s"] for u in upstream)
+        diff = np.abs(ours_last - np.asarray(upstream[-1]["last_logits"])).max()
+        table += [
+            (
+                f"prefill, upstream (ms, {len(upstream)} runs x {args.repeats}, jax {upstream[0]['jax']})",
+                f"{1e3 * up:.0f}",
+            ),
+            ("  ours / upstream (target <= 0.8)", f"{t['prefill'] / up:.2f}"),
+            ("  max abs difference of the last slot's logits", f"{diff:.2g} (of {np.abs(ours_last).max():.2g})"),
+        ]
+    else:
+        table += [("prefill, upstream", "not run (--upstream-python / --upstream-src)")]
+    table += [
+        (f"teacher-forced forward, step {last} (ms)", f"{1e3 * t['forward']:.0f}"),
+        (f"one token, step {last} (ms)", f"{1e3 * t['one']:.0f}"),
+        ("  / teacher-forced forward (target <= 2.2)", f"{t['one'] / t['forward']:.2f}"),
+        (f"one token, step {last}, replay at all {args.steps} slots (ms)", f"{1e3 * t['one_full']:.0f}"),
+        ("  / teacher-forced forward", f"{t['one_full'] / t['forward']:.2f}"),
+        (f"{args.tokens} action tokens, one call (ms)", f"{1e3 * t['all']:.0f}"),
+        (f"{args.tokens} action tokens, per-token loop (ms)", f"{1e3 * t['loop']:.0f}"),
+        ("  one call / loop (target <= 0.4)", f"{t['all'] / t['loop']:.2f}"),
+        (f"compilations over all {args.generated} steps, one token each", f"{compiles}"),
     ]
-    for name, value in rows:
-        print(f"| {name:<52} | {value:>10.3f} |" if isinstance(value, float) else f"| {name:<52} | {value:>10d} |")
+    print("| quantity | value |")
+    print("| --- | --- |")
+    for name, value in table:
+        print(f"| {name} | {value} |")
+
+
+def full_length(fn):
+    """Runs `fn` with every replay at the decode's full length (what each explanation ran before the cut)."""
+    cut = maps.replay_length
+    maps.replay_length = lambda last_step, decode_len: decode_len
+    try:
+        return fn()
+    finally:
+        maps.replay_length = cut
 
 
 if __name__ == "__main__":

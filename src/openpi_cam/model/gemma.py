@@ -80,24 +80,32 @@ def feed_forward(x: jax.Array, p: dict) -> jax.Array:
     return dot(gate * dot(x, "gating_einsum", 1), "linear")
 
 
-def _attention(x, p, positions, mask, k_cache, v_cache, idx, cfg: GemmaConfig):
-    """One layer's attention. The new tokens' K/V are written into the cache at `idx`; queries attend to every
-    cache slot allowed by `mask` [B, T, S]."""
+def _attention(x, p, positions, mask, k_cache, v_cache, idx, cfg: GemmaConfig, rows: slice, hidden_slots: int):
+    """One layer's attention. Every new token's K/V is written into the cache at `idx`; the queries `rows` of them
+    attend to every cache slot allowed by `mask` [B, T, S].
+
+    `hidden_slots`: zero-filled slots past the cache's end that the mask hides (a replay that stops short of the
+    decode length). They change nothing for a query that sees some slot, but a fully masked query softmaxes uniformly
+    over all slots, so its weights are 1 / (S + hidden_slots), as with the full-length cache."""
     dtype = x.dtype
     scale = cfg.lora_alpha / cfg.lora_rank if cfg.lora_rank else 1.0
-    q = einsum_lora("BTD,NDH->BTNH", x, p, "q_einsum", scale)
+    q = einsum_lora("BTD,NDH->BTNH", x[:, rows], p, "q_einsum", scale)
     k, v = einsum_lora("BSD,CKDH->CBSKH", x, p, "kv_einsum", scale)
-    q = apply_rope(q, positions) * cfg.head_dim**-0.5  # float32 from here on, as upstream
+    q = apply_rope(q, positions[:, rows]) * cfg.head_dim**-0.5  # float32 from here on, as upstream
     k = apply_rope(k, positions)
     k_cache = jax.lax.dynamic_update_slice(k_cache, k.astype(k_cache.dtype), (0, idx, 0, 0))
     v_cache = jax.lax.dynamic_update_slice(v_cache, v.astype(v_cache.dtype), (0, idx, 0, 0))
 
     b, t, n, h = q.shape
+    mask = mask[:, rows]
     q = q.reshape(b, t, cfg.num_kv_heads, n // cfg.num_kv_heads, h)
     logits = jnp.einsum("BTKGH,BSKH->BKGTS", q, k_cache, preferred_element_type=jnp.float32)
     logits = jnp.where(mask[:, None, None, :, :], logits, BIG_NEG)
-    probs = jax.nn.softmax(logits, axis=-1).astype(dtype)
-    encoded = jnp.einsum("BKGTS,BSKH->BTKGH", probs, v_cache).reshape(b, t, n, h)
+    probs = jax.nn.softmax(logits, axis=-1)
+    if hidden_slots:
+        blind = ~jnp.any(mask, axis=-1)[:, None, None, :, None]  # [B, 1, 1, T, 1]
+        probs = jnp.where(blind, jnp.float32(1.0 / (mask.shape[-1] + hidden_slots)), probs)
+    encoded = jnp.einsum("BKGTS,BSKH->BTKGH", probs.astype(dtype), v_cache).reshape(b, t, n, h)
     return einsum_lora("BTNH,NHD->BTD", encoded, p, "attn_vec_einsum", scale), k_cache, v_cache
 
 
@@ -108,12 +116,19 @@ def forward(
     mask: jax.Array,
     cfg: GemmaConfig,
     cache: KVCache | None = None,
+    *,
+    last_only: bool = False,
+    hidden_slots: int = 0,
 ) -> tuple[jax.Array, KVCache]:
     """Runs the decoder on embedded tokens x [B, T, D] and returns (pre_logits [B, T, D], updated cache).
 
     Without a cache (prefill) a cache of `mask.shape[-1]` zero-filled slots is created and the T tokens fill its
     first T slots; with a cache the T tokens are appended at `cache.idx`. Either way every query attends over the
     whole cache under `mask` [B, T, S], exactly as upstream's decode=True path.
+
+    `last_only` (a prefill whose only output used is its last token's): the top layer computes every token's K/V,
+    which the cache needs, but the queries, attention and MLP of the last token alone; pre_logits is [B, 1, D].
+    `hidden_slots`: see `_attention`.
     """
     b, t, _ = x.shape
     if cache is None:
@@ -121,16 +136,36 @@ def forward(
         shape = (cfg.depth, b, slots, cfg.num_kv_heads, cfg.head_dim)
         cache = KVCache(jnp.zeros(shape, x.dtype), jnp.zeros(shape, x.dtype), jnp.zeros((), jnp.int32))
 
-    def layer(h, scanned):
-        p, k_cache, v_cache = scanned
+    def layer(h, p, k_cache, v_cache, top_only):
+        rows = slice(-1, None) if top_only else slice(None)
         attn, k_cache, v_cache = _attention(
-            rms_norm(h, p["pre_attention_norm"]["scale"]), p["attn"], positions, mask, k_cache, v_cache, cache.idx, cfg
+            rms_norm(h, p["pre_attention_norm"]["scale"]),
+            p["attn"],
+            positions,
+            mask,
+            k_cache,
+            v_cache,
+            cache.idx,
+            cfg,
+            rows,
+            hidden_slots,
         )
-        h = h + attn
+        h = h[:, rows] + attn
         h = h + feed_forward(rms_norm(h, p["pre_ffw_norm"]["scale"]), p["mlp"])
         return h, (k_cache, v_cache)
 
     if cfg.remat:
-        layer = jax.checkpoint(layer)
-    x, (k, v) = jax.lax.scan(layer, x, (params["layers"], cache.k, cache.v), unroll=not cfg.scan)
+        layer = jax.checkpoint(layer, static_argnums=(4,))
+    stack = (params["layers"], cache.k, cache.v)
+    if not last_only:
+        x, (k, v) = jax.lax.scan(lambda h, xs: layer(h, *xs, False), x, stack, unroll=not cfg.scan)
+    else:
+        # Layer i read inside the loop: scanning over a slice of the stack would copy all but one layer's weights
+        # (the top layer's own slice costs one layer's weights of temporaries).
+        def body(h, i):
+            return layer(h, *jax.tree.map(lambda a: a[i], stack), False)
+
+        x, (k, v) = jax.lax.scan(body, x, jnp.arange(cfg.depth - 1), unroll=not cfg.scan)
+        x, (k_top, v_top) = layer(x, *jax.tree.map(lambda a: a[-1], stack), True)
+        k, v = jnp.concatenate([k, k_top[None]]), jnp.concatenate([v, v_top[None]])
     return rms_norm(x, params["final_norm"]["scale"]), KVCache(k, v, cache.idx + t)

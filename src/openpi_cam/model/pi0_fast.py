@@ -43,10 +43,23 @@ def left_to_right_align(x: jax.Array, input_mask: jax.Array, attn_mask: jax.Arra
     )
 
 
-def prefill(params: dict, x: jax.Array, input_mask: jax.Array, ar_mask: jax.Array, cfg: Pi0FASTConfig, steps: int):
+def prefill(
+    params: dict,
+    x: jax.Array,
+    input_mask: jax.Array,
+    ar_mask: jax.Array,
+    cfg: Pi0FASTConfig,
+    steps: int,
+    *,
+    hidden_steps: int = 0,
+):
     """Right-aligns the prefix and fills a KV cache of P + `steps` slots (the unused ones zero), as upstream.
 
-    Returns (pre_logits of the last prefix slot [B, D], cache, prefill_len [B], prefix_start [B])."""
+    Only the last prefix slot's output is ever used (it predicts the first token), so the top layer runs the rest of
+    the prefix only as far as its K/V and the vocabulary projection is left to the caller, for that one slot
+    (upstream projects every prefix slot). `hidden_steps`: decode slots past the cache's end, for a replay shorter
+    than the decode (`replay_prelogits`). Returns (pre_logits of the last prefix slot [B, D], cache, prefill_len [B],
+    prefix_start [B])."""
     attn = make_attn_mask(input_mask, ar_mask)
     x, input_mask, attn = left_to_right_align(x, input_mask, attn)
     prefill_size = x.shape[1]
@@ -55,7 +68,8 @@ def prefill(params: dict, x: jax.Array, input_mask: jax.Array, ar_mask: jax.Arra
     # decode slots included; padding the mask here, not trimming it, keeps their K/V exactly upstream's.
     attn = jnp.pad(attn, ((0, 0), (0, 0), (0, steps)))
     positions = jnp.cumsum(input_mask, axis=-1) - 1
-    pre, cache = gemma.forward(params["PaliGemma"]["llm"], x, positions, attn, cfg.gemma)
+    llm = params["PaliGemma"]["llm"]
+    pre, cache = gemma.forward(llm, x, positions, attn, cfg.gemma, last_only=True, hidden_slots=hidden_steps)
     return pre[:, -1], cache, prefill_len, prefill_size - prefill_len
 
 
@@ -155,25 +169,39 @@ sample_tokens_jit = jax.jit(
 
 
 def replay_prelogits(
-    params: dict, image_tokens: jax.Array, obs: Observation, generated: jax.Array, cfg: Pi0FASTConfig
+    params: dict,
+    image_tokens: jax.Array,
+    obs: Observation,
+    generated: jax.Array,
+    cfg: Pi0FASTConfig,
+    decode_len: int | None = None,
 ) -> jax.Array:
     """The pre-logits that upstream's decoding computed, as a differentiable function of the image tokens.
 
-    `generated` [B, S] are the tokens fed back (teacher forcing; S = the decode's max_decoding_steps, which sizes the
-    KV cache). Returns [B, S, D] where row k is the output that predicts generated[:, k]: the last prefix slot for
-    k = 0, else the output at generated[:, k - 1]. The prefill is upstream's; the S decode steps run as one
-    multi-token append to the same cache with the per-step window and positions of the loop, which is the same
-    computation because each decode step only attends to slots written before it.
+    `generated` [B, L] are the first L tokens fed back (teacher forcing) of a decode with `decode_len` =
+    max_decoding_steps >= L (default L), which sizes upstream's KV cache. Returns [B, L, D] where row k is the output
+    that predicts generated[:, k]: the last prefix slot for k = 0, else the output at generated[:, k - 1]. The
+    prefill is upstream's; the L decode steps run as one multi-token append to the same cache with the per-step
+    window and positions of the loop, which is the same computation because each decode step only attends to slots
+    written before it. Steps past L would only add slots no earlier step sees, except through the uniform softmax
+    of fully masked prefix rows, which `hidden_steps` keeps at the full cache size: so a replay cut at any L gives
+    the same rows as the full-length one.
     """
     llm = params["PaliGemma"]["llm"]
     steps = generated.shape[1]
+    decode_len = steps if decode_len is None else decode_len
+    if decode_len < steps:
+        raise ValueError(f"{steps} generated tokens do not fit a decode of {decode_len} steps")
     x, input_mask, ar_mask = embed_prefix(params, image_tokens, obs, cfg)
-    last_pre, cache, prefill_len, prefix_start = prefill(params, x, input_mask, ar_mask, cfg, steps)
+    last_pre, cache, prefill_len, prefix_start = prefill(
+        params, x, input_mask, ar_mask, cfg, steps, hidden_steps=decode_len - steps
+    )
     step = jnp.arange(steps)
     mask = decode_window(prefix_start, x.shape[1], steps, step)
     emb = gemma.embed_tokens(llm, generated, jnp.dtype(cfg.dtype))
-    pre, _ = gemma.forward(llm, emb, decode_positions(prefill_len, step), mask, cfg.gemma, cache)
-    return jnp.concatenate([last_pre[:, None], pre[:, :-1]], axis=1)
+    # The last fed token's output would predict step L, which no caller asks for.
+    pre, _ = gemma.forward(llm, emb[:, :-1], decode_positions(prefill_len, step[:-1]), mask[:, :-1], cfg.gemma, cache)
+    return jnp.concatenate([last_pre[:, None], pre], axis=1)
 
 
 def compute_loss(params: dict, obs: Observation, cfg: Pi0FASTConfig, *, decode_offset: int = 0) -> jax.Array:

@@ -22,7 +22,9 @@ any per-row list of steps, `maps_for_weights`). The re-scoring functions (`resco
 same scores for image variants, for faithfulness metrics (`openpi_cam.cam.faithfulness`).
 
 Every entry point takes the generated sequence at its full decode length S (which sizes upstream's KV cache) and the
-steps to explain as traced values, so explaining step 0, 5 or 9 of a request reuses one compilation.
+steps to explain as traced values. The replay runs the sequence only up to the last explained step, its length
+bucketed (`replay_length`: powers of two from 16, capped at S), so the steps of a request share a few compilations
+(explaining step 0, 5 or 9 shares one) and an early step does not pay for all S slots.
 """
 
 from __future__ import annotations
@@ -78,47 +80,59 @@ class GradCamResult:
 
 
 def _gathered_logits(params: dict, pre: jax.Array, targets: jax.Array) -> jax.Array:
-    """logit of targets[b, s] at output [b, s] without materialising [B, S, V]. -> [B, S]"""
+    """logit of targets[..., s] at output [..., s, :] without materialising [..., V]. pre [..., D] -> [...]"""
     table = params["PaliGemma"]["llm"]["embedder"]["input_embedding"]
-    return jnp.einsum("bsd,bsd->bs", pre, table[targets].astype(pre.dtype))
+    return jnp.einsum("...d,...d->...", pre, table[targets].astype(pre.dtype))
 
 
-@functools.partial(jax.jit, static_argnames=("cfg",))
-def _token_cams(params, obs, fed, targets, steps, *, cfg: Pi0FASTConfig):
-    """steps int32 [T, B]: one VJP per explained step, all sharing one forward pass.
+# The replay runs the generated sequence only as far as the last explained step, its length rounded up to a power of
+# two (at least MIN_REPLAY, at most the decode length): a request's steps share at most log2(S / MIN_REPLAY) + 1
+# compilations (5 for upstream's 256), and the shortest replay is barely longer than the prefix.
+MIN_REPLAY = 16
+
+
+def replay_length(last_step: int, decode_len: int) -> int:
+    """Tokens of the generated sequence the replay feeds to explain steps up to `last_step`."""
+    return min(decode_len, max(MIN_REPLAY, 1 << int(last_step).bit_length()))
+
+
+def _replay(fed: jax.Array, last_step: int) -> tuple[jax.Array, int]:
+    """(fed cut to `replay_length`, the decode length S that sized the cache: static for the compiled cores)."""
+    return fed[:, : replay_length(last_step, fed.shape[1])], int(fed.shape[1])
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "decode_len"))
+def _token_cams(params, obs, fed, targets, steps, *, cfg: Pi0FASTConfig, decode_len: int):
+    """steps int32 [T, B]: one VJP per explained step, all sharing one forward pass over fed [B, L] (`_replay`).
+
+    Only the explained outputs [T, B, D] meet the vocabulary: the score is their dot product with the explained
+    token's embedding row, and the full logit vector is projected for those T rows alone.
 
     The backward passes run as a `lax.map` over cotangents, not `vmap`: under jax 0.10.2 on CPU, `vmap` of this
     VJP returned wrong gradients for all but the first cotangent at real prefix lengths (B=2, 816 tokens), while
     `lax.map` and single VJPs agree (tests/test_gradcam.py compares the stack with the per-token loop)."""
     E = embed_images(params, obs, cfg)
+    rows = jnp.arange(fed.shape[0])[None, :]
 
     def scores_fn(image_tokens):
-        pre = replay_prelogits(params, image_tokens, obs, fed, cfg)
-        return _gathered_logits(params, pre, targets), pre
+        explained = replay_prelogits(params, image_tokens, obs, fed, cfg, decode_len)[rows, steps]  # [T, B, D]
+        return _gathered_logits(params, explained, targets[rows, steps]), explained  # [T, B]
 
-    scores, vjp_fn, pre = jax.vjp(scores_fn, E, has_aux=True)
-    cotangents = jax.nn.one_hot(steps, fed.shape[1], dtype=scores.dtype)  # [T, B, S]
+    scores, vjp_fn, explained = jax.vjp(scores_fn, E, has_aux=True)
+    t = steps.shape[0]
+    cotangents = jnp.broadcast_to(jnp.eye(t, dtype=scores.dtype)[:, :, None], (t, *scores.shape))  # [T, T, B]
     G = jax.lax.map(lambda cot: vjp_fn(cot)[0], cotangents)  # [T, B, C, N, D]
     alpha, cam, token_norm = gradcam_reduce(E, G)
-    rows = jnp.arange(fed.shape[0])
-    explained_pre = pre[rows[None, :], steps]  # [T, B, D]
-    logits = gemma.logits_from_prelogits(params["PaliGemma"]["llm"], explained_pre).astype(jnp.float32)
-    score = scores[rows[None, :], steps]  # [T, B]
-    return score.astype(jnp.float32), alpha, cam, token_norm, logits
+    logits = gemma.logits_from_prelogits(params["PaliGemma"]["llm"], explained).astype(jnp.float32)
+    return scores.astype(jnp.float32), alpha, cam, token_norm, logits
 
 
-@functools.partial(jax.jit, static_argnames=("cfg",))
-def _chunk_cam(params, obs, fed, weights, *, cfg: Pi0FASTConfig):
-    """Score = sum_k weights[b, k] * log_softmax(logits_k)[g_k]; one backward pass."""
+@functools.partial(jax.jit, static_argnames=("cfg", "decode_len"))
+def _chunk_cam(params, obs, fed, target, *, cfg: Pi0FASTConfig, decode_len: int):
+    """Score = sum_k weights[b, k] * log_softmax(logits_k)[g_k] over a `_weights_target`; one backward pass."""
     E = embed_images(params, obs, cfg)
-
-    def score_fn(image_tokens):
-        pre = replay_prelogits(params, image_tokens, obs, fed, cfg)
-        logits = gemma.logits_from_prelogits(params["PaliGemma"]["llm"], pre).astype(jnp.float32)
-        logp = jnp.take_along_axis(jax.nn.log_softmax(logits, -1), fed[..., None], -1)[..., 0]
-        return jnp.sum(weights * logp, axis=-1)  # [B]
-
-    score, vjp_fn = jax.vjp(score_fn, E)
+    score_fn = _score_fn(params, obs, fed, target, cfg, decode_len)
+    score, vjp_fn = jax.vjp(lambda e: score_fn(e)[0], E)  # [B]
     (G,) = vjp_fn(jnp.ones_like(score))
     alpha, cam, token_norm = gradcam_reduce(E, G)
     return score, alpha, cam, token_norm
@@ -165,57 +179,62 @@ def _token_target(ids: ArrayLike, steps_tb: np.ndarray) -> dict[str, jax.Array]:
 
 
 def _weights_target(weights: np.ndarray) -> dict[str, jax.Array]:
-    """sum_k weights[b, k] log p(g_k), kept only at the P decode steps some row weights (padded to a power of two
-    with zero weights), so the vocabulary projection is [B, P, V], not [B, S, V]: S is 256 on real checkpoints."""
+    """sum_k weights[b, k] log p(g_k), kept only at the K decode steps some row weights (padded with zero weights to
+    a power of two, at least MIN_REPLAY, at most the replay's length), so the vocabulary projection is [B, K, V], not
+    [B, S, V]: S is 256 on real checkpoints and V 257152. `weights` [B, L] (cut to the replay)."""
     cols = np.flatnonzero(np.any(weights != 0, axis=0))
-    positions = np.zeros(_bucket(max(cols.size, 1)), np.int32)
+    positions = np.zeros(min(weights.shape[1], max(MIN_REPLAY, _bucket(max(cols.size, 1)))), np.int32)
     positions[: cols.size] = cols
     w = np.zeros((weights.shape[0], positions.size), np.float32)
     w[:, : cols.size] = weights[:, cols]
     return {"weights": jnp.asarray(w), "positions": jnp.asarray(positions)}
 
 
-def _score_fn(params, obs, fed, target, cfg) -> Callable[[jax.Array], jax.Array]:
+def _score_fn(params, obs, fed, target, cfg, decode_len) -> Callable[[jax.Array], jax.Array]:
     """The explained scores as a function of the image tokens E [B, C, N, D] -> [T, B]: a token target's logits
-    (`_token_target`), or a weights target's weighted log-prob sum as one row [1, B] (`_weights_target`)."""
+    (`_token_target`), or a weights target's weighted log-prob sum as one row [1, B] (`_weights_target`), over the
+    replay of fed [B, L] in a decode of `decode_len` steps."""
     llm = params["PaliGemma"]["llm"]
+    rows = jnp.arange(fed.shape[0])[None, :]
 
     def fn(image_tokens):
-        pre = replay_prelogits(params, image_tokens, obs, fed, cfg)
+        pre = replay_prelogits(params, image_tokens, obs, fed, cfg, decode_len)
         if "steps" in target:
-            scores = _gathered_logits(params, pre, target["ids"]).astype(jnp.float32)  # [B, S]
-            return scores[jnp.arange(fed.shape[0])[None, :], target["steps"]]
+            steps = target["steps"]
+            return _gathered_logits(params, pre[rows, steps], target["ids"][rows, steps]).astype(jnp.float32)
         positions = target["positions"]
-        logits = gemma.logits_from_prelogits(llm, pre[:, positions]).astype(jnp.float32)  # [B, P, V]
+        logits = gemma.logits_from_prelogits(llm, pre[:, positions]).astype(jnp.float32)  # [B, K, V]
         logp = jnp.take_along_axis(jax.nn.log_softmax(logits, -1), fed[:, positions, None], -1)[..., 0]
         return jnp.sum(target["weights"] * logp, axis=-1)[None]
 
     return fn
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "kinds", "options", "base_outputs"))
-def _baseline_kinds(params, obs, fed, target, cams, masks, *, cfg: Pi0FASTConfig, kinds, options, base_outputs):
+@functools.partial(jax.jit, static_argnames=("cfg", "decode_len", "kinds", "options", "base_outputs"))
+def _baseline_kinds(
+    params, obs, fed, target, cams, masks, *, cfg: Pi0FASTConfig, decode_len: int, kinds, options, base_outputs
+):
     """The kinds that compare with a baseline frame, for one target (token steps [T, B], or weights as T = 1): see
     `baseline_maps.baseline_kinds`. With `base_outputs` (no gradient pass ran) also "score" [T, B] and, for token
     targets, "logits" [T, B, V]."""
     E = embed_images(params, obs, cfg)
-    score_fn = _score_fn(params, obs, fed, target, cfg)
+    score_fn = _score_fn(params, obs, fed, target, cfg, decode_len)
     out = baseline_maps.baseline_kinds(params, obs, cfg, score_fn, E, cams, masks, kinds, options)
     if base_outputs:
         out["score"] = score_fn(E)
         if "steps" in target:
             rows = jnp.arange(fed.shape[0])[None, :]
-            pre = replay_prelogits(params, E, obs, fed, cfg)[rows, target["steps"]]  # [T, B, D]
+            pre = replay_prelogits(params, E, obs, fed, cfg, decode_len)[rows, target["steps"]]  # [T, B, D]
             out["logits"] = gemma.logits_from_prelogits(params["PaliGemma"]["llm"], pre).astype(jnp.float32)
     return out
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "chunk"))
-def _variant_scores(params, obs, fed, target, variants, *, cfg: Pi0FASTConfig, chunk: int):
+@functools.partial(jax.jit, static_argnames=("cfg", "decode_len", "chunk"))
+def _variant_scores(params, obs, fed, target, variants, *, cfg: Pi0FASTConfig, decode_len: int, chunk: int):
     """Scores with the cameras in `variants` (camera -> [K, B, H, W, 3], camera order, K a multiple of `chunk`)
     replaced jointly per variant and re-encoded; the other cameras' tokens kept. -> [K, T, B]"""
     E = embed_images(params, obs, cfg)
-    score_fn = _score_fn(params, obs, fed, target, cfg)
+    score_fn = _score_fn(params, obs, fed, target, cfg, decode_len)
     index = jnp.asarray([list(obs.images).index(c) for c in variants])
 
     def one(images):
@@ -231,9 +250,9 @@ occlusion_masks = baseline_maps.occlusion_masks
 _baseline_frames = jax.jit(baseline_maps.frames, static_argnames=("options",))
 
 
-def _baseline_maps(model, obs, fed, target, kinds, options, base_outputs) -> dict[str, Any]:
-    """`baseline_maps.collect` over this family's program; with `base_outputs` also "score" [T, B] and "logits"
-    [T, B, V] (token targets)."""
+def _baseline_maps(model, obs, fed, decode_len, target, kinds, options, base_outputs) -> dict[str, Any]:
+    """`baseline_maps.collect` over this family's program (replaying fed [B, L] of a decode of `decode_len` steps);
+    with `base_outputs` also "score" [T, B] and "logits" [T, B, V] (token targets)."""
 
     def run(kinds, options, cams, masks, first):
         return _baseline_kinds(
@@ -244,6 +263,7 @@ def _baseline_maps(model, obs, fed, target, kinds, options, base_outputs) -> dic
             cams,
             masks,
             cfg=model.config,
+            decode_len=decode_len,
             kinds=kinds,
             options=options,
             base_outputs=base_outputs and first,
@@ -379,6 +399,8 @@ def _explain_tokens(model, obs, fed, targets, steps, prefill_len, squeeze, kinds
     batch = fed.shape[0]
     steps, shared, steps_tb = _token_steps(steps, batch, fed.shape[1])
     t = steps.shape[1]
+    fed, decode_len = _replay(fed, steps.max())
+    targets = targets[:, : fed.shape[1]]
 
     def batch_first(x):  # [T_pad, B, ...] -> [B, T, ...] (or [B, ...] for one token)
         x = np.moveaxis(np.asarray(x)[:t], 0, 1)
@@ -387,15 +409,14 @@ def _explain_tokens(model, obs, fed, targets, steps, prefill_len, squeeze, kinds
     grad = score = logits = None
     if any(k in GRADIENT_KINDS for k in kinds):
         score, alpha, cam, token_norm, logits = _token_cams(
-            model.params, obs, fed, targets, jnp.asarray(steps_tb), cfg=model.config
+            model.params, obs, fed, targets, jnp.asarray(steps_tb), cfg=model.config, decode_len=decode_len
         )
         grad = tuple(batch_first(x) for x in (alpha, cam, token_norm))
         score, logits = batch_first(score), batch_first(logits)
     extra, ig_steps = {}, None
     if any(k in BASELINE_KINDS for k in kinds):
-        extra = _baseline_maps(
-            model, obs, fed, _token_target(targets, steps_tb), kinds, options, base_outputs=grad is None
-        )
+        target_spec = _token_target(targets, steps_tb)
+        extra = _baseline_maps(model, obs, fed, decode_len, target_spec, kinds, options, base_outputs=grad is None)
         ig_steps = extra.pop("ig_steps", None)
         extra = _map_tree(batch_first, extra)
         if grad is None:
@@ -477,15 +498,17 @@ def _explain_weights(model, obs, fed, weights, rows, shared, prefill_len, target
     padded = np.full((batch, max(r.size for r in rows)), -1, np.int32)
     for b, r in enumerate(rows):
         padded[b, : r.size] = r
-    weights = jnp.asarray(weights)
+    fed, decode_len = _replay(fed, max(r.max() for r in rows))
+    target_spec = _weights_target(np.asarray(weights)[:, : fed.shape[1]])
     grad = score = None
     if any(k in GRADIENT_KINDS for k in kinds):
-        score, alpha, cam, token_norm = _chunk_cam(model.params, obs, fed, weights, cfg=model.config)
+        score, alpha, cam, token_norm = _chunk_cam(
+            model.params, obs, fed, target_spec, cfg=model.config, decode_len=decode_len
+        )
         grad = (alpha, cam, token_norm)
     extra, ig_steps = {}, None
     if any(k in BASELINE_KINDS for k in kinds):
-        target_spec = _weights_target(np.asarray(weights))
-        extra = _baseline_maps(model, obs, fed, target_spec, kinds, options, base_outputs=grad is None)
+        extra = _baseline_maps(model, obs, fed, decode_len, target_spec, kinds, options, base_outputs=grad is None)
         ig_steps = extra.pop("ig_steps", None)
         extra = _map_tree(lambda x: x[0], extra)  # the one score row
         score = extra["score"] if grad is None else score
@@ -508,14 +531,20 @@ def baseline_frames(model: Pi0FAST, obs: Observation, options: MapOptions | None
     return dict(zip(obs.images, base, strict=True))
 
 
-def _rescore_target(fed: jax.Array, steps: ArrayLike, weights: ArrayLike) -> tuple[dict[str, jax.Array], int | None]:
-    """(target for the rescoring cores, T for token targets or None for weights)."""
+def _rescore_target(
+    fed: jax.Array, steps: ArrayLike, weights: ArrayLike
+) -> tuple[dict[str, jax.Array], int | None, jax.Array, int]:
+    """(target for the rescoring cores, T for token targets or None for weights, fed cut to the replay, the decode
+    length)."""
     if (steps is None) == (weights is None):
         raise ValueError("give exactly one of steps= (token logits) or weights= (weighted log-prob sum)")
     if steps is not None:
         steps, _, steps_tb = _token_steps(np.atleast_1d(np.asarray(steps, np.int32)), fed.shape[0], fed.shape[1])
-        return _token_target(fed, steps_tb), steps.shape[1]
-    return _weights_target(np.broadcast_to(np.asarray(weights, np.float32), fed.shape)), None
+        cut, decode_len = _replay(fed, steps.max())
+        return _token_target(cut, steps_tb), steps.shape[1], cut, decode_len
+    weights = np.broadcast_to(np.asarray(weights, np.float32), fed.shape)
+    cut, decode_len = _replay(fed, np.flatnonzero(np.any(weights != 0, axis=0)).max(initial=0))
+    return _weights_target(weights[:, : cut.shape[1]]), None, cut, decode_len
 
 
 def _scores_out(scores: np.ndarray, t: int | None) -> np.ndarray:
@@ -542,7 +571,7 @@ def rescore_masks(
     `options.mask_chunk`. -> camera -> [M, B, T] (steps) or [M, B] (weights)."""
     options = options or MapOptions()
     obs, fed, _ = _prepare(model, obs, generated_ids)
-    target, t = _rescore_target(fed, steps, weights)
+    target, t, fed, decode_len = _rescore_target(fed, steps, weights)
     cams = tuple(obs.images)
     per_camera = baseline_maps.checked_masks(masks, cams, model.config.siglip.grid)
     variant_cams, variant_masks, where = baseline_maps.variants(per_camera, options.mask_chunk)
@@ -554,6 +583,7 @@ def rescore_masks(
         variant_cams,
         variant_masks,
         cfg=model.config,
+        decode_len=decode_len,
         kinds=("occlusion",),
         options=baseline_maps.compiled_options(options, ("occlusion",)),
         base_outputs=False,
@@ -576,7 +606,7 @@ def rescore_images(
     resolution); variant m replaces those cameras jointly, re-encodes them, keeps the other cameras' tokens.
     Target as `rescore_masks`. -> [M, B, T] (steps) or [M, B] (weights)."""
     obs, fed, _ = _prepare(model, obs, generated_ids)
-    target, t = _rescore_target(fed, steps, weights)
+    target, t, fed, decode_len = _rescore_target(fed, steps, weights)
     cams = tuple(obs.images)
     if not images or set(images) - set(cams):
         raise ValueError(f"image variants must name some of the model's cameras {cams}, got {sorted(images)}")
@@ -588,5 +618,7 @@ def rescore_images(
     m = m.pop()
     pad = -m % mask_chunk
     variants = {c: jnp.asarray(np.concatenate([v, np.repeat(v[:1], pad, axis=0)])) for c, v in variants.items()}
-    scores = _variant_scores(model.params, obs, fed, target, variants, cfg=model.config, chunk=mask_chunk)
+    scores = _variant_scores(
+        model.params, obs, fed, target, variants, cfg=model.config, decode_len=decode_len, chunk=mask_chunk
+    )
     return _scores_out(scores, t)[:m]
