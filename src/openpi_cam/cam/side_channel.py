@@ -10,7 +10,8 @@ The robot must not feel the side channel, so the worker yields to inference: `in
 is in flight and none has ended within `settle_ms` (the reply is still being sent then): a condition variable, woken
 when the last inference ends, with the settle time as its only timeout. An explanation is one compiled JAX call and
 cannot be pre-empted: an inference that arrives while one runs shares the CPU with it until it ends. A server that
-infers without such pauses therefore explains nothing until it pauses (`oldest_pending_ms` in `/stats` shows it).
+infers without such pauses therefore explains nothing until it pauses (`oldest_pending_ms` in `/stats` shows it). A
+batched call (`infer_batch`, for a fleet) is one inference in flight; each of its scheduled rows is its own job.
 
 Overload is shared fairly across connections (`_Pending`):
 - at most `queue_size` jobs are pending in all: a job arriving at the cap removes the oldest pending job of the
@@ -33,13 +34,16 @@ import time
 from collections.abc import Mapping, Sequence
 from typing import Any, Protocol
 
+import jax
 import numpy as np
+from jax.sharding import Mesh
 
 from openpi_cam.cam.batching import explain_traces
 from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.records import SAVE_FRAMES, SaveFrames, bounded_extra, split_extra, step_record
 from openpi_cam.counters import WarnOnceCounter
 from openpi_cam.model.attribution import MapKind, MapOptions
+from openpi_cam.model.sharding import BATCH_AXIS
 from openpi_cam.policies.family import Explainer, ExplainRequest, ExplainSkipped, Target
 from openpi_cam.policies.policy import InferenceTrace
 
@@ -88,6 +92,10 @@ class CAMOptions:
     # The worker starts a phase only once no inference has run for this long: an inference's reply is still being
     # packed and sent for a few ms after `infer` returns, and the robot would feel an explanation competing with it.
     settle_ms: float = 10.0
+    # Index into `jax.devices()` of a device that explains while the served model keeps its own (e.g. a second GPU):
+    # the explainer's parameters are copied there and explanations no longer wait for inference to pause. None: the
+    # served model's device, shared under the settle rule above.
+    device: int | None = None
     max_steps: int | None = None
     max_bytes: int | None = None
     drain_timeout: float = 30.0  # seconds `close()` waits for queued jobs
@@ -100,6 +108,8 @@ class CAMOptions:
     def __post_init__(self) -> None:
         if self.every_k < 0 or self.queue_size < 1 or self.stats_window < 1 or self.settle_ms < 0:
             raise ValueError("every_k >= 0, queue_size >= 1, stats_window >= 1 and settle_ms >= 0 are required")
+        if self.device is not None and self.device < 0:
+            raise ValueError(f"device must be an index into jax.devices() (>= 0), got {self.device}")
         if self.per_connection is not None and self.per_connection < 1:
             raise ValueError(f"per_connection must be >= 1 or None, got {self.per_connection}")
         if self.save_frames not in SAVE_FRAMES:
@@ -189,6 +199,7 @@ class CAMPolicy:
         self._policy = policy
         self._options = options
         self._logger = cam_logger
+        self._explainer = explainer_on_device(policy.explainer, options.device)
         self._lock = threading.Lock()
         # Guards the fields below with `_lock`; notified when the last in-flight inference ends and when the drain
         # begins: the two events the waiting worker acts on.
@@ -341,7 +352,10 @@ class CAMPolicy:
 
     def _settled_or_wait(self) -> bool:
         """With the lock held: True once no inference is in flight and none has ended within `settle_ms`; otherwise
-        waits (until an inference ends, or the settle time runs out) and returns False so the caller checks again."""
+        waits (until an inference ends, or the settle time runs out) and returns False so the caller checks again.
+        On a device of its own (`CAMOptions.device`) the worker does not wait."""
+        if self._options.device is not None:
+            return True
         if self._inflight:
             self._cond.wait()
             return False
@@ -353,7 +367,7 @@ class CAMPolicy:
 
     def _process(self, job: _Job, started: float) -> None:
         try:
-            (exp,) = explain_traces(self._policy.explainer, [job.trace], self._options.request)
+            (exp,) = explain_traces(self._explainer, [job.trace], self._options.request)
         except Exception as e:
             self._record(JobTiming(job.connection, job.step, job.ended, started, time.monotonic()))
             self.count(f"failed_{type(e).__name__}", f"explaining raised {type(e).__name__}: {e}")
@@ -463,7 +477,7 @@ class CAMPolicy:
             return "nothing (the robot transform offers no example observation)"
         if self._logger is None or self._options.every_k == 0:
             return "inference"
-        (exp,) = explain_traces(self._policy.explainer, [trace], self._options.request)
+        (exp,) = explain_traces(self._explainer, [trace], self._options.request)
         if isinstance(exp, ExplainSkipped):
             return f"inference (the example's explanation was skipped: {exp})"
         if trace.malformed_reason is not None:
@@ -473,11 +487,29 @@ class CAMPolicy:
         return f"inference and the {exp.target} explanation"
 
 
+def explanation_device(index: int) -> jax.Device:
+    """`jax.devices()[index]`, or an error naming the devices this machine has."""
+    devices = jax.devices()
+    if not 0 <= index < len(devices):
+        raise ValueError(f"explanation device {index} requested, this machine has {len(devices)}: {devices}")
+    return devices[index]
+
+
+def explainer_on_device(explainer: Explainer, index: int | None) -> Explainer:
+    """`explainer` with its parameters on `jax.devices()[index]` (itself for None)."""
+    if index is None:
+        return explainer
+    return explainer.on_mesh(Mesh(np.array([explanation_device(index)]), (BATCH_AXIS,)))
+
+
 def wrap_policy_with_cam(
     policy: TracedPolicy, options: CAMOptions, *, run_config: dict[str, Any] | None = None, checkpoint: str = ""
 ) -> CAMPolicy:
     """Creates the run directory and the worker. If the run directory cannot be created, the server still serves:
-    the side channel is disabled and the reason logged and counted."""
+    the side channel is disabled and the reason logged and counted. A `device` the machine lacks is refused (ValueError)
+    before anything is created."""
+    if options.device is not None:
+        explanation_device(options.device)
     try:
         cam_logger = CAMLogger(
             options.cam_dir,

@@ -54,6 +54,7 @@ def main(
     cam_queue_size: int = 8,
     cam_per_connection: int | None = None,
     cam_settle_ms: float = 10.0,
+    cam_device: int | None = None,
     cam_max_steps: int | None = None,
     cam_max_mb: float | None = None,
     cam_drain_timeout: float = 5.0,
@@ -100,6 +101,9 @@ def main(
         cam_per_connection: pending jobs per connection at most (a newer one supersedes the oldest); None: no limit.
         cam_settle_ms: the worker starts an explanation only this long after the last inference ended (the reply is
             still being sent then).
+        cam_device: explain on this device (an index into `jax.devices()`, e.g. 1 for a second GPU), which holds a
+            copy of the parameters; explanations then run while the served model infers. Default: share the served
+            model's device, explaining only in pauses (`--cam-settle-ms`).
         cam_max_steps: stop recording after this many steps (None = no limit).
         cam_max_mb: stop recording once the run directory holds this many MB (None = no limit).
         cam_drain_timeout: on SIGTERM, seconds the side channel keeps explaining queued jobs (counted from the
@@ -188,6 +192,7 @@ def main(
             queue_size=cam_queue_size,
             per_connection=cam_per_connection,
             settle_ms=cam_settle_ms,
+            device=cam_device,
             max_steps=cam_max_steps,
             max_bytes=None if cam_max_mb is None else int(cam_max_mb * 1024 * 1024),
             max_extra_value_bytes=int(cam_max_extra_value_kb * 1024),
@@ -202,7 +207,11 @@ def main(
             "default_prompt": default_prompt,
             "stop_at_action_end": stop_at_action_end,
         }
-        served = wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=str(checkpoint_dir))
+        try:
+            served = wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=str(checkpoint_dir))
+        except ValueError as e:  # e.g. --cam-device names a device this machine does not have
+            print(f"openpi-cam serve: {e}", file=sys.stderr)
+            return 2
         logger.info("Grad-CAM on: every %d requests, target %s, writing to %s", cam_every_k, cam_target, cam_dir)
 
     if batch_window_ms is not None and policy.model.family != "pi0_fast":

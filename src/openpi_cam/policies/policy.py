@@ -248,8 +248,8 @@ class Policy:
         inputs, pre_resize_images, prompt = self._apply_inputs(_copy_containers(obs))
         # A leading batch axis on every leaf (jax pytree order, i.e. cameras sorted by name), as upstream.
         batched = jax.tree.map(lambda x: jnp.asarray(x)[np.newaxis, ...], inputs)
-        return _Prepared(Observation.from_dict(batched), np.asarray(batched["state"][0]), pre_resize_images, prompt,
-                         camera_sources)  # fmt: skip
+        observation = Observation.from_dict(batched)
+        return _Prepared(observation, np.asarray(batched["state"][0]), pre_resize_images, prompt, camera_sources)
 
     def _serve(
         self,
