@@ -18,14 +18,13 @@ import argparse
 import contextlib
 import json
 import os
-import platform
 import threading
 import time
 import urllib.request
 from typing import Any
 
 import numpy as np
-from bench_serving import bootstrap_ratio, demo_setup, open_client
+from bench_serving import bootstrap_ratio, demo_setup, machine_line, open_client
 from websockets.sync.client import ClientConnection
 
 from openpi_cam.serving import msgpack_numpy
@@ -118,10 +117,7 @@ def main() -> None:
     load_after = os.getloadavg()
 
     rng = np.random.default_rng(0)
-    print(
-        f"machine: {platform.machine()}, {os.cpu_count()} cores; load average (1/5/15 min) before "
-        f"{'/'.join(f'{x:.2f}' for x in load_before)}, after {'/'.join(f'{x:.2f}' for x in load_after)}"
-    )
+    print(machine_line(load_before, load_after))
     print(
         f"{args.requests} requests per robot and round, {args.rounds} rounds, back to back; batched: window "
         f"{args.window_ms:g} ms, max batch {args.max_batch}; {args.bootstrap} bootstrap resamples"

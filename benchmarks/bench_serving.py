@@ -86,6 +86,14 @@ def wait_settled(wrapped: CAMPolicy, timeout: float = 300.0) -> None:
     raise TimeoutError("the side channel did not finish its jobs")
 
 
+def machine_line(load_before: tuple[float, ...], load_after: tuple[float, ...]) -> str:
+    """Where a benchmark ran and how busy the machine was (1/5/15-minute load averages before and after)."""
+    return (
+        f"machine: {platform.machine()}, {os.cpu_count()} cores; load average (1/5/15 min) before "
+        f"{'/'.join(f'{x:.2f}' for x in load_before)}, after {'/'.join(f'{x:.2f}' for x in load_after)}"
+    )
+
+
 def bootstrap_ratio(on: np.ndarray, off: np.ndarray, q: float, rng: np.random.Generator, n: int) -> tuple[float, ...]:
     """The ratio of the q-th percentiles (on / off) and its percentile-bootstrap 95% interval."""
     ratios = [np.percentile(rng.choice(on, on.size), q) / np.percentile(rng.choice(off, off.size), q) for _ in range(n)]
@@ -164,10 +172,7 @@ def main() -> None:
     load_after = os.getloadavg()
 
     rng = np.random.default_rng(0)
-    print(
-        f"machine: {platform.machine()}, {os.cpu_count()} cores; load average (1/5/15 min) before "
-        f"{'/'.join(f'{x:.2f}' for x in load_before)}, after {'/'.join(f'{x:.2f}' for x in load_after)}"
-    )
+    print(machine_line(load_before, load_after))
     print(
         f"{args.requests} requests per mode and pattern, blocks of {args.block}, target {args.target}, robot cadence "
         f"pause {args.pause_ms:.0f} ms, settle {args.settle_ms:.0f} ms, {args.bootstrap} bootstrap resamples"

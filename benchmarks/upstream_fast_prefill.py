@@ -11,22 +11,16 @@ vocabulary), and keep the last slot's logits and the cache. Prints one JSON line
 
 from __future__ import annotations
 
-import argparse
 import json
 import statistics
 import time
 from pathlib import Path
 
-from upstream_pi0_timing import install_stubs
+from upstream_pi0_timing import upstream_args
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--upstream-src", required=True)
-    ap.add_argument("--spec", required=True, help="JSON file: checkpoint, architecture, inputs (see bench_model.py)")
-    ap.add_argument("--repeats", type=int, default=5)
-    args = ap.parse_args()
-    install_stubs(args.upstream_src)
+    args = upstream_args("bench_model.py")
 
     import flax.nnx as nnx
     import jax

@@ -35,13 +35,20 @@ def install_stubs(upstream_src: str) -> None:
     sys.modules["transformers"].AutoProcessor = object
 
 
-def main() -> None:
+def upstream_args(bench: str) -> argparse.Namespace:
+    """The arguments every upstream-side timing script takes (`bench`: the benchmark that writes its spec), with
+    upstream's imports made possible (`install_stubs`)."""
     ap = argparse.ArgumentParser()
     ap.add_argument("--upstream-src", required=True)
-    ap.add_argument("--spec", required=True, help="JSON file: checkpoint, architecture, inputs (see bench_pi05.py)")
+    ap.add_argument("--spec", required=True, help=f"JSON file: checkpoint, architecture, inputs (see {bench})")
     ap.add_argument("--repeats", type=int, default=5)
     args = ap.parse_args()
     install_stubs(args.upstream_src)
+    return args
+
+
+def main() -> None:
+    args = upstream_args("bench_pi05.py")
 
     import jax
     import numpy as np
