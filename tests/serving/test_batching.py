@@ -22,7 +22,7 @@ from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.policy import batch_bucket
-from openpi_cam.serving import msgpack_numpy
+from openpi_cam.serving import RequestContext, msgpack_numpy
 from openpi_cam.serving.server import start_server_in_thread
 
 # Long enough that the clients' simultaneous requests (released together by a barrier) land in one window even on a
@@ -58,6 +58,21 @@ def test_a_bad_request_in_a_batch_gets_its_own_error_and_the_others_their_action
     assert isinstance(results[1], Exception) and isinstance(results[3], InvalidRequest)
     for i in (0, 2):
         np.testing.assert_array_equal(results[i][0]["actions"], demo_policy.infer(observations[i])["actions"])
+
+
+def test_the_side_channel_passes_a_bad_batch_row_to_the_policy_to_refuse(demo_policy, demo_observations, tmp_path):
+    """Through the side channel too, a row that is not an observation gets the policy's named error (not an internal
+    one), and the rows around it their own actions and steps."""
+    cam = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, cam_dir=tmp_path))
+    contexts = [RequestContext(f"conn{i}", 0) for i in range(3)]
+    try:
+        results = cam.infer_batch([demo_observations[0], 7, demo_observations[1]], contexts)
+    finally:
+        cam.close(120)
+    assert isinstance(results[1], InvalidRequest) and "must be a dict" in str(results[1])
+    for i, obs in ((0, demo_observations[0]), (2, demo_observations[1])):
+        np.testing.assert_array_equal(results[i]["actions"], demo_policy.infer(obs)["actions"])
+    assert sorted(s.meta["connection"] for s in load_run(cam.run_dir).steps) == ["conn0", "conn2"]
 
 
 def test_flow_matching_batches_keep_each_requests_noise_and_the_rng_stream():

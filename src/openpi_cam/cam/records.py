@@ -22,7 +22,10 @@ _ARRAY_KEY = re.compile(r"[A-Za-z0-9_.\-/]+")
 
 
 def split_extra(obs: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
-    """(the observation without `cam_extra/` keys, those values keyed without the prefix)."""
+    """(the observation without `cam_extra/` keys, those values keyed without the prefix). Anything but a mapping
+    passes through unchanged, for the policy to refuse by name."""
+    if not isinstance(obs, Mapping):
+        return obs, {}
     extra = {k[len(EXTRA_PREFIX) :]: v for k, v in obs.items() if isinstance(k, str) and k.startswith(EXTRA_PREFIX)}
     if not extra:
         return obs, extra
