@@ -1009,6 +1009,17 @@ done(shapes=shapes, error=error)
 """
 
 
+# The valid observations the hostile clients send besides their bad requests (BAD_REQUESTS' and HOSTILE_EXTRA's
+# `good`; the flood's is sent by the test itself), served once before any peak is measured: each explanation's replay
+# length is bucketed by the step it explains (`pi0_fast_maps.replay_length`), and the first observation of a new
+# bucket compiles its programs in the side channel's worker. That is a property of valid requests, not hostile ones.
+WARM_OTHERS = r"""
+policy = connect()
+for seed in (0, 2):
+    policy.infer(droid_obs(np.random.RandomState(seed), size=(64, 96)))
+done()
+"""
+
 FLOOD_FRAMES = 10
 HOSTILE_EXTRA_PEAK_FRAMES = 8  # what the hostile probes may add to plain serving's peak, in message-limit units
 
@@ -1018,10 +1029,13 @@ def test_hostile_clients_against_a_served_process_stay_within_memory_log_and_dis
     then the same robot while every hostile probe runs at once: the 19 bad-request classes (amplifying frames, deep
     nesting, megabyte strings, unsendable dtypes), cam_extra bloat (an 8 MB string, a 4 MB array), 15 million empty
     maps in one 15 MB frame (~2 GB of objects if decoded whole), and a peer sending 10 frames of ~14.5 MiB without
-    ever reading its replies. Bounds, against measurements on the 2-core machine:
+    ever reading its replies. The valid observations the hostile clients also send are served once beforehand
+    (`WARM_OTHERS`), so that neither phase includes a first-use compilation. Bounds, against measurements on the
+    2-core machine:
     - the server's peak resident memory in the hostile phase exceeds plain serving's by less than 8 message limits
-      (128 MiB; plain serving's own peak, the explanation's working set, measured 308-316 MB above the idle server;
-      the hostile phase measured 240-313 MB, i.e. no more than plain serving);
+      (128 MiB; plain serving's own peak, the explanation's working set, measured 191-262 MB above the idle server
+      since the replay stops at the explained step; the hostile phase 266-307 MB, 45-104 MB above it; without the
+      warm-up of the other clients' observations 352-395 MB, their first explanations compiling inside the window);
     - the server log grows by less than 32 KiB (measured about 4.2 KB: one line per rejected request, each quoting at
       most 60 characters of a client value);
     - no step file is more than 64 KiB (the cam_extra limit) above the largest step of a request without extras;
@@ -1042,14 +1056,23 @@ def test_hostile_clients_against_a_served_process_stay_within_memory_log_and_dis
             return _proc_status_bytes(proc.pid, "VmRSS")
 
         robot_args = json.dumps({"port": port, "n": 30})
+        # ~14.5 MiB: a 2250 x 2250 image, under the limit; packed as the client would.
+        flood_obs = droid_obs_bytes(np.random.default_rng(3), size=(2250, 2250))
+        assert 14 * 2**20 < len(flood_obs) < limit_mb * 2**20
+        collect(spawn_client(client_script(WARM_OTHERS), json.dumps({"port": port})))
+        with connect(f"ws://127.0.0.1:{port}", max_size=None) as warm:  # the flood's observation, once, read
+            warm.recv(timeout=10)
+            warm.send(flood_obs)
+            warm.recv(timeout=60)
+        deadline = time.monotonic() + 120
+        while get_stats(port)["policy"]["gradcam"].get("completed", 0) < 3:  # all three explained and written
+            assert time.monotonic() < deadline, get_stats(port)
+            time.sleep(0.2)
         # Plain serving first: the robot alone (its explanations' working set is part of any peak).
         rss = reset_peak()
         plain_robot = collect(spawn_client(client_script(ROBOT), robot_args))
         plain_growth = _proc_status_bytes(proc.pid, "VmHWM") - rss
         log_before = log_path.stat().st_size
-        # ~14.5 MiB: a 2250 x 2250 image, under the limit; packed as the client would.
-        flood_obs = droid_obs_bytes(np.random.default_rng(3), size=(2250, 2250))
-        assert 14 * 2**20 < len(flood_obs) < limit_mb * 2**20
         flooder = connect(f"ws://127.0.0.1:{port}", max_size=None)
         flooder.recv(timeout=10)  # the metadata frame; replies are never read from here on
         rss = reset_peak()
@@ -1063,7 +1086,7 @@ def test_hostile_clients_against_a_served_process_stay_within_memory_log_and_dis
         robot_result, bad_result, bloat_result = (collect(c) for c in clients)
         flood.join(120)
         deadline = time.monotonic() + 120
-        while get_stats(port)["requests"] < 2 * 30 + 2 * len(BAD_REQUEST_EXPECTATIONS) + 3 + FLOOD_FRAMES:
+        while get_stats(port)["requests"] < 3 + 2 * 30 + 2 * len(BAD_REQUEST_EXPECTATIONS) + 3 + FLOOD_FRAMES:
             assert time.monotonic() < deadline, get_stats(port)
             time.sleep(0.2)
         hostile_growth = _proc_status_bytes(proc.pid, "VmHWM") - rss
