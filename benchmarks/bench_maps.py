@@ -2,8 +2,9 @@
 
 For `--scenes` fresh demo scenes (after one compile scene), times `policy.infer` and one explanation per kind set
 (gradcam + gradnorm share a backward pass; ig; occlusion; all four) through the family's explainer, exactly what the
-side channel runs per explained request, interleaved scene by scene so that machine load hits every row alike.
-Prints medians and the ratio explanation / inference.
+side channel runs per explained request, and the spot check the side channel adds to the gradcam + gradnorm
+explanation (each map's top patch and `--check-patches` random patches re-scored, `cam.spot_check`), interleaved
+scene by scene so that machine load hits every row alike. Prints medians and the ratio explanation / inference.
 
     python benchmarks/bench_maps.py                       # pi0-FAST demo model, target chunk
     python benchmarks/bench_maps.py --model pi05 --target action
@@ -21,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from openpi_cam.cam.spot_check import DEFAULT_PATCHES, check_trace
 from openpi_cam.demo import bundled, task
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import ExplainRequest
@@ -39,12 +41,14 @@ def main() -> None:
     parser.add_argument("--target", default="chunk")
     parser.add_argument("--scenes", type=int, default=20)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--check-patches", type=int, default=DEFAULT_PATCHES)
     args = parser.parse_args()
 
     policy = demo_reach.create_demo_policy(model=args.model)
     explainer = policy.explainer
     rng = np.random.default_rng(args.seed)
-    times: dict[str, list[float]] = {"infer": [], **{name: [] for name in KIND_SETS}}
+    check_row = f"spot check ({args.check_patches})"
+    times: dict[str, list[float]] = {"infer": [], **{name: [] for name in KIND_SETS}, check_row: []}
     ig_steps: list[int] = []
     for scene_index in range(args.scenes + 1):
         scene = task.random_scene(rng)
@@ -62,6 +66,11 @@ def main() -> None:
             row[name] = time.perf_counter() - t0
             if name == "ig" and scene_index > 0:
                 ig_steps.append(explanation.details["ig_completeness"]["steps"])
+            if name == "gradcam+gradnorm":
+                t0 = time.perf_counter()
+                check = check_trace(explainer, trace, explanation, request.options, patches=args.check_patches, seed=0)
+                row[check_row] = time.perf_counter() - t0
+                assert "skipped" not in check, check
         if scene_index == 0:
             continue  # compilation
         for name, seconds in row.items():

@@ -88,6 +88,38 @@ def test_steps_rescore_exactly_and_occlusion_is_its_own_optimum(tmp_path, demo_p
             assert rand is not None and rand["n"] >= 2, (camera, kind)  # the re-initialised model's maps vary
     text = format_report(report)
     assert "occlusion | 1.00" in text
+    _assert_step_figures_are_each_steps_own(run, report, policy)
+
+
+def _assert_step_figures_are_each_steps_own(run, report, policy) -> None:
+    """The per-step figures `render` shows beside a step's maps (report["steps"]) belong to that step: painting that
+    step's own top gradient-norm patch, re-scored here independently, drops its score by the stated fraction of the
+    best single patch's drop, where the best drop is its logged occlusion map's maximum. The steps' figures differ
+    (asserted), so figures filed under the wrong step or camera would not match."""
+    assert set(report["steps"]) == {str(s.seq) for s in run.steps}
+    seen = []
+    for step in run.steps:
+        obs, outputs, sample_inputs = step_model_inputs(step)
+        painting = MapOptions(**step.meta["map_options"])
+        figures = report["steps"][str(step.seq)]
+        masks = {}
+        for c in figures:
+            gradnorm = step.maps_of("gradnorm")[c]
+            masks[c] = fm.top_k_masks(fm.patch_order(gradnorm), gradnorm.shape)[:2]  # nothing painted, top patch
+        scores = policy.explainer.rescore(obs, outputs, sample_inputs, step.meta, masks, painting)
+        for c, f in figures.items():
+            occlusion = step.maps_of("occlusion")[c]
+            # As in the offline occlusion test: drops round at 1e-5 |score|; the optimum is the logged map's maximum.
+            atol = 1e-5 * max(abs(float(scores[c][0])), 1.0)
+            assert f["optimum"] == pytest.approx(float(occlusion.max()), abs=atol)
+            if f["optimum"] <= 10 * atol:
+                continue  # no patch lowers this score beyond rounding: its fractions are not meaningful
+            assert f["deletion_k1"]["occlusion"] == pytest.approx(1.0, abs=atol / f["optimum"])
+            assert f["top1_occlusion"]["occlusion"] is True
+            drop = float(scores[c][0] - scores[c][1])
+            assert f["deletion_k1"]["gradnorm"] == pytest.approx(drop / f["optimum"], abs=2 * atol / f["optimum"])
+            seen.append(f["deletion_k1"]["gradnorm"])
+    assert len(seen) >= 2 and len(set(np.round(seen, 3))) > 1, seen
 
 
 def test_logged_occlusion_maps_equal_the_single_patch_drops_rescored_offline(tmp_path, demo_policy):
@@ -134,15 +166,23 @@ def test_steps_without_model_frames_are_reported_not_replayable(tmp_path, demo_p
 
 
 def test_faithfulness_command_on_a_demo_run(tmp_path, demo_policy):
-    """The CLI finds the bundled model from the run's config, prints the table and writes the JSON report."""
+    """The CLI finds the bundled model from the run's config, prints the table and saves the JSON report beside the
+    run, where `render` finds it: the rendered report then shows each step's own figure beside its maps."""
     run = _logged_run(tmp_path / "cam", demo_policy, "chunk")
-    out = tmp_path / "report.json"
-    cmd = [sys.executable, "-m", "openpi_cam", "faithfulness", str(run.run_dir), "--json-out", str(out)]
+    cmd = [sys.executable, "-m", "openpi_cam", "faithfulness", str(run.run_dir)]
     done = subprocess.run([*cmd, "--randomize", "none", "--no-progress"], capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     assert "camera base_0_rgb" in done.stdout and "occlusion | 1.00" in done.stdout
-    report = json.loads(out.read_text())
-    assert report["steps_evaluated"] == len(SEEDS)
+    report = json.loads((run.run_dir / "faithfulness.json").read_text())
+    assert report["steps_evaluated"] == len(SEEDS) and report["run_id"] == run.run_dir.name
+    rendered = render_run(load_run(run.run_dir), tmp_path / "render", RenderOptions(videos=False, progress=False))
+    doc = rendered.report.read_text()
+    assert 'data-status="measured"' in doc
+    for step in run.steps:
+        f = report["steps"][str(step.seq)]["base_0_rgb"]["deletion_k1"]
+        section = doc[doc.index(f'id="step-{step.seq}"') :]
+        cell = section[section.index('<td class="evidence">') :].split(">", 1)[1].split("<", 1)[0]
+        assert cell == f"{f['gradnorm']:.2f} of best (random {f['random']:.2f})"  # the default kind, this step's
     bad = subprocess.run(
         [sys.executable, "-m", "openpi_cam", "faithfulness", str(tmp_path / "missing")], capture_output=True, text=True
     )

@@ -599,7 +599,7 @@ def test_warm_up_compiles_what_the_first_request_and_its_explanation_need():
         counts[mode] = json.loads(proc.stdout.strip().splitlines()[-1])
         assert counts[mode]["stats"]["completed"] == 4, counts[mode]  # every request was explained in every mode
     assert counts["cold"]["single"] > 0, counts
-    assert counts["warm"]["warmed"] == "inference and the action-token explanation", counts
+    assert counts["warm"]["warmed"] == "inference and the action-token explanation with its spot check", counts
     assert counts["warm"]["single"] == 0 and counts["warm"]["batch"] > 0, counts
     assert counts["warm-batched"]["single"] == 0 and counts["warm-batched"]["batch"] == 0, counts
 

@@ -430,6 +430,7 @@ def test_short_demo_run_is_readable(tmp_path):
         assert report.parent == result.run_dir / f"render-{kind}"
         assert sorted(int(s) for s in set(re.findall(r'data-seq="(\d+)"', doc))) == [s.seq for s in run.steps]
         assert f"0 of {len(run.steps)} steps" in doc  # no failures on the trained model
+        assert 'data-status="measured"' in doc  # measured before rendering: each map shows the run's figures
     figures = result.figures
     assert figures["episodes"] == 1 and figures["success_rate"] == float(episode["success"])
     assert figures["steps"] == len(run.steps)

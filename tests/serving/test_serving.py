@@ -815,14 +815,14 @@ def test_serve_with_cam_flags_writes_an_explained_closed_run(demo_observations, 
         "--fast-tokenizer", str(demo_reach.FAST_TOKENIZER),
     ]  # fmt: skip
     cam = ["--cam-every-k", "1", "--cam-dir", str(cam_dir), "--cam-target", "action-token", "--cam-action-index", "2"]
-    cam += ["--cam-per-connection", "4", "--cam-settle-ms", "5"]
+    cam += ["--cam-per-connection", "4", "--cam-settle-ms", "5", "--cam-check-patches", "2"]
     # The side channel explains in the client's pauses and at shutdown; the first explanation compiles (seconds on a
     # loaded 2-core machine), more than the 5 s default drain of a container stop: this test wants every step.
     cam += ["--cam-drain-timeout", "120"]
     observations = demo_observations[:3]
     with serve_subprocess(tmp_path, *files, *cam) as (proc, port, log_path):
         # Compiled before /healthz answered (tests/cam checks that the first request then compiles nothing).
-        assert "warmed up inference and the action-token explanation in" in log_path.read_text()
+        assert "warmed up inference and the action-token explanation with its spot check in" in log_path.read_text()
         collect(send_observations(port, tmp_path / "client", observations))
         _stop(proc, log_path)
     # In process, the policy exactly as `serve` builds it from those flags (the checkpoint's 256-step decoding).
@@ -836,7 +836,8 @@ def test_serve_with_cam_flags_writes_an_explained_closed_run(demo_observations, 
     (run_dir,) = list_runs(cam_dir)
     manifest = read_json(run_dir / MANIFEST_JSON)
     assert manifest is not None and manifest["closed"] is True and manifest["num_steps"] == len(observations)
-    assert (manifest["options"]["per_connection"], manifest["options"]["settle_ms"]) == (4, 5.0)  # the flags arrived
+    options = manifest["options"]
+    assert (options["per_connection"], options["settle_ms"], options["check_patches"]) == (4, 5.0, 2)  # flags arrived
     run = load_run(run_dir)
     assert [(s.meta["connection"], s.meta["step"]) for s in run.steps] == [("conn0000", i) for i in range(3)]
     request = ExplainRequest("action-token", 2, kinds=("gradcam", "gradnorm"))
@@ -846,6 +847,7 @@ def test_serve_with_cam_flags_writes_an_explained_closed_run(demo_observations, 
         np.testing.assert_array_equal(step.inputs["output"], trace.output)  # the step is this request's
         assert step.meta["target"] == "action-token" and step.meta["action_indices"] == [2]
         assert step.meta["malformed"] is None
+        assert all(len(c["random_patches"]) == 2 for c in step.meta["check"]["cameras"].values())
         (explanation,) = explain_traces(policy.explainer, [trace], request)
         for kind in ("gradcam", "gradnorm"):
             logged = step.maps_of(kind)

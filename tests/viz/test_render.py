@@ -25,7 +25,7 @@ from openpi_cam.viz.colormap import LUT, colorize
 from openpi_cam.viz.overlay import map_on_original, upsample
 from openpi_cam.viz.render import RenderOptions, render_run
 from openpi_cam.viz.report import flag_steps, write_report
-from openpi_cam.viz.stats import compute_stats, view_steps
+from openpi_cam.viz.stats import compute_stats, to_rows, view_steps
 
 GRID = 16
 MODEL = 224
@@ -356,3 +356,122 @@ def test_render_and_stats_draw_the_requested_kind(tmp_path, capsys):
             cli_main([command, str(only_gradcam)])
         assert exc.value.code == 2 and "no gradient norm (unsigned sensitivity) maps" in capsys.readouterr().err
     assert not (only_gradcam / "render-gradnorm").exists()  # refused before anything was written
+
+
+def _report_json(run_dir: pathlib.Path, run_id: str) -> None:
+    """A faithfulness report in the format `openpi-cam faithfulness` writes (cam.faithfulness_run), with figures that
+    differ per kind, camera and step, so a report that showed the wrong one would show another number."""
+    kinds = {
+        BASE: {
+            "gradcam": {"deletion_k1": {"median": 0.31}, "top1_occlusion": {"mean": 0.5}},
+            "gradnorm": {"deletion_k1": {"median": 0.94}, "top1_occlusion": {"mean": 1.0}},
+            "random": {"deletion_k1": {"median": 0.07}},
+        },
+        WRIST: {
+            "gradcam": {"deletion_k1": {"median": 0.22}, "randomisation_abs_spearman": {"mean": 0.45}},
+            "random": {"deletion_k1": {"median": 0.09}},
+        },
+    }
+    kinds[WRIST]["gradcam"]["null_abs_spearman"] = {"mean": 0.21}
+    cameras = {c: {"steps": 2, "steps_with_positive_optimum": 2, "kinds": k} for c, k in kinds.items()}
+    steps = {
+        "0": {BASE: {"optimum": 1.0, "deletion_k1": {"gradcam": 0.43, "gradnorm": 0.96, "random": 0.11}}},
+        "1": {
+            BASE: {"optimum": 0.5, "deletion_k1": {"gradcam": 0.58, "gradnorm": 0.81, "random": 0.13}},
+            WRIST: {"optimum": 0.0, "deletion_k1": {"gradcam": None, "random": None}},
+        },
+    }
+    report = {"run_id": run_id, "steps_evaluated": 2, "cameras": cameras, "steps": steps}
+    (run_dir / "faithfulness.json").write_text(json.dumps(report))
+
+
+def _evidence_cells(doc: str) -> dict[int, list[str]]:
+    """seq -> the evidence column of its step table, in camera order."""
+    sections = re.findall(r'<section class="step[^"]*" id="step-(\d+)"(.*?)</section>', doc, re.S)
+    cells = {int(seq): re.findall(r'<td class="evidence">(.*?)</td>', body) for seq, body in sections}
+    return {seq: [html.unescape(c) for c in row] for seq, row in cells.items()}
+
+
+def test_report_shows_the_runs_faithfulness_for_the_drawn_kind(tmp_path):
+    """Every rendered map comes with its evidence: the run's own faithfulness figures for the kind drawn (run level
+    and per step, next to a random patch's), the share of all-zero maps, and where there is no report for this run,
+    a plain "not measured" with the command that measures it."""
+    zero = np.zeros((GRID, GRID), np.float32)
+    steps = [
+        ("a", {"gradcam": {BASE: _hot((6, 10)), WRIST: zero}, "gradnorm": {BASE: _hot((1, 2)), WRIST: _hot((3, 3))}}),
+        (
+            "a",
+            {
+                "gradcam": {BASE: _hot((2, 2)), WRIST: _hot((1, 1))},
+                "gradnorm": {BASE: _hot((4, 5)), WRIST: _hot((5, 5))},
+            },
+        ),
+        ("a", {"gradcam": {BASE: zero, WRIST: _hot((3, 3))}, "gradnorm": {BASE: _hot((9, 9)), WRIST: _hot((7, 7))}}),
+    ]
+    run_dir = _log(tmp_path / "cam", [(conn, maps, 1.0, {}) for conn, maps in steps])
+    run = load_run(run_dir, load_arrays=False)
+
+    def report(kind: str) -> str:
+        return render_run(
+            run, tmp_path / kind, RenderOptions(map=kind, videos=False, progress=False)
+        ).report.read_text()
+
+    doc = report("gradcam")
+    assert 'data-status="missing"' in doc and f"openpi-cam faithfulness {run_dir}" in doc
+    assert "33.3% of the drawn camera-steps have an all-zero" in doc  # 2 of the 6 camera-steps above
+    assert all(cells == ["not measured"] * 2 for cells in _evidence_cells(doc).values())
+
+    _report_json(run_dir, run_dir.name)
+    doc = report("gradcam")
+    assert 'data-status="measured"' in doc and "2 steps re-scored of the 3 drawn" in doc
+    assert "0.31 (random 0.07)" in doc and "0.22 (random 0.09)" in doc and "0.45 (null 0.21)" in doc
+    assert "0.94" not in doc  # the gradient norm's figures belong to the other report
+    assert _evidence_cells(doc) == {
+        0: ["0.43 of best (random 0.11)", "step not in the report"],
+        1: ["0.58 of best (random 0.13)", "no patch lowers the score"],
+        2: ["step not in the report", "step not in the report"],
+    }
+    doc = report("gradnorm")
+    assert "0.94 (random 0.07)" in doc and "0.31" not in doc
+    assert _evidence_cells(doc)[1][0] == "0.81 of best (random 0.13)"
+
+    _report_json(run_dir, "20200101-000000-another")  # a report copied from another run is not this run's evidence
+    assert 'data-status="missing"' in report("gradcam")
+
+
+def test_report_shows_the_spot_checks_without_a_faithfulness_report(tmp_path):
+    """Steps carry their spot check (`meta.check`): with no faithfulness report the report is "spot-checked", gives
+    each step's top-patch drop next to the largest random one, and counts how often the top patch beats every random
+    patch next to chance 1 / (R + 1). A random draw of the kind's own top patch is not a competitor (step 2: counted,
+    it would tie, and the step would not beat)."""
+
+    def check(top: int, top_drop: float, randoms: list[int], drops: list[float]) -> dict:
+        camera = {"top_patch": {"gradnorm": top}, "top_patch_drop": {"gradnorm": top_drop}}
+        return {
+            "patches": len(randoms),
+            "cameras": {BASE: camera | {"random_patches": randoms, "random_patch_drops": drops}},
+        }
+
+    maps = {"gradnorm": {BASE: _hot((6, 10)), WRIST: _hot((1, 1))}}
+    checks = [
+        check(170, 0.5, [1, 2, 3, 4], [0.1, 0.2, -0.1, 0.05]),  # beats
+        check(170, 0.05, [1, 2, 3, 4], [0.3, 0.0, 0.01, 0.02]),  # does not
+        check(7, 0.4, [7, 8, 9, 10], [0.4, 0.1, 0.1, 0.1]),  # beats the three others
+    ]
+    run_dir = _log(tmp_path / "cam", [("a", maps, 1.0, {"check": c}) for c in checks])
+    run = load_run(run_dir, load_arrays=False)
+    doc = render_run(run, tmp_path / "out", RenderOptions(videos=False, progress=False)).report.read_text()
+    assert 'data-status="spot-checked"' in doc and "Spot-checked live (3 of 3 steps)" in doc
+    assert "67% (chance 22%)" in doc  # 2 of 3; chance (1/5 + 1/5 + 1/4) / 3
+    assert _evidence_cells(doc) == {
+        0: ["drop 0.5 (random <= 0.2)", "not measured"],
+        1: ["drop 0.05 (random <= 0.3)", "not measured"],
+        2: ["drop 0.4 (random <= 0.1)", "not measured"],
+    }
+    rows = to_rows(compute_stats(view_steps(run.steps, "gradnorm")))  # `openpi-cam stats`: the same figures
+    assert [(r[f"{BASE}/check_top_drop"], r[f"{BASE}/check_random_max"]) for r in rows] == [
+        (0.5, 0.2),
+        (0.05, 0.3),
+        (0.4, 0.1),
+    ]
+    assert all(r[f"{WRIST}/check_top_drop"] is None for r in rows)  # no check for that camera

@@ -154,6 +154,32 @@ def test_render_cli_writes_a_recording(tmp_path):
     _check_recording(cols, run_dir, "gradnorm")
 
 
+def test_recording_carries_each_steps_faithfulness_from_the_runs_report(tmp_path):
+    """With RUN_DIR/faithfulness.json (the format `openpi-cam faithfulness` writes), each step's figure for the drawn
+    kind is a series next to its camera's overlay; steps and cameras the report lacks log nothing."""
+    import json
+
+    from openpi_cam.viz.rerun_sink import write_rrd
+
+    run_dir = _run(tmp_path).run_dir
+    figures = {  # seq -> camera -> kind -> top patch's drop / best patch's
+        "0": {CAMERAS[0]: {"gradcam": 0.25, "gradnorm": 0.75}, CAMERAS[1]: {"gradcam": 0.5, "gradnorm": 0.125}},
+        "2": {CAMERAS[0]: {"gradcam": None, "gradnorm": None}},  # no patch lowered this step's score
+    }
+    steps = {seq: {c: {"optimum": 1.0, "deletion_k1": f} for c, f in cams.items()} for seq, cams in figures.items()}
+    cameras = {c: {"steps": 2, "kinds": {"gradcam": {}, "gradnorm": {}}} for c in CAMERAS}
+    report = {"run_id": run_dir.name, "steps_evaluated": 2, "cameras": cameras, "steps": steps}
+    (run_dir / "faithfulness.json").write_text(json.dumps(report))
+    for kind in ("gradcam", "gradnorm"):
+        cols = _columns(write_rrd(run_dir, tmp_path / f"{kind}.rrd", map_kind=kind))
+        _check_recording(cols, run_dir, kind)
+        logged = {path: (c["seq"], [v[0] for v in c["value"]]) for path, c in cols.items() if "/faithfulness/" in path}
+        assert logged == {
+            rf"/ep\ 1\/a/faithfulness/{CAMERAS[0]}": ([0], [figures["0"][CAMERAS[0]][kind]]),
+            rf"/ep\ 1\/a/faithfulness/{CAMERAS[1]}": ([0], [figures["0"][CAMERAS[1]][kind]]),
+        }
+
+
 def test_missing_rerun_names_the_extra(tmp_path, monkeypatch):
     from openpi_cam.viz.rerun_sink import write_rrd
 

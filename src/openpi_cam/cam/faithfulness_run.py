@@ -16,7 +16,9 @@ is that the unpainted re-run reproduces the logged score. Then, per map kind and
   (`cam_extra/target_box`, x0 y0 x1 y1 in the client image of `cam_extra/target_camera`, default the first camera).
 
 Medians are the headline (per-step ratios are heavy-tailed: a step whose best patch barely moves the score has a tiny
-optimum); means come with 95% bootstrap intervals. The pure metrics are `cam.faithfulness`.
+optimum); means come with 95% bootstrap intervals. The report also keeps each step's own figures (`steps`), which
+`render` and the HTML report show beside that step's maps; it is saved as RUN_DIR/faithfulness.json
+(`REPORT_FILE`). The pure metrics are `cam.faithfulness`.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
+import pathlib
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import Any, Literal
 
@@ -33,13 +36,16 @@ from jax.sharding import Mesh
 
 from openpi_cam.cam import faithfulness as fm
 from openpi_cam.cam.batching import data_mesh, explain_rows
-from openpi_cam.cam.runfmt import CAMRun, CAMStep
+from openpi_cam.cam.runfmt import CAMRun, CAMStep, read_json
 from openpi_cam.model.attribution import MAP_KINDS, MapOptions
 from openpi_cam.model.observation import Observation
 from openpi_cam.policies.family import Explainer, ExplainRequest, ExplainSkipped, Explanation
 
 _OBS_INPUTS = ("state", "tokenized_prompt", "tokenized_prompt_mask", "token_ar_mask")
 _SAMPLER_INPUTS = ("noise",)
+
+# Where a run's faithfulness report lives: beside its steps, where `render` looks for it.
+REPORT_FILE = "faithfulness.json"
 
 # Wraps the steps with a progress display: (steps, how many) -> the same steps.
 Progress = Callable[[Iterator[CAMStep], int], Iterator[CAMStep]]
@@ -300,12 +306,38 @@ def _report(run, records, randomised, skipped, replay_diffs, opts) -> dict[str, 
     return {
         "ig_completeness": _ig_summary(run),
         "run_dir": str(run.run_dir),
+        "run_id": run.run_info.get("run_id", run.run_dir.name),
         "options": dataclasses.asdict(opts),
         "steps_evaluated": max((len(r) for r in records.values()), default=0),
         "skipped": skipped,
         "score_replay_max_abs_diff": max(replay_diffs, default=None),
         "cameras": cameras,
+        "steps": _per_step(records),
     }
+
+
+def _per_step(records: Mapping[str, list[_CameraRecord]]) -> dict[str, dict[str, Any]]:
+    """Each evaluated step's own figures by seq (a string: JSON keys) and camera: the best single patch's drop, and
+    per kind (and "random", the mean over random orders) the drop of painting its top patch alone as a fraction of
+    that best drop, with whether its top patch is the best one. Fractions are None where no patch lowers the
+    score (nothing to normalise by)."""
+    steps: dict[str, dict[str, Any]] = {}
+    for c, recs in records.items():
+        for r in recs:
+            scored = r.optimum > 0
+            steps.setdefault(str(r.step), {})[c] = {
+                "optimum": r.optimum,
+                "deletion_k1": {k: float(d[0]) if scored and d is not None else None for k, d in r.deletion.items()},
+                "top1_occlusion": {
+                    k: bool(fm.top1_agreement(m, r.occlusion)) if scored else None for k, m in r.maps.items()
+                },
+            }
+    return steps
+
+
+def read_report(run_dir: str | pathlib.Path) -> dict[str, Any] | None:
+    """The run's saved faithfulness report (`REPORT_FILE`), or None when there is none or it cannot be read."""
+    return read_json(pathlib.Path(run_dir) / REPORT_FILE)
 
 
 def _ig_summary(run: CAMRun) -> dict[str, Any] | None:

@@ -33,6 +33,7 @@ from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.records import EXTRA_PREFIX, SaveFrames, split_extra, step_record
 from openpi_cam.cam.runfmt import RUN_JSON, load_run
 from openpi_cam.cam.side_channel import TracedPolicy
+from openpi_cam.cam.spot_check import DEFAULT_PATCHES, check_trace
 from openpi_cam.model.attribution import MapKind, MapOptions
 from openpi_cam.nested import unflatten_dict
 from openpi_cam.policies.family import ExplainRequest, ExplainSkipped, Target
@@ -73,10 +74,11 @@ class ExplainOptions:
     batch_size: int = 8  # observations per explainer call (padded to a multiple of the device count)
     limit: int | None = None  # explain at most this many new observations
     map_options: MapOptions = dataclasses.field(default_factory=MapOptions)  # of the "ig" / "occlusion" kinds
+    check_patches: int = DEFAULT_PATCHES  # random patches of each step's spot check (`cam.spot_check`); 0: none
 
     def __post_init__(self) -> None:
-        if self.batch_size < 1 or (self.limit is not None and self.limit < 0):
-            raise ValueError("batch_size >= 1 and limit >= 0 are required")
+        if self.batch_size < 1 or (self.limit is not None and self.limit < 0) or self.check_patches < 0:
+            raise ValueError("batch_size >= 1, limit >= 0 and check_patches >= 0 are required")
         self.request  # noqa: B018  (validates target, action_index and map kinds at construction)
 
     @property
@@ -197,6 +199,13 @@ def explain_replays(
                     log.warning("explain: %s: %s (further ones are only counted)", r.source, exp)
                 continue
             counts["explained_malformed"] += trace.malformed_reason is not None
+            check = None
+            if options.check_patches:
+                check = check_trace(
+                    explainer, trace, exp, options.map_options, patches=options.check_patches, seed=r.step, mesh=mesh
+                )
+                if "skipped" in check:
+                    counts[f"check_skipped_{check['skipped']}"] += 1
             record = step_record(
                 trace,
                 exp,
@@ -206,6 +215,7 @@ def explain_replays(
                 save_frames=options.save_frames,
                 extra={**r.extra, SOURCE_KEY: r.source},
                 explain_ms=per_row_ms,
+                check=check,
             )
             counts["completed" if cam_logger.log_step(record) else "not_logged"] += 1
     summary = {k: counts[k] for k in ("observations", "completed", "actions_compared", "actions_mismatched")}

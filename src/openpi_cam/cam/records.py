@@ -121,9 +121,11 @@ def step_record(
     save_frames: SaveFrames,
     extra: Mapping[str, Any],
     explain_ms: float,
+    check: Mapping[str, Any] | None = None,
 ) -> StepRecord:
     """The logger record of one explained inference, in the layout docs/FORMAT.md describes; `extra`: the client's
-    `cam_extra/` values (numeric arrays go to the step file, the rest to meta["extra"])."""
+    `cam_extra/` values (numeric arrays go to the step file, the rest to meta["extra"]); `check`: its spot check
+    (`cam.spot_check`), stored as meta["check"] when given."""
     extra_values, extra_arrays = split_extra_values(extra)
     frames = {}
     if save_frames in ("raw", "both"):
@@ -151,5 +153,7 @@ def step_record(
         "extra": extra_values,
         "extra_arrays": sorted(extra_arrays),  # stored as `extra/<key>` in the step file
     }
+    if check is not None:
+        meta["check"] = dict(check)
     inputs = model_inputs(trace)
     return StepRecord(connection, step, timestamp, exp.maps, frames, model_frames, inputs, meta, extra_arrays)

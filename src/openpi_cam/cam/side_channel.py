@@ -41,6 +41,7 @@ from jax.sharding import Mesh
 from openpi_cam.cam.batching import explain_traces
 from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.records import SAVE_FRAMES, SaveFrames, bounded_extra, split_extra, step_record
+from openpi_cam.cam.spot_check import DEFAULT_PATCHES, check_trace
 from openpi_cam.counters import WarnOnceCounter
 from openpi_cam.model.attribution import MapKind, MapOptions
 from openpi_cam.model.sharding import BATCH_AXIS
@@ -84,6 +85,9 @@ class CAMOptions:
     action_dim_index: int = 0  # pi0 / pi0.5: which action dimension ("action")
     maps: tuple[MapKind, ...] = ("gradcam", "gradnorm")  # which map kinds each explained step carries
     map_options: MapOptions = dataclasses.field(default_factory=MapOptions)  # of the "ig" / "occlusion" kinds
+    # Random single patches of each explained step's spot check (`cam.spot_check`: each kind's top patch painted
+    # against these, a few re-runs per camera in one call); 0: no check.
+    check_patches: int = DEFAULT_PATCHES
     queue_size: int = 8  # pending jobs in all (module docstring: which one a full queue drops)
     # Pending jobs per connection: a newer job supersedes that connection's oldest (e.g. 1: only the newest waits).
     # None: no limit of its own, the fair drop at `queue_size` applies (every request is explained when there is room).
@@ -108,6 +112,8 @@ class CAMOptions:
     def __post_init__(self) -> None:
         if self.every_k < 0 or self.queue_size < 1 or self.stats_window < 1 or self.settle_ms < 0:
             raise ValueError("every_k >= 0, queue_size >= 1, stats_window >= 1 and settle_ms >= 0 are required")
+        if self.check_patches < 0:
+            raise ValueError(f"check_patches must be >= 0, got {self.check_patches}")
         if self.device is not None and self.device < 0:
             raise ValueError(f"device must be an index into jax.devices() (>= 0), got {self.device}")
         if self.per_connection is not None and self.per_connection < 1:
@@ -343,8 +349,8 @@ class CAMPolicy:
                     self._cond.wait()
 
     def _wait_for_no_inference(self) -> float:
-        """Between the explanation and the write: lets an inference that started meanwhile finish (and settle)
-        first. Returns the time of that decision, taken under the lock."""
+        """Between the phases of a job (explanation, spot check, write): lets an inference that started meanwhile
+        finish (and settle) first. Returns the time of that decision, taken under the lock."""
         with self._cond:
             while not self._settled_or_wait():
                 pass  # it waited: check again
@@ -380,6 +386,21 @@ class CAMPolicy:
             return
         if job.trace.malformed_reason is not None:
             self.count("explained_malformed")
+        check = None
+        if self._options.check_patches:
+            self._wait_for_no_inference()  # the check re-runs the model: a phase of its own, like the write
+            check = check_trace(
+                self._explainer,
+                job.trace,
+                exp,
+                self._options.map_options,
+                patches=self._options.check_patches,
+                seed=job.step,
+            )
+            if "skipped" in check:
+                self.count(f"check_skipped_{check['skipped']}", check.get("error"))
+            explained = time.monotonic()
+            timing = dataclasses.replace(timing, explained=explained)
         explain_ms = (explained - started) * 1000.0
         # Building the record and writing it hold the GIL and the disk for milliseconds: a second phase, started
         # only while no inference is in flight either.
@@ -394,6 +415,7 @@ class CAMPolicy:
                 save_frames=self._options.save_frames,
                 extra=job.extra,
                 explain_ms=explain_ms,
+                check=check,
             )
             logged = self._logger.log_step(record)  # type: ignore[union-attr]  (no jobs without a logger)
         except Exception as e:
@@ -480,11 +502,16 @@ class CAMPolicy:
         (exp,) = explain_traces(self._explainer, [trace], self._options.request)
         if isinstance(exp, ExplainSkipped):
             return f"inference (the example's explanation was skipped: {exp})"
+        what = f"inference and the {exp.target} explanation"
+        if self._options.check_patches:
+            opts = self._options
+            check = check_trace(self._explainer, trace, exp, opts.map_options, patches=opts.check_patches, seed=0)
+            what += f" (spot check skipped: {check['skipped']})" if "skipped" in check else " with its spot check"
         if trace.malformed_reason is not None:
             # The example's generation holds no action tokens: the fallback target was compiled, not the configured
             # one (the side channel's first well-formed request compiles that, off the robot's path).
-            return f"inference and the {exp.target} explanation (the example's generation: {trace.malformed_reason})"
-        return f"inference and the {exp.target} explanation"
+            return f"{what} (the example's generation: {trace.malformed_reason})"
+        return what
 
 
 def explanation_device(index: int) -> jax.Device:

@@ -12,6 +12,7 @@ from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.offline import ExplainOptions, Replay, explain_replays, open_source, resume_mismatch
 from openpi_cam.cam.records import SaveFrames
 from openpi_cam.cam.runfmt import RUN_JSON, load_run
+from openpi_cam.cam.spot_check import DEFAULT_PATCHES
 from openpi_cam.cli.options import map_options, parse_action_index
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.model.attribution import MAP_KINDS, MapKind
@@ -35,6 +36,7 @@ def main(
     occlusion_region: int = 1,
     occlusion_masks: int = 0,
     ig_space: Literal["tokens", "pixels"] = "tokens",
+    check_patches: int = DEFAULT_PATCHES,
     save_frames: SaveFrames = "both",
     batch_size: int = 8,
     limit: int | None = None,
@@ -67,6 +69,8 @@ def main(
             Interventional Significance Score (for large grids).
         ig_space: where the IG path runs: between the SigLIP tokens of the baseline frame and the frame, or between
             the frames' pixels, through SigLIP (README, "Map kinds").
+        check_patches: each step's spot check paints each map's top patch and this many random patches, a few
+            re-runs per camera, and stores the score drops with the maps (README, "Looking at the maps"); 0: none.
         save_frames: which camera frames to store next to the maps (`raw`/`both` keep the run re-explainable).
         batch_size: observations explained per model call, split over all local devices.
         limit: explain at most this many observations not yet in the run (resume later for the rest).
@@ -102,6 +106,7 @@ def main(
             "occlusion_region": occlusion_region,
             "occlusion_masks": occlusion_masks,
             "ig_space": ig_space,
+            "check_patches": check_patches,
             "save_frames": save_frames,
         }
         replays, total = open_source(source, nested_keys=nested_keys)
@@ -114,6 +119,7 @@ def main(
             batch_size,
             limit,
             map_options(baseline, occlusion_region, occlusion_masks, ig_space),
+            check_patches,
         )
         if resume_dir is not None:
             run_info = load_run(resume_dir, load_arrays=False).run_info

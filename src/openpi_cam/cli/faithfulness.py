@@ -8,7 +8,7 @@ from typing import Literal
 
 import tyro
 
-from openpi_cam.cam.faithfulness_run import FaithfulnessOptions, evaluate_run, format_report
+from openpi_cam.cam.faithfulness_run import REPORT_FILE, FaithfulnessOptions, evaluate_run, format_report
 from openpi_cam.cam.runfmt import dumps, load_run
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.policies import demo_reach
@@ -78,7 +78,9 @@ def main(
         max_steps: evaluate at most this many steps, evenly spread over the run.
         random_orders: random patch orders averaged for the random reference.
         batch_size: steps per call of the randomised model (sharded over all local devices, like `explain`).
-        json_out: also write the full report (every figure with its 95% bootstrap interval) as JSON here.
+        json_out: where to write the full report (every figure with its 95% bootstrap interval, and each step's
+            own figures) as JSON; default RUN_DIR/faithfulness.json, where `render` finds it and shows each map's
+            figures beside it.
         progress: show progress on stderr.
     """
     try:
@@ -107,8 +109,13 @@ def main(
         print(f"openpi-cam faithfulness: {e}", file=sys.stderr)
         return 1
     print(format_report(report))
-    if json_out is not None:
-        json_out.write_text(dumps(report, indent=2))
+    out = pathlib.Path(run_dir) / REPORT_FILE if json_out is None else json_out
+    try:
+        out.write_text(dumps(report, indent=2))
+    except OSError as e:
+        print(f"openpi-cam faithfulness: could not save the report to {out}: {e}", file=sys.stderr)
+        return 1
+    print(f"saved the report to {out}", file=sys.stderr)
     if report["steps_evaluated"] == 0:
         print("openpi-cam faithfulness: no step could be re-scored", file=sys.stderr)
         return 1

@@ -15,6 +15,7 @@ from typing import Literal
 
 from openpi_cam.cam.records import SaveFrames
 from openpi_cam.cam.side_channel import CAMOptions, CAMPolicy, wrap_policy_with_cam
+from openpi_cam.cam.spot_check import DEFAULT_PATCHES
 from openpi_cam.cli.options import map_options, parse_action_index
 from openpi_cam.model.attribution import DEFAULT_KINDS, MapKind
 from openpi_cam.model.config import MAX_DECODING_STEPS
@@ -51,6 +52,7 @@ def main(
     cam_occlusion_region: int = 1,
     cam_occlusion_masks: int = 0,
     cam_ig_space: Literal["tokens", "pixels"] = "tokens",
+    cam_check_patches: int = DEFAULT_PATCHES,
     cam_queue_size: int = 8,
     cam_per_connection: int | None = None,
     cam_settle_ms: float = 10.0,
@@ -97,6 +99,9 @@ def main(
         cam_occlusion_region: side of an `occlusion` region in patches (1: every patch alone).
         cam_occlusion_masks: 0: every region once; M > 0: M random region masks per camera (ISS), for large grids.
         cam_ig_space: where the `ig` path runs: SigLIP tokens or the frames' pixels (README, "Map kinds").
+        cam_check_patches: each explained step's spot check paints each map's top patch and this many random
+            patches (a few re-runs per camera, in one call) and stores the score drops with the maps, so every map
+            carries evidence of its own (README, "Looking at the maps"); 0: no check.
         cam_queue_size: pending Grad-CAM jobs in all; at the cap the busiest connection's oldest one is dropped.
         cam_per_connection: pending jobs per connection at most (a newer one supersedes the oldest); None: no limit.
         cam_settle_ms: the worker starts an explanation only this long after the last inference ended (the reply is
@@ -189,6 +194,7 @@ def main(
             action_dim_index=action_dim_index,
             maps=cam_maps,
             map_options=map_options(cam_baseline, cam_occlusion_region, cam_occlusion_masks, cam_ig_space),
+            check_patches=cam_check_patches,
             queue_size=cam_queue_size,
             per_connection=cam_per_connection,
             settle_ms=cam_settle_ms,

@@ -10,7 +10,7 @@ import pathlib
 import time
 from typing import Any, Literal
 
-from openpi_cam.cam.faithfulness_run import FaithfulnessOptions, evaluate_run
+from openpi_cam.cam.faithfulness_run import REPORT_FILE, FaithfulnessOptions, evaluate_run
 from openpi_cam.cam.runfmt import dumps, load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.demo import bundled, quality, sim
@@ -43,9 +43,6 @@ def run_episodes(url: str, episodes: int, *, seed: int, max_calls: int, execute:
                 }
             )
     return results
-
-
-FAITHFULNESS_FILE = "faithfulness.json"  # the run's faithfulness report, beside its steps
 
 
 DRAIN_S = 3600.0  # how long the end of a demo run may spend explaining requests still queued
@@ -109,6 +106,11 @@ def run_demo(opts: DemoOptions) -> DemoResult:
         raise OSError(f"the side channel could not create a run directory under {opts.out}; see the log")
     run_dir = cam.run_dir
     (run_dir / quality.EPISODES_FILE).write_text(json.dumps(episodes, indent=2))
+    # Measured before rendering, so every rendered map carries its run's figures (`viz.evidence`).
+    faithfulness = None
+    if opts.faithfulness:
+        faithfulness = evaluate_run(load_run(run_dir), policy.explainer, FaithfulnessOptions(randomize="llm"))
+        (run_dir / REPORT_FILE).write_text(dumps(faithfulness, indent=2))
     reports = {}
     if opts.render:
         run = load_run(run_dir, load_arrays=False)
@@ -117,8 +119,4 @@ def run_demo(opts: DemoOptions) -> DemoResult:
             result = render_run(run, default_render_dir(run_dir, kind), render_opts)
             if result.report is not None:
                 reports[kind] = result.report
-    faithfulness = None
-    if opts.faithfulness:
-        faithfulness = evaluate_run(load_run(run_dir), policy.explainer, FaithfulnessOptions(randomize="llm"))
-        (run_dir / FAITHFULNESS_FILE).write_text(dumps(faithfulness, indent=2))
     return DemoResult(run_dir, episodes, quality.run_figures(run_dir), reports, time.time() - t0, faithfulness)

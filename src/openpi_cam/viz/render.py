@@ -15,6 +15,7 @@ from PIL import Image, ImageDraw, ImageFont
 
 from openpi_cam.cam.runfmt import CAMRun
 from openpi_cam.viz.colormap import LUT
+from openpi_cam.viz.evidence import MapEvidence, map_evidence, panel_header
 from openpi_cam.viz.overlay import StepView, camera_overlay
 from openpi_cam.viz.progress import progress
 from openpi_cam.viz.report import RenderResult, StepAssets, write_report
@@ -68,9 +69,15 @@ def _colorbar(height: int, width: int = 12) -> Image.Image:
 
 
 def step_panel(
-    step: StepView, st: StepStats, overlays: Mapping[str, np.ndarray], norm_label: str, tile_height: int
+    step: StepView,
+    st: StepStats,
+    overlays: Mapping[str, np.ndarray],
+    norm_label: str,
+    tile_height: int,
+    evidence: MapEvidence | None = None,
 ) -> Image.Image:
-    """All cameras of a step side by side, with the explained tokens, score and normalisation written above."""
+    """All cameras of a step side by side, with the explained tokens, score and normalisation written above, and
+    (`evidence`) how faithful this step's map of each camera measured, under its caption."""
     meta = step.meta
     font, small = _font(13), _font(11)
     tiles = []
@@ -83,11 +90,14 @@ def step_panel(
         f"tokens [{_fmt_list(meta.get('token_ids'))}] decode steps [{_fmt_list(meta.get('decode_steps'))}]"
         f" | score {_fmt_list(meta.get('score'), 4)}",
         f"{norm_label} | prompt: {str(meta.get('prompt', ''))[:90]}",
+        *([panel_header(evidence)] if evidence else []),
     ]
+    notes = evidence is not None and evidence.status != "missing"
+    caption_h = _LINE * (2 if notes else 1)
     bar_w = 12 + 40
     width = _PAD + sum(t.width + _PAD for _, t in tiles) + bar_w
     width = max(width, 560)
-    height = _PAD + len(header) * _LINE + _PAD + _LINE + tile_height + _PAD
+    height = _PAD + len(header) * _LINE + _PAD + caption_h + tile_height + _PAD
     panel = Image.new("RGB", (width, height), _BG)
     draw = ImageDraw.Draw(panel)
     for i, line in enumerate(header):
@@ -102,12 +112,14 @@ def step_panel(
             peak = f"peak {cs.peak[0]},{cs.peak[1]}" if cs.peak else "no mass"
             caption = f"{camera}  {100 * cs.share:.0f}%  {peak}"
         draw.text((x, top), caption, fill=_FG, font=small)
-        panel.paste(tile, (x, top + _LINE))
+        if notes and cs is not None and cs.valid:
+            draw.text((x, top + _LINE), f"top patch {evidence.step_line(st.seq, camera)}", fill=_DIM, font=small)
+        panel.paste(tile, (x, top + caption_h))
         x += tile.width + _PAD
     bar = _colorbar(tile_height)
-    panel.paste(bar, (x, top + _LINE))
-    draw.text((x + bar.width + 3, top + _LINE), "max", fill=_DIM, font=small)
-    draw.text((x + bar.width + 3, top + _LINE + tile_height - 12), "0", fill=_DIM, font=small)
+    panel.paste(bar, (x, top + caption_h))
+    draw.text((x + bar.width + 3, top + caption_h), "max", fill=_DIM, font=small)
+    draw.text((x + bar.width + 3, top + caption_h + tile_height - 12), "0", fill=_DIM, font=small)
     return panel
 
 
@@ -184,6 +196,7 @@ def render_run(run: CAMRun, out_dir: pathlib.Path, opts: RenderOptions) -> Rende
     `out_dir` (`MissingMaps`, before anything is written, when the run has no `opts.map` maps)."""
     steps = view_steps(run.steps, opts.map)
     stats = compute_stats(steps)
+    evidence = map_evidence(run, opts.map, stats)
     for sub in ("panels", "thumbs", "overlays", "videos"):
         (out_dir / sub).mkdir(parents=True, exist_ok=True)
     run_max = max((step_scale(st) for st in stats), default=0.0)
@@ -205,7 +218,7 @@ def render_run(run: CAMRun, out_dir: pathlib.Path, opts: RenderOptions) -> Rende
             rel = f"overlays/{name}-{slug(c)}.png"
             Image.fromarray(img).save(out_dir / rel)
             overlay_paths[c] = rel
-        panel = step_panel(step, st, overlays, norm_label, opts.tile_height)
+        panel = step_panel(step, st, overlays, norm_label, opts.tile_height, evidence)
         panel.save(out_dir / f"panels/{name}.png")
         thumb = panel.copy()
         thumb.thumbnail((10 * opts.thumb_height, opts.thumb_height), Image.Resampling.BILINEAR)
@@ -228,7 +241,12 @@ def render_run(run: CAMRun, out_dir: pathlib.Path, opts: RenderOptions) -> Rende
     if opts.html:
         metas = {v.seq: v.meta for v in steps}
         result.report = write_report(
-            result, dict(run.manifest), map_label=MAP_LABELS[opts.map], norm=opts.norm, step_meta=metas
+            result,
+            dict(run.manifest),
+            map_label=MAP_LABELS[opts.map],
+            norm=opts.norm,
+            step_meta=metas,
+            evidence=evidence,
         )
     return result
 

@@ -10,6 +10,7 @@ from collections import Counter
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+from openpi_cam.viz.evidence import MapEvidence, check_rows, summary_rows
 from openpi_cam.viz.stats import StepStats, aggregate, camera_names
 
 _PALETTE = ("#4e9af1", "#f28e2b", "#59a14f", "#e15759", "#b07aa1", "#76b7b2", "#edc948", "#ff9da7")
@@ -258,6 +259,49 @@ def _connection_section(
     )
 
 
+def _evidence_section(evidence: MapEvidence) -> str:
+    """How faithful the drawn kind measured on this run, before any map is shown."""
+    head = (
+        "camera",
+        "steps scored",
+        "top patch's drop / best patch's (median)",
+        "top patch = best patch",
+        "|rho| with a re-initialised model",
+        "pointing",
+    )
+    table = _table(head, summary_rows(evidence)) if evidence.cameras else ""
+    if evidence.check_summary:
+        check_head = (
+            "camera",
+            "steps spot-checked",
+            "top patch's score drop (median)",
+            "random patch's (median)",
+            "top patch beats every random patch",
+        )
+        table += "<p class='dim'>spot checks stored with the steps (live or offline explain)</p>"
+        table += _table(check_head, check_rows(evidence))
+    facts = []
+    if evidence.zero_share is not None:
+        facts.append(f"{_pct(evidence.zero_share)} of the drawn camera-steps have an all-zero (or all-negative) map")
+    ig = evidence.ig_completeness
+    if ig:
+        facts.append(
+            f"IG completeness over {ig['steps']} steps: largest relative error {_pct(ig['max_relative_error'])}"
+        )
+    items = "".join(f"<li>{_e(f)}</li>" for f in facts)
+    return (
+        f'<section class="evidence" id="evidence" data-status="{_e(evidence.status)}">'
+        f"<h2>how faithful are these maps?</h2><p>{_e(evidence.note)}</p>"
+        f'<p class="{"warn" if evidence.status == "missing" else "dim"}">{_e(evidence.status_line)}</p>'
+        f"{table}<ul>{items}</ul></section>"
+    )
+
+
+def _table(head: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    body = "".join("<tr>" + "".join(f"<td>{_e(v)}</td>" for v in row) + "</tr>" for row in rows)
+    return "<table><tr>" + "".join(f"<th>{_e(h)}</th>" for h in head) + f"</tr>{body}</table>"
+
+
 def _failures_section(failures: Sequence[Failure]) -> str:
     items = "".join(
         f'<li><a href="#step-{f.seq}">seq {f.seq} (connection {_e(f.connection)}, step {f.step})</a>: '
@@ -280,6 +324,7 @@ def _step_section(
     flags: list[str],
     prev_next: tuple[Any, Any],
     failure: Failure | None = None,
+    evidence: MapEvidence | None = None,
 ) -> str:
     rows = []
     for c in meta_cams:
@@ -293,7 +338,8 @@ def _step_section(
         name = f'<a href="{_e(link)}">{_e(c)}</a>' if link else _e(c)
         rows.append(
             f"<tr><td>{name}</td><td>{'yes' if cs.valid else 'no'}</td><td>{100 * cs.share:.1f}%</td>"
-            f"<td>{entropy}</td><td>{peak}</td><td>{shift}</td></tr>"
+            f"<td>{entropy}</td><td>{peak}</td><td>{shift}</td>"
+            f'<td class="evidence">{_e(evidence.step_line(st.seq, c)) if evidence else "-"}</td></tr>'
         )
     nav = " ".join(
         f'<a href="#step-{s.seq}">{label}</a>' for s, label in zip(prev_next, ("prev", "next"), strict=True) if s
@@ -307,7 +353,8 @@ def _step_section(
         f"score {st.score:.4g} <small>{nav}</small></h3>{warn}"
         f'<a href="{_e(assets.panel)}"><img class="panel" src="{_e(assets.panel)}" alt="seq {st.seq}"></a>'
         "<table><tr><th>camera</th><th>valid</th><th>share</th><th>entropy (norm.)</th><th>peak (row, col)</th>"
-        f"<th>peak shift</th></tr>{''.join(rows)}</table>"
+        "<th>peak shift</th><th>top patch's drop / best patch's</th></tr>"
+        f"{''.join(rows)}</table>"
         f"<p class='dim'>tokens {_e(' '.join(map(str, st.token_ids)))}</p></section>"
     )
 
@@ -343,11 +390,14 @@ def write_report(
     norm: str,
     score_drop: float = 0.3,
     step_meta: Mapping[int, Mapping[str, Any]] | None = None,
+    evidence: MapEvidence | None = None,
 ) -> pathlib.Path:
     """Writes `index.html` into the render directory and returns its path.
 
-    Failure steps (malformed generations) are listed first, from `step_meta` (seq -> step JSON, which names them in
-    every schema version) or else from the manifest's index entries (schema 2 names them there too)."""
+    `evidence` (how faithful the drawn kind measured on this run, `viz.evidence`) opens the report and gives each
+    step's figure beside its cameras. Failure steps (malformed generations) are listed first, from `step_meta`
+    (seq -> step JSON, which names them in every schema version) or else from the manifest's index entries (schema 2
+    names them there too)."""
     stats = result.stats
     rendered = {st.seq for st in stats}
     if step_meta is None:
@@ -384,7 +434,13 @@ def write_report(
             neighbours = (steps[i - 1] if i > 0 else None, steps[i + 1] if i + 1 < len(steps) else None)
             step_html.append(
                 _step_section(
-                    st, cams, result.steps[st.seq], flag_map.get(st.seq, []), neighbours, failure_of.get(st.seq)
+                    st,
+                    cams,
+                    result.steps[st.seq],
+                    flag_map.get(st.seq, []),
+                    neighbours,
+                    failure_of.get(st.seq),
+                    evidence,
                 )
             )
     doc = (
@@ -394,7 +450,8 @@ def write_report(
         f"<dl>{info_html}</dl>"
         "<table><tr><th>camera</th><th>valid steps</th><th>mean share</th><th>mean entropy (norm.)</th>"
         f"<th>peak stayed</th><th>mean peak shift (cells)</th><th>dominant in</th></tr>{cam_rows}</table>"
-        f"{_failures_section(failures)}{sections}<h2>steps</h2>{''.join(step_html)}<script>{_SCRIPT}</script></body></html>\n"
+        f"{_evidence_section(evidence) if evidence else ''}{_failures_section(failures)}{sections}"
+        f"<h2>steps</h2>{''.join(step_html)}<script>{_SCRIPT}</script></body></html>\n"
     )
     path = result.out_dir / "index.html"
     path.write_text(doc, encoding="utf-8")

@@ -5,6 +5,9 @@ Layout, per connection `<conn>` (escaped as one entity-path part) and model came
   /<conn>/<cam>/overlay   the map blended over it, as `openpi-cam render` draws it
   /<conn>/share/<cam>     the camera's share of the step's attention mass (scalar; openpi_cam.viz.stats)
   /<conn>/score           the explained score (mean over tokens for multi-token targets)
+  /<conn>/faithfulness/<cam>  with a faithfulness report for the run: the score drop of painting the step's top patch
+                          alone / the best single patch's drop (`viz.evidence`); where the report has that step
+  /faithfulness           (static) what the drawn kind is and how faithful it measured on this run, or that it was not
 Timelines: `step` (the request's index in its connection), `seq` (logging order) and `time` (request time).
 
 `rerun-sdk` is optional (`pip install "openpi-cam[rerun]"`); it is imported only when a recording is written.
@@ -18,6 +21,7 @@ import pathlib
 from typing import Any, Literal
 
 from openpi_cam.cam.runfmt import load_run
+from openpi_cam.viz.evidence import MapEvidence, map_evidence, summary_rows
 from openpi_cam.viz.overlay import camera_image, camera_overlay
 from openpi_cam.viz.stats import DEFAULT_MAP_KIND, compute_stats, step_scale, view_steps
 
@@ -43,6 +47,19 @@ def entity_paths(connection: str, cameras: list[str]) -> list[str]:
     return paths
 
 
+def _evidence_text(evidence: MapEvidence) -> str:
+    """The run-level evidence as Markdown: the kind's note, where the figures come from, one row per camera."""
+    lines = [f"# how faithful are these {evidence.kind} maps?", "", evidence.note, "", evidence.status_line]
+    if evidence.cameras:
+        lines += [
+            "",
+            "| camera | steps scored | top patch's drop / best patch's | top patch = best | randomisation | pointing |",
+            "| --- | --- | --- | --- | --- | --- |",
+            *("| " + " | ".join(row) + " |" for row in summary_rows(evidence)),
+        ]
+    return "\n".join(lines)
+
+
 def write_rrd(
     run_dir: str | os.PathLike[str],
     out_path: str | os.PathLike[str],
@@ -51,17 +68,21 @@ def write_rrd(
     alpha: float = 0.5,
     map_kind: str = DEFAULT_MAP_KIND,
 ) -> pathlib.Path:
-    """Writes the run's frames, overlays (of `map_kind` maps) and per-camera attention shares to `out_path`."""
+    """Writes the run's frames, overlays (of `map_kind` maps), per-camera attention shares and, when the run has a
+    faithfulness report, each step's figure for the drawn kind to `out_path`."""
     rr = _import_rerun()
     run = load_run(run_dir, load_arrays=False)
     steps = view_steps(run.steps, map_kind)
     stats = compute_stats(steps)
+    evidence = map_evidence(run, map_kind, stats)
     run_max = max((step_scale(st) for st in stats), default=0.0)
     out_path = pathlib.Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     rec = rr.RecordingStream("openpi-cam", recording_id=str(run.run_info.get("run_id", run.run_dir.name)))
     rec.save(out_path)
     try:
+        text = rr.TextDocument(_evidence_text(evidence), media_type=rr.MediaType.MARKDOWN)
+        rec.log("/faithfulness", text, static=True)
         for view, st in zip(steps, stats, strict=True):
             step = view.loaded()
             rec.set_time("step", sequence=st.step)
@@ -79,6 +100,9 @@ def write_rrd(
                 rec.log(f"/{conn}/{cam}/overlay", rr.Image(camera_overlay(step, camera, scale, alpha)))
                 if camera in st.cameras:
                     rec.log(f"/{conn}/share/{cam}", rr.Scalars(st.cameras[camera].share))
+                figure = evidence.steps.get(st.seq, {}).get(camera)
+                if figure is not None and figure.deletion_k1 is not None:
+                    rec.log(f"/{conn}/faithfulness/{cam}", rr.Scalars(figure.deletion_k1))
     finally:
         rec.flush()
         rec.disconnect()

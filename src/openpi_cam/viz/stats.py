@@ -19,7 +19,8 @@ import numpy as np
 
 from openpi_cam.cam.faithfulness import nuisance_mass_ratio, target_cells
 from openpi_cam.cam.runfmt import MAP_PREFIXES, CAMStep, client_extra
-from openpi_cam.viz.overlay import StepView, reduce_tokens
+from openpi_cam.cam.spot_check import read_check
+from openpi_cam.viz.overlay import reduce_tokens
 
 # What render, the report and the demo draw unless told otherwise: the map that measured most faithful on the demo
 # model at the cost of one backward pass (README, "Which map to trust").
@@ -111,6 +112,10 @@ class CameraStats:
     # Share of the map's positive mass outside the ground-truth box the client sent (`cam_extra/target_box`; Zhang
     # et al.'s nuisance mass ratio); NaN for cameras without a box.
     nuisance_mass: float = math.nan
+    # The step's spot check of this kind (`meta.check`): the score drop of painting the map's top patch alone, and the
+    # largest drop of the random patches painted alone; NaN without a check.
+    check_top_drop: float = math.nan
+    check_random_max: float = math.nan
 
 
 @dataclasses.dataclass(frozen=True)
@@ -167,7 +172,7 @@ def _camera_stats(m: np.ndarray | None, valid: bool, total: float) -> CameraStat
     )
 
 
-def compute_stats(steps: Iterable[StepView]) -> list[StepStats]:
+def compute_stats(steps: Iterable[MapView]) -> list[StepStats]:
     """Statistics for every step in logging order; peak stability links consecutive steps of one connection."""
     out: list[StepStats] = []
     last_peak: dict[tuple[str, str], tuple[int, int] | None] = {}
@@ -179,9 +184,13 @@ def compute_stats(steps: Iterable[StepView]) -> list[StepStats]:
         maps = {c: reduce_tokens(s.maps[c]) if c in s.maps else None for c in names}
         total = sum(float(m.sum()) for c, m in maps.items() if m is not None and valid[c])
         connection = str(meta.get("connection", ""))
+        checked = read_check(meta, s.kind)
         cameras: dict[str, CameraStats] = {}
         for c in names:
             cs = _camera_stats(maps[c], valid[c], total)
+            if c in checked:
+                top, randoms = checked[c]
+                cs = dataclasses.replace(cs, check_top_drop=top, check_random_max=max(randoms, default=math.nan))
             cells = None if maps[c] is None else target_cells(meta, c, maps[c].shape, None, s.extra)
             if cs.valid and cells is not None:
                 cs = dataclasses.replace(cs, nuisance_mass=nuisance_mass_ratio(maps[c], cells))
@@ -249,6 +258,8 @@ def to_rows(stats: Sequence[StepStats]) -> list[dict[str, Any]]:
                 f"{c}/peak_shift": _nan_to_none(cs.peak_shift) if cs is not None else None,
                 f"{c}/peak_stayed": cs.peak_stayed if cs is not None else None,
                 f"{c}/nuisance_mass": _nan_to_none(cs.nuisance_mass) if cs is not None else None,
+                f"{c}/check_top_drop": _nan_to_none(cs.check_top_drop) if cs is not None else None,
+                f"{c}/check_random_max": _nan_to_none(cs.check_random_max) if cs is not None else None,
             }
         rows.append(row)
     return rows

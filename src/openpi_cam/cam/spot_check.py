@@ -1,0 +1,134 @@
+"""A spot check of every explained step, computed with its maps: does painting a map's top patch move the explained
+score more than painting a random patch?
+
+The full faithfulness report (`cam.faithfulness_run`) re-runs a step once per patch and camera plus 16 per map kind
+and random order: far too much to do live on a real checkpoint (~1,350 re-runs per step for three 224 px cameras).
+The spot check re-runs the step a handful of times per camera, in one batched call: nothing painted, each kind's top
+patch alone, and `patches` random single patches (drawn without replacement, seeded by the step), all painted with
+the baseline frame the run's ig / occlusion maps use. It stores the score drops in the step's meta (`meta.check`,
+docs/FORMAT.md), so every logged map carries evidence of its own: a top patch whose drop is no larger than a random
+patch's is a map the model does not follow at that step.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import zlib
+from collections.abc import Mapping
+from typing import Any
+
+import jax
+import numpy as np
+from jax.sharding import Mesh
+
+from openpi_cam.cam.faithfulness import patch_order
+from openpi_cam.model.attribution import MapOptions
+from openpi_cam.model.observation import Observation
+from openpi_cam.policies.family import Explainer, ExplainSkipped, Explanation
+from openpi_cam.policies.policy import InferenceTrace
+
+# Random single patches per camera and step (`--cam-check-patches`): with each kind's top patch and the unpainted
+# score, 1 + kinds + 4 re-runs per camera in one call.
+DEFAULT_PATCHES = 4
+
+
+def spot_check_masks(
+    maps: Mapping[str, np.ndarray], grid: tuple[int, int], patches: int, seed: int
+) -> tuple[np.ndarray, list[int], list[int]]:
+    """Masks bool [1 + K + R, Hp, Wp] (row 0 paints nothing; then each of the K maps' top patch; then R random
+    patches), with the top patches' and the random patches' flat (row-major) indices."""
+    n = grid[0] * grid[1]
+    tops = [int(patch_order(m)[0]) for m in maps.values()]
+    randoms = [int(i) for i in np.random.default_rng(seed).choice(n, size=min(patches, n), replace=False)]
+    masks = np.zeros((1 + len(tops) + len(randoms), n), bool)
+    masks[np.arange(1, len(masks)), tops + randoms] = True
+    return masks.reshape(-1, *grid), tops, randoms
+
+
+def spot_check(
+    explainer: Explainer,
+    row: tuple[Observation, np.ndarray, Mapping[str, np.ndarray]],
+    explanation: Explanation,
+    options: MapOptions,
+    *,
+    patches: int,
+    seed: int,
+) -> dict[str, Any]:
+    """`meta.check` of one explained inference: `row` is (observation [B = 1], raw output without its batch axis,
+    sampler inputs without it), as the explanation saw them. Per valid camera: the unpainted score, each kind's top
+    patch and its drop, the random patches and their drops. A target with one score per token cannot be checked
+    with one number: {"skipped": why}."""
+    observation, output, drawn = row
+    explained = {"target": explanation.target, **explanation.details}
+    kinds = list(explanation.maps)
+    layout: dict[str, tuple[list[int], list[int]]] = {}
+    masks = {}
+    for index, (camera, info) in enumerate(explanation.cameras.items()):
+        if not info.get("valid", True):
+            continue
+        grid = tuple(info["grid"])
+        per_kind = {k: explanation.maps[k][camera] for k in kinds}
+        # One stream per camera and step: the same step checks the same random patches whenever it is re-explained.
+        camera_seed = [seed, index, zlib.crc32(camera.encode())]
+        masks[camera], tops, randoms = spot_check_masks(per_kind, grid, patches, camera_seed)
+        layout[camera] = (tops, randoms)
+    if not masks:
+        return {"skipped": "no_valid_camera"}
+    try:
+        scores = explainer.rescore(
+            observation,
+            np.asarray(output)[None],
+            {k: np.asarray(v)[None] for k, v in drawn.items()},
+            explained,
+            masks,
+            options,
+        )
+    except ExplainSkipped as e:
+        return {"skipped": e.kind}
+    cameras = {}
+    for camera, (tops, randoms) in layout.items():
+        s = np.asarray(scores[camera], np.float64)
+        drops = s[0] - s[1:]
+        cameras[camera] = {
+            "score": float(s[0]),
+            "top_patch": dict(zip(kinds, tops, strict=True)),
+            "top_patch_drop": {k: float(d) for k, d in zip(kinds, drops[: len(kinds)], strict=True)},
+            "random_patches": randoms,
+            "random_patch_drops": [float(d) for d in drops[len(kinds) :]],
+        }
+    return {"patches": patches, "seed": seed, "cameras": cameras}
+
+
+def check_trace(
+    explainer: Explainer,
+    trace: InferenceTrace,
+    explanation: Explanation,
+    options: MapOptions,
+    *,
+    patches: int,
+    seed: int,
+    mesh: Mesh | None = None,
+) -> dict[str, Any]:
+    """`spot_check` of a traced inference; best effort like the rest of the side channel: a failure is recorded as
+    {"skipped": "failed_<Error>"} and the step keeps its maps. With a `mesh`, `explainer` is placed on it."""
+    row = (trace.observation, trace.output, trace.sample_inputs)
+    try:
+        with jax.set_mesh(mesh) if mesh is not None else contextlib.nullcontext():
+            return spot_check(explainer, row, explanation, options, patches=patches, seed=seed)
+    except Exception as e:
+        return {"skipped": f"failed_{type(e).__name__}", "error": str(e)[:200]}
+
+
+def read_check(meta: Mapping[str, Any], kind: str) -> dict[str, tuple[float, tuple[float, ...]]]:
+    """A logged step's spot check of one map kind: camera -> (its top patch's score drop, the random patches' drops).
+    A random draw of the kind's own top patch is left out: it is no competitor, and without it a top patch no
+    better than a random one beats the R' others with probability 1 / (R' + 1)."""
+    out = {}
+    for camera, c in ((meta.get("check") or {}).get("cameras") or {}).items():
+        top = (c.get("top_patch_drop") or {}).get(kind)
+        if not isinstance(top, (int, float)):
+            continue
+        own = (c.get("top_patch") or {}).get(kind)
+        pairs = zip(c.get("random_patches") or (), c.get("random_patch_drops") or (), strict=False)
+        out[camera] = (float(top), tuple(float(d) for i, d in pairs if i != own))
+    return out
