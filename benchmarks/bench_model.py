@@ -16,6 +16,8 @@ weights (timings do not depend on the values). The decode has upstream's 256 slo
   one token              gradcam + gradnorm of the last generated token; also with the replay at all 256 slots (the
                          cut at the last explained step disabled, the other savings kept)
   action tokens          all of them in one call (one forward, one backward each) vs a loop of one-token calls
+  scanned backward       the one-token explanation with the Gemma stack scanned in its backward pass, as before
+                         `pi0_fast_maps.backward_config` unrolled it (same stacked parameters)
 Every row runs in each of `--rounds` rounds (rows interleaved); ratios are of medians.
 """
 
@@ -167,6 +169,7 @@ def main() -> None:
         "one_full": lambda: full_length(lambda: maps.gradcam_for_action_token(model, obs, generated, last).score),
         "all": lambda: maps.gradcam_for_steps(model, obs, generated, action_steps).score,
         "loop": lambda: [maps.gradcam_for_action_token(model, obs, generated, k).score for k in action_steps],
+        "one_scanned": lambda: scanned_backward(lambda: maps.gradcam_for_action_token(model, obs, generated, last)),
     }
     before = maps._token_cams._cache_size()
     for k in range(args.generated):  # every step of the request, one token at a time
@@ -223,6 +226,9 @@ def main() -> None:
         (f"{args.tokens} action tokens, per-token loop (ms)", f"{1e3 * t['loop']:.0f}"),
         ("  one call / loop (target <= 0.4)", f"{t['all'] / t['loop']:.2f}"),
         (f"compilations over all {args.generated} steps, one token each", f"{compiles}"),
+        (f"one token, step {last}, stack scanned in the backward pass (ms)", f"{1e3 * t['one_scanned']:.0f}"),
+        ("  / teacher-forced forward", f"{t['one_scanned'] / t['forward']:.2f}"),
+        ("  one token: unrolled (the default) / scanned backward pass", f"{t['one'] / t['one_scanned']:.2f}"),
     ]
     print("| quantity | value |")
     print("| --- | --- |")
@@ -238,6 +244,16 @@ def full_length(fn):
         return fn()
     finally:
         maps.replay_length = cut
+
+
+def scanned_backward(fn):
+    """Runs `fn` with the explanation's stack scanned, as the served model runs it (before the backward unroll)."""
+    unrolled = maps.backward_config
+    maps.backward_config = lambda cfg: cfg
+    try:
+        return fn().score
+    finally:
+        maps.backward_config = unrolled
 
 
 if __name__ == "__main__":
