@@ -258,6 +258,8 @@ def backward_config(cfg: Pi0FASTConfig) -> Pi0FASTConfig:
     if cfg.gemma.remat or not cfg.gemma.scan:
         return cfg
     return dataclasses.replace(cfg, gemma=dataclasses.replace(cfg.gemma, scan=False))
+
+
 _baseline_frames = jax.jit(baseline_maps.frames, static_argnames=("options",))
 
 
