@@ -75,6 +75,11 @@ class TracedPolicy(Protocol):
     def close(self, timeout: float | None = None) -> None: ...
 
 
+# How long `close` waits past the drain deadline for the final manifest, which the drain writes after it stops waiting
+# for the worker (a few milliseconds of disk I/O; the bound only guards against a stalled disk).
+MANIFEST_WRITE_S = 5.0
+
+
 @dataclasses.dataclass(frozen=True)
 class CAMOptions:
     every_k: int = 1  # explain every k-th inference of each connection (0 = off)
@@ -482,7 +487,11 @@ class CAMPolicy:
         writes the final manifest, then closes the wrapped policy."""
         self.begin_close(timeout)
         assert self._closer is not None
-        self._closer.join(max(0.0, self._deadline - time.monotonic()))
+        # At the deadline the drain stops waiting for the worker, but it still writes the manifest: a caller that
+        # exits right after `close` (serve, with an explanation still computing) must not cut that write short.
+        self._closer.join(max(0.0, self._deadline - time.monotonic()) + MANIFEST_WRITE_S)
+        if self._closer.is_alive():
+            self.count("manifest_not_written", f"the final manifest was not written within {MANIFEST_WRITE_S} s")
         self._policy.close(max(0.0, self._deadline - time.monotonic()))
 
     @property
