@@ -249,7 +249,7 @@ def full_length(fn):
 def scanned_backward(fn):
     """Runs `fn` with the explanation's stack scanned, as the served model runs it (before the backward unroll)."""
     unrolled = maps.backward_config
-    maps.backward_config = lambda cfg: cfg
+    maps.backward_config = lambda cfg, tokens: cfg
     try:
         return fn().score
     finally:

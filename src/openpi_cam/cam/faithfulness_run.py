@@ -304,7 +304,7 @@ def _report(run, records, randomised, skipped, replay_diffs, opts) -> dict[str, 
             per_kind[kind] = entry
         cameras[c] = {"steps": len(recs), "steps_with_positive_optimum": len(usable), "kinds": per_kind}
     return {
-        "ig_completeness": _ig_summary(run),
+        "ig_completeness": ig_summary(run),
         "run_dir": str(run.run_dir),
         "run_id": run.run_info.get("run_id", run.run_dir.name),
         "options": dataclasses.asdict(opts),
@@ -340,7 +340,7 @@ def read_report(run_dir: str | pathlib.Path) -> dict[str, Any] | None:
     return read_json(pathlib.Path(run_dir) / REPORT_FILE)
 
 
-def _ig_summary(run: CAMRun) -> dict[str, Any] | None:
+def ig_summary(run: CAMRun) -> dict[str, Any] | None:
     """IG's completeness over the run's logged steps (as the side channel stored it): the largest and median
     relative error |sum of attributions - (score - baseline score)| / |score - baseline score|, and the quadrature
     points used."""

@@ -383,10 +383,8 @@ class CAMPolicy:
             self._record(JobTiming(job.connection, job.step, job.ended, started, time.monotonic()))
             self.count(f"failed_{type(e).__name__}", f"explaining raised {type(e).__name__}: {e}")
             return
-        explained = time.monotonic()
-        timing = JobTiming(job.connection, job.step, job.ended, started, explained)
         if isinstance(exp, ExplainSkipped):
-            self._record(timing)
+            self._record(JobTiming(job.connection, job.step, job.ended, started, time.monotonic()))
             self.count(f"skipped_{exp.kind}", str(exp))
             return
         if job.trace.malformed_reason is not None:
@@ -404,8 +402,8 @@ class CAMPolicy:
             )
             if "skipped" in check:
                 self.count(f"check_skipped_{check['skipped']}", check.get("error"))
-            explained = time.monotonic()
-            timing = dataclasses.replace(timing, explained=explained)
+        explained = time.monotonic()  # the explanation and its spot check
+        timing = JobTiming(job.connection, job.step, job.ended, started, explained)
         explain_ms = (explained - started) * 1000.0
         # Building the record and writing it hold the GIL and the disk for milliseconds: a second phase, started
         # only while no inference is in flight either.

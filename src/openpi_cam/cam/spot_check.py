@@ -23,7 +23,6 @@ from jax.sharding import Mesh
 
 from openpi_cam.cam.faithfulness import patch_order
 from openpi_cam.model.attribution import MapOptions
-from openpi_cam.model.observation import Observation
 from openpi_cam.policies.family import Explainer, ExplainSkipped, Explanation
 from openpi_cam.policies.policy import InferenceTrace
 
@@ -45,46 +44,58 @@ def spot_check_masks(
     return masks.reshape(-1, *grid), tops, randoms
 
 
-def spot_check(
+def check_trace(
     explainer: Explainer,
-    row: tuple[Observation, np.ndarray, Mapping[str, np.ndarray]],
+    trace: InferenceTrace,
     explanation: Explanation,
     options: MapOptions,
     *,
     patches: int,
     seed: int,
+    mesh: Mesh | None = None,
 ) -> dict[str, Any]:
-    """`meta.check` of one explained inference: `row` is (observation [B = 1], raw output without its batch axis,
-    sampler inputs without it), as the explanation saw them. Per valid camera: the unpainted score, each kind's top
-    patch and its drop, the random patches and their drops. A target with one score per token cannot be checked
-    with one number: {"skipped": why}."""
-    observation, output, drawn = row
-    explained = {"target": explanation.target, **explanation.details}
+    """`meta.check` of one traced, explained inference: per valid camera, the unpainted score, each kind's top patch
+    and its drop, the random patches and their drops. {"skipped": why} when the target has one score per token
+    (one number cannot check it), and best effort like the rest of the side channel: a failure is recorded as
+    {"skipped": "failed_<Error>"} and the step keeps its maps. With a `mesh`, `explainer` is placed on it."""
+    try:
+        with jax.set_mesh(mesh) if mesh is not None else contextlib.nullcontext():
+            return _check(explainer, trace, explanation, options, patches, seed)
+    except ExplainSkipped as e:
+        return {"skipped": e.kind}
+    except Exception as e:
+        return {"skipped": f"failed_{type(e).__name__}", "error": str(e)[:200]}
+
+
+def _check(
+    explainer: Explainer,
+    trace: InferenceTrace,
+    explanation: Explanation,
+    options: MapOptions,
+    patches: int,
+    seed: int,
+) -> dict[str, Any]:
     kinds = list(explanation.maps)
     layout: dict[str, tuple[list[int], list[int]]] = {}
     masks = {}
     for index, (camera, info) in enumerate(explanation.cameras.items()):
         if not info.get("valid", True):
             continue
-        grid = tuple(info["grid"])
         per_kind = {k: explanation.maps[k][camera] for k in kinds}
         # One stream per camera and step: the same step checks the same random patches whenever it is re-explained.
         camera_seed = [seed, index, zlib.crc32(camera.encode())]
-        masks[camera], tops, randoms = spot_check_masks(per_kind, grid, patches, camera_seed)
+        masks[camera], tops, randoms = spot_check_masks(per_kind, tuple(info["grid"]), patches, camera_seed)
         layout[camera] = (tops, randoms)
     if not masks:
         return {"skipped": "no_valid_camera"}
-    try:
-        scores = explainer.rescore(
-            observation,
-            np.asarray(output)[None],
-            {k: np.asarray(v)[None] for k, v in drawn.items()},
-            explained,
-            masks,
-            options,
-        )
-    except ExplainSkipped as e:
-        return {"skipped": e.kind}
+    scores = explainer.rescore(
+        trace.observation,
+        np.asarray(trace.output)[None],
+        {k: np.asarray(v)[None] for k, v in trace.sample_inputs.items()},
+        {"target": explanation.target, **explanation.details},
+        masks,
+        options,
+    )
     cameras = {}
     for camera, (tops, randoms) in layout.items():
         s = np.asarray(scores[camera], np.float64)
@@ -97,26 +108,6 @@ def spot_check(
             "random_patch_drops": [float(d) for d in drops[len(kinds) :]],
         }
     return {"patches": patches, "seed": seed, "cameras": cameras}
-
-
-def check_trace(
-    explainer: Explainer,
-    trace: InferenceTrace,
-    explanation: Explanation,
-    options: MapOptions,
-    *,
-    patches: int,
-    seed: int,
-    mesh: Mesh | None = None,
-) -> dict[str, Any]:
-    """`spot_check` of a traced inference; best effort like the rest of the side channel: a failure is recorded as
-    {"skipped": "failed_<Error>"} and the step keeps its maps. With a `mesh`, `explainer` is placed on it."""
-    row = (trace.observation, trace.output, trace.sample_inputs)
-    try:
-        with jax.set_mesh(mesh) if mesh is not None else contextlib.nullcontext():
-            return spot_check(explainer, row, explanation, options, patches=patches, seed=seed)
-    except Exception as e:
-        return {"skipped": f"failed_{type(e).__name__}", "error": str(e)[:200]}
 
 
 def read_check(meta: Mapping[str, Any], kind: str) -> dict[str, tuple[float, tuple[float, ...]]]:

@@ -249,13 +249,13 @@ def _variant_scores(params, obs, fed, target, variants, *, cfg: Pi0FASTConfig, d
 occlusion_masks = baseline_maps.occlusion_masks
 
 
-def backward_config(cfg: Pi0FASTConfig) -> Pi0FASTConfig:
-    """The config a one-token explanation's differentiated program runs with: the Gemma stack unrolled over the same
-    stacked parameters, unless it is rematerialised. XLA:CPU differentiates one token through the unrolled stack
-    faster (bench_model's medium model, side by side: 0.82-0.87x the scanned backward pass in three runs); inference
-    keeps the served layout, and so do multi-token and chunk explanations (not measured faster) and stacks with
-    `remat` (full-size checkpoints: the layout whose memory bench_fullsize measured)."""
-    if cfg.gemma.remat or not cfg.gemma.scan:
+def backward_config(cfg: Pi0FASTConfig, tokens: int) -> Pi0FASTConfig:
+    """The config a token explanation of `tokens` (padded) steps differentiates with. One token: the Gemma stack
+    unrolled over the same stacked parameters, unless it is rematerialised; XLA:CPU differentiates one token through
+    the unrolled stack faster (bench_model's medium model, side by side: 0.82-0.87x the scanned backward pass in three
+    runs). Inference keeps the served layout, and so do multi-token explanations (not measured faster) and stacks
+    with `remat` (full-size checkpoints: the layout whose memory bench_fullsize measured)."""
+    if tokens != 1 or cfg.gemma.remat:
         return cfg
     return dataclasses.replace(cfg, gemma=dataclasses.replace(cfg.gemma, scan=False))
 
@@ -421,7 +421,7 @@ def _explain_tokens(model, obs, fed, targets, steps, prefill_len, squeeze, kinds
 
     grad = score = logits = None
     if any(k in GRADIENT_KINDS for k in kinds):
-        cfg = backward_config(model.config) if steps_tb.shape[0] == 1 else model.config
+        cfg = backward_config(model.config, steps_tb.shape[0])
         score, alpha, cam, token_norm, logits = _token_cams(
             model.params, obs, fed, targets, jnp.asarray(steps_tb), cfg=cfg, decode_len=decode_len
         )

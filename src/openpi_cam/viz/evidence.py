@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.cam.faithfulness_run import REPORT_FILE, read_report
+from openpi_cam.cam.faithfulness_run import REPORT_FILE, ig_summary, read_report
 from openpi_cam.cam.runfmt import CAMRun
 from openpi_cam.cam.spot_check import read_check
 from openpi_cam.viz.stats import StepStats
@@ -101,7 +101,7 @@ class MapEvidence:
     checks: Mapping[int, Mapping[str, CheckFigures]]  # seq -> camera -> the step's spot check of this kind
     check_summary: tuple[CheckSummary, ...]
     zero_share: float | None  # share of valid camera-steps whose map is all zero (None: no valid camera-step)
-    ig_completeness: Mapping[str, Any] | None  # the report's (or the run's) IG completeness summary
+    ig_completeness: Mapping[str, Any] | None  # `faithfulness_run.ig_summary` of the run's steps (ig only)
 
     def step_line(self, seq: int, camera: str) -> str:
         """This step's figure for one camera, in a few words: the report's (top patch's drop / the best patch's, next
@@ -219,7 +219,6 @@ def map_evidence(run: CAMRun, kind: str, stats: Sequence[StepStats]) -> MapEvide
         evaluated = int(report.get("steps_evaluated", 0))
         line = f"Measured on this run by `openpi-cam faithfulness` ({REPORT_FILE}): {evaluated} steps re-scored"
         line += f" of the {drawn} drawn." if evaluated < drawn else "."
-    ig = (report or {}).get("ig_completeness") if status == "measured" else _ig_from_steps(run)
     return MapEvidence(
         kind,
         KIND_NOTES.get(kind, ""),
@@ -230,21 +229,8 @@ def map_evidence(run: CAMRun, kind: str, stats: Sequence[StepStats]) -> MapEvide
         checks,
         _check_summary(checks),
         zero_share(stats),
-        ig if kind == "ig" else None,
+        ig_summary(run) if kind == "ig" else None,
     )
-
-
-def _ig_from_steps(run: CAMRun) -> dict[str, Any] | None:
-    """The completeness checks the side channel stored with the run's IG steps (no report needed)."""
-    checks = [s.meta["ig_completeness"] for s in run.steps if s.meta.get("ig_completeness")]
-    errors = [float(e) for c in checks for e in _flat(c.get("relative_error")) if isinstance(e, (int, float))]
-    return {"steps": len(checks), "max_relative_error": max(errors)} if errors else None
-
-
-def _flat(value: Any) -> list[Any]:
-    if isinstance(value, list):
-        return [x for v in value for x in _flat(v)]
-    return [] if value is None else [value]
 
 
 def _num(x: float | None) -> str:
@@ -276,6 +262,24 @@ def check_rows(evidence: MapEvidence) -> list[tuple[str, ...]]:
         )
         for s in evidence.check_summary
     ]
+
+
+# The columns of `summary_rows` and `check_rows`, as every renderer heads them.
+SUMMARY_COLUMNS = (
+    "camera",
+    "steps scored",
+    "top patch's drop / best patch's (median)",
+    "top patch = best patch",
+    "|rho| with a re-initialised model",
+    "pointing",
+)
+CHECK_COLUMNS = (
+    "camera",
+    "steps spot-checked",
+    "top patch's score drop (median)",
+    "random patch's (median)",
+    "top patch beats every random patch",
+)
 
 
 def summary_rows(evidence: MapEvidence) -> list[tuple[str, ...]]:

@@ -10,7 +10,7 @@ from collections import Counter
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from openpi_cam.viz.evidence import MapEvidence, check_rows, summary_rows
+from openpi_cam.viz.evidence import CHECK_COLUMNS, SUMMARY_COLUMNS, MapEvidence, check_rows, summary_rows
 from openpi_cam.viz.stats import StepStats, aggregate, camera_names
 
 _PALETTE = ("#4e9af1", "#f28e2b", "#59a14f", "#e15759", "#b07aa1", "#76b7b2", "#edc948", "#ff9da7")
@@ -261,25 +261,10 @@ def _connection_section(
 
 def _evidence_section(evidence: MapEvidence) -> str:
     """How faithful the drawn kind measured on this run, before any map is shown."""
-    head = (
-        "camera",
-        "steps scored",
-        "top patch's drop / best patch's (median)",
-        "top patch = best patch",
-        "|rho| with a re-initialised model",
-        "pointing",
-    )
-    table = _table(head, summary_rows(evidence)) if evidence.cameras else ""
+    table = _table(SUMMARY_COLUMNS, summary_rows(evidence)) if evidence.cameras else ""
     if evidence.check_summary:
-        check_head = (
-            "camera",
-            "steps spot-checked",
-            "top patch's score drop (median)",
-            "random patch's (median)",
-            "top patch beats every random patch",
-        )
         table += "<p class='dim'>spot checks stored with the steps (live or offline explain)</p>"
-        table += _table(check_head, check_rows(evidence))
+        table += _table(CHECK_COLUMNS, check_rows(evidence))
     facts = []
     if evidence.zero_share is not None:
         facts.append(f"{_pct(evidence.zero_share)} of the drawn camera-steps have an all-zero (or all-negative) map")

@@ -21,7 +21,7 @@ import pathlib
 from typing import Any, Literal
 
 from openpi_cam.cam.runfmt import load_run
-from openpi_cam.viz.evidence import MapEvidence, map_evidence, summary_rows
+from openpi_cam.viz.evidence import SUMMARY_COLUMNS, MapEvidence, map_evidence, summary_rows
 from openpi_cam.viz.overlay import camera_image, camera_overlay
 from openpi_cam.viz.stats import DEFAULT_MAP_KIND, compute_stats, step_scale, view_steps
 
@@ -53,8 +53,7 @@ def _evidence_text(evidence: MapEvidence) -> str:
     if evidence.cameras:
         lines += [
             "",
-            "| camera | steps scored | top patch's drop / best patch's | top patch = best | randomisation | pointing |",
-            "| --- | --- | --- | --- | --- | --- |",
+            *("| " + " | ".join(row) + " |" for row in (SUMMARY_COLUMNS, ("---",) * len(SUMMARY_COLUMNS))),
             *("| " + " | ".join(row) + " |" for row in summary_rows(evidence)),
         ]
     return "\n".join(lines)
