@@ -44,6 +44,22 @@ def spot_check_masks(
     return masks.reshape(-1, *grid), tops, randoms
 
 
+def _camera_masks(
+    explanation: Explanation, patches: int, seed: int
+) -> tuple[dict[str, np.ndarray], dict[str, tuple[list[int], list[int]]]]:
+    """Per valid camera: its masks (`spot_check_masks`) and (top patches in kind order, random patches)."""
+    masks, layout = {}, {}
+    for index, (camera, info) in enumerate(explanation.cameras.items()):
+        if not info.get("valid", True):
+            continue
+        per_kind = {k: m[camera] for k, m in explanation.maps.items()}
+        # One stream per camera and step: the same step checks the same random patches whenever it is re-explained.
+        camera_seed = [seed, index, zlib.crc32(camera.encode())]
+        masks[camera], tops, randoms = spot_check_masks(per_kind, tuple(info["grid"]), patches, camera_seed)
+        layout[camera] = (tops, randoms)
+    return masks, layout
+
+
 def check_trace(
     explainer: Explainer,
     trace: InferenceTrace,
@@ -59,43 +75,23 @@ def check_trace(
     (one number cannot check it), and best effort like the rest of the side channel: a failure is recorded as
     {"skipped": "failed_<Error>"} and the step keeps its maps. With a `mesh`, `explainer` is placed on it."""
     try:
+        masks, layout = _camera_masks(explanation, patches, seed)
+        if not masks:
+            return {"skipped": "no_valid_camera"}
         with jax.set_mesh(mesh) if mesh is not None else contextlib.nullcontext():
-            return _check(explainer, trace, explanation, options, patches, seed)
+            scores = explainer.rescore(
+                trace.observation,
+                np.asarray(trace.output)[None],
+                {k: np.asarray(v)[None] for k, v in trace.sample_inputs.items()},
+                {"target": explanation.target, **explanation.details},
+                masks,
+                options,
+            )
     except ExplainSkipped as e:
         return {"skipped": e.kind}
     except Exception as e:
         return {"skipped": f"failed_{type(e).__name__}", "error": str(e)[:200]}
-
-
-def _check(
-    explainer: Explainer,
-    trace: InferenceTrace,
-    explanation: Explanation,
-    options: MapOptions,
-    patches: int,
-    seed: int,
-) -> dict[str, Any]:
     kinds = list(explanation.maps)
-    layout: dict[str, tuple[list[int], list[int]]] = {}
-    masks = {}
-    for index, (camera, info) in enumerate(explanation.cameras.items()):
-        if not info.get("valid", True):
-            continue
-        per_kind = {k: explanation.maps[k][camera] for k in kinds}
-        # One stream per camera and step: the same step checks the same random patches whenever it is re-explained.
-        camera_seed = [seed, index, zlib.crc32(camera.encode())]
-        masks[camera], tops, randoms = spot_check_masks(per_kind, tuple(info["grid"]), patches, camera_seed)
-        layout[camera] = (tops, randoms)
-    if not masks:
-        return {"skipped": "no_valid_camera"}
-    scores = explainer.rescore(
-        trace.observation,
-        np.asarray(trace.output)[None],
-        {k: np.asarray(v)[None] for k, v in trace.sample_inputs.items()},
-        {"target": explanation.target, **explanation.details},
-        masks,
-        options,
-    )
     cameras = {}
     for camera, (tops, randoms) in layout.items():
         s = np.asarray(scores[camera], np.float64)
