@@ -29,9 +29,9 @@ GEOMETRY = {  # a 90 x 160 client frame letterboxed into 224 x 224
 ESCAPED = {"ep 1/a": r"ep\ 1\/a", "c2": "c2"}
 
 
-def _run(tmp_path, *, gradnorm: bool = True) -> CAMLogger:
+def _run(tmp_path, *, gradnorm: bool = True, checks: list[dict] | None = None) -> CAMLogger:
     """Two connections (one with a name that needs escaping), a masked camera, a multi-token map; gradient-norm maps
-    unlike the Grad-CAM ones (or none)."""
+    unlike the Grad-CAM ones (or none); `checks`: each step's spot check (`meta.check`)."""
     rng = np.random.default_rng(0)
     cam_logger = CAMLogger(tmp_path / "cam", run_config={}, checkpoint="ck", options={})
     for i, (conn, step) in enumerate([("ep 1/a", 0), ("ep 1/a", 1), ("c2", 0)]):
@@ -51,6 +51,8 @@ def _run(tmp_path, *, gradnorm: bool = True) -> CAMLogger:
                 CAMERAS[1]: {"obs_key": None, "valid": i != 1, "grid": [16, 16], "span": [256, 512], "geometry": None},
             },
         }
+        if checks:
+            meta["check"] = checks[i]
         frames = {CAMERAS[0]: rng.integers(0, 256, (90, 160, 3), dtype=np.uint8)}
         model_frames = {CAMERAS[1]: rng.integers(0, 256, (224, 224, 3), dtype=np.uint8)}
         assert cam_logger.log_step(StepRecord(conn, step, time.time(), maps, frames, model_frames, meta=meta))
@@ -178,6 +180,37 @@ def test_recording_carries_each_steps_faithfulness_from_the_runs_report(tmp_path
             rf"/ep\ 1\/a/faithfulness/{CAMERAS[0]}": ([0], [figures["0"][CAMERAS[0]][kind]]),
             rf"/ep\ 1\/a/faithfulness/{CAMERAS[1]}": ([0], [figures["0"][CAMERAS[1]][kind]]),
         }
+
+
+def _text(path, entity: str) -> str:
+    from rerun.chunk import RrdReader
+
+    for chunk in RrdReader(str(path)).store().stream():
+        if chunk.entity_path == entity:
+            return chunk.to_record_batch().column("TextDocument:text").to_pylist()[0][0]
+    raise AssertionError(f"no text document at {entity}")
+
+
+def test_recording_carries_the_spot_check_summary_of_the_drawn_kind(tmp_path):
+    """Steps with a spot check (`meta.check`) and no faithfulness report: the /faithfulness document says the maps were
+    spot-checked and carries the same table as the HTML report (here the gradient norm's top patch beats every random
+    patch in 2 of 3 steps: 67%, chance 1/5); a kind the checks do not name gets neither."""
+    from openpi_cam.viz.rerun_sink import write_rrd
+
+    def check(top_drop: float, drops: list[float]) -> dict:
+        camera = {"top_patch": {"gradnorm": 5}, "top_patch_drop": {"gradnorm": top_drop}}
+        return {
+            "patches": 4,
+            "cameras": {CAMERAS[0]: camera | {"random_patches": [1, 2, 3, 4], "random_patch_drops": drops}},
+        }
+
+    checks = [check(0.5, [0.1, 0.2, 0.0, 0.1]), check(0.05, [0.3, 0.0, 0.0, 0.0]), check(0.4, [0.1, 0.1, 0.1, 0.2])]
+    run_dir = _run(tmp_path, checks=checks).run_dir
+    text = _text(write_rrd(run_dir, tmp_path / "gradnorm.rrd", map_kind="gradnorm"), "/faithfulness")
+    assert "Spot-checked live (3 of 3 steps)" in text and "top patch beats every random patch" in text
+    assert f"| {CAMERAS[0]} | 3 | 0.4 | 0.1 | 67% (chance 20%) |" in text
+    text = _text(write_rrd(run_dir, tmp_path / "gradcam.rrd", map_kind="gradcam"), "/faithfulness")
+    assert "No faithfulness report" in text and "Spot-checked" not in text and "spot checks stored" not in text
 
 
 def test_missing_rerun_names_the_extra(tmp_path, monkeypatch):

@@ -85,7 +85,9 @@ def step_model_inputs(step: CAMStep) -> tuple[Observation, np.ndarray, dict[str,
     return obs, np.asarray(inputs["output"])[None], sample_inputs
 
 
-def _painting(step: CAMStep, baseline: str) -> MapOptions:
+def painting_options(step: CAMStep, baseline: str) -> MapOptions:
+    """What a step's patches are painted with: the options its ig / occlusion maps were computed with ("run"), or
+    the named baseline."""
     logged = step.meta.get("map_options")
     if baseline == "run":
         if logged:
@@ -182,7 +184,7 @@ def evaluate_run(
             for c in cameras:
                 order = {k: fm.patch_order(step.maps_of(k)[c]) for k in kinds}
                 per_camera[c], where = _masks(order, grid, k_max, opts.random_orders, opts.seed)
-            painting = _painting(step, opts.baseline)
+            painting = painting_options(step, opts.baseline)
             with jax.set_mesh(mesh) if mesh is not None else contextlib.nullcontext():
                 scores = explainer.rescore(obs, outputs, sample_inputs, step.meta, per_camera, painting)
         except ExplainSkipped as e:

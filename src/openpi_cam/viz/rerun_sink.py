@@ -21,7 +21,14 @@ import pathlib
 from typing import Any, Literal
 
 from openpi_cam.cam.runfmt import load_run
-from openpi_cam.viz.evidence import SUMMARY_COLUMNS, MapEvidence, map_evidence, summary_rows
+from openpi_cam.viz.evidence import (
+    CHECK_COLUMNS,
+    SUMMARY_COLUMNS,
+    MapEvidence,
+    check_rows,
+    map_evidence,
+    summary_rows,
+)
 from openpi_cam.viz.overlay import camera_image, camera_overlay
 from openpi_cam.viz.stats import DEFAULT_MAP_KIND, compute_stats, step_scale, view_steps
 
@@ -47,15 +54,19 @@ def entity_paths(connection: str, cameras: list[str]) -> list[str]:
     return paths
 
 
+def _markdown_table(columns: tuple[str, ...], rows: list[tuple[str, ...]]) -> list[str]:
+    return ["| " + " | ".join(row) + " |" for row in (columns, ("---",) * len(columns), *rows)]
+
+
 def _evidence_text(evidence: MapEvidence) -> str:
-    """The run-level evidence as Markdown: the kind's note, where the figures come from, one row per camera."""
+    """The run-level evidence as Markdown, as the HTML report's section: the kind's note, where the figures come
+    from, the report's row per camera and the stored spot checks' summary."""
     lines = [f"# how faithful are these {evidence.kind} maps?", "", evidence.note, "", evidence.status_line]
     if evidence.cameras:
-        lines += [
-            "",
-            *("| " + " | ".join(row) + " |" for row in (SUMMARY_COLUMNS, ("---",) * len(SUMMARY_COLUMNS))),
-            *("| " + " | ".join(row) + " |" for row in summary_rows(evidence)),
-        ]
+        lines += ["", *_markdown_table(SUMMARY_COLUMNS, summary_rows(evidence))]
+    if evidence.check_summary:
+        lines += ["", "spot checks stored with the steps (live or offline explain)", ""]
+        lines += _markdown_table(CHECK_COLUMNS, check_rows(evidence))
     return "\n".join(lines)
 
 
