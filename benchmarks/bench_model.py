@@ -18,6 +18,11 @@ weights (timings do not depend on the values). The decode has upstream's 256 slo
   action tokens          all of them in one call (one forward, one backward each) vs a loop of one-token calls
   scanned backward       the one-token explanation with the Gemma stack scanned in its backward pass, as before
                          `pi0_fast_maps.backward_config` unrolled it (same stacked parameters)
+  full logit vector      the one-token explanation also projecting the explained output onto the vocabulary
+                         (`logits=True`, the API's default; the side channel and `explain` leave it out)
+  differentiated attention  the one-token explanation with JAX differentiating the masked softmax attention, as
+                         before `gemma.attend` wrote its backward pass out
+Explanations are gradcam + gradnorm as the side channel asks for them (`logits=False`).
 Every row runs in each of `--rounds` rounds (rows interleaved); ratios are of medians.
 """
 
@@ -162,18 +167,25 @@ def main() -> None:
         return jnp.einsum("bd,bd->b", pre, llm["embedder"]["input_embedding"][fed[:, step]])
 
     fed = jnp.asarray(generated[:, : maps.replay_length(last, args.steps)])
+
+    def explain(steps: list[int], logits: bool = False) -> np.ndarray:
+        """gradcam + gradnorm of `steps` as the side channel asks for them (no full logit vector by default)."""
+        return maps.gradcam_for_steps(model, obs, generated, steps, logits=logits).score
+
     rows = {
         "prefill": lambda: our_prefill(model.params, pobs, args.steps),
         "forward": lambda: forward(model.params, pobs, fed, last, args.steps),
-        "one": lambda: maps.gradcam_for_action_token(model, obs, generated, last).score,
-        "one_full": lambda: full_length(lambda: maps.gradcam_for_action_token(model, obs, generated, last).score),
-        "all": lambda: maps.gradcam_for_steps(model, obs, generated, action_steps).score,
-        "loop": lambda: [maps.gradcam_for_action_token(model, obs, generated, k).score for k in action_steps],
-        "one_scanned": lambda: scanned_backward(lambda: maps.gradcam_for_action_token(model, obs, generated, last)),
+        "one": lambda: explain([last]),
+        "one_full": lambda: full_length(lambda: explain([last])),
+        "one_logits": lambda: explain([last], logits=True),
+        "all": lambda: explain(action_steps),
+        "loop": lambda: [explain([k]) for k in action_steps],
+        "one_scanned": lambda: scanned_backward(lambda: explain([last])),
+        "one_autodiff": lambda: autodiff_attention(lambda: explain([last])),
     }
     before = maps._token_cams._cache_size()
     for k in range(args.generated):  # every step of the request, one token at a time
-        maps.gradcam_for_action_token(model, obs, generated, k)
+        explain([k])
     compiles = maps._token_cams._cache_size() - before
 
     work = Path(tempfile.mkdtemp(prefix="bench_model_"))
@@ -229,6 +241,11 @@ def main() -> None:
         (f"one token, step {last}, stack scanned in the backward pass (ms)", f"{1e3 * t['one_scanned']:.0f}"),
         ("  / teacher-forced forward", f"{t['one_scanned'] / t['forward']:.2f}"),
         ("  one token: unrolled (the default) / scanned backward pass", f"{t['one'] / t['one_scanned']:.2f}"),
+        (f"one token, step {last}, with the full logit vector (ms)", f"{1e3 * t['one_logits']:.0f}"),
+        ("  one token: without (the side channel) / with the full logit vector", f"{t['one'] / t['one_logits']:.2f}"),
+        (f"one token, step {last}, attention differentiated by JAX (ms)", f"{1e3 * t['one_autodiff']:.0f}"),
+        ("  / teacher-forced forward", f"{t['one_autodiff'] / t['forward']:.2f}"),
+        ("  one token: written-out (the default) / differentiated attention", f"{t['one'] / t['one_autodiff']:.2f}"),
     ]
     print("| quantity | value |")
     print("| --- | --- |")
@@ -246,12 +263,34 @@ def full_length(fn):
         maps.replay_length = cut
 
 
+def autodiff_attention(fn):
+    """Runs `fn` with Gemma's attention differentiated by JAX, as before `gemma.attend` wrote its backward pass out;
+    the programs it compiles are its own (a fresh jit of the same function)."""
+    attend = gemma_lib.attend
+    gemma_lib.attend = lambda q, k, v, mask, hidden: gemma_lib._masked_softmax_attention(q, k, v, mask, hidden)[0]
+    token_cams = maps._token_cams
+    maps._token_cams = _AUTODIFF_TOKEN_CAMS
+    try:
+        return fn()
+    finally:
+        gemma_lib.attend, maps._token_cams = attend, token_cams
+
+
+# A function of its own: JAX caches traces per traced function, so jitting `_token_cams`'s own function again would
+# reuse the program traced with the written-out backward pass. The function is taken now: `autodiff_attention`
+# replaces `maps._token_cams` with this program while it runs.
+_TOKEN_CAMS_FN = maps._token_cams.__wrapped__
+_AUTODIFF_TOKEN_CAMS = jax.jit(
+    lambda *args, **kwargs: _TOKEN_CAMS_FN(*args, **kwargs), static_argnames=("cfg", "decode_len", "logits")
+)
+
+
 def scanned_backward(fn):
     """Runs `fn` with the explanation's stack scanned, as the served model runs it (before the backward unroll)."""
     unrolled = maps.backward_config
-    maps.backward_config = lambda cfg, tokens: cfg
+    maps.backward_config = lambda cfg, tokens, fits=None: cfg
     try:
-        return fn().score
+        return fn()
     finally:
         maps.backward_config = unrolled
 

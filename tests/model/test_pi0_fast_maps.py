@@ -64,6 +64,21 @@ def test_explained_logits_are_upstreams_decode_logits(tiny_fast_model: Pi0FAST, 
     assert_close_rel(np.concatenate([p.score for p in parts], axis=1), picked, LOGITS_REL, "score")
 
 
+def test_without_logits_the_maps_and_scores_are_the_same(tiny_fast_model: Pi0FAST):
+    """`logits=False` (what the side channel and `explain` ask for) leaves out only the vocabulary projection: same
+    scores and maps, for the gradient pass and for a baseline kind alone (which then reports the score itself)."""
+    data, obs = case("case_a")
+    tokens = data["output_tokens"]
+    for kinds in (("gradcam", "gradnorm"), ("occlusion",)):
+        full = maps.gradcam_for_steps(tiny_fast_model, obs, tokens, [1, 2], kinds=kinds)
+        lean = maps.gradcam_for_steps(tiny_fast_model, obs, tokens, [1, 2], kinds=kinds, logits=False)
+        assert full.logits is not None and full.logits.shape[:2] == (1, 2) and lean.logits is None
+        np.testing.assert_array_equal(lean.score, full.score)
+        for kind in kinds:
+            for c in CAMERAS:
+                np.testing.assert_array_equal(lean.by_kind[kind][c], full.by_kind[kind][c])
+
+
 def test_naive_teacher_forcing_would_explain_other_logits(tiny_fast_model: Pi0FAST):
     """Guards the reason for replaying decoding: contiguous positions give different argmaxes (golden: k = 3)."""
     data, obs = case("case_a")

@@ -7,6 +7,7 @@ B batch, T query tokens, S cache slots, D width, N query heads, K kv heads, G = 
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -87,7 +88,6 @@ def _attention(x, p, positions, mask, k_cache, v_cache, idx, cfg: GemmaConfig, r
     `hidden_slots`: zero-filled slots past the cache's end that the mask hides (a replay that stops short of the
     decode length). They change nothing for a query that sees some slot, but a fully masked query softmaxes uniformly
     over all slots, so its weights are 1 / (S + hidden_slots), as with the full-length cache."""
-    dtype = x.dtype
     scale = cfg.lora_alpha / cfg.lora_rank if cfg.lora_rank else 1.0
     q = einsum_lora("BTD,NDH->BTNH", x[:, rows], p, "q_einsum", scale)
     k, v = einsum_lora("BSD,CKDH->CBSKH", x, p, "kv_einsum", scale)
@@ -97,16 +97,51 @@ def _attention(x, p, positions, mask, k_cache, v_cache, idx, cfg: GemmaConfig, r
     v_cache = jax.lax.dynamic_update_slice(v_cache, v.astype(v_cache.dtype), (0, idx, 0, 0))
 
     b, t, n, h = q.shape
-    mask = mask[:, rows]
     q = q.reshape(b, t, cfg.num_kv_heads, n // cfg.num_kv_heads, h)
-    logits = jnp.einsum("BTKGH,BSKH->BKGTS", q, k_cache, preferred_element_type=jnp.float32)
-    logits = jnp.where(mask[:, None, None, :, :], logits, BIG_NEG)
-    probs = jax.nn.softmax(logits, axis=-1)
+    encoded = attend(q, k_cache, v_cache, mask[:, rows], hidden_slots).reshape(b, t, n, h)
+    return einsum_lora("BTNH,NHD->BTD", encoded, p, "attn_vec_einsum", scale), k_cache, v_cache
+
+
+def _masked_softmax_attention(q, k, v, mask, hidden_slots):
+    """-> (values [B, T, K, G, H] in v's dtype, probs float32 [B, K, G, T, S]); see `attend`."""
+    logits = jnp.einsum("BTKGH,BSKH->BKGTS", q, k, preferred_element_type=jnp.float32)
+    probs = jax.nn.softmax(jnp.where(mask[:, None, None], logits, BIG_NEG), axis=-1)
     if hidden_slots:
         blind = ~jnp.any(mask, axis=-1)[:, None, None, :, None]  # [B, 1, 1, T, 1]
         probs = jnp.where(blind, jnp.float32(1.0 / (mask.shape[-1] + hidden_slots)), probs)
-    encoded = jnp.einsum("BKGTS,BSKH->BTKGH", probs.astype(dtype), v_cache).reshape(b, t, n, h)
-    return einsum_lora("BTNH,NHD->BTD", encoded, p, "attn_vec_einsum", scale), k_cache, v_cache
+    return jnp.einsum("BKGTS,BSKH->BTKGH", probs.astype(v.dtype), v), probs
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(4,))
+def attend(q: jax.Array, k: jax.Array, v: jax.Array, mask: jax.Array, hidden_slots: int) -> jax.Array:
+    """Masked softmax attention: q [B, T, K, G, H] (scaled), k, v [B, S, K, H], mask [B, T, S] ->
+    [B, T, K, G, H] in v's dtype. Masked logits are BIG_NEG, not -inf, as upstream; `hidden_slots`: see `_attention`.
+
+    The forward pass is the plain computation (inference runs nothing else). The backward pass is written out: the
+    differentiated `where` + softmax made XLA:CPU pass over the float32 [B, K, G, T, S] arrays several times more,
+    and took longer than every matmul of the backward pass together (bench_model's medium model)."""
+    return _masked_softmax_attention(q, k, v, mask, hidden_slots)[0]
+
+
+def _attend_fwd(q, k, v, mask, hidden_slots):
+    out, probs = _masked_softmax_attention(q, k, v, mask, hidden_slots)
+    return out, (q, k, v, mask, probs)
+
+
+def _attend_bwd(hidden_slots, res, d_out):
+    del hidden_slots  # the uniform rows it sets are constants: no gradient reaches their logits
+    q, k, v, mask, probs = res
+    d_probs = jnp.einsum("BTKGH,BSKH->BKGTS", d_out, v, preferred_element_type=jnp.float32)
+    # Softmax's derivative, kept only where the logit is a real one: masked logits are the constant BIG_NEG.
+    d_logits = probs * (d_probs - jnp.sum(probs * d_probs, axis=-1, keepdims=True))
+    d_logits = jnp.where(mask[:, None, None], d_logits, 0.0)
+    d_q = jnp.einsum("BKGTS,BSKH->BTKGH", d_logits, k, preferred_element_type=jnp.float32).astype(q.dtype)
+    d_k = jnp.einsum("BKGTS,BTKGH->BSKH", d_logits, q, preferred_element_type=jnp.float32).astype(k.dtype)
+    d_v = jnp.einsum("BKGTS,BTKGH->BSKH", probs.astype(v.dtype), d_out).astype(v.dtype)
+    return d_q, d_k, d_v, None
+
+
+attend.defvjp(_attend_fwd, _attend_bwd)
 
 
 def forward(

@@ -120,10 +120,7 @@ def mixture_forward(
             v = jnp.concatenate([layer_cache[1], v], axis=1)
         b, t, n_heads, hd = q.shape
         q = q.reshape(b, t, ref.num_kv_heads, n_heads // ref.num_kv_heads, hd)
-        logits = jnp.einsum("BTKGH,BSKH->BKGTS", q, k, preferred_element_type=jnp.float32)
-        logits = jnp.where(mask[:, None, None, :, :], logits, gemma.BIG_NEG)
-        probs = jax.nn.softmax(logits, axis=-1).astype(dtype)
-        encoded = jnp.einsum("BKGTS,BSKH->BTKGH", probs, v).reshape(b, t, n_heads, hd)
+        encoded = gemma.attend(q, k, v, mask, 0).reshape(b, t, n_heads, hd)
         out, start = [], 0
         for h, lp, i, gate, length in zip(hs, lps, active, gates, lengths, strict=True):
             scale = cfgs[i].lora_alpha / cfgs[i].lora_rank if cfgs[i].lora_rank else 1.0

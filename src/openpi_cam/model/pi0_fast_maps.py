@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 from numpy.typing import ArrayLike
 
-from openpi_cam.model import baseline_maps, gemma
+from openpi_cam.model import baseline_maps, gemma, remat
 from openpi_cam.model.attribution import (
     BASELINE_KINDS,
     DEFAULT_KINDS,
@@ -73,7 +73,8 @@ class GradCamResult:
     token_ids: np.ndarray  # int32 [B, T]: the explained tokens
     decode_steps: np.ndarray  # int32 [T] (or [B, T] when rows explain different steps): the decode steps explained
     positions: np.ndarray  # int32 [B, T]: RoPE position of the output that predicted each explained token
-    logits: np.ndarray | None  # float32 [B, V] or [B, T, V]: the full logit vector at that output (token targets)
+    # float32 [B, V] or [B, T, V]: the full logit vector at that output (token targets asked for it with logits=True)
+    logits: np.ndarray | None
     by_kind: dict[str, dict[str, np.ndarray]] = dataclasses.field(default_factory=dict)  # kind -> camera -> like maps
     ig_completeness: IgCompleteness | None = None  # with "ig"
     options: MapOptions | None = None  # the options of the baseline kinds, when any was requested
@@ -101,12 +102,13 @@ def _replay(fed: jax.Array, last_step: int) -> tuple[jax.Array, int]:
     return fed[:, : replay_length(last_step, fed.shape[1])], int(fed.shape[1])
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "decode_len"))
-def _token_cams(params, obs, fed, targets, steps, *, cfg: Pi0FASTConfig, decode_len: int):
+@functools.partial(jax.jit, static_argnames=("cfg", "decode_len", "logits"))
+def _token_cams(params, obs, fed, targets, steps, *, cfg: Pi0FASTConfig, decode_len: int, logits: bool):
     """steps int32 [T, B]: one VJP per explained step, all sharing one forward pass over fed [B, L] (`_replay`).
 
     Only the explained outputs [T, B, D] meet the vocabulary: the score is their dot product with the explained
-    token's embedding row, and the full logit vector is projected for those T rows alone.
+    token's embedding row, and with `logits` the full logit vector is projected for those T rows alone (None
+    without: the projection reads the whole [V, D] table, which the maps do not need).
 
     The backward passes run as a `lax.map` over cotangents, not `vmap`: under jax 0.10.2 on CPU, `vmap` of this
     VJP returned wrong gradients for all but the first cotangent at real prefix lengths (B=2, 816 tokens), while
@@ -123,8 +125,8 @@ def _token_cams(params, obs, fed, targets, steps, *, cfg: Pi0FASTConfig, decode_
     cotangents = jnp.broadcast_to(jnp.eye(t, dtype=scores.dtype)[:, :, None], (t, *scores.shape))  # [T, T, B]
     G = jax.lax.map(lambda cot: vjp_fn(cot)[0], cotangents)  # [T, B, C, N, D]
     alpha, cam, token_norm = gradcam_reduce(E, G)
-    logits = gemma.logits_from_prelogits(params["PaliGemma"]["llm"], explained).astype(jnp.float32)
-    return scores.astype(jnp.float32), alpha, cam, token_norm, logits
+    full = gemma.logits_from_prelogits(params["PaliGemma"]["llm"], explained).astype(jnp.float32) if logits else None
+    return scores.astype(jnp.float32), alpha, cam, token_norm, full
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "decode_len"))
@@ -210,19 +212,19 @@ def _score_fn(params, obs, fed, target, cfg, decode_len) -> Callable[[jax.Array]
     return fn
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "decode_len", "kinds", "options", "base_outputs"))
+@functools.partial(jax.jit, static_argnames=("cfg", "decode_len", "kinds", "options", "base_outputs", "logits"))
 def _baseline_kinds(
-    params, obs, fed, target, cams, masks, *, cfg: Pi0FASTConfig, decode_len: int, kinds, options, base_outputs
+    params, obs, fed, target, cams, masks, *, cfg: Pi0FASTConfig, decode_len: int, kinds, options, base_outputs, logits
 ):
     """The kinds that compare with a baseline frame, for one target (token steps [T, B], or weights as T = 1): see
     `baseline_maps.baseline_kinds`. With `base_outputs` (no gradient pass ran) also "score" [T, B] and, for token
-    targets, "logits" [T, B, V]."""
+    targets with `logits`, "logits" [T, B, V]."""
     E = embed_images(params, obs, cfg)
     score_fn = _score_fn(params, obs, fed, target, cfg, decode_len)
     out = baseline_maps.baseline_kinds(params, obs, cfg, score_fn, E, cams, masks, kinds, options)
     if base_outputs:
         out["score"] = score_fn(E)
-        if "steps" in target:
+        if "steps" in target and logits:
             rows = jnp.arange(fed.shape[0])[None, :]
             pre = replay_prelogits(params, E, obs, fed, cfg, decode_len)[rows, target["steps"]]  # [T, B, D]
             out["logits"] = gemma.logits_from_prelogits(params["PaliGemma"]["llm"], pre).astype(jnp.float32)
@@ -249,13 +251,21 @@ def _variant_scores(params, obs, fed, target, variants, *, cfg: Pi0FASTConfig, d
 occlusion_masks = baseline_maps.occlusion_masks
 
 
-def backward_config(cfg: Pi0FASTConfig, tokens: int) -> Pi0FASTConfig:
-    """The config a token explanation of `tokens` (padded) steps differentiates with. One token: the Gemma stack
-    unrolled over the same stacked parameters, unless it is rematerialised; XLA:CPU differentiates one token through
-    the unrolled stack faster (bench_model's medium model, side by side: 0.82-0.87x the scanned backward pass in three
-    runs). Inference keeps the served layout, and so do multi-token explanations (not measured faster) and stacks
-    with `remat` (full-size checkpoints: the layout whose memory bench_fullsize measured)."""
-    if tokens != 1 or cfg.gemma.remat:
+def backward_config(
+    cfg: Pi0FASTConfig, tokens: int | None, fits: Callable[[Pi0FASTConfig], bool] = lambda lean: False
+) -> Pi0FASTConfig:
+    """The config an explanation's gradient pass differentiates with (`tokens`: explained tokens, one backward pass
+    each; None: a weighted target's single pass). Same stacked parameters; only the layout changes:
+
+    - one token: the Gemma stack unrolled; XLA:CPU differentiates one token through the unrolled stack faster
+      (bench_model's medium model, side by side: 0.82-0.87x the scanned backward pass in three runs). Inference,
+      multi-token and weighted explanations keep the scan (not measured faster);
+    - a stack with `remat` (full-size checkpoints) keeps it unless `fits(the remat-free config)`: the caller asks
+      the device (`remat.fits_without_remat`); the CPU keeps remat, whose memory bench_fullsize measured."""
+    if cfg.gemma.remat:
+        lean = backward_config(remat.without_remat(cfg), tokens)
+        return lean if fits(lean) else cfg
+    if tokens != 1:
         return cfg
     return dataclasses.replace(cfg, gemma=dataclasses.replace(cfg.gemma, scan=False))
 
@@ -263,9 +273,9 @@ def backward_config(cfg: Pi0FASTConfig, tokens: int) -> Pi0FASTConfig:
 _baseline_frames = jax.jit(baseline_maps.frames, static_argnames=("options",))
 
 
-def _baseline_maps(model, obs, fed, decode_len, target, kinds, options, base_outputs) -> dict[str, Any]:
+def _baseline_maps(model, obs, fed, decode_len, target, kinds, options, base_outputs, logits=False) -> dict[str, Any]:
     """`baseline_maps.collect` over this family's program (replaying fed [B, L] of a decode of `decode_len` steps);
-    with `base_outputs` also "score" [T, B] and "logits" [T, B, V] (token targets)."""
+    with `base_outputs` also "score" [T, B] and with `logits` "logits" [T, B, V] (token targets)."""
 
     def run(kinds, options, cams, masks, first):
         return _baseline_kinds(
@@ -280,6 +290,7 @@ def _baseline_maps(model, obs, fed, decode_len, target, kinds, options, base_out
             kinds=kinds,
             options=options,
             base_outputs=base_outputs and first,
+            logits=logits and base_outputs and first,
         )
 
     return baseline_maps.collect(run, tuple(obs.images), model.config.siglip.grid, kinds, options)
@@ -337,11 +348,13 @@ def gradcam_for_steps(
     *,
     kinds: Sequence[str] = DEFAULT_KINDS,
     options: MapOptions | None = None,
+    logits: bool = True,
 ) -> GradCamResult:
     """Explains the generated tokens at `steps` ([T] for every row, or [B, T] per row; one map stack per camera),
-    with one forward pass shared by all of them (per kind)."""
+    with one forward pass shared by all of them (per kind). `logits=False` leaves `GradCamResult.logits` None and
+    skips projecting the explained outputs onto the whole vocabulary (the side channel's choice)."""
     obs, fed, prefill_len = _prepare(model, obs, generated_ids)
-    return _explain_tokens(model, obs, fed, fed, steps, prefill_len, False, kinds, options)
+    return _explain_tokens(model, obs, fed, fed, steps, prefill_len, False, kinds, options, logits)
 
 
 def gradcam_for_action_token(
@@ -352,10 +365,12 @@ def gradcam_for_action_token(
     *,
     kinds: Sequence[str] = DEFAULT_KINDS,
     options: MapOptions | None = None,
+    logits: bool = True,
 ) -> GradCamResult:
-    """Explains the generated token at decode `step` (one map per camera, no token axis)."""
+    """Explains the generated token at decode `step` (one map per camera, no token axis); `logits` as in
+    `gradcam_for_steps`."""
     obs, fed, prefill_len = _prepare(model, obs, generated_ids)
-    return _explain_tokens(model, obs, fed, fed, [int(step)], prefill_len, True, kinds, options)
+    return _explain_tokens(model, obs, fed, fed, [int(step)], prefill_len, True, kinds, options, logits)
 
 
 def gradcam_for_token(
@@ -392,7 +407,7 @@ def gradcam_for_token(
         raise ValueError(f"explaining step {step} needs the {step} tokens generated before it, got {prefix.shape[1]}")
     targets = fed.copy()
     targets[:, step] = np.broadcast_to(np.asarray(token_id, np.int32), (batch,))
-    return _explain_tokens(model, obs, fed_j, jnp.asarray(targets), [step], prefill_len, True, kinds, options)
+    return _explain_tokens(model, obs, fed_j, jnp.asarray(targets), [step], prefill_len, True, kinds, options, True)
 
 
 def _token_steps(steps: ArrayLike, batch: int, length: int) -> tuple[np.ndarray, bool, np.ndarray]:
@@ -407,7 +422,7 @@ def _token_steps(steps: ArrayLike, batch: int, length: int) -> tuple[np.ndarray,
     return steps, shared, np.ascontiguousarray(padded.T)
 
 
-def _explain_tokens(model, obs, fed, targets, steps, prefill_len, squeeze, kinds, options) -> GradCamResult:
+def _explain_tokens(model, obs, fed, targets, steps, prefill_len, squeeze, kinds, options, logits) -> GradCamResult:
     kinds, options = check_kinds(kinds), options or MapOptions()
     batch = fed.shape[0]
     steps, shared, steps_tb = _token_steps(steps, batch, fed.shape[1])
@@ -419,22 +434,28 @@ def _explain_tokens(model, obs, fed, targets, steps, prefill_len, squeeze, kinds
         x = np.moveaxis(np.asarray(x)[:t], 0, 1)
         return x[:, 0] if squeeze else x
 
-    grad = score = logits = None
+    want_logits, logits = logits, None
+    grad = score = None
     if any(k in GRADIENT_KINDS for k in kinds):
-        cfg = backward_config(model.config, steps_tb.shape[0])
-        score, alpha, cam, token_norm, logits = _token_cams(
-            model.params, obs, fed, targets, jnp.asarray(steps_tb), cfg=cfg, decode_len=decode_len
+        args = (model.params, obs, fed, targets, jnp.asarray(steps_tb))
+        static = {"decode_len": decode_len, "logits": want_logits}
+        cfg = backward_config(
+            model.config, steps_tb.shape[0], lambda lean: remat.fits_without_remat(_token_cams, lean, args, static)
         )
+        score, alpha, cam, token_norm, logits = _token_cams(*args, cfg=cfg, **static)
         grad = tuple(batch_first(x) for x in (alpha, cam, token_norm))
-        score, logits = batch_first(score), batch_first(logits)
+        score = batch_first(score)
+        logits = None if logits is None else batch_first(logits)
     extra, ig_steps = {}, None
     if any(k in BASELINE_KINDS for k in kinds):
         target_spec = _token_target(targets, steps_tb)
-        extra = _baseline_maps(model, obs, fed, decode_len, target_spec, kinds, options, base_outputs=grad is None)
+        extra = _baseline_maps(
+            model, obs, fed, decode_len, target_spec, kinds, options, base_outputs=grad is None, logits=want_logits
+        )
         ig_steps = extra.pop("ig_steps", None)
         extra = _map_tree(batch_first, extra)
         if grad is None:
-            score, logits = extra["score"], extra["logits"]
+            score, logits = extra["score"], extra.get("logits")
     token_ids = np.take_along_axis(np.asarray(targets), steps, axis=1)
     return _result(
         model,
@@ -516,9 +537,9 @@ def _explain_weights(model, obs, fed, weights, rows, shared, prefill_len, target
     target_spec = _weights_target(np.asarray(weights)[:, : fed.shape[1]])
     grad = score = None
     if any(k in GRADIENT_KINDS for k in kinds):
-        score, alpha, cam, token_norm = _chunk_cam(
-            model.params, obs, fed, target_spec, cfg=model.config, decode_len=decode_len
-        )
+        args, static = (model.params, obs, fed, target_spec), {"decode_len": decode_len}
+        cfg = backward_config(model.config, None, lambda lean: remat.fits_without_remat(_chunk_cam, lean, args, static))
+        score, alpha, cam, token_norm = _chunk_cam(*args, cfg=cfg, **static)
         grad = (alpha, cam, token_norm)
     extra, ig_steps = {}, None
     if any(k in BASELINE_KINDS for k in kinds):
@@ -601,6 +622,7 @@ def rescore_masks(
         kinds=("occlusion",),
         options=baseline_maps.compiled_options(options, ("occlusion",)),
         base_outputs=False,
+        logits=False,
     )
     scores = _scores_out(out["occlusion_scores"], t)
     return {c: scores[s] for c, s in zip(cams, where, strict=True) if c in masks}

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from numpy.typing import ArrayLike
 
-from openpi_cam.model import baseline_maps
+from openpi_cam.model import baseline_maps, remat
 from openpi_cam.model.attribution import (
     BASELINE_KINDS,
     DEFAULT_KINDS,
@@ -128,7 +128,9 @@ def maps_for_actions(
     by_kind, alphas, grad_norms, completeness = {}, {}, {}, None
     score = actions = None
     if any(k in GRADIENT_KINDS for k in kinds):
-        score, actions, alpha, cam, token_norm = _flow_cams(model.params, obs, noise, cfg=cfg, targets=targets)
+        args, static = (model.params, obs, noise), {"targets": targets}
+        flow_cfg = remat.backward_layout(_flow_cams, cfg, args, static)
+        score, actions, alpha, cam, token_norm = _flow_cams(*args, cfg=flow_cfg, **static)
         cam, token_norm = np.asarray(cam), np.asarray(token_norm)  # [B, T, C, N]
         grad_norm = np.sqrt(np.sum(np.square(token_norm.astype(np.float64)), axis=-1)).astype(np.float32)
         gradient_maps = {"gradcam": per_camera(cam), "gradnorm": per_camera(token_norm)}

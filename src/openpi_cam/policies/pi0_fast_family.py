@@ -110,7 +110,7 @@ class FastExplainer(ModelExplainer):
         # every batch of one size shares one compilation per group.
         if token_rows:
             res = pi0_fast_maps.gradcam_for_steps(
-                self.model, observation, generated, _step_matrix(plans, token_rows), **maps_args
+                self.model, observation, generated, _step_matrix(plans, token_rows), **maps_args, logits=False
             )
             for b in token_rows:
                 results[b] = self._row(res, b, plans[b], request)  # type: ignore[arg-type]
