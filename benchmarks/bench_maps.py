@@ -8,6 +8,10 @@ scene by scene so that machine load hits every row alike. Prints medians and the
 
     python benchmarks/bench_maps.py                       # pi0-FAST demo model, target chunk
     python benchmarks/bench_maps.py --model pi05 --target action
+    python benchmarks/bench_maps.py --dtype bfloat16 --target action-token --compare-ig-stall
+
+`--compare-ig-stall` adds a row "ig, no stall": IG with its quadrature points doubled to the cap whenever completeness
+misses its target, as before `attribution.IG_STALL` (which stops doubling when a doubling did not shrink the error).
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import numpy as np
 
 from openpi_cam.cam.spot_check import DEFAULT_PATCHES, check_trace
 from openpi_cam.demo import bundled, task
+from openpi_cam.model import attribution, baseline_maps
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import ExplainRequest
 
@@ -42,14 +47,17 @@ def main() -> None:
     parser.add_argument("--scenes", type=int, default=20)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--check-patches", type=int, default=DEFAULT_PATCHES)
+    parser.add_argument("--dtype", choices=["float32", "bfloat16"], default="float32")
+    parser.add_argument("--compare-ig-stall", action="store_true")
     args = parser.parse_args()
 
-    policy = demo_reach.create_demo_policy(model=args.model)
+    policy = demo_reach.create_demo_policy(model=args.model, dtype=args.dtype)
+    kind_sets = {**KIND_SETS, **({"ig, no stall": ("ig",)} if args.compare_ig_stall else {})}
     explainer = policy.explainer
     rng = np.random.default_rng(args.seed)
     check_row = f"spot check ({args.check_patches})"
-    times: dict[str, list[float]] = {"infer": [], **{name: [] for name in KIND_SETS}, check_row: []}
-    ig_steps: list[int] = []
+    times: dict[str, list[float]] = {"infer": [], **{name: [] for name in kind_sets}, check_row: []}
+    ig_steps: dict[str, list[int]] = {"ig": [], "ig, no stall": []}
     for scene_index in range(args.scenes + 1):
         scene = task.random_scene(rng)
         obs = bundled.policy_input(bundled.client_observation(task.observe(scene, task.random_start(rng, scene))))
@@ -59,13 +67,14 @@ def main() -> None:
         outputs = np.asarray(trace.output)[None]
         sample_inputs = {k: np.asarray(v)[None] for k, v in trace.sample_inputs.items()}
         row = {"infer": infer_s}
-        for name, kinds in KIND_SETS.items():
+        for name, kinds in kind_sets.items():
             request = ExplainRequest(args.target, kinds=kinds)
+            baseline_maps.IG_STALL = np.inf if name == "ig, no stall" else attribution.IG_STALL
             t0 = time.perf_counter()
             [explanation] = explainer.explain(trace.observation, outputs, request, sample_inputs)
             row[name] = time.perf_counter() - t0
-            if name == "ig" and scene_index > 0:
-                ig_steps.append(explanation.details["ig_completeness"]["steps"])
+            if name in ig_steps and scene_index > 0:
+                ig_steps[name].append(explanation.details["ig_completeness"]["steps"])
             if name == "gradcam+gradnorm":
                 t0 = time.perf_counter()
                 check = check_trace(explainer, trace, explanation, request.options, patches=args.check_patches, seed=0)
@@ -77,14 +86,17 @@ def main() -> None:
             times[name].append(seconds)
 
     cpu = f"{os.cpu_count()} CPU cores" if sys.platform != "darwin" else platform.processor()
-    print(f"{args.model} demo model, target {args.target}, {args.scenes} scenes, {platform.machine()}, {cpu}")
+    model = f"{args.model} demo model ({args.dtype}), target {args.target}"
+    print(f"{model}, {args.scenes} scenes, {platform.machine()}, {cpu}")
     infer = statistics.median(times["infer"])
     print(f"{'':>18} {'median ms':>10} {'x inference':>12}")
     for name, values in times.items():
         med = statistics.median(values)
         print(f"{name:>18} {med * 1e3:10.1f} {med / infer:12.1f}")
-    counts = dict(zip(*np.unique(ig_steps, return_counts=True), strict=True))
-    print("IG quadrature points used (points: scenes):", {int(k): int(v) for k, v in counts.items()})
+    for name, used in ig_steps.items():
+        if used:
+            counts = dict(zip(*np.unique(used, return_counts=True), strict=True))
+            print(f"{name}: IG quadrature points used (points: scenes):", {int(k): int(v) for k, v in counts.items()})
 
 
 if __name__ == "__main__":
