@@ -288,7 +288,7 @@ _AUTODIFF_TOKEN_CAMS = jax.jit(
 def scanned_backward(fn):
     """Runs `fn` with the explanation's stack scanned, as the served model runs it (before the backward unroll)."""
     unrolled = maps.backward_config
-    maps.backward_config = lambda cfg, tokens, fits=None: cfg
+    maps.backward_config = lambda cfg, tokens: cfg
     try:
         return fn()
     finally:

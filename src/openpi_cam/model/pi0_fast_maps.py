@@ -251,21 +251,14 @@ def _variant_scores(params, obs, fed, target, variants, *, cfg: Pi0FASTConfig, d
 occlusion_masks = baseline_maps.occlusion_masks
 
 
-def backward_config(
-    cfg: Pi0FASTConfig, tokens: int | None, fits: Callable[[Pi0FASTConfig], bool] = lambda lean: False
-) -> Pi0FASTConfig:
-    """The config an explanation's gradient pass differentiates with (`tokens`: explained tokens, one backward pass
-    each; None: a weighted target's single pass). Same stacked parameters; only the layout changes:
-
-    - one token: the Gemma stack unrolled; XLA:CPU differentiates one token through the unrolled stack faster
-      (bench_model's medium model, side by side: 0.82-0.87x the scanned backward pass in three runs). Inference,
-      multi-token and weighted explanations keep the scan (not measured faster);
-    - a stack with `remat` (full-size checkpoints) keeps it unless `fits(the remat-free config)`: the caller asks
-      the device (`remat.fits_without_remat`); the CPU keeps remat, whose memory bench_fullsize measured."""
-    if cfg.gemma.remat:
-        lean = backward_config(remat.without_remat(cfg), tokens)
-        return lean if fits(lean) else cfg
-    if tokens != 1:
+def backward_config(cfg: Pi0FASTConfig, tokens: int) -> Pi0FASTConfig:
+    """The layout a token explanation of `tokens` (padded) steps differentiates with. One token: the Gemma stack
+    unrolled over the same stacked parameters, unless it is rematerialised; XLA:CPU differentiates one token through
+    the unrolled stack faster (bench_model's medium model, side by side: 0.82-0.87x the scanned backward pass in three
+    runs). Inference keeps the served layout, and so do multi-token explanations (not measured faster) and stacks
+    with `remat`. Whether remat stays is the device's question (`remat.backward_layout`, which applies this rule to
+    the remat-free config too)."""
+    if tokens != 1 or cfg.gemma.remat:
         return cfg
     return dataclasses.replace(cfg, gemma=dataclasses.replace(cfg.gemma, scan=False))
 
@@ -422,7 +415,9 @@ def _token_steps(steps: ArrayLike, batch: int, length: int) -> tuple[np.ndarray,
     return steps, shared, np.ascontiguousarray(padded.T)
 
 
-def _explain_tokens(model, obs, fed, targets, steps, prefill_len, squeeze, kinds, options, logits) -> GradCamResult:
+def _explain_tokens(
+    model, obs, fed, targets, steps, prefill_len, squeeze, kinds, options, with_logits
+) -> GradCamResult:
     kinds, options = check_kinds(kinds), options or MapOptions()
     batch = fed.shape[0]
     steps, shared, steps_tb = _token_steps(steps, batch, fed.shape[1])
@@ -434,14 +429,12 @@ def _explain_tokens(model, obs, fed, targets, steps, prefill_len, squeeze, kinds
         x = np.moveaxis(np.asarray(x)[:t], 0, 1)
         return x[:, 0] if squeeze else x
 
-    want_logits, logits = logits, None
-    grad = score = None
+    grad = score = logits = None
     if any(k in GRADIENT_KINDS for k in kinds):
         args = (model.params, obs, fed, targets, jnp.asarray(steps_tb))
-        static = {"decode_len": decode_len, "logits": want_logits}
-        cfg = backward_config(
-            model.config, steps_tb.shape[0], lambda lean: remat.fits_without_remat(_token_cams, lean, args, static)
-        )
+        static = {"decode_len": decode_len, "logits": with_logits}
+        tokens = steps_tb.shape[0]
+        cfg = remat.backward_layout(_token_cams, model.config, args, static, lambda c: backward_config(c, tokens))
         score, alpha, cam, token_norm, logits = _token_cams(*args, cfg=cfg, **static)
         grad = tuple(batch_first(x) for x in (alpha, cam, token_norm))
         score = batch_first(score)
@@ -450,7 +443,7 @@ def _explain_tokens(model, obs, fed, targets, steps, prefill_len, squeeze, kinds
     if any(k in BASELINE_KINDS for k in kinds):
         target_spec = _token_target(targets, steps_tb)
         extra = _baseline_maps(
-            model, obs, fed, decode_len, target_spec, kinds, options, base_outputs=grad is None, logits=want_logits
+            model, obs, fed, decode_len, target_spec, kinds, options, base_outputs=grad is None, logits=with_logits
         )
         ig_steps = extra.pop("ig_steps", None)
         extra = _map_tree(batch_first, extra)
@@ -538,7 +531,7 @@ def _explain_weights(model, obs, fed, weights, rows, shared, prefill_len, target
     grad = score = None
     if any(k in GRADIENT_KINDS for k in kinds):
         args, static = (model.params, obs, fed, target_spec), {"decode_len": decode_len}
-        cfg = backward_config(model.config, None, lambda lean: remat.fits_without_remat(_chunk_cam, lean, args, static))
+        cfg = remat.backward_layout(_chunk_cam, model.config, args, static)
         score, alpha, cam, token_norm = _chunk_cam(*args, cfg=cfg, **static)
         grad = (alpha, cam, token_norm)
     extra, ig_steps = {}, None

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Callable
 from typing import Any, TypeVar
 
 import jax
@@ -74,7 +75,11 @@ def fits_without_remat(program: Any, lean_cfg: Any, args: tuple, static: dict[st
     return _fits[key]
 
 
-def backward_layout(program: Any, cfg: C, args: tuple, static: dict[str, Any]) -> C:
-    """`without_remat(cfg)` where `program` fits without remat on its device (`fits_without_remat`), else `cfg`."""
-    lean = without_remat(cfg)
-    return lean if lean is not cfg and fits_without_remat(program, lean, args, static) else cfg
+def backward_layout(
+    program: Any, cfg: C, args: tuple, static: dict[str, Any], layout: Callable[[C], C] = lambda c: c
+) -> C:
+    """The config `program` differentiates with: `layout(cfg)` (the family's own layout rule, e.g. pi0-FAST's unrolled
+    one-token stack) with every stack's remat off where that program fits its device (`fits_without_remat`), else
+    `layout(cfg)` as configured."""
+    configured, lean = layout(cfg), layout(without_remat(cfg))
+    return lean if lean != configured and fits_without_remat(program, lean, args, static) else configured
