@@ -21,11 +21,11 @@ from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.offline import ExplainOptions, Replay, explain_replays
 from openpi_cam.cam.runfmt import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
-from openpi_cam.model.attribution import MAP_KINDS, MapOptions
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import ExplainSkipped
 from openpi_cam.viz.render import RenderOptions, render_run
 from openpi_cam.viz.stats import compute_stats, to_rows, view_steps
+from openpi_cam.vocabulary import MAP_KINDS, MapOptions
 
 SEEDS = (200, 201, 202, 203)
 # Re-running the explained score from the step file: the model frames are exact (uint8 frames through the same

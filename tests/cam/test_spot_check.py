@@ -16,7 +16,7 @@ from openpi_cam.cam.faithfulness_run import step_model_inputs
 from openpi_cam.cam.runfmt import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.cam.spot_check import spot_check_masks
-from openpi_cam.model.attribution import MapOptions
+from openpi_cam.vocabulary import MapOptions
 
 SEEDS = (310, 311, 312, 313)
 # The logged score against the same score re-run from the step file: float32 fusion order only (measured <= 3e-6 at

@@ -16,8 +16,8 @@ from openpi_cam.cam.runfmt import StepRecord, load_run
 from openpi_cam.demo import bundled, quality, sim, task, train
 from openpi_cam.demo.data import Batches, load_normalize
 from openpi_cam.demo.run import DemoOptions, run_demo
-from openpi_cam.model.attribution import MAP_KINDS
 from openpi_cam.policies import demo_reach
+from openpi_cam.vocabulary import MAP_KINDS
 
 
 def test_task_is_deterministic_per_seed():

@@ -19,14 +19,14 @@ import pytest
 from paths import GOLDEN_DIR
 from scipy import ndimage
 
-from openpi_cam import golden
+from openpi_cam import golden, vocabulary
 from openpi_cam.demo import bundled, task
 from openpi_cam.model import attribution
 from openpi_cam.model import pi0_fast_maps as maps
-from openpi_cam.model.attribution import MapOptions
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.pi0_fast import Pi0FAST
 from openpi_cam.policies.demo_reach import create_demo_policy
+from openpi_cam.vocabulary import MapOptions
 
 TINY = GOLDEN_DIR / "tiny_pi0_fast"
 CAMERAS = ["base_0_rgb", "base_1_rgb", "wrist_0_rgb"]
@@ -37,7 +37,7 @@ LOGIT_ATOL = 2e-3
 # The same score from two compiled programs (vectorised variants vs one forward, or two variant layouts): on the
 # demo model they agree to ~2e-6 (scores of magnitude 1-25); 1e-4 leaves room for other CPUs.
 SCORE_ATOL = 1e-4
-RULES = attribution.IG_RULES
+RULES = vocabulary.IG_RULES
 
 
 @dataclasses.dataclass(frozen=True)

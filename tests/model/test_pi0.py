@@ -24,12 +24,13 @@ import pytest
 from paths import GOLDEN_DIR
 
 from openpi_cam.model import pi0
-from openpi_cam.model.attribution import MapOptions, region_map, region_masks
+from openpi_cam.model.attribution import region_map, region_masks
 from openpi_cam.model.checkpoint import read_param_shapes
 from openpi_cam.model.config import check_param_tree, family_of, pi0_param_shapes
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.pi0_maps import CHUNK, maps_for_actions, rescore_masks
 from openpi_cam.nested import flatten_dict
+from openpi_cam.vocabulary import MapOptions
 
 REL = 5e-5
 GRAD_REL = 1e-4

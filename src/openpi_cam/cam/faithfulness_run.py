@@ -37,9 +37,9 @@ from jax.sharding import Mesh
 from openpi_cam.cam import faithfulness as fm
 from openpi_cam.cam.batching import data_mesh, explain_rows
 from openpi_cam.cam.runfmt import CAMRun, CAMStep, read_json
-from openpi_cam.model.attribution import MAP_KINDS, MapOptions
 from openpi_cam.model.observation import Observation
 from openpi_cam.policies.family import Explainer, ExplainRequest, ExplainSkipped, Explanation
+from openpi_cam.vocabulary import MAP_KINDS, MapOptions
 
 _OBS_INPUTS = ("state", "tokenized_prompt", "tokenized_prompt_mask", "token_ar_mask")
 _SAMPLER_INPUTS = ("noise",)

@@ -5,16 +5,15 @@ from __future__ import annotations
 import json
 import re
 from collections.abc import Mapping
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
 from openpi_cam.cam.runfmt import StepRecord
 from openpi_cam.policies.family import Explanation
 from openpi_cam.policies.policy import InferenceTrace
+from openpi_cam.vocabulary import SaveFrames
 
-SaveFrames = Literal["none", "raw", "model", "both"]
-SAVE_FRAMES: tuple[str, ...] = ("none", "raw", "model", "both")
 # Observation keys with this prefix are not passed to the policy; their values go into the step's `extra` metadata
 # (e.g. the demo's ground-truth target box).
 EXTRA_PREFIX = "cam_extra/"

@@ -40,13 +40,13 @@ from jax.sharding import Mesh
 
 from openpi_cam.cam.batching import explain_traces
 from openpi_cam.cam.logger import CAMLogger
-from openpi_cam.cam.records import SAVE_FRAMES, SaveFrames, bounded_extra, split_extra, step_record
+from openpi_cam.cam.records import bounded_extra, split_extra, step_record
 from openpi_cam.cam.spot_check import DEFAULT_PATCHES, check_trace
 from openpi_cam.counters import WarnOnceCounter
-from openpi_cam.model.attribution import MapKind, MapOptions
 from openpi_cam.model.sharding import BATCH_AXIS
-from openpi_cam.policies.family import Explainer, ExplainRequest, ExplainSkipped, Target
+from openpi_cam.policies.family import Explainer, ExplainRequest, ExplainSkipped
 from openpi_cam.policies.policy import InferenceTrace
+from openpi_cam.vocabulary import SAVE_FRAMES, MapKind, MapOptions, SaveFrames, Target
 
 logger = logging.getLogger(__name__)
 

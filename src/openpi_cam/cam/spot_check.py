@@ -22,9 +22,9 @@ import numpy as np
 from jax.sharding import Mesh
 
 from openpi_cam.cam.faithfulness import patch_order
-from openpi_cam.model.attribution import MapOptions
 from openpi_cam.policies.family import Explainer, ExplainSkipped, Explanation
 from openpi_cam.policies.policy import InferenceTrace
+from openpi_cam.vocabulary import MapOptions
 
 # Random single patches per camera and step (`--cam-check-patches`): with each kind's top patch and the unpainted
 # score, 1 + kinds + 4 re-runs per camera in one call.

@@ -7,9 +7,8 @@ from typing import Literal
 
 from openpi_cam.cam.faithfulness_run import format_report
 from openpi_cam.demo.run import DemoOptions, run_demo
-from openpi_cam.model.attribution import MAP_KINDS, MapKind
-from openpi_cam.policies.family import Target
 from openpi_cam.viz.stats import MAP_LABELS
+from openpi_cam.vocabulary import MAP_KINDS, MapKind, Target
 
 
 def main(

@@ -10,17 +10,15 @@ import tyro
 
 from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.offline import ExplainOptions, Replay, explain_replays, open_source, resume_mismatch
-from openpi_cam.cam.records import SaveFrames
 from openpi_cam.cam.runfmt import RUN_JSON, load_run
 from openpi_cam.cam.spot_check import DEFAULT_PATCHES
 from openpi_cam.cli.options import map_options, parse_action_index
 from openpi_cam.errors import InvalidRequest
-from openpi_cam.model.attribution import MAP_KINDS, MapKind
 from openpi_cam.policies import demo_reach  # noqa: F401  (registers the bundled demo_reach config)
-from openpi_cam.policies.family import Target
 from openpi_cam.policies.policy import create_policy
 from openpi_cam.viz.progress import progress as progress_bar
 from openpi_cam.viz.rerun_sink import write_rrd
+from openpi_cam.vocabulary import MAP_KINDS, MapKind, SaveFrames, Target
 
 
 def main(

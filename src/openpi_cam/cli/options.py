@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from openpi_cam.model.attribution import MapOptions
+from openpi_cam.vocabulary import MapOptions
 
 
 def parse_action_index(text: str) -> tuple[int, int]:

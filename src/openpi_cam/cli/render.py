@@ -8,10 +8,10 @@ import sys
 import tyro
 
 from openpi_cam.cam.runfmt import load_run
-from openpi_cam.model.attribution import MapKind
 from openpi_cam.viz.render import Norm, RenderOptions, default_render_dir, render_run
 from openpi_cam.viz.rerun_sink import write_rrd
 from openpi_cam.viz.stats import DEFAULT_MAP_KIND, MissingMaps
+from openpi_cam.vocabulary import MapKind
 
 
 def main(

@@ -13,16 +13,14 @@ import time
 from pathlib import Path
 from typing import Literal
 
-from openpi_cam.cam.records import SaveFrames
 from openpi_cam.cam.side_channel import CAMOptions, CAMPolicy, wrap_policy_with_cam
 from openpi_cam.cam.spot_check import DEFAULT_PATCHES
 from openpi_cam.cli.options import map_options, parse_action_index
-from openpi_cam.model.attribution import DEFAULT_KINDS, MapKind
 from openpi_cam.model.config import MAX_DECODING_STEPS
 from openpi_cam.policies import demo_reach
-from openpi_cam.policies.family import Target
 from openpi_cam.policies.policy import Policy, create_policy
 from openpi_cam.serving.server import PolicyServer
+from openpi_cam.vocabulary import DEFAULT_KINDS, MapKind, SaveFrames, Target
 
 logger = logging.getLogger(__name__)
 

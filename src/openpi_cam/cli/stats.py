@@ -9,7 +9,6 @@ from typing import Literal
 import tyro
 
 from openpi_cam.cam.runfmt import load_run
-from openpi_cam.model.attribution import MapKind
 from openpi_cam.viz.stats import (
     DEFAULT_MAP_KIND,
     MissingMaps,
@@ -19,6 +18,7 @@ from openpi_cam.viz.stats import (
     view_steps,
     write_table,
 )
+from openpi_cam.vocabulary import MapKind
 
 
 def main(

@@ -34,12 +34,12 @@ from openpi_cam.cam.faithfulness import box_cells, spearman
 from openpi_cam.cam.runfmt import load_run
 from openpi_cam.demo import bundled, task
 from openpi_cam.demo.data import Batches, load_normalize
-from openpi_cam.model.attribution import DEFAULT_KINDS, MAP_KINDS
 from openpi_cam.model.pi0_fast import Pi0FAST, init_params
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import Explainer, ExplainRequest, Explanation
 from openpi_cam.policies.pi0_fast_family import FastExplainer
 from openpi_cam.policies.policy import InferenceTrace, Policy
+from openpi_cam.vocabulary import DEFAULT_KINDS, MAP_KINDS
 
 BASE_CAMERA = "base_0_rgb"
 EPISODES_FILE = "demo_episodes.json"  # the demo's episode outcomes, written beside the run's steps

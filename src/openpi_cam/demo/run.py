@@ -15,11 +15,10 @@ from openpi_cam.cam.runfmt import dumps, load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.demo import bundled, quality, sim
 from openpi_cam.demo.client import PolicyClient
-from openpi_cam.model.attribution import MAP_KINDS, MapKind, MapOptions
 from openpi_cam.policies import demo_reach
-from openpi_cam.policies.family import Target
 from openpi_cam.serving.server import start_server_in_thread
 from openpi_cam.viz.render import RenderOptions, default_render_dir, render_run
+from openpi_cam.vocabulary import MAP_KINDS, MapKind, MapOptions, Target
 
 
 def run_episodes(url: str, episodes: int, *, seed: int, max_calls: int, execute: int) -> list[dict[str, Any]]:

@@ -13,17 +13,14 @@ The image helpers work on one camera's images [..., H, W, 3] at the model resolu
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Sequence
-from typing import Literal, get_args
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-BASELINES = ("blur", "mean")
-IG_RULES = ("gauss-legendre", "midpoint", "trapezoid", "right-riemann")
-OCCLUSION_MODES = ("regions", "random")
-IG_SPACES = ("tokens", "pixels")
+from openpi_cam.vocabulary import IG_RULES, MapOptions
+
 # Score gaps below this are not resolved relative to themselves: float32 evaluations of the same logits (magnitude
 # ~10) differ by up to ~5e-4 (golden README), so 2% of a smaller gap would be rounding noise.
 COMPLETENESS_FLOOR = 1e-3
@@ -34,78 +31,6 @@ COMPLETENESS_FLOOR = 1e-3
 # model, first action token: 0.1-4% of gaps of 1.4-20, flat from 16 to 128 points; docs/MAP_KINDS.md), where
 # doubling to the cap cost 15x the first try for nothing.
 IG_STALL = 0.75
-
-
-@dataclasses.dataclass(frozen=True)
-class MapOptions:
-    """How the baseline-based maps are computed. Hashable: jitted programs take it as a static argument.
-
-    Defaults were chosen by measurement on the bundled demo model over 100 scenes (docs/MAP_KINDS.md). The
-    mean-colour frame is the default baseline because it removes what the policy reads: a frame blurred with
-    sigma <= 16 px moves the chunk's log-probability by only 0.02-0.34 nats (median), so blur-based maps explain a
-    residual; with the mean frame (5.2 nats) IG and occlusion peak on the named block in 95% / 87% of steps (blur,
-    sigma 8: 63% / 66%; chance 16%). Blur stays available (Zhang et al.'s replacement)."""
-
-    baseline: str = "mean"  # "mean": the frame's per-channel mean colour; "blur": a Gaussian-blurred copy
-    blur_sigma: float = 8.0  # pixels at the model resolution (the demo: half a 16 px patch)
-    # 16 Gauss-Legendre points meet the completeness target on 92-99% of demo steps (midpoint: 94-97%, trapezoid:
-    # 89-95%, the IG paper's right Riemann sum: 8-64%); the rest are refined (ig_tolerance).
-    ig_steps: int = 16  # gradient evaluations along the path (the first try, see ig_tolerance)
-    ig_rule: str = "gauss-legendre"  # quadrature rule over the path, one of IG_RULES
-    # Completeness target: while some explained score misses it (|sum of attributions - (score(E) - score(E0))| >
-    # ig_tolerance * max(|score(E) - score(E0)|, COMPLETENESS_FLOOR)), the steps double, up to ig_max_steps, as long
-    # as doubling helps (IG_STALL). 0 keeps ig_steps fixed. A path with a sharp turn (attention switching) defeats
-    # any fixed rule on a few steps.
-    ig_tolerance: float = 0.02
-    ig_max_steps: int = 128
-    # "tokens": the path runs between the SigLIP tokens of the baseline frame and of the frame (what the LLM reads);
-    # "pixels": between the frames themselves, through SigLIP (the original IG; attributions summed per patch).
-    ig_space: str = "tokens"
-    # 1: every patch alone, which is exact, defines the deletion metric's optimum and costs C x (N + 1) model runs.
-    occlusion_region: int = 1  # side of a square occlusion region, in patches
-    occlusion_mode: str = "regions"  # "regions": every region once (exact); "random": Bernoulli masks (ISS)
-    random_masks: int = 256  # masks per camera in "random" mode
-    keep_prob: float = 0.5  # probability that a region keeps its pixels in a random mask
-    seed: int = 0  # seed of the random masks (host-side; changing it does not recompile)
-    mask_chunk: int = 16  # variants re-scored per vectorised chunk (bounds memory: chunk x B model runs at once)
-
-    def __post_init__(self):
-        if self.baseline not in BASELINES:
-            raise ValueError(f"baseline must be one of {BASELINES}, got {self.baseline!r}")
-        if self.ig_rule not in IG_RULES:
-            raise ValueError(f"ig_rule must be one of {IG_RULES}, got {self.ig_rule!r}")
-        if self.ig_space not in IG_SPACES:
-            raise ValueError(f"ig_space must be one of {IG_SPACES}, got {self.ig_space!r}")
-        if self.occlusion_mode not in OCCLUSION_MODES:
-            raise ValueError(f"occlusion_mode must be one of {OCCLUSION_MODES}, got {self.occlusion_mode!r}")
-        if self.blur_sigma < 0 or self.ig_steps < 1 or self.occlusion_region < 1 or self.mask_chunk < 1:
-            raise ValueError(f"invalid options {self}")
-        if self.ig_tolerance < 0 or self.ig_max_steps < self.ig_steps:
-            raise ValueError("ig_tolerance must be >= 0 and ig_max_steps >= ig_steps")
-        if self.ig_rule == "trapezoid" and self.ig_steps < 2:
-            raise ValueError("the trapezoid rule needs at least 2 steps")
-        if not 0.0 < self.keep_prob < 1.0 or self.random_masks < 2:
-            raise ValueError("random masks need 0 < keep_prob < 1 and at least 2 masks")
-
-
-# The maps the model layer computes. gradcam: Grad-CAM as the founding spec defines it; gradnorm: the per-token
-# gradient norm from the same backward pass; ig: integrated gradients from the baseline frame's tokens; occlusion:
-# the score's drop when a region is painted with the baseline frame and the model re-run.
-MapKind = Literal["gradcam", "gradnorm", "ig", "occlusion"]
-MAP_KINDS: tuple[MapKind, ...] = get_args(MapKind)
-GRADIENT_KINDS: tuple[MapKind, ...] = ("gradcam", "gradnorm")  # one backward pass per explained score gives both
-BASELINE_KINDS: tuple[MapKind, ...] = ("ig", "occlusion")  # compare the frame with a baseline frame
-# What a live side channel computes unless told otherwise: the kinds at the cost of one backward pass.
-DEFAULT_KINDS: tuple[MapKind, ...] = GRADIENT_KINDS
-
-
-def check_kinds(kinds: Sequence[str]) -> tuple[MapKind, ...]:
-    """The requested kinds, deduplicated in order; an unknown or empty selection is an error naming the choices."""
-    kinds = tuple(dict.fromkeys(kinds))
-    unknown = [k for k in kinds if k not in MAP_KINDS]
-    if unknown or not kinds:
-        raise ValueError(f"map kinds must be a non-empty selection of {MAP_KINDS}, got {list(kinds)}")
-    return kinds  # type: ignore[return-value]
 
 
 @dataclasses.dataclass(frozen=True)

@@ -19,9 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from openpi_cam.model.attribution import (
-    BASELINE_KINDS,
     IG_STALL,
-    MapOptions,
     baseline_images,
     completeness_error,
     integrated_gradients,
@@ -36,6 +34,7 @@ from openpi_cam.model.attribution import (
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.paligemma import VLMConfig, embed_images
 from openpi_cam.model.sharding import spread
+from openpi_cam.vocabulary import BASELINE_KINDS, MapOptions
 
 ScoreFn = Callable[[jax.Array], jax.Array]  # image tokens [B, C, N, D] -> scores [T, B]
 

@@ -11,7 +11,7 @@ Simonyan et al. 2014): Grad-CAM's mean over tokens assumes, as in a CNN's last c
 same thing at every position and that activations are non-negative; neither holds for transformer tokens, and on the
 bundled demo model Grad-CAM peaks on the named block at chance while the gradient norm finds it (README).
 
-Two more kinds compare the frame with a *baseline frame* a robot could see (`attribution.MapOptions.baseline`: the
+Two more kinds compare the frame with a *baseline frame* a robot could see (`vocabulary.MapOptions.baseline`: the
 frame blurred, or its mean colour), and are signed (positive = supports the explained score):
   ig         integrated gradients over E along the straight path E0 -> E, E0 = SigLIP tokens of the baseline frame
              (no gradient through SigLIP); its completeness terms come with the result (`IgCompleteness`).
@@ -40,18 +40,11 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from openpi_cam.model import baseline_maps, gemma, remat
-from openpi_cam.model.attribution import (
-    BASELINE_KINDS,
-    DEFAULT_KINDS,
-    GRADIENT_KINDS,
-    IgCompleteness,
-    MapOptions,
-    check_kinds,
-    gradcam_reduce,
-)
+from openpi_cam.model.attribution import IgCompleteness, gradcam_reduce
 from openpi_cam.model.config import MAX_DECODING_STEPS, Pi0FASTConfig
 from openpi_cam.model.observation import Observation, preprocess_observation
 from openpi_cam.model.pi0_fast import Pi0FAST, embed_images, replay_prelogits
+from openpi_cam.vocabulary import BASELINE_KINDS, DEFAULT_KINDS, GRADIENT_KINDS, MapOptions, check_kinds
 
 
 @dataclasses.dataclass(frozen=True)

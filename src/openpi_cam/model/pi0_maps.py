@@ -20,19 +20,12 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from openpi_cam.model import baseline_maps, remat
-from openpi_cam.model.attribution import (
-    BASELINE_KINDS,
-    DEFAULT_KINDS,
-    GRADIENT_KINDS,
-    IgCompleteness,
-    MapOptions,
-    check_kinds,
-    gradcam_reduce,
-)
+from openpi_cam.model.attribution import IgCompleteness, gradcam_reduce
 from openpi_cam.model.config import Pi0Config
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.paligemma import embed_images
 from openpi_cam.model.pi0 import Pi0, denoise, preprocess
+from openpi_cam.vocabulary import BASELINE_KINDS, DEFAULT_KINDS, GRADIENT_KINDS, MapOptions, check_kinds
 
 CHUNK = (-1, -1)  # the (h, d) that stands for the whole-chunk target
 

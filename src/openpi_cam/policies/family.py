@@ -11,23 +11,16 @@ from __future__ import annotations
 import copy
 import dataclasses
 from collections.abc import Mapping, Sequence
-from typing import Any, Literal, Protocol, get_args
+from typing import Any, Literal, Protocol
 
 import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from openpi_cam.model.attribution import DEFAULT_KINDS, MAP_KINDS, IgCompleteness, MapKind, MapOptions
+from openpi_cam.model.attribution import IgCompleteness
 from openpi_cam.model.init import randomized
 from openpi_cam.model.observation import Observation
-
-# What a map explains (the `--cam-target` values). pi0-FAST: `action-token`, `all-action-tokens`, `chunk` (sum of the
-# action tokens' log-probabilities), `generated-tokens` (every emitted token; also what a malformed generation without
-# action tokens falls back to, so that failures leave maps too). pi0 / pi0.5: `action` (one dimension at one horizon
-# step) and `chunk` (the whole chunk, weighted by itself).
-Target = Literal["action-token", "all-action-tokens", "chunk", "generated-tokens", "action"]
-TARGETS: tuple[str, ...] = get_args(Target)
-FALLBACK_TARGET: Target = "generated-tokens"
+from openpi_cam.vocabulary import DEFAULT_KINDS, MAP_KINDS, TARGETS, MapKind, MapOptions, Target
 
 
 @dataclasses.dataclass(frozen=True)

@@ -20,7 +20,6 @@ import numpy as np
 import sentencepiece
 
 from openpi_cam.errors import InvalidRequest
-from openpi_cam.model.attribution import MapOptions
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.pi0 import Pi0
 from openpi_cam.model.pi0_maps import CHUNK, maps_for_actions, rescore_masks
@@ -36,6 +35,7 @@ from openpi_cam.policies.family import (
 from openpi_cam.tokenizers.paligemma import load_paligemma_tokenizer
 from openpi_cam.tokenizers.pi0 import Pi0PromptTokenizer
 from openpi_cam.transforms import PadStatesAndActions, PassActions, TokenizePrompt
+from openpi_cam.vocabulary import MapOptions
 
 
 class FlowExplainer(ModelExplainer):

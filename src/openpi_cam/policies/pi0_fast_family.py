@@ -19,14 +19,12 @@ import sentencepiece
 
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.model import pi0_fast_maps
-from openpi_cam.model.attribution import MapOptions
 from openpi_cam.model.config import EOS_TOKEN
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.pi0_fast import Pi0FAST
 from openpi_cam.model.pi0_fast_maps import GradCamResult
 from openpi_cam.policies.config import PolicyConfig
 from openpi_cam.policies.family import (
-    FALLBACK_TARGET,
     ExplainRequest,
     ExplainSkipped,
     Explanation,
@@ -38,6 +36,7 @@ from openpi_cam.tokenizers.fast import FastActionTokenizer, resolve_fast_tokeniz
 from openpi_cam.tokenizers.paligemma import load_paligemma_tokenizer
 from openpi_cam.tokenizers.pi0_fast import Pi0FastTokenizer
 from openpi_cam.transforms import ExtractFASTActions, TokenizeFASTInputs
+from openpi_cam.vocabulary import FALLBACK_TARGET, MapOptions
 
 TOKEN_TARGETS = ("action-token", "all-action-tokens")  # one score per explained token
 SEQUENCE_TARGETS = ("chunk", FALLBACK_TARGET)  # one score: a sum of log-probabilities
