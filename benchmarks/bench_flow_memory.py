@@ -46,7 +46,7 @@ def main() -> None:
         noise = jnp.zeros((1, cfg.action_horizon, cfg.action_dim), jnp.float32)
         infer = temp_bytes(functools.partial(sample_actions, cfg=cfg), model.params, obs, noise)
         explain = temp_bytes(
-            functools.partial(pi0_maps._flow_cams, cfg=cfg, targets=(pi0_maps.CHUNK,)),
+            functools.partial(pi0_maps._flow_gradient_maps, cfg=cfg, targets=(pi0_maps.CHUNK,)),
             model.params,
             preprocess(obs, cfg),
             noise,

@@ -52,7 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from openpi_cam.model import pi0_fast_maps, remat
-from openpi_cam.model.config import Pi0FASTConfig, param_shapes, pi0_fast_config
+from openpi_cam.model.config import GemmaConfig, Pi0FASTConfig, param_shapes
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.pi0_fast import Pi0FAST
 from openpi_cam.nested import unflatten_dict
@@ -65,7 +65,7 @@ UPSTREAM_PUBLISHED_4090_S = 0.388
 def fullsize_config(llm_depth: int | None = None, siglip_depth: int | None = None) -> Pi0FASTConfig:
     """pi0_fast_droid's model: Gemma 2B + So400m/14, action_dim 8, horizon 10, 250 prompt slots; depths replaceable
     for smoke runs."""
-    cfg = pi0_fast_config(action_dim=8, action_horizon=10, max_token_len=250)
+    cfg = Pi0FASTConfig(gemma=GemmaConfig(remat=True), action_dim=8, action_horizon=10, max_token_len=250)
     gemma = dataclasses.replace(cfg.gemma, depth=llm_depth or cfg.gemma.depth)
     siglip = dataclasses.replace(cfg.siglip, depth=siglip_depth or cfg.siglip.depth)
     return dataclasses.replace(cfg, gemma=gemma, siglip=siglip)
@@ -213,7 +213,7 @@ def main() -> None:
     generated = ours[max(args.decode_steps)][1]
 
     def explain(m: Pi0FAST, steps: list[int], kinds: tuple[str, ...] = ("gradcam", "gradnorm")):
-        res = pi0_fast_maps.gradcam_for_steps(m, obs, generated, steps, kinds=kinds, logits=False)
+        res = pi0_fast_maps.maps_for_steps(m, obs, generated, steps, kinds=kinds, logits=False)
         if res.ig_completeness is not None:
             ig_steps.append(res.ig_completeness.steps)
         return res.score

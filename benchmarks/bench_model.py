@@ -170,7 +170,7 @@ def main() -> None:
 
     def explain(steps: list[int], logits: bool = False) -> np.ndarray:
         """gradcam + gradnorm of `steps` as the side channel asks for them (no full logit vector by default)."""
-        return maps.gradcam_for_steps(model, obs, generated, steps, logits=logits).score
+        return maps.maps_for_steps(model, obs, generated, steps, logits=logits).score
 
     rows = {
         "prefill": lambda: our_prefill(model.params, pobs, args.steps),
@@ -183,10 +183,10 @@ def main() -> None:
         "one_scanned": lambda: scanned_backward(lambda: explain([last])),
         "one_autodiff": lambda: autodiff_attention(lambda: explain([last])),
     }
-    before = maps._token_cams._cache_size()
+    before = maps._token_gradient_maps._cache_size()
     for k in range(args.generated):  # every step of the request, one token at a time
         explain([k])
-    compiles = maps._token_cams._cache_size() - before
+    compiles = maps._token_gradient_maps._cache_size() - before
 
     work = Path(tempfile.mkdtemp(prefix="bench_model_"))
     spec = None
@@ -268,20 +268,20 @@ def autodiff_attention(fn):
     the programs it compiles are its own (a fresh jit of the same function)."""
     attend = gemma_lib.attend
     gemma_lib.attend = lambda q, k, v, mask, hidden: gemma_lib._masked_softmax_attention(q, k, v, mask, hidden)[0]
-    token_cams = maps._token_cams
-    maps._token_cams = _AUTODIFF_TOKEN_CAMS
+    token_gradient_maps = maps._token_gradient_maps
+    maps._token_gradient_maps = _AUTODIFF_TOKEN_GRADIENT_MAPS
     try:
         return fn()
     finally:
-        gemma_lib.attend, maps._token_cams = attend, token_cams
+        gemma_lib.attend, maps._token_gradient_maps = attend, token_gradient_maps
 
 
-# A function of its own: JAX caches traces per traced function, so jitting `_token_cams`'s own function again would
-# reuse the program traced with the written-out backward pass. The function is taken now: `autodiff_attention`
-# replaces `maps._token_cams` with this program while it runs.
-_TOKEN_CAMS_FN = maps._token_cams.__wrapped__
-_AUTODIFF_TOKEN_CAMS = jax.jit(
-    lambda *args, **kwargs: _TOKEN_CAMS_FN(*args, **kwargs), static_argnames=("cfg", "decode_len", "logits")
+# A function of its own: JAX caches traces per traced function, so jitting `_token_gradient_maps`'s own function
+# again would reuse the program traced with the written-out backward pass. The function is taken now:
+# `autodiff_attention` replaces `maps._token_gradient_maps` with this program while it runs.
+_TOKEN_GRADIENT_MAPS_FN = maps._token_gradient_maps.__wrapped__
+_AUTODIFF_TOKEN_GRADIENT_MAPS = jax.jit(
+    lambda *args, **kwargs: _TOKEN_GRADIENT_MAPS_FN(*args, **kwargs), static_argnames=("cfg", "decode_len", "logits")
 )
 
 

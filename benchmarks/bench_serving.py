@@ -1,4 +1,4 @@
-"""Serving latency with the Grad-CAM side channel off vs on (every request), interleaved in one run.
+"""Serving latency with the explanation side channel off vs on (every request), interleaved in one run.
 
     python benchmarks/bench_serving.py [--requests 200 --pause-ms 500 --block 10 --target action-token]
 
@@ -79,7 +79,7 @@ def wait_settled(wrapped: CAMPolicy, timeout: float = 300.0) -> None:
     """Until every scheduled job has ended (written, dropped or failed): the worker is idle."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        counters = wrapped.stats()["gradcam"]
+        counters = wrapped.stats()["explanations"]
         if counters["queued"] == 0 and ended_jobs(counters) >= counters.get("scheduled", 0):
             return
         time.sleep(0.01)
@@ -107,7 +107,7 @@ def run_pattern(
     """`n` requests per mode, alternating modes in blocks (off-on, on-off, ...), the side channel settled before
     each block."""
     latencies: dict[str, list[float]] = {"off": [], "on": []}
-    before = wrapped.stats()["gradcam"]
+    before = wrapped.stats()["explanations"]
     started = time.monotonic()
     with contextlib.ExitStack() as stack:
         clients = {mode: open_client(stack, port) for mode, port in ports.items()}
@@ -122,7 +122,7 @@ def run_pattern(
                     time.sleep(pause_s)
             sent += count
         wait_settled(wrapped)
-    after = wrapped.stats()["gradcam"]
+    after = wrapped.stats()["explanations"]
     lags = [t.lag_ms for t in wrapped.timings() if t.inference_end >= started and t.lag_ms is not None]
     return {
         "latencies": {mode: np.asarray(v) for mode, v in latencies.items()},
@@ -168,7 +168,7 @@ def main() -> None:
             plain_server.stop()
             cam_server.stop()
             wrapped.close(60)
-        counters = wrapped.stats()["gradcam"]
+        counters = wrapped.stats()["explanations"]
     load_after = os.getloadavg()
 
     rng = np.random.default_rng(0)

@@ -1,6 +1,6 @@
 """The package's layers, drawn from its imports (function-local ones included), point one way: down.
 
-cli > demo > viz > cam > serving > policies > {model, tokenizers, transforms and the package-root utilities}.
+cli > demo > viz > cam > serving > policies > {model, tokenizers, data, transforms and the package-root utilities}.
 A function-local import is allowed only for an optional heavy dependency (not a module of this package)."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from paths import REPO_ROOT
 
 SRC = REPO_ROOT / "src"
 LAYERS = ("cli", "demo", "viz", "cam", "serving", "policies", "base")
-BASE_PACKAGES = ("model", "tokenizers")  # the lowest layer, beside transforms.py and the other root modules
+BASE_PACKAGES = ("model", "tokenizers", "data")  # the lowest layer, beside transforms.py and the other root modules
 
 
 def _module(path: pathlib.Path) -> str:
@@ -61,6 +61,19 @@ def test_every_import_points_down_the_layers():
                 upward.append(f"{module} ({_layer(module)}) imports {target} ({_layer(target)})")
     assert not upward, "imports that run up the layers:\n" + "\n".join(upward)
     assert not local, "function-local imports of the package:\n" + "\n".join(local)
+
+
+def test_the_dataset_readers_import_nothing_of_the_package_but_its_errors():
+    """`data` sits in the lowest layer and stays usable on its own: only `openpi_cam.errors` may come in."""
+    paths = sorted((SRC / "openpi_cam" / "data").rglob("*.py"))
+    assert paths, "no openpi_cam/data package"
+    found = [
+        f"{_module(path)} imports {target}"
+        for path in paths
+        for target, _ in _imports(path)
+        if target.startswith("openpi_cam") and target != "openpi_cam.errors"
+    ]
+    assert not found, "\n".join(found)
 
 
 def test_the_checker_sees_an_upward_import(tmp_path):

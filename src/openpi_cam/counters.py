@@ -1,7 +1,7 @@
-"""Thread-safe event counters that log the first occurrence of each kind and only count the rest.
+"""Thread-safe event counters that log the first occurrence of each event and only count the rest.
 
 A server that meets the same malformed generation, I/O error or side-channel failure thousands of times must neither
-stay silent nor flood its log: each kind is logged once, and every occurrence is counted for `/stats` and manifests.
+stay silent nor flood its log: each event is logged once, and every occurrence is counted for `/stats` and manifests.
 """
 
 from __future__ import annotations
@@ -18,17 +18,17 @@ class WarnOnceCounter:
         self._lock = threading.Lock()
         self._counts: collections.Counter[str] = collections.Counter()
 
-    def count(self, kind: str, message: str | None = None, *, n: int = 1) -> None:
-        """Adds `n` to `kind`; logs `message` (if any) the first time `kind` is counted."""
+    def count(self, event: str, message: str | None = None, *, n: int = 1) -> None:
+        """Adds `n` to `event`'s count; logs `message` (if any) the first time `event` is counted."""
         with self._lock:
-            first = kind not in self._counts
-            self._counts[kind] += n
+            first = event not in self._counts
+            self._counts[event] += n
         if first and message is not None:
-            self._logger.warning("%s: %s (%s); further occurrences are only counted", self._prefix, message, kind)
+            self._logger.warning("%s: %s (%s); further occurrences are only counted", self._prefix, message, event)
 
-    def get(self, kind: str) -> int:
+    def get(self, event: str) -> int:
         with self._lock:
-            return self._counts[kind]
+            return self._counts[event]
 
     def snapshot(self) -> dict[str, int]:
         with self._lock:

@@ -15,7 +15,8 @@ from typing import Any, Protocol
 import numpy as np
 
 from openpi_cam.errors import InvalidRequest
-from openpi_cam.image_tools import letterbox_geometry, resize_with_pad_pil
+from openpi_cam.image_tools import resize_with_pad_pil
+from openpi_cam.letterbox import letterbox_geometry
 from openpi_cam.nested import flatten_dict, unflatten_dict
 from openpi_cam.normalize import NormStats
 
@@ -317,24 +318,31 @@ class DeltaActions:
     """Actions -> deltas w.r.t. the state on the masked dims (a no-op at inference, where there are no actions)."""
 
     mask: Sequence[bool] | None
-    sign = -1.0  # AbsoluteActions adds the state back
 
     def __call__(self, data: DataDict) -> DataDict:
         if "actions" not in data or self.mask is None:
             return data
         mask = np.asarray(self.mask)
         dims = mask.shape[-1]
+        # A copy of the actions, changed in place: the result keeps the actions' dtype (integer actions stay integer,
+        # as upstream's in-place update leaves them), and the caller's array is not touched.
         state, actions = data["state"], np.array(data["actions"])
-        actions[..., :dims] += self.sign * np.expand_dims(np.where(mask, state[..., :dims], 0), axis=-2)
+        self._apply(actions[..., :dims], np.expand_dims(np.where(mask, state[..., :dims], 0), axis=-2))
         data["actions"] = actions
         return data
+
+    @staticmethod
+    def _apply(actions: np.ndarray, state: np.ndarray) -> None:
+        actions -= state
 
 
 @dataclasses.dataclass(frozen=True)
 class AbsoluteActions(DeltaActions):
     """Inverse of `DeltaActions`: add the state back on the masked dims."""
 
-    sign = 1.0
+    @staticmethod
+    def _apply(actions: np.ndarray, state: np.ndarray) -> None:
+        actions += state
 
 
 class PromptTokenizer(Protocol):

@@ -21,16 +21,16 @@ IG_SPACES = ("tokens", "pixels")
 class MapOptions:
     """How the baseline-based maps are computed. Hashable: jitted programs take it as a static argument.
 
-    Defaults were chosen by measurement on the bundled demo model over 100 scenes (docs/MAP_KINDS.md). The
-    mean-colour frame is the default baseline because it removes what the policy reads: a frame blurred with
-    sigma <= 16 px moves the chunk's log-probability by only 0.02-0.34 nats (median), so blur-based maps explain a
-    residual; with the mean frame (5.2 nats) IG and occlusion peak on the named block in 95% / 87% of steps (blur,
-    sigma 8: 63% / 66%; chance 16%). Blur stays available (Zhang et al.'s replacement)."""
+    Defaults were chosen by measurement on the bundled demo model (docs/MAP_KINDS.md; figures in
+    docs/DESIGN_NOTES.md). The mean-colour frame is the default baseline because it removes what the policy reads:
+    a blurred frame keeps the colour the demo policy reads and barely moves its score, so blur-based maps explain a
+    residual and find the named block less often. Blur stays available (Zhang et al.'s replacement)."""
 
     baseline: str = "mean"  # "mean": the frame's per-channel mean colour; "blur": a Gaussian-blurred copy
     blur_sigma: float = 8.0  # pixels at the model resolution (the demo: half a 16 px patch)
-    # 16 Gauss-Legendre points meet the completeness target on 92-99% of demo steps (midpoint: 94-97%, trapezoid:
-    # 89-95%, the IG paper's right Riemann sum: 8-64%); the rest are refined (ig_tolerance).
+    # Gauss-Legendre at 16 points meets the completeness target on most demo steps, as often as the other
+    # second-order rules and far more often than the IG paper's right Riemann sum (docs/DESIGN_NOTES.md); the rest
+    # are refined (ig_tolerance).
     ig_steps: int = 16  # gradient evaluations along the path (the first try, see ig_tolerance)
     ig_rule: str = "gauss-legendre"  # quadrature rule over the path, one of IG_RULES
     # Completeness target: while some explained score misses it (|sum of attributions - (score(E) - score(E0))| >
@@ -89,13 +89,19 @@ def check_kinds(kinds: Sequence[str]) -> tuple[MapKind, ...]:
     return kinds  # type: ignore[return-value]
 
 
-# What a map explains (the `--cam-target` values). pi0-FAST: `action-token`, `all-action-tokens`, `chunk` (sum of the
+# What a map explains (the `--cam.target` values). pi0-FAST: `action-token`, `all-action-tokens`, `chunk` (sum of the
 # action tokens' log-probabilities), `generated-tokens` (every emitted token; also what a malformed generation without
 # action tokens falls back to, so that failures leave maps too). pi0 / pi0.5: `action` (one dimension at one horizon
-# step) and `chunk` (the whole chunk, weighted by itself).
-Target = Literal["action-token", "all-action-tokens", "chunk", "generated-tokens", "action"]
+# step) and `chunk` (the whole chunk, weighted by itself). LeRobot datasets only: `dataset-actions`, the recorded
+# chunk instead of the model's own generation (pi0-FAST: the log-probability of its FAST tokens, as the `chunk` target
+# of those tokens); no family explains it from a served call.
+Target = Literal["action-token", "all-action-tokens", "chunk", "generated-tokens", "action", "dataset-actions"]
 TARGETS: tuple[str, ...] = get_args(Target)
 FALLBACK_TARGET: Target = "generated-tokens"
+DATASET_ACTIONS: Target = "dataset-actions"
+# What each family explains when no target is named. pi0-FAST: the first action token, one decision of the policy at
+# one backward pass; pi0 / pi0.5: the whole chunk, measured more faithful than one action dimension (docs/MAP_KINDS.md).
+DEFAULT_TARGETS: dict[str, Target] = {"pi0_fast": "action-token", "pi0": "chunk", "pi05": "chunk"}
 
 # Which camera frames are stored beside the maps: the client's (raw), the model's input (model), both or none.
 SaveFrames = Literal["none", "raw", "model", "both"]

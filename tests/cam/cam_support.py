@@ -102,8 +102,16 @@ class GatedExplainer:
         return self.inner.camera_grid
 
     @property
+    def family(self) -> str:
+        return self.inner.family
+
+    @property
     def targets(self) -> tuple[str, ...]:
         return self.inner.targets
+
+    @property
+    def default_target(self) -> str:
+        return self.inner.default_target
 
     def on_mesh(self, mesh: Any) -> GatedExplainer:
         return self

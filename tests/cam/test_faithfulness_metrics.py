@@ -41,42 +41,58 @@ def test_patch_order_is_signed_descending_with_ties_by_index():
     assert masks[2].ravel().tolist() == [False, True, False, True, False, False]
 
 
+def deletion_of(orders: dict[str, np.ndarray], score: RecordingScore, **kw) -> tuple[fm.Deletion, fm.DeletionMasks]:
+    """What `evaluate_run` does for one camera: the masks, one re-scoring call, the curves."""
+    masks = fm.deletion_masks(orders, GRID, **kw)
+    return fm.deletion(masks, score(masks.masks)), masks
+
+
 def test_deletion_paints_the_claimed_patches_and_reports_their_drops():
     score = RecordingScore()
     m = np.array([[0.1, 5.0, -1.0], [3.0, 3.0, 0.0]])  # order 1, 3, 4, 0, 5, 2
-    drops = fm.deletion_drops(fm.patch_order(m), score, GRID)
-    (masks,) = score.calls
-    expected_sets = [[], [1], [1, 3], [1, 3, 4], [0, 1, 3, 4], [0, 1, 3, 4, 5], [0, 1, 2, 3, 4, 5]]
-    assert [np.flatnonzero(k).tolist() for k in masks.reshape(7, -1)] == expected_sets
+    result, masks = deletion_of({"m": fm.patch_order(m)}, score, random_orders=2)
+    (sent,) = score.calls  # one call for the reference, every patch alone, the map's order and the random orders
+    assert sent.shape == (1 + 6 + 6 + 2 * 6, 2, 3)
+    expected_sets = [[1], [1, 3], [1, 3, 4], [0, 1, 3, 4], [0, 1, 3, 4, 5], [0, 1, 2, 3, 4, 5]]
+    assert [np.flatnonzero(k).tolist() for k in sent[masks.blocks["m"]].reshape(6, -1)] == expected_sets
     # Drops by hand: patch effects plus the interaction once 1 and 3 are both painted.
-    np.testing.assert_allclose(drops, [0.0, 4.0, 11.0, 12.5, 13.0, 13.0, 12.0])
-
-
-def test_single_patch_drops_are_row_major():
-    score = RecordingScore()
-    single = fm.single_patch_drops(score, GRID)
-    np.testing.assert_allclose(single, RecordingScore.effects.reshape(GRID))
-    assert score.calls[0].shape == (7, 2, 3) and score.calls[0].reshape(7, -1)[1:].tolist() == np.eye(6).tolist()
+    np.testing.assert_allclose(result.drops["m"], [4.0, 11.0, 12.5, 13.0, 13.0, 12.0])
+    # Each patch alone, row-major, after the unpainted reference: the single-patch occlusion map.
+    assert not sent[0].any() and sent[1:7].reshape(6, -1).tolist() == np.eye(6).tolist()
+    np.testing.assert_allclose(result.single, RecordingScore.effects.reshape(GRID))
 
 
 def test_deletion_is_normalised_by_the_single_patch_optimum():
-    score = RecordingScore()
-    occlusion = fm.single_patch_drops(score, GRID)
-    own = fm.deletion_curve(occlusion, score, ks=(1, 2, 4), random_orders=4, seed=0)
-    assert own.optimum == 4.0
-    assert own.at_k[0] == 1.0  # occlusion's own order: its top patch is the optimum, by definition
-    np.testing.assert_allclose(own.at_k, np.array([4.0, 11.0, 13.0]) / 4.0)
-    np.testing.assert_allclose(own.auc, np.mean([4.0, 11.0, 12.5, 13.0, 13.0, 12.0]) / 4.0)
-    # The reversed order is worse at every reported k, and random lies in between at k = 1.
-    wrong = fm.deletion_curve(-occlusion, score, random_orders=4, seed=0)
-    assert np.all(wrong.at_k < own.at_k) and wrong.auc < own.auc
-    assert wrong.at_k[0] < own.random_at_k[0] < own.at_k[0]
-    # The random baseline is the mean over the seeded orders' curves, computed from the masks it sent.
+    occlusion = RecordingScore.effects.reshape(GRID)  # the single-patch drops, as a map
+    orders = {"own": fm.patch_order(occlusion), "wrong": fm.patch_order(-occlusion)}
+    result, _ = deletion_of(orders, RecordingScore(), random_orders=4, seed=0)
+    assert result.optimum == 4.0
+    assert result.at_k("own", [1])[0] == 1.0  # occlusion's own order: its top patch is the optimum, by definition
+    np.testing.assert_allclose(result.at_k("own", (1, 2, 4)), np.array([4.0, 11.0, 13.0]) / 4.0)
+    np.testing.assert_allclose(result.auc("own"), np.mean([4.0, 11.0, 12.5, 13.0, 13.0, 12.0]) / 4.0)
+    # The reversed order is worse at every k short of painting everything, and random lies in between at k = 1.
+    assert np.all(result.curves["wrong"][:-1] < result.curves["own"][:-1]) and result.auc("wrong") < result.auc("own")
+    assert result.curves["wrong"][-1] == result.curves["own"][-1]
+    assert result.curves["wrong"][0] < result.curves[fm.RANDOM][0] < result.curves["own"][0]
+    # The random reference is the mean over the seeded orders' curves.
     rng = np.random.default_rng(0)
-    orders = [rng.permutation(6) for _ in range(4)]
-    expected = np.mean([fm.deletion_drops(o, RecordingScore(), GRID) for o in orders], axis=0)
-    np.testing.assert_allclose(own.random_drops, expected)
-    assert np.isnan(fm.deletion_summary(own.drops, 0.0)[1])  # no patch lowers the score: nothing to normalise by
+    painted = [fm.top_k_masks(rng.permutation(6), GRID)[1:] for _ in range(4)]
+    expected = np.mean([10.0 - RecordingScore()(p) for p in painted], axis=0)
+    np.testing.assert_allclose(result.drops[fm.RANDOM], expected)
+    # `k_max` cuts every curve (and the AUC) at that depth.
+    short, _ = deletion_of(orders, RecordingScore(), k_max=2, random_orders=4, seed=0)
+    np.testing.assert_allclose(short.curves["own"], [1.0, 11.0 / 4.0])
+    np.testing.assert_allclose(short.curves[fm.RANDOM], result.curves[fm.RANDOM][:2])
+
+
+def test_deletion_without_a_lowering_patch_is_nan():
+    """No patch lowers the score: nothing to normalise by, so every fraction is NaN (the report writes null)."""
+    masks = fm.deletion_masks({"m": np.arange(6)}, GRID, random_orders=1)
+    result = fm.deletion(masks, np.full(len(masks.masks), 3.0))
+    assert result.optimum == 0.0 and all(np.isnan(c).all() for c in result.curves.values())
+    assert np.isnan(result.auc("m")) and np.isnan(result.at_k(fm.RANDOM, [1])[0])
+    with pytest.raises(ValueError, match="scores for"):
+        fm.deletion(masks, np.zeros(3))
 
 
 def test_top1_and_spearman():

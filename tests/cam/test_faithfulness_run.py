@@ -63,12 +63,14 @@ def test_steps_rescore_exactly_and_occlusion_is_its_own_optimum(tmp_path, demo_p
     run = _logged_run(tmp_path, policy, target, **request)
     assert len(run.steps) == len(SEEDS) and all(set(s.map_kinds) == set(MAP_KINDS) for s in run.steps)
     report = evaluate_run(run, policy.explainer, FaithfulnessOptions(randomize="llm", random_orders=4))
+    # JSON data as it is saved: a figure that was not measured is None, never NaN (which JSON lacks).
+    json.dumps(report, allow_nan=False)
 
     assert report["steps_evaluated"] == len(SEEDS) and not report["skipped"]
     assert report["score_replay_max_abs_diff"] < REPLAY_ATOL
     ig = report["ig_completeness"]  # from the steps' stored checks (MapOptions.ig_tolerance: 2%)
     assert ig["steps"] == len(SEEDS) and ig["max_relative_error"] <= 0.02
-    valid = [c for c, info in run.steps[0].meta["cameras"].items() if info["valid"]]
+    valid = run.steps[0].meta.valid_cameras()
     assert set(report["cameras"]) == set(valid)
     for camera, cam in report["cameras"].items():
         kinds = cam["kinds"]
@@ -100,13 +102,13 @@ def _assert_step_figures_are_each_steps_own(run, report, policy) -> None:
     seen = []
     for step in run.steps:
         obs, outputs, sample_inputs = step_model_inputs(step)
-        painting = MapOptions(**step.meta["map_options"])
+        painting = MapOptions(**step.meta.map_options)
         figures = report["steps"][str(step.seq)]
         masks = {}
         for c in figures:
             gradnorm = step.maps_of("gradnorm")[c]
             masks[c] = fm.top_k_masks(fm.patch_order(gradnorm), gradnorm.shape)[:2]  # nothing painted, top patch
-        scores = policy.explainer.rescore(obs, outputs, sample_inputs, step.meta, masks, painting)
+        scores = policy.explainer.rescore(obs, outputs, sample_inputs, step.meta.explained(), masks, painting)
         for c, f in figures.items():
             occlusion = step.maps_of("occlusion")[c]
             # As in the offline occlusion test: drops round at 1e-5 |score|; the optimum is the logged map's maximum.
@@ -128,11 +130,11 @@ def test_logged_occlusion_maps_equal_the_single_patch_drops_rescored_offline(tmp
     run = _logged_run(tmp_path, demo_policy, "action-token", action_index=1)
     for step in run.steps:
         obs, outputs, sample_inputs = step_model_inputs(step)
-        cameras = list(step.meta["cameras"])
+        cameras = list(step.meta.cameras)
         grid = step.maps_of("occlusion")[cameras[0]].shape
         masks = dict.fromkeys(cameras, fm.single_patch_masks(grid))
-        painting = MapOptions(**step.meta["map_options"])
-        scores = demo_policy.explainer.rescore(obs, outputs, sample_inputs, step.meta, masks, painting)
+        painting = MapOptions(**step.meta.map_options)
+        scores = demo_policy.explainer.rescore(obs, outputs, sample_inputs, step.meta.explained(), masks, painting)
         for c in cameras:
             drops = (scores[c][0] - scores[c][1:]).reshape(grid)
             logged = step.maps_of("occlusion")[c]
@@ -141,20 +143,20 @@ def test_logged_occlusion_maps_equal_the_single_patch_drops_rescored_offline(tmp
             # 1e-5 |s| bounds that and stays far below the drops the map ranks (1e-3 - 3e-2 here).
             atol = 1e-5 * max(abs(float(scores[c][0])), 1.0)
             np.testing.assert_allclose(logged, drops, rtol=0, atol=atol)
-        assert abs(scores[cameras[0]][0] - step.meta["score"]) < REPLAY_ATOL
+        assert abs(scores[cameras[0]][0] - step.meta.score) < REPLAY_ATOL
 
 
 def test_ig_completeness_is_stored_per_step_and_holds(tmp_path, demo_policy):
     run = _logged_run(tmp_path, demo_policy, "chunk")
     for step in run.steps:
-        check = step.meta["ig_completeness"]
+        check = step.meta.ig_completeness
         total = sum(float(np.sum(m)) for m in step.maps_of("ig").values())
         # The stored attribution sum is the logged ig maps' sum (float32 maps summed in float64: 1e-5 relative).
         assert total == pytest.approx(check["attribution_sum"], rel=1e-5, abs=1e-6)
         gap = check["score"] - check["baseline_score"]
         assert abs(check["attribution_sum"] - gap) <= 0.02 * max(abs(gap), 1e-3)  # MapOptions.ig_tolerance
-        assert check["score"] == pytest.approx(step.meta["score"], abs=REPLAY_ATOL)
-        assert step.meta["map_options"]["baseline"] == "mean"
+        assert check["score"] == pytest.approx(step.meta.score, abs=REPLAY_ATOL)
+        assert step.meta.map_options["baseline"] == "mean"
 
 
 def test_steps_without_model_frames_are_reported_not_replayable(tmp_path, demo_policy):
@@ -222,8 +224,9 @@ def test_offline_explain_render_stats_and_faithfulness_on_a_pi05_run(tmp_path, p
     assert summary["completed"] == 3
     run = load_run(log.run_dir)
     for step in run.steps:
-        assert step.meta["action_index"] == [2, 1] and set(step.map_kinds) == set(MAP_KINDS)
-        assert step.meta["replay_max_abs_diff"] < 1e-4  # the explained chunk is the returned one (float32 re-run)
+        assert step.meta.action_index == (2, 1) and set(step.map_kinds) == set(MAP_KINDS)
+        # the explained chunk is the returned one (float32 re-run)
+        assert step.meta.details["replay_max_abs_diff"] < 1e-4
     result = render_run(run, tmp_path / "render", RenderOptions(map="ig", videos=False, progress=False))
     assert result.report is not None and "nuisance mass ratio" in result.report.read_text()
     rows = to_rows(compute_stats(view_steps(run.steps, "occlusion")))

@@ -22,7 +22,15 @@ from paths import REPO_ROOT
 from openpi_cam import cli
 from openpi_cam.cam import logger as logger_mod
 from openpi_cam.cam.logger import CAMLogger
-from openpi_cam.cam.runfmt import SCHEMA_VERSION, StepRecord, list_runs, load_run, map_summary, rebuild_manifest
+from openpi_cam.cam.runfmt import (
+    RUN_JSON,
+    SCHEMA_VERSION,
+    StepMeta,
+    StepRecord,
+    load_run,
+    map_summary,
+    rebuild_manifest,
+)
 from openpi_cam.cli import cam_index
 
 REPO = REPO_ROOT
@@ -101,6 +109,35 @@ def step_seqs(run_dir: pathlib.Path) -> list[int]:
 KEY_PREFIX = {"gradcam": "cam/", "gradnorm": "gradnorm/"}
 
 
+def test_step_meta_keeps_unknown_fields_and_reads_older_schemas():
+    """Fields this reader does not know (a newer writer's) survive a read and write back; a schema 1 step (its
+    `malformed_reason`, no `map_kinds`, cameras without `obs_key`) reads with defaults for what it lacks."""
+    written = {
+        "target": "action",
+        "action_index": [2, 1],
+        "future_field": {"x": 1},
+        "score": 0.5,
+        "map_kinds": ["ig"],
+        "prompt": "p",
+        "cameras": {
+            "a": {"obs_key": "img", "valid": True, "grid": [4, 4], "span": [0, 16], "geometry": None, "new": 2}
+        },
+        "malformed": None,
+        "explain_ms": 1.5,
+        "extra": {},
+        "extra_arrays": [],
+    }
+    meta = StepMeta.from_json(written)
+    assert meta.details == {"action_index": [2, 1], "future_field": {"x": 1}} and meta.action_index == (2, 1)
+    assert meta.cameras["a"].details == {"new": 2} and meta.to_json() == written
+    assert StepMeta.from_json(meta.to_json()) == meta
+    old = StepMeta.from_json(
+        {"target": "action-token", "malformed_reason": "no_action_prefix", "cameras": {"a": {"valid": False}}}
+    )
+    assert old.malformed == "no_action_prefix" and old.map_kinds is None and old.details == {}
+    assert old.cameras["a"].obs_key is None and not old.cameras["a"].valid and old.score is None
+
+
 def test_round_trip_with_numpy_alone(tmp_path):
     lg = new_logger(tmp_path, compress=True)
     # a record without gradient-norm maps writes no gradnorm/ keys
@@ -158,7 +195,21 @@ def test_round_trip_with_numpy_alone(tmp_path):
         assert [s.seq for s in run.steps] == [0, 1, 2] and not run.problems
         assert run.run_info == run_info
         for step, rec in zip(run.steps, records, strict=True):
-            assert step.meta["prompt"] == rec.meta["prompt"]
+            assert step.meta.prompt == rec.meta["prompt"]
+            # The typed metadata gives the stored JSON back (nothing lost; the fields this record left out read as
+            # their defaults), and each field reads as its type.
+            with np.load(step.file, allow_pickle=False) as z:
+                stored = json.loads(z["meta"].item())
+            assert step.meta.to_json() == stored | {"explain_ms": None, "extra_arrays": []}
+            base, wrist = step.meta.cameras[CAMERAS[0]], step.meta.cameras[CAMERAS[1]]
+            assert (base.obs_key, base.valid, base.grid) == (f"observation/{CAMERAS[0]}", True, (16, 16))
+            assert base.geometry == GEOMETRY
+            assert not wrist.valid and wrist.span == (256, 512) and wrist.geometry is None
+            assert step.meta.token_ids == tuple(rec.meta["token_ids"])
+            assert step.meta.decode_steps == tuple(rec.meta["decode_steps"]) and step.meta.action_indices is None
+            assert step.meta.details["positions"] == rec.meta["positions"]
+            assert (step.meta.seq, step.meta.connection, step.meta.step) == (step.seq, "c0", step.seq)
+            assert step.meta.extra == {"target_box": [1, 2, 3, 4]} and step.meta.check is None
             assert step.file == lg.run_dir / "steps" / f"{step.seq:08d}.npz"
             assert step.map_kinds == tuple(rec.maps) and set(step.frames) == set(rec.frames)
             for kind, maps in rec.maps.items():
@@ -186,7 +237,7 @@ def test_the_last_step_survives_close(tmp_path):
     assert index == [0, 1, 2] and [e["seq"] for e in manifest["steps"]] == [0, 1, 2]
     assert manifest["num_steps"] == 3 and manifest["counters"]["logger"]["steps_logged"] == 3 and manifest["closed"]
     last = load_run(run_dir).steps[-1]
-    assert last.meta["step"] == 2
+    assert last.meta.step == 2
     np.testing.assert_array_equal(last.maps_of("gradcam")[CAMERAS[1]], records[2].maps["gradcam"][CAMERAS[1]])
 
 
@@ -247,7 +298,7 @@ def test_map_summary_edge_cases():
 def test_never_overwrites_earlier_runs(tmp_path, monkeypatch):
     loggers = [new_logger(tmp_path) for _ in range(10)]
     assert len({lg.run_dir for lg in loggers}) == 10
-    assert list_runs(tmp_path) == sorted(lg.run_dir for lg in loggers)
+    assert {p.parent for p in tmp_path.glob(f"*/{RUN_JSON}")} == {lg.run_dir for lg in loggers}
 
     # Force the random suffix to collide with existing directories for the current and next seconds.
     now = time.time()
@@ -332,7 +383,7 @@ def test_unwritable_steps_dir_is_counted_not_raised(tmp_path, caplog):
     aside.rename(steps)
     assert lg.log_step(make_record(4))
     assert step_seqs(lg.run_dir) == [0, 1, 2]  # the failed steps did not use up a seq
-    assert load_run(lg.run_dir).steps[2].meta["step"] == 4
+    assert load_run(lg.run_dir).steps[2].meta.step == 4
 
     (lg.run_dir / "manifest.json").mkdir()  # the final manifest cannot replace a directory
     lg.close()
@@ -415,7 +466,7 @@ def test_permission_denied_steps_dir_is_counted(tmp_path):
     assert counters["io_errors"] == {"permission_denied": 1} and counters["steps_skipped_io"] == 1
     # the refused step used up no seq; the run reads back whole
     run = load_run(run_dir)
-    assert [(s.seq, s.meta["step"]) for s in run.steps][-1] == (len(run.steps) - 1, 2)
+    assert [(s.seq, s.meta.step) for s in run.steps][-1] == (len(run.steps) - 1, 2)
 
 
 def test_uncreatable_run_dir_raises_clear_oserror(tmp_path):
@@ -520,7 +571,7 @@ def test_kill_9_mid_run_loses_no_completed_step(tmp_path, capsys):
     assert seqs == list(range(len(seqs))) and len(seqs) >= completed + 1 and not run.problems
     for step in run.steps:
         rec = make_record(step.seq)
-        assert step.meta["step"] == step.seq
+        assert step.meta.step == step.seq
         np.testing.assert_array_equal(step.maps_of("gradcam")[CAMERAS[1]], rec.maps["gradcam"][CAMERAS[1]])
         np.testing.assert_array_equal(step.maps_of("gradnorm")[CAMERAS[0]], rec.maps["gradnorm"][CAMERAS[0]])
         np.testing.assert_array_equal(step.frames[CAMERAS[0]], rec.frames[CAMERAS[0]])
@@ -558,10 +609,10 @@ def test_two_threads(tmp_path):
     index = [json.loads(line) for line in (lg.run_dir / "index.jsonl").read_text().splitlines()]
     assert [e["seq"] for e in index] == list(range(40)) and run.manifest["steps"] == index
     for connection in results:
-        steps = [s for s in run.steps if s.meta["connection"] == connection]
-        assert [s.meta["step"] for s in steps] == list(range(20))  # each thread's order is kept
+        steps = [s for s in run.steps if s.meta.connection == connection]
+        assert [s.meta.step for s in steps] == list(range(20))  # each thread's order is kept
         for s in steps:
-            want = make_record(s.meta["step"], connection=connection, frames=False).maps["gradcam"][CAMERAS[0]]
+            want = make_record(s.meta.step, connection=connection, frames=False).maps["gradcam"][CAMERAS[0]]
             np.testing.assert_array_equal(s.maps_of("gradcam")[CAMERAS[0]], want)
 
 
@@ -591,12 +642,8 @@ def test_cli_and_docs_example(tmp_path, capsys):
     assert sorted(set(rows)) == list(range(25, 37)) and sorted(set(cols)) == list(range(37, 50))
 
 
-def test_list_runs_ignores_non_runs(tmp_path):
-    assert list_runs(tmp_path / "nothing") == []
+def test_a_run_without_its_steps_folder_reads_as_empty(tmp_path):
     lg = new_logger(tmp_path)
-    (tmp_path / "notes").mkdir()
-    (tmp_path / "stray.txt").write_text("x")
-    assert list_runs(tmp_path) == [lg.run_dir]
     shutil.rmtree(lg.run_dir / "steps")
     assert load_run(lg.run_dir).steps == []
 
@@ -625,7 +672,7 @@ def test_cam_extra_arrays_are_stored_as_arrays_within_byte_limits(tmp_path):
     assert lg.log_step(record)
     lg.close()
     (step,) = load_run(lg.run_dir, load_arrays=False).steps
-    assert step.meta["extra"] == values
+    assert step.meta.extra == values
     for key, sent in arrays.items():
         stored = step.extra[key]
         assert stored.dtype == sent.dtype and stored.shape == sent.shape

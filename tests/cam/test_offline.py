@@ -132,7 +132,7 @@ def test_batched_rows_equal_single_rows(demo_policy):
     # A row whose generation lacks the requested action token is answered with the reason, not dropped.
     rows = explain_traces(explainer, traces, ExplainRequest("action-token", 4))
     assert isinstance(rows[0], Explanation) and rows[0].details["action_indices"] == [4]
-    assert isinstance(rows[1], ExplainSkipped) and rows[1].kind == "action_index_out_of_range"
+    assert isinstance(rows[1], ExplainSkipped) and rows[1].reason == "action_index_out_of_range"
 
 
 def test_policy_records_become_a_cam_run_and_replay(demo_policy, tmp_path):
@@ -147,15 +147,15 @@ def test_policy_records_become_a_cam_run_and_replay(demo_policy, tmp_path):
     assert summary["observations"] == 3 and summary["completed"] == 3
     assert summary["actions_compared"] == 3 and summary["actions_mismatched"] == 0
     run = load_run(cam_logger.run_dir)
-    assert [(s.seq, s.meta["connection"], s.meta["step"]) for s in run.steps] == [(i, "records", i) for i in range(3)]
+    assert [(s.seq, s.meta.connection, s.meta.step) for s in run.steps] == [(i, "records", i) for i in range(3)]
     for step, obs in zip(run.steps, observations, strict=True):
-        assert step.meta["extra"][SOURCE_KEY] == f"step_{step.seq}.npy"
+        assert step.meta.extra[SOURCE_KEY] == f"step_{step.seq}.npy"
         np.testing.assert_array_equal(step.extra[STATE_KEY], obs[STATE_KEY])  # an array, stored as one
         np.testing.assert_array_equal(step.frames["base_0_rgb"], obs["observation/image"])
         np.testing.assert_array_equal(step.frames["wrist_0_rgb"], obs["observation/wrist_image"])
-        assert step.maps_of("gradcam")["base_0_rgb"].shape == tuple(step.meta["cameras"]["base_0_rgb"]["grid"])
-        assert step.meta["cameras"]["base_0_rgb"]["obs_key"] == "observation/image"
-        assert step.meta["prompt"] == obs["prompt"]
+        assert step.maps_of("gradcam")["base_0_rgb"].shape == step.meta.cameras["base_0_rgb"].grid
+        assert step.meta.cameras["base_0_rgb"].obs_key == "observation/image"
+        assert step.meta.prompt == obs["prompt"]
     assert run.manifest["counters"]["external"]["completed"] == 3
 
     # Our own run directory, replayed: same frames, prompt and extras, so the same maps; the new steps name their
@@ -166,12 +166,12 @@ def test_policy_records_become_a_cam_run_and_replay(demo_policy, tmp_path):
     run2 = load_run(logger2.run_dir)
     assert len(run2.steps) == 3
     for a, b in zip(run.steps, run2.steps, strict=True):
-        assert b.meta["extra"][SOURCE_KEY] == f"steps/{a.seq:08d}.npz"
+        assert b.meta.extra[SOURCE_KEY] == f"steps/{a.seq:08d}.npz"
         np.testing.assert_array_equal(b.extra[STATE_KEY], a.extra[STATE_KEY])
-        assert (b.meta["connection"], b.meta["step"], b.meta["prompt"]) == (
-            a.meta["connection"],
-            a.meta["step"],
-            a.meta["prompt"],
+        assert (b.meta.connection, b.meta.step, b.meta.prompt) == (
+            a.meta.connection,
+            a.meta.step,
+            a.meta.prompt,
         )
         np.testing.assert_array_equal(b.inputs["output"], a.inputs["output"])
         for kind in ("gradcam", "gradnorm"):
@@ -238,13 +238,14 @@ def test_explained_steps_have_the_side_channel_layout(demo_policy, tmp_path):
     cam_logger.close()
     offline = load_run(cam_logger.run_dir).steps[0]
 
-    assert set(offline.meta) == set(live.meta)
+    offline_json, live_json = offline.meta.to_json(), live.meta.to_json()  # every field, as stored
+    assert set(offline_json) == set(live_json)
     skip = {"explain_ms", "extra", "run_id", "timestamp", "connection", "score"}
-    assert {k: v for k, v in offline.meta.items() if k not in skip} == {
-        k: v for k, v in live.meta.items() if k not in skip
+    assert {k: v for k, v in offline_json.items() if k not in skip} == {
+        k: v for k, v in live_json.items() if k not in skip
     }
-    assert offline.meta["extra"] == live.meta["extra"] | {SOURCE_KEY: "step_0.npy"}
-    assert offline.meta["score"] == pytest.approx(live.meta["score"], rel=1e-4)
+    assert offline.meta.extra == live.meta.extra | {SOURCE_KEY: "step_0.npy"}
+    assert offline.meta.score == pytest.approx(live.meta.score, rel=1e-4)
     assert offline.map_kinds == live.map_kinds and set(offline.frames) == set(live.frames)
     assert set(offline.model_frames) == set(live.model_frames) and set(offline.inputs) == set(live.inputs)
     for name, value in live.inputs.items():
@@ -273,9 +274,9 @@ def test_resume_explains_only_the_rest(demo_policy, tmp_path):
 
     run = load_run(first.run_dir)
     assert [s.seq for s in run.steps] == [0, 1, 2, 3, 4]
-    sources = [s.meta["extra"][SOURCE_KEY] for s in run.steps]
+    sources = [s.meta.extra[SOURCE_KEY] for s in run.steps]
     assert sources == [f"step_{i}.npy" for i in range(5)]
-    assert [s.meta["step"] for s in run.steps] == [0, 1, 2, 3, 4]
+    assert [s.meta.step for s in run.steps] == [0, 1, 2, 3, 4]
     manifest = json.loads((first.run_dir / "manifest.json").read_text())
     assert manifest["closed"] and manifest["num_steps"] == 5 and len(manifest["resumed_at"]) == 1
     assert [e["seq"] for e in manifest["steps"]] == [0, 1, 2, 3, 4]
@@ -348,8 +349,8 @@ def test_logger_resume_after_a_crash_continues_seq_and_repairs_the_index(tmp_pat
     assert (run_dir / "run.json").read_text() == run_json
     run = load_run(run_dir)
     assert [s.seq for s in run.steps] == [0, 1, 2, 4, 5]
-    assert [s.meta["step"] for s in run.steps] == [0, 1, 2, 10, 11]
-    assert all(s.meta["run_id"] == run_dir.name for s in run.steps)
+    assert [s.meta.step for s in run.steps] == [0, 1, 2, 10, 11]
+    assert all(s.meta.run_id == run_dir.name for s in run.steps)
     manifest = json.loads((run_dir / "manifest.json").read_text())
     assert [e["seq"] for e in manifest["steps"]] == [0, 1, 2, 4, 5] and manifest["closed"]
     assert manifest["counters"]["logger"]["steps_skipped_cap"] == 1

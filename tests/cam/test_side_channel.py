@@ -79,11 +79,11 @@ def test_real_client_side_channel_on_same_actions_and_complete_run(tmp_path, dem
         for key, value in local.items():
             assert served[key].dtype == np.asarray(value).dtype, key
             np.testing.assert_array_equal(served[key], value, err_msg=f"response {i}, {key}")
-    assert stats["policy"]["gradcam"]["scheduled"] == n  # side-channel counters reach the server's /stats
-    assert wrapped.stats()["gradcam"]["completed"] == n
+    assert stats["policy"]["explanations"]["scheduled"] == n  # side-channel counters reach the server's /stats
+    assert wrapped.stats()["explanations"]["completed"] == n
 
     run = load_run(wrapped.run_dir)
-    assert [s.meta["step"] for s in run.steps] == list(range(n))
+    assert [s.meta.step for s in run.steps] == list(range(n))
     assert run.manifest["closed"] and run.manifest["counters"]["external"]["completed"] == n
     model = demo_policy.explainer.model
     for obs, step in zip(observations, run.steps, strict=True):
@@ -100,23 +100,23 @@ def test_real_client_side_channel_on_same_actions_and_complete_run(tmp_path, dem
         direct = pi0_fast_maps.gradcam_for_action_token(model, trace.observation, generated[None], int(action_steps[2]))
         assert set(step.map_kinds) == {"gradcam", "gradnorm"}
         for cam in DEMO_CAMERAS:
-            _assert_maps_close(step.maps_of("gradcam")[cam], direct.maps[cam][0])
-            _assert_maps_close(step.maps_of("gradnorm")[cam], direct.gradnorm_maps[cam][0])
+            _assert_maps_close(step.maps_of("gradcam")[cam], direct.by_kind["gradcam"][cam][0])
+            _assert_maps_close(step.maps_of("gradnorm")[cam], direct.by_kind["gradnorm"][cam][0])
             assert step.maps_of("gradcam")[cam].shape == (4, 4)
         # 64 px client images are the model's images (no resize): raw and model frames both equal what was sent.
         for cam, key in (("base_0_rgb", "observation/image"), ("wrist_0_rgb", "observation/wrist_image")):
             np.testing.assert_array_equal(step.frames[cam], obs[key])
             np.testing.assert_array_equal(step.model_frames[cam], obs[key])
-            assert step.meta["cameras"][cam]["obs_key"] == key
+            assert step.meta.cameras[cam].obs_key == key
         meta = step.meta
-        assert meta["target"] == "action-token" and meta["malformed"] is None
-        assert meta["decode_steps"] == [int(action_steps[2])] and meta["action_indices"] == [2]
-        assert meta["token_ids"] == [int(generated[action_steps[2]])]
-        assert meta["score"] == pytest.approx(float(direct.score[0]), rel=1e-5)
-        assert meta["prompt"] == obs["prompt"] and meta["connection"].startswith("conn")
+        assert meta.target == "action-token" and meta.malformed is None
+        assert meta.decode_steps == (int(action_steps[2]),) and meta.action_indices == (2,)
+        assert meta.token_ids == (int(generated[action_steps[2]]),)
+        assert meta.score == pytest.approx(float(direct.score[0]), rel=1e-5)
+        assert meta.prompt == obs["prompt"] and meta.connection.startswith("conn")
         # Numeric arrays are stored as arrays (dtype and shape kept), the rest as JSON in meta.
-        assert meta["extra_arrays"] == ["block_boxes", "target_box"]
-        assert "target_box" not in meta["extra"] and meta["extra"]["block_colors"] == obs["cam_extra/block_colors"]
+        assert meta.extra_arrays == ("block_boxes", "target_box")
+        assert "target_box" not in meta.extra and meta.extra["block_colors"] == obs["cam_extra/block_colors"]
         for key in ("target_box", "block_boxes"):
             sent, stored = obs[f"cam_extra/{key}"], step.extra[key]
             assert stored.dtype == sent.dtype and stored.shape == sent.shape
@@ -137,7 +137,7 @@ def test_side_channel_on_or_off_serves_the_plain_bytes(tmp_path, demo_policy, ev
     finally:
         wrapped.close(120)
     scheduled = {0: 0, 1: 4, 2: 2}[every_k]
-    assert wrapped.stats()["gradcam"].get("scheduled", 0) == scheduled
+    assert wrapped.stats()["explanations"].get("scheduled", 0) == scheduled
     assert len(load_run(wrapped.run_dir).steps) == scheduled
 
 
@@ -148,7 +148,7 @@ def test_schedule_is_per_connection_and_every_k(demo_policy, tmp_path):
             wrapped.infer(demo_obs(i), RequestContext(conn, i))
     wrapped.close(120)
     run = load_run(wrapped.run_dir)
-    assert sorted((s.meta["connection"], s.meta["step"]) for s in run.steps) == [("a", 0), ("a", 2), ("b", 0), ("b", 2)]
+    assert sorted((s.meta.connection, s.meta.step) for s in run.steps) == [("a", 0), ("a", 2), ("b", 0), ("b", 2)]
     assert all(not s.frames and not s.model_frames for s in run.steps)
 
 
@@ -162,8 +162,8 @@ def test_multi_token_and_chunk_targets_log_the_models_maps(demo_policy, tmp_path
     assert len(steps) == 20  # the demo's FAST chunks are 20 ids
     model = demo_policy.explainer.model
     direct = {
-        "all-action-tokens": pi0_fast_maps.gradcam_for_steps(model, trace.observation, generated[None], steps),
-        "chunk": pi0_fast_maps.gradcam_for_chunk(model, trace.observation, generated[None], steps),
+        "all-action-tokens": pi0_fast_maps.maps_for_steps(model, trace.observation, generated[None], steps),
+        "chunk": pi0_fast_maps.maps_for_chunk(model, trace.observation, generated[None], steps),
     }
     for target, want in direct.items():
         options = CAMOptions(every_k=1, cam_dir=tmp_path / target, save_frames="none", target=target)
@@ -171,17 +171,17 @@ def test_multi_token_and_chunk_targets_log_the_models_maps(demo_policy, tmp_path
         wrapped.infer(obs)
         wrapped.close(300)
         (step,) = load_run(wrapped.run_dir).steps
-        assert step.meta["target"] == target and step.meta["decode_steps"] == [int(s) for s in steps]
-        assert step.meta["action_indices"] == list(range(20))
+        assert step.meta.target == target and step.meta.decode_steps == tuple(int(s) for s in steps)
+        assert step.meta.action_indices == tuple(range(20))
         for cam in DEMO_CAMERAS:
-            _assert_maps_close(step.maps_of("gradcam")[cam], want.maps[cam][0])
-            _assert_maps_close(step.maps_of("gradnorm")[cam], want.gradnorm_maps[cam][0])
+            _assert_maps_close(step.maps_of("gradcam")[cam], want.by_kind["gradcam"][cam][0])
+            _assert_maps_close(step.maps_of("gradnorm")[cam], want.by_kind["gradnorm"][cam][0])
         if target == "chunk":
             assert step.maps_of("gradcam")["base_0_rgb"].shape == (4, 4)
-            assert step.meta["score"] == pytest.approx(float(want.score[0]), rel=1e-5) and step.meta["score"] < 0
+            assert step.meta.score == pytest.approx(float(want.score[0]), rel=1e-5) and step.meta.score < 0
         else:
             assert step.maps_of("gradcam")["base_0_rgb"].shape == (20, 4, 4)
-            np.testing.assert_allclose(step.meta["score"], want.score[0], rtol=1e-5)
+            np.testing.assert_allclose(step.meta.score, want.score[0], rtol=1e-5)
 
 
 def test_failures_stay_inside_the_side_channel(demo_policy, tmp_path):
@@ -194,14 +194,14 @@ def test_failures_stay_inside_the_side_channel(demo_policy, tmp_path):
     for obs, want in zip(observations, expected, strict=True):
         np.testing.assert_array_equal(wrapped.infer(obs)["actions"], want)
     wrapped.close(30)
-    assert failing.calls == 2 and wrapped.stats()["gradcam"]["failed_RuntimeError"] == 2
+    assert failing.calls == 2 and wrapped.stats()["explanations"]["failed_RuntimeError"] == 2
     assert load_run(wrapped.run_dir).steps == []
     # An unwritable run directory: serving goes on with the side channel disabled.
     (tmp_path / "file").write_text("not a directory")
     disabled = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, cam_dir=tmp_path / "file" / "cam"))
     for obs, want in zip(observations, expected, strict=True):
         np.testing.assert_array_equal(disabled.infer(obs)["actions"], want)
-    assert disabled.run_dir is None and disabled.stats()["gradcam"]["disabled_logger_unavailable"] == 1
+    assert disabled.run_dir is None and disabled.stats()["explanations"]["disabled_logger_unavailable"] == 1
     disabled.close(1)
 
 
@@ -232,7 +232,8 @@ def test_malformed_generation_is_explained_logged_and_reported(tmp_path, tiny_dr
         stats = get_stats(server.port)
     finally:
         server.stop()
-    assert wrapped.stats()["gradcam"]["completed"] == 2 and wrapped.stats()["gradcam"]["explained_malformed"] == 2
+    counters = wrapped.stats()["explanations"]
+    assert counters["completed"] == 2 and counters["explained_malformed"] == 2
 
     run = load_run(wrapped.run_dir)
     assert len(run.steps) == 2 and not run.problems
@@ -240,21 +241,21 @@ def test_malformed_generation_is_explained_logged_and_reported(tmp_path, tiny_dr
     for obs, step in zip(observations, run.steps, strict=True):
         _, trace = tiny_droid_policy.infer_traced(obs)
         assert trace.malformed_reason is not None
-        assert step.meta["malformed"] == trace.malformed_reason
+        assert step.meta.malformed == trace.malformed_reason
         assert trace.malformed_reason in stats["policy"]["malformed"]  # the reason the policy counted
-        assert step.meta["target"] == "generated-tokens"
+        assert step.meta.target == "generated-tokens"
         generated = np.asarray(trace.output)
         np.testing.assert_array_equal(step.inputs["output"], generated)
         # Every emitted token, up to and including the first EOS (all of them when there is none).
         eos = np.flatnonzero(generated == EOS_TOKEN)
         emitted = np.arange(eos[0] + 1 if eos.size else generated.size)
-        assert step.meta["decode_steps"] == emitted.tolist()
-        direct = pi0_fast_maps.gradcam_for_chunk(model, trace.observation, generated[None], emitted)
+        assert step.meta.decode_steps == tuple(emitted.tolist())
+        direct = pi0_fast_maps.maps_for_chunk(model, trace.observation, generated[None], emitted)
         for cam in ("base_0_rgb", "base_1_rgb", "wrist_0_rgb"):
             assert step.maps_of("gradcam")[cam].shape == (16, 16)
-            _assert_maps_close(step.maps_of("gradcam")[cam], direct.maps[cam][0])
-            _assert_maps_close(step.maps_of("gradnorm")[cam], direct.gradnorm_maps[cam][0])
-        assert step.meta["score"] == pytest.approx(float(direct.score[0]), rel=1e-5)
+            _assert_maps_close(step.maps_of("gradcam")[cam], direct.by_kind["gradcam"][cam][0])
+            _assert_maps_close(step.maps_of("gradnorm")[cam], direct.by_kind["gradnorm"][cam][0])
+        assert step.meta.score == pytest.approx(float(direct.score[0]), rel=1e-5)
         assert run.manifest["steps"][step.seq]["malformed"] == trace.malformed_reason
 
     result = render_run(run, tmp_path / "render", RenderOptions(videos=False, progress=False))
@@ -264,7 +265,7 @@ def test_malformed_generation_is_explained_logged_and_reported(tmp_path, tiny_dr
     for step in run.steps:
         assert f'href="#step-{step.seq}"' in failures
         assert f'<section class="step failure" id="step-{step.seq}"' in doc
-    assert f'<code class="reason">{run.steps[0].meta["malformed"]}</code>' in failures
+    assert f'<code class="reason">{run.steps[0].meta.malformed}</code>' in failures
     assert '<code class="target">generated-tokens</code>' in failures
     assert "2 of 2 steps" in doc
 
@@ -283,22 +284,22 @@ def test_slow_worker_and_full_queue_never_block_responses(demo_policy, tmp_path)
         # job 2 fills the queue, jobs 3 and 4 each push out the older one pending; every response comes back
         # meanwhile, and it is its own
         np.testing.assert_array_equal(wrapped.infer(obs)["actions"], want)
-    counters = wrapped.stats()["gradcam"]
+    counters = wrapped.stats()["explanations"]
     assert counters["scheduled"] == 4 and counters["dropped_queue_full"] == 2 and counters.get("completed", 0) == 0
     gated.gate.set()
     wrapped.close(120)
-    counters = wrapped.stats()["gradcam"]
+    counters = wrapped.stats()["explanations"]
     assert counters["completed"] == 2
     run = load_run(wrapped.run_dir)
-    assert [s.meta["step"] for s in run.steps] == [0, 3]  # the newest job was kept
+    assert [s.meta.step for s in run.steps] == [0, 3]  # the newest job was kept
     assert run.manifest["counters"]["external"]["dropped_queue_full"] == 2
 
 
 def _wait_completed(wrapped, n: int, timeout: float = 120.0) -> None:
     deadline = time.monotonic() + timeout
-    while wrapped.stats()["gradcam"].get("completed", 0) < n and time.monotonic() < deadline:
+    while wrapped.stats()["explanations"].get("completed", 0) < n and time.monotonic() < deadline:
         time.sleep(0.01)
-    assert wrapped.stats()["gradcam"].get("completed", 0) >= n, f"{n} steps not written within {timeout} s"
+    assert wrapped.stats()["explanations"].get("completed", 0) >= n, f"{n} steps not written within {timeout} s"
 
 
 @pytest.mark.parametrize("settle_ms", [0.0, 5.0])
@@ -371,11 +372,11 @@ def test_a_flooding_connection_cannot_starve_a_quiet_one(demo_policy, tmp_path, 
         wrapped.infer(observations[0], RequestContext("quiet", 0))
         for i in range(6, 10):
             wrapped.infer(observations[i % 2], RequestContext("flood", i))
-        pending = wrapped.stats()["gradcam"]
+        pending = wrapped.stats()["explanations"]
     finally:
         gated.gate.set()
         wrapped.close(120)
-    logged = [(s.meta["connection"], s.meta["step"]) for s in load_run(wrapped.run_dir).steps]
+    logged = [(s.meta.connection, s.meta.step) for s in load_run(wrapped.run_dir).steps]
     assert ("quiet", 0) in logged, f"the quiet connection starved: {logged}"
     assert logged == [("flood", 0), ("quiet", 0), ("flood", 9)]  # quiet's inference ended before flood 9's
     # Default: flood 3-9 and quiet 0 each arrived at the cap, each time pushing out flood's oldest pending job.
@@ -401,11 +402,11 @@ def test_a_full_queue_drops_the_oldest_job_of_the_busiest_connection(demo_policy
             wrapped.infer(observations[i % 2], RequestContext("flood", i))
         wrapped.infer(observations[0], RequestContext("quiet", 0))  # flood holds 3 of 4: its job 4 goes
         wrapped.infer(observations[1], RequestContext("quiet", 1))  # 2 each: flood's job 5 is the older, it goes
-        pending = wrapped.stats()["gradcam"]
+        pending = wrapped.stats()["explanations"]
     finally:
         gated.gate.set()
         wrapped.close(120)
-    logged = [(s.meta["connection"], s.meta["step"]) for s in load_run(wrapped.run_dir).steps]
+    logged = [(s.meta.connection, s.meta.step) for s in load_run(wrapped.run_dir).steps]
     assert logged == [("flood", 0), ("flood", 6), ("quiet", 0), ("quiet", 1)]
     assert pending["queued"] == 3 and pending["dropped_queue_full"] == 5 and "superseded" not in pending
 
@@ -422,13 +423,13 @@ def test_stats_report_the_explanation_lag_and_the_oldest_pending_job(demo_policy
     observations = [policy_part(demo_obs(800 + i)) for i in range(2)]
     start = time.monotonic()
     try:
-        idle = wrapped.stats()["gradcam"]
+        idle = wrapped.stats()["explanations"]
         wrapped.infer(observations[0], RequestContext("a", 0))
         assert gated.entered.wait(60)  # a's job is held: b's stays pending
         t0 = time.monotonic()
         wrapped.infer(observations[1], RequestContext("b", 0))
         time.sleep(0.05)
-        waiting = wrapped.stats()["gradcam"]
+        waiting = wrapped.stats()["explanations"]
         t1 = time.monotonic()
     finally:
         gated.gate.set()
@@ -437,7 +438,7 @@ def test_stats_report_the_explanation_lag_and_the_oldest_pending_job(demo_policy
     assert idle["queued"] == 0 and idle["lag_ms"] is None and idle["oldest_pending_ms"] is None
     assert waiting["queued"] == 1 and waiting["lag_ms"] is None  # nothing written yet
     assert 50.0 <= waiting["oldest_pending_ms"] <= (t1 - t0) * 1000.0
-    done = wrapped.stats()["gradcam"]
+    done = wrapped.stats()["explanations"]
     assert done["completed"] == 2 and done["queued"] == 0 and done["oldest_pending_ms"] is None
     lags = sorted(t.lag_ms for t in wrapped.timings())
     lag = done["lag_ms"]
@@ -450,7 +451,7 @@ def test_disk_failure_mid_run_is_counted_and_earlier_steps_survive(demo_policy, 
     wrapped = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, cam_dir=tmp_path, save_frames="none"))
     wrapped.infer(demo_obs(6))
     deadline = time.time() + 120
-    while wrapped.stats()["gradcam"].get("completed", 0) < 1 and time.time() < deadline:
+    while wrapped.stats()["explanations"].get("completed", 0) < 1 and time.time() < deadline:
         time.sleep(0.05)
     steps_dir = wrapped.run_dir / "steps"
     saved = {p.name: p.read_bytes() for p in steps_dir.iterdir()}
@@ -460,7 +461,7 @@ def test_disk_failure_mid_run_is_counted_and_earlier_steps_survive(demo_policy, 
     steps_dir.write_text("the disk went away")  # a file where the directory was: writes now fail for real
     wrapped.infer(demo_obs(7))
     wrapped.close(120)
-    counters = wrapped.stats()["gradcam"]
+    counters = wrapped.stats()["explanations"]
     assert counters["completed"] == 1 and counters["not_logged"] == 1
     assert counters["logger"]["io_errors"] == {"not_a_directory": 1}
     assert {p.name: p.read_bytes() for p in moved.iterdir()} == saved
@@ -506,7 +507,7 @@ def test_kill_9_mid_run_leaves_every_completed_step_readable(tmp_path):
     assert len(written) >= 3
     run = load_run(run_dir)
     assert [s.seq for s in run.steps] == list(range(len(written))) and not run.problems
-    logged_steps = [s.meta["step"] for s in run.steps]
+    logged_steps = [s.meta.step for s in run.steps]
     assert logged_steps == sorted(set(logged_steps))  # in order; a full queue drops the oldest, so there may be gaps
     for step in run.steps:
         for kind in ("gradcam", "gradnorm"):
@@ -522,7 +523,7 @@ def test_float_channels_first_client_images_are_logged_as_uint8_frames(demo_poli
     wrapped.infer(as_float_chw)
     wrapped.infer(obs)
     wrapped.close(120)
-    assert wrapped.stats()["gradcam"]["completed"] == 2
+    assert wrapped.stats()["explanations"]["completed"] == 2
     first, second = load_run(wrapped.run_dir).steps
     np.testing.assert_array_equal(first.frames["base_0_rgb"], image)
     np.testing.assert_array_equal(second.frames["base_0_rgb"], image)
@@ -544,14 +545,12 @@ def test_cam_extra_values_are_bounded_per_value_and_per_step(tmp_path, demo_poli
     (step,) = load_run(wrapped.run_dir).steps
     extra = step.extra
     np.testing.assert_array_equal(extra["target_box"], obs["cam_extra/target_box"])  # small values kept as sent
-    assert (
-        "blob" not in extra and "huge_array" not in extra and step.meta["extra_arrays"] == ["block_boxes", "target_box"]
-    )
+    assert "blob" not in extra and "huge_array" not in extra and step.meta.extra_arrays == ("block_boxes", "target_box")
     kept_notes = [k for k in extra if k.startswith("note")]
     assert 0 < len(kept_notes) < 8 and extra["extra_dropped"][:2] == ["blob", "huge_array"]
     assert set(extra["extra_dropped"][2:]) == {f"note{i}" for i in range(8)} - set(kept_notes)
-    assert wrapped.stats()["gradcam"]["extra_dropped"] == 1
-    assert "/" not in wrapped.stats()["gradcam"]["run"]  # /stats names the run, not the server's paths
+    assert wrapped.stats()["explanations"]["extra_dropped"] == 1
+    assert "/" not in wrapped.stats()["explanations"]["run"]  # /stats names the run, not the server's paths
 
 
 # Counts the XLA compilations of the first request and its explanation in a fresh interpreter (the compiled-program
@@ -577,7 +576,7 @@ single = len(compiles) - before
 cam.infer_batch([demo_observation(s) for s in (6, 7, 8)], [RequestContext(f"conn{i}", 0) for i in range(3)])
 batch = len(compiles) - before - single
 cam.close(120)
-print(json.dumps({"warmed": warmed, "single": single, "batch": batch, "stats": cam.stats()["gradcam"]}))
+print(json.dumps({"warmed": warmed, "single": single, "batch": batch, "stats": cam.stats()["explanations"]}))
 """
 
 
@@ -654,9 +653,9 @@ in_flight.start()
 held.entered.wait(60)
 # Long enough to compile and explain on a loaded machine (the shared device's worker is waiting, not slow).
 deadline = time.monotonic() + (60 if mode == "device" else 15)
-while time.monotonic() < deadline and cam.stats()["gradcam"].get("completed", 0) < 1:
+while time.monotonic() < deadline and cam.stats()["explanations"].get("completed", 0) < 1:
     time.sleep(0.05)
-completed_while_held = cam.stats()["gradcam"].get("completed", 0)
+completed_while_held = cam.stats()["explanations"].get("completed", 0)
 held.gate.set()
 in_flight.join(120)
 cam.close(120)
@@ -677,7 +676,7 @@ print(json.dumps({
 
 
 def test_cam_device_explains_on_its_own_device_while_inference_runs():
-    """`--cam-device 1` (two host devices here): the explainer's parameters live on device 1 only, an explanation
+    """`--cam.device 1` (two host devices here): the explainer's parameters live on device 1 only, an explanation
     completes while an inference is held in flight (on the shared device the worker waits for it, which the same
     script shows), served actions are the plain policy's and the maps those of the served device's explainer."""
     env = os.environ | {"XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu"}
@@ -698,8 +697,8 @@ def test_cam_device_explains_on_its_own_device_while_inference_runs():
 
 
 def test_serve_refuses_a_cam_device_the_machine_lacks(tmp_path, capsys):
-    from openpi_cam.cli.serve import main
+    from openpi_cam.cli.serve import SideChannelFlags, main
 
-    assert main(cam_every_k=1, cam_dir=tmp_path / "runs", cam_device=7, warm_up=False) == 2
+    assert main(cam=SideChannelFlags(every_k=1, dir=tmp_path / "runs", device=7), warm_up=False) == 2
     assert "explanation device 7 requested, this machine has 1" in capsys.readouterr().err
     assert not (tmp_path / "runs").exists()  # refused before a run directory was created

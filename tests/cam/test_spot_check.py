@@ -59,10 +59,10 @@ def test_logged_checks_are_the_models_own_rescores(tmp_path, demo_policy):
     run = _run(tmp_path, demo_policy, maps=("gradcam", "gradnorm", "occlusion"), check_patches=4)
     seen = []
     for step in run.steps:
-        check = step.meta["check"]
-        assert check["patches"] == 4 and check["seed"] == step.meta["step"]
+        check = step.meta.check
+        assert check["patches"] == 4 and check["seed"] == step.meta.step
         obs, outputs, sample_inputs = step_model_inputs(step)
-        painting = MapOptions(**step.meta["map_options"])
+        painting = MapOptions(**step.meta.map_options)
         for camera, c in check["cameras"].items():
             grid = np.shape(step.maps_of("gradnorm")[camera])
             n = grid[0] * grid[1]
@@ -74,12 +74,12 @@ def test_logged_checks_are_the_models_own_rescores(tmp_path, demo_policy):
             masks = np.zeros((1 + len(cells), n), bool)
             masks[np.arange(1, len(masks)), cells] = True
             scores = demo_policy.explainer.rescore(
-                obs, outputs, sample_inputs, step.meta, {camera: masks.reshape(-1, *grid)}, painting
+                obs, outputs, sample_inputs, step.meta.explained(), {camera: masks.reshape(-1, *grid)}, painting
             )[camera]
             drops = scores[0] - scores[1:]
             # Two float32 programs batching the variants differently: 1e-5 |score| (test_faithfulness_run.py).
             atol = 1e-5 * max(abs(float(scores[0])), 1.0)
-            assert c["score"] == pytest.approx(step.meta["score"], abs=REPLAY_ATOL)
+            assert c["score"] == pytest.approx(step.meta.score, abs=REPLAY_ATOL)
             logged = [c["top_patch_drop"][k] for k in ("gradcam", "gradnorm", "occlusion")] + c["random_patch_drops"]
             np.testing.assert_allclose(logged, drops, rtol=0, atol=atol)
             # Occlusion's top patch is the best single patch: its drop is the occlusion map's maximum, and no random
@@ -95,6 +95,6 @@ def test_no_check_when_off_and_a_named_skip_for_multi_score_targets(tmp_path, de
     """`check_patches=0` stores no check; a target with one score per token (`all-action-tokens`) cannot be checked
     with one number and says so in every step, which keeps its maps."""
     off = _run(tmp_path / "off", demo_policy, check_patches=0)
-    assert all("check" not in s.meta and s.map_kinds for s in off.steps)
+    assert all(s.meta.check is None and "check" not in s.meta.to_json() and s.map_kinds for s in off.steps)
     tokens = _run(tmp_path / "tokens", demo_policy, target="all-action-tokens")
-    assert all(s.meta["check"] == {"skipped": "multi_score_target"} and s.map_kinds for s in tokens.steps)
+    assert all(s.meta.check == {"skipped": "multi_score_target"} and s.map_kinds for s in tokens.steps)

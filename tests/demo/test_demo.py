@@ -415,8 +415,8 @@ def test_short_demo_run_is_readable(tmp_path):
     assert json.loads((result.run_dir / quality.EPISODES_FILE).read_text()) == result.episodes
     assert len(run.steps) == episode["calls"] >= 1 and not run.problems  # every inference explained and logged
     for step in run.steps:
-        assert step.map_kinds == MAP_KINDS and step.meta["target"] == "chunk"
-        assert step.meta["malformed"] is None
+        assert step.map_kinds == MAP_KINDS and step.meta.target == "chunk"
+        assert step.meta.malformed is None
         for kind in step.map_kinds:
             for cam in ("base_0_rgb", "wrist_0_rgb"):
                 m = step.maps_of(kind)[cam]

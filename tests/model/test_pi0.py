@@ -1,12 +1,9 @@
 """pi0 and pi0.5 against upstream's goldens: embeddings, every Euler iterate, actions, the training loss, and the
 gradients of the actions with respect to the image tokens (through the whole denoising loop).
 
-Tolerances (float32). The goldens' own spread (upstream jit vs eager) is about 2e-6 on x_0, but that spread shares
-one operation order; the float32 evaluation error of these functions is larger: our float32 velocity differs from
-our float64 one by 2.2e-4 (|v| <= 6.6, pi0.5 case_a), i.e. 3.4e-5 of the largest value. So values are compared
-within REL of the reference's largest magnitude (REL = 1.5x that measured error, rounded up), gradients and their
-reductions within GRAD_REL of their largest magnitude (measured at most 6.2e-5, pi0.5 case_a chunk; the goldens
-suggest 1e-4), time steps exactly. A masked camera's gradient must be exactly zero, as upstream's.
+Tolerances (float32): values within REL of the reference's largest magnitude, gradients and their reductions within
+GRAD_REL of theirs (`golden.FLOW_REL` / `golden.FLOW_GRAD_REL`, where the reasoning is), time steps exactly. A masked
+camera's gradient must be exactly zero, as upstream's.
 """
 
 from __future__ import annotations
@@ -23,6 +20,7 @@ import numpy as np
 import pytest
 from paths import GOLDEN_DIR
 
+from openpi_cam import golden
 from openpi_cam.model import pi0
 from openpi_cam.model.attribution import region_map, region_masks
 from openpi_cam.model.checkpoint import read_param_shapes
@@ -32,17 +30,16 @@ from openpi_cam.model.pi0_maps import CHUNK, maps_for_actions, rescore_masks
 from openpi_cam.nested import flatten_dict
 from openpi_cam.vocabulary import MapOptions
 
-REL = 5e-5
-GRAD_REL = 1e-4
+REL = golden.FLOW_REL
+GRAD_REL = golden.FLOW_GRAD_REL
 CAMERAS = ("base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb")
 FAMILIES = {"pi0": "tiny_pi0", "pi05": "tiny_pi05"}
 
 
 def assert_close(got, want, rel: float, what: str) -> None:
-    got, want = np.asarray(got, np.float64), np.asarray(want, np.float64)
-    assert got.shape == want.shape, f"{what}: shape {got.shape} != {want.shape}"
-    err, scale = np.abs(got - want).max(), np.abs(want).max()
-    assert err <= rel * scale, f"{what}: max abs error {err:.3g} > {rel:g} x {scale:.3g}"
+    """The golden criterion (`golden.compare`): max |got - want| <= rel x max |want|."""
+    comparison = golden.compare("", what, got, want, rel=rel)
+    assert comparison.ok, comparison.line()
 
 
 @functools.cache

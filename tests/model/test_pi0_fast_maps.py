@@ -17,10 +17,10 @@ from openpi_cam.model.pi0_fast import Pi0FAST, embed_images, replay_prelogits
 
 TINY = GOLDEN_DIR / "tiny_pi0_fast"
 CAMERAS = ["base_0_rgb", "base_1_rgb", "wrist_0_rgb"]
-# Relative criteria, as tests/model/test_model.py derives them from upstream's recorded float32 variation: logits and
-# scores within 5.7e-4 of their max |value|, gradient-derived quantities within 1e-3 of theirs.
-LOGITS_REL = 5.7e-4
-GRAD_REL = 1e-3
+# The golden criteria (`golden.DEFAULT_TOLERANCES`, where the reasoning is): logits and scores, and the quantities
+# derived from their gradients, each within its r of their max |value|.
+LOGITS_REL = golden.DEFAULT_TOLERANCES.logits
+GRAD_REL = golden.DEFAULT_TOLERANCES.gradcam
 
 
 def case(name: str):
@@ -30,16 +30,14 @@ def case(name: str):
 
 
 def assert_close_rel(got, want, rel: float, what: str = "") -> None:
-    """max |got - want| <= rel x max |want|."""
-    got, want = np.asarray(got, np.float64), np.asarray(want, np.float64)
-    assert got.shape == want.shape, (what, got.shape, want.shape)
-    error, scale = np.abs(got - want).max(), np.abs(want).max()
-    assert error <= rel * scale, f"{what}: max abs error {error:.3g} > {rel:g} x {scale:.3g}"
+    """The golden criterion (`golden.compare`): max |got - want| <= rel x max |want|."""
+    comparison = golden.compare("", what, got, want, rel=rel)
+    assert comparison.ok, comparison.line()
 
 
-def stacked(result: maps.GradCamResult, field: str) -> np.ndarray:
-    """A per-camera field with the camera axis after the batch axis, as the goldens store it."""
-    return np.stack([getattr(result, field)[c] for c in CAMERAS], axis=1)
+def stacked(per_camera: dict[str, np.ndarray]) -> np.ndarray:
+    """A per-camera field of a `MapResult` with the camera axis after the batch axis, as the goldens store it."""
+    return np.stack([per_camera[c] for c in CAMERAS], axis=1)
 
 
 def log_softmax(x: np.ndarray) -> np.ndarray:
@@ -56,7 +54,7 @@ def test_explained_logits_are_upstreams_decode_logits(tiny_fast_model: Pi0FAST, 
     tokens = data["output_tokens"]
     # Four steps per call: the program the per-token tests below compile too (numbers of steps are padded to a
     # power of two), rather than one more for sixteen.
-    parts = [maps.gradcam_for_steps(tiny_fast_model, obs, tokens, list(range(k, k + 4))) for k in range(0, 16, 4)]
+    parts = [maps.maps_for_steps(tiny_fast_model, obs, tokens, list(range(k, k + 4))) for k in range(0, 16, 4)]
     logits = np.concatenate([p.logits for p in parts], axis=1)
     assert_close_rel(logits, data["decode_step_logits"], LOGITS_REL, "logits")
     np.testing.assert_array_equal(np.concatenate([p.token_ids for p in parts], axis=1), tokens)
@@ -70,8 +68,8 @@ def test_without_logits_the_maps_and_scores_are_the_same(tiny_fast_model: Pi0FAS
     data, obs = case("case_a")
     tokens = data["output_tokens"]
     for kinds in (("gradcam", "gradnorm"), ("occlusion",)):
-        full = maps.gradcam_for_steps(tiny_fast_model, obs, tokens, [1, 2], kinds=kinds)
-        lean = maps.gradcam_for_steps(tiny_fast_model, obs, tokens, [1, 2], kinds=kinds, logits=False)
+        full = maps.maps_for_steps(tiny_fast_model, obs, tokens, [1, 2], kinds=kinds)
+        lean = maps.maps_for_steps(tiny_fast_model, obs, tokens, [1, 2], kinds=kinds, logits=False)
         assert full.logits is not None and full.logits.shape[:2] == (1, 2) and lean.logits is None
         np.testing.assert_array_equal(lean.score, full.score)
         for kind in kinds:
@@ -109,10 +107,10 @@ def test_gradient_is_upstreams_and_maps_reduce_it(tiny_fast_model: Pi0FAST):
     assert_close_rel(ours, upstream, GRAD_REL, "dScore/dE")
 
     res = maps.gradcam_for_action_token(model, obs, data["output_tokens"], 0)
-    assert_close_rel(stacked(res, "alphas"), upstream.mean(axis=2), GRAD_REL, "alpha = mean over tokens")
+    assert_close_rel(stacked(res.alphas), upstream.mean(axis=2), GRAD_REL, "alpha = mean over tokens")
     per_token = np.linalg.norm(upstream, axis=-1).reshape(1, 3, 16, 16)  # row-major over the patch grid
-    assert_close_rel(stacked(res, "gradnorm_maps"), per_token, GRAD_REL, "gradient-norm map")
-    assert_close_rel(stacked(res, "grad_norms"), np.linalg.norm(upstream, axis=(2, 3)), GRAD_REL, "grad norm")
+    assert_close_rel(stacked(res.by_kind["gradnorm"]), per_token, GRAD_REL, "gradient-norm map")
+    assert_close_rel(stacked(res.grad_norms), np.linalg.norm(upstream, axis=(2, 3)), GRAD_REL, "grad norm")
 
 
 def test_reduction_is_the_defined_one():
@@ -137,30 +135,30 @@ def test_all_tokens_in_one_call_are_upstreams_per_token_maps(tiny_fast_model: Pi
     """Several steps of a batch of 2 in one call (the stacked backward passes) equal upstream's per-step maps."""
     data, obs = case("case_c")
     steps = [0, 3, 7]
-    res = maps.gradcam_for_steps(tiny_fast_model, obs, data["output_tokens"], steps)
-    assert res.maps["base_0_rgb"].shape == (2, len(steps), 16, 16)
+    res = maps.maps_for_steps(tiny_fast_model, obs, data["output_tokens"], steps)
+    assert res.by_kind["gradcam"]["base_0_rgb"].shape == (2, len(steps), 16, 16)
     for i, k in enumerate(steps):
         ref = f"gc_replay_k{k}"
-        assert_close_rel(stacked(res, "maps")[:, :, i], data[f"{ref}_cam"], GRAD_REL, f"{ref} cam")
-        assert_close_rel(stacked(res, "alphas")[:, :, i], data[f"{ref}_alpha"], GRAD_REL, f"{ref} alpha")
-        assert_close_rel(stacked(res, "grad_norms")[:, :, i], data[f"{ref}_grad_norm"], GRAD_REL, f"{ref} norm")
+        assert_close_rel(stacked(res.by_kind["gradcam"])[:, :, i], data[f"{ref}_cam"], GRAD_REL, f"{ref} cam")
+        assert_close_rel(stacked(res.alphas)[:, :, i], data[f"{ref}_alpha"], GRAD_REL, f"{ref} alpha")
+        assert_close_rel(stacked(res.grad_norms)[:, :, i], data[f"{ref}_grad_norm"], GRAD_REL, f"{ref} norm")
         assert_close_rel(res.score[:, i], data[f"{ref}_score"], LOGITS_REL, f"{ref} score")
         # The gradient-norm map's squares add up to upstream's grad norm (Frobenius norm over tokens x channels).
-        total = np.sqrt((stacked(res, "gradnorm_maps")[:, :, i].astype(np.float64) ** 2).sum((-2, -1)))
+        total = np.sqrt((stacked(res.by_kind["gradnorm"])[:, :, i].astype(np.float64) ** 2).sum((-2, -1)))
         assert_close_rel(total, data[f"{ref}_grad_norm"], GRAD_REL, f"{ref} gradnorm map")
 
 
 def test_explaining_other_steps_does_not_recompile(tiny_fast_model: Pi0FAST):
     data, obs = case("case_a")
     maps.gradcam_for_action_token(tiny_fast_model, obs, data["output_tokens"], 0)
-    before = maps._token_cams._cache_size()
+    before = maps._token_gradient_maps._cache_size()
     for k in (5, 9, 15):
         maps.gradcam_for_action_token(tiny_fast_model, obs, data["output_tokens"], k)
-    assert maps._token_cams._cache_size() == before
-    maps.gradcam_for_chunk(tiny_fast_model, obs, data["output_tokens"], [1, 2, 3])
-    chunk_before = maps._chunk_cam._cache_size()
-    maps.gradcam_for_chunk(tiny_fast_model, obs, data["output_tokens"], list(range(10)))
-    assert maps._chunk_cam._cache_size() == chunk_before
+    assert maps._token_gradient_maps._cache_size() == before
+    maps.maps_for_chunk(tiny_fast_model, obs, data["output_tokens"], [1, 2, 3])
+    chunk_before = maps._chunk_gradient_maps._cache_size()
+    maps.maps_for_chunk(tiny_fast_model, obs, data["output_tokens"], list(range(10)))
+    assert maps._chunk_gradient_maps._cache_size() == chunk_before
 
 
 def test_token_api_by_step_by_position_and_counterfactual(tiny_fast_model: Pi0FAST):
@@ -175,7 +173,7 @@ def test_token_api_by_step_by_position_and_counterfactual(tiny_fast_model: Pi0FA
     by_pos = maps.gradcam_for_token(tiny_fast_model, obs, position=prefill_len + k, **kwargs)
     for res in (by_step, by_pos):
         assert res.positions[0, 0] == prefill_len + k
-        assert_close_rel(stacked(res, "maps"), data["gc_replay_k3_cam"], GRAD_REL, "cam")
+        assert_close_rel(stacked(res.by_kind["gradcam"]), data["gc_replay_k3_cam"], GRAD_REL, "cam")
         assert_close_rel(res.score, data["gc_replay_k3_score"], LOGITS_REL, "score")
     first = maps.gradcam_for_token(tiny_fast_model, obs, step=0, token_id=int(gen[0]), max_decoding_steps=16)
     assert first.positions[0, 0] == prefill_len - 1
@@ -186,7 +184,8 @@ def test_token_api_by_step_by_position_and_counterfactual(tiny_fast_model: Pi0FA
                                 max_decoding_steps=16)  # fmt: skip
     scale = np.abs(data["gc_replay_k3_logits"]).max()
     assert abs(cf.score[0] - data["gc_replay_k3_logits"][0, other]) <= LOGITS_REL * scale
-    assert np.abs(stacked(cf, "maps") - data["gc_replay_k3_cam"]).max() > 10 * GRAD_REL * data["gc_replay_k3_cam"].max()
+    cam = data["gc_replay_k3_cam"]
+    assert np.abs(stacked(cf.by_kind["gradcam"]) - cam).max() > 10 * GRAD_REL * cam.max()
     with pytest.raises(ValueError, match="needs the 3 tokens generated before it"):
         maps.gradcam_for_token(tiny_fast_model, obs, step=k, token_id=1, generated_prefix=gen[:2])
 
@@ -199,22 +198,23 @@ def test_masked_camera_is_flagged_and_spans_are_explicit(tiny_fast_model: Pi0FAS
     assert res.cameras == tuple(CAMERAS)
     # Upstream's decode window reaches the masked camera for k > 0 (README point 3): its gradient is upstream's, not 0.
     assert data["gc_replay_k3_grad_norm"][0, 1] > 1
-    assert_close_rel(stacked(res, "grad_norms"), data["gc_replay_k3_grad_norm"], GRAD_REL, "grad norms")
+    assert_close_rel(stacked(res.grad_norms), data["gc_replay_k3_grad_norm"], GRAD_REL, "grad norms")
 
 
 def test_rows_may_explain_different_steps(tiny_fast_model: Pi0FAST):
     """Batched offline explanation gives every row its own steps; each row is upstream's map of its own step."""
     data, obs = case("case_c")
     rows = [[0, 3, 7], [7, 0, 3]]  # three steps, as in the test above: the same compiled program
-    per_row = maps.gradcam_for_steps(tiny_fast_model, obs, data["output_tokens"], rows)
+    per_row = maps.maps_for_steps(tiny_fast_model, obs, data["output_tokens"], rows)
     assert per_row.decode_steps.tolist() == rows
+    gradcam = stacked(per_row.by_kind["gradcam"])
     for b, steps in enumerate(rows):
         for i, k in enumerate(steps):
             ref = f"gc_replay_k{k}"
-            assert_close_rel(stacked(per_row, "maps")[b, :, i], data[f"{ref}_cam"][b], GRAD_REL, f"row {b} {ref}")
+            assert_close_rel(gradcam[b, :, i], data[f"{ref}_cam"][b], GRAD_REL, f"row {b} {ref}")
             assert_close_rel(per_row.score[b, i], data[f"{ref}_score"][b], LOGITS_REL, f"row {b} {ref} score")
     # Chunks of different lengths per row: each score is the sum of upstream's log-probabilities of its own steps.
-    chunk = maps.gradcam_for_chunk(tiny_fast_model, obs, data["output_tokens"], [[0, 1, 2], [5, 6]])
+    chunk = maps.maps_for_chunk(tiny_fast_model, obs, data["output_tokens"], [[0, 1, 2], [5, 6]])
     assert chunk.decode_steps.tolist() == [[0, 1, 2], [5, 6, -1]] and chunk.token_ids[1, 2] == -1
     logp = np.take_along_axis(log_softmax(data["decode_step_logits"]), data["output_tokens"][..., None], -1)[..., 0]
     want = np.array([logp[0, [0, 1, 2]].sum(), logp[1, [5, 6]].sum()])

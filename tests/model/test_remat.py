@@ -77,26 +77,27 @@ def test_pi0_fast_drops_remat_only_where_the_program_fits(tiny_fast_model: Pi0FA
     data, obs = case("case_a")
     tokens = data["output_tokens"]
     model = with_remat(tiny_fast_model)
-    reference = pi0_fast_maps.gradcam_for_steps(tiny_fast_model, obs, tokens, steps)
+    reference = pi0_fast_maps.maps_for_steps(tiny_fast_model, obs, tokens, steps)
 
     def explain(free):
         decisions = device_reports(free)
         jax.clear_caches()  # every program of this call compiles here, so the count below is exact
         caplog.clear()
         with jax.log_compiles(), caplog.at_level(logging.WARNING, logger="jax"):
-            res = pi0_fast_maps.gradcam_for_steps(model, obs, tokens, steps)
-        compiled = sum("Finished XLA compilation of jit(_token_cams)" in r.getMessage() for r in caplog.records)
+            res = pi0_fast_maps.maps_for_steps(model, obs, tokens, steps)
+        finished = "Finished XLA compilation of jit(_token_gradient_maps)"
+        compiled = sum(finished in r.getMessage() for r in caplog.records)
         assert_close_rel(res.score, reference.score, LOGITS_REL, "score")
         for c in CAMERAS:
-            assert_close_rel(res.maps[c], reference.maps[c], GRAD_REL, f"gradcam {c}")
-            assert_close_rel(res.gradnorm_maps[c], reference.gradnorm_maps[c], GRAD_REL, f"gradnorm {c}")
+            for kind in ("gradcam", "gradnorm"):
+                assert_close_rel(res.by_kind[kind][c], reference.by_kind[kind][c], GRAD_REL, f"{kind} {c}")
         return dict(decisions), compiled
 
     assert explain(None) == ({}, 1)  # no report: nothing analysed, the configured layout
     decisions, compiled = explain(10**12)
     assert list(decisions.values()) == [True] and compiled == 1  # the analysed program is the one that ran
     ((program, lean_cfg, *_),) = decisions
-    assert program is pi0_fast_maps._token_cams
+    assert program is pi0_fast_maps._token_gradient_maps
     assert lean_cfg == pi0_fast_maps.backward_config(remat.without_remat(model.config), len(steps))
     assert not lean_cfg.gemma.remat
     decisions, compiled = explain(1)
@@ -106,17 +107,17 @@ def test_pi0_fast_drops_remat_only_where_the_program_fits(tiny_fast_model: Pi0FA
 def test_pi0_fast_chunk_target_follows_the_same_rule(tiny_fast_model: Pi0FAST, device_reports):
     data, obs = case("case_a")
     tokens = data["output_tokens"]
-    weights = np.zeros(tokens.shape, np.float32)
-    weights[:, 2:6] = 1.0
-    reference = pi0_fast_maps.maps_for_weights(tiny_fast_model, obs, tokens, weights)
+    chunk = [2, 3, 4, 5]
+    reference = pi0_fast_maps.maps_for_chunk(tiny_fast_model, obs, tokens, chunk)
     model = with_remat(tiny_fast_model)
     for free, expected in ((10**12, True), (1, False)):
         decisions = device_reports(free)
-        res = pi0_fast_maps.maps_for_weights(model, obs, tokens, weights)
-        assert [k[0] for k in decisions] == [pi0_fast_maps._chunk_cam] and list(decisions.values()) == [expected]
+        res = pi0_fast_maps.maps_for_chunk(model, obs, tokens, chunk)
+        assert [k[0] for k in decisions] == [pi0_fast_maps._chunk_gradient_maps]
+        assert list(decisions.values()) == [expected]
         assert_close_rel(res.score, reference.score, LOGITS_REL, "score")
-        for c, m in res.maps.items():
-            assert_close_rel(m, reference.maps[c], GRAD_REL, f"gradcam {c}")
+        for c, m in res.by_kind["gradcam"].items():
+            assert_close_rel(m, reference.by_kind["gradcam"][c], GRAD_REL, f"gradcam {c}")
 
 
 @pytest.mark.parametrize("family", ["pi0", "pi05"])
@@ -144,7 +145,7 @@ def test_the_decision_is_taken_once_per_program_signature(tiny_fast_model: Pi0FA
     data, obs = case("case_a")
     model = with_remat(tiny_fast_model)
     decisions = device_reports(10**12)
-    pi0_fast_maps.gradcam_for_steps(model, obs, data["output_tokens"], [3])
+    pi0_fast_maps.maps_for_steps(model, obs, data["output_tokens"], [3])
     device_reports(1, keep=True)
-    pi0_fast_maps.gradcam_for_steps(model, obs, data["output_tokens"], [4])
+    pi0_fast_maps.maps_for_steps(model, obs, data["output_tokens"], [4])
     assert list(decisions.values()) == [True]

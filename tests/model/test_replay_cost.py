@@ -52,10 +52,12 @@ def full_length(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(maps, "replay_length", lambda last_step, decode_len: decode_len)
 
 
-def assert_same_result(cut: maps.GradCamResult, full: maps.GradCamResult, what: str) -> None:
-    for field in ("maps", "gradnorm_maps", "alphas", "grad_norms"):
+def assert_same_result(cut: maps.MapResult, full: maps.MapResult, what: str) -> None:
+    fields = {"alphas": (cut.alphas, full.alphas), "grad_norms": (cut.grad_norms, full.grad_norms)}
+    fields |= {kind: (cut.by_kind[kind], full.by_kind[kind]) for kind in full.by_kind}
+    for field, (got, want) in fields.items():
         for c in CAMERAS:
-            assert_close_rel(getattr(cut, field)[c], getattr(full, field)[c], GRAD_REL, f"{what} {field} {c}")
+            assert_close_rel(got[c], want[c], GRAD_REL, f"{what} {field} {c}")
     if full.logits is None:
         assert_close_rel(cut.score, full.score, LOGIT_REL, f"{what} score")
     else:
@@ -77,7 +79,7 @@ def test_cut_replay_gives_the_full_length_maps_and_scores(tiny_fast_model: Pi0FA
 
     def run():
         one = [maps.gradcam_for_action_token(tiny_fast_model, obs, generated, k) for k in STEPS]
-        return one, maps.gradcam_for_chunk(tiny_fast_model, obs, generated, chunk)
+        return one, maps.maps_for_chunk(tiny_fast_model, obs, generated, chunk)
 
     cut_one, cut_chunk = run()
     with monkeypatch.context() as m:
@@ -111,11 +113,11 @@ def test_compilations_over_all_steps_of_a_request(tiny_fast_model: Pi0FAST):
     chunks of every size compile one per bucket too (their vocabulary rows are bucketed with the replay)."""
     obs = observation("case_a")
     generated = sequence(1, 48, seed=1)
-    before = maps._token_cams._cache_size()
+    before = maps._token_gradient_maps._cache_size()
     for k in range(48):
         maps.gradcam_for_action_token(tiny_fast_model, obs, generated, k)
-    assert maps._token_cams._cache_size() - before == 3
-    before = maps._chunk_cam._cache_size()
+    assert maps._token_gradient_maps._cache_size() - before == 3
+    before = maps._chunk_gradient_maps._cache_size()
     for k in (0, 7, 15, 16, 31, 32, 47):
-        maps.gradcam_for_chunk(tiny_fast_model, obs, generated, list(range(k + 1)))
-    assert maps._chunk_cam._cache_size() - before == 3
+        maps.maps_for_chunk(tiny_fast_model, obs, generated, list(range(k + 1)))
+    assert maps._chunk_gradient_maps._cache_size() - before == 3

@@ -2,9 +2,9 @@
 raw client observation -> model inputs -> actions, for `pi05_droid` and `pi0_libero` (the goldens in
 `../shared/golden/tiny_policy_*`), plus the noise stream, the noise check and the family check.
 
-Tolerance: actions within REL of their largest magnitude; REL as in tests/model/test_pi0.py (the float32 evaluation
-error of the denoising, measured as our float32 vs float64 velocity: 3.4e-5 of the largest value), so 5e-5. Model
-inputs (tokens, masks) exactly; images to float32 rounding of the uint8 -> [-1, 1] map.
+Tolerance: actions within REL of their largest magnitude (`golden.FLOW_REL`, the golden criterion of pi0's values,
+where the reasoning is). Model inputs (tokens, masks) exactly; images to float32 rounding of the uint8 -> [-1, 1]
+map.
 """
 
 from __future__ import annotations
@@ -16,10 +16,11 @@ import numpy as np
 import pytest
 from paths import GOLDEN_DIR
 
+from openpi_cam import golden
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.policies.policy import create_policy
 
-REL = 5e-5
+REL = golden.FLOW_REL
 CASES = {"pi05_droid": "tiny_policy_pi05_droid", "pi0_libero": "tiny_policy_pi0_libero"}
 
 
@@ -64,10 +65,9 @@ def test_raw_observation_to_upstreams_model_inputs_and_actions(config_and_policy
         np.testing.assert_allclose(np.asarray(o.state)[0], d["model_input/state"], atol=1e-6)
         np.testing.assert_array_equal(trace.sample_inputs["noise"], d["noise"])
         want = d["model_output/actions"]
-        assert np.abs(trace.output - want).max() <= REL * np.abs(want).max()
+        assert (c := golden.compare(config, "model output", trace.output, want, rel=REL)).ok, c.line()
         want = d["policy_output/actions"]
-        assert response["actions"].shape == want.shape
-        assert np.abs(response["actions"] - want).max() <= REL * np.abs(want).max()
+        assert (c := golden.compare(config, "actions", response["actions"], want, rel=REL)).ok, c.line()
         results.append(response["actions"])
     assert np.abs(results[0] - results[1]).max() > 0.1  # the two observations lead to different actions
 

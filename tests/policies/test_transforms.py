@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from openpi_cam.errors import InvalidRequest
-from openpi_cam.image_tools import letterbox_geometry, resize_with_pad, resize_with_pad_pil
+from openpi_cam.image_tools import resize_with_pad, resize_with_pad_pil
+from openpi_cam.letterbox import letterbox_geometry
 from openpi_cam.normalize import (
     NormStats,
     compute_norm_stats,
@@ -363,6 +364,22 @@ def test_delta_and_absolute_actions_invert_each_other():
     assert PI0_FAST_LIBERO.outputs[0] == AbsoluteActions(mask)  # upstream pi0_fast_libero: extra_delta_transform
 
 
+@pytest.mark.parametrize("dtype", [np.int64, np.int32, np.float32])
+def test_delta_and_absolute_actions_keep_the_input_dtype(dtype):
+    """Upstream changes the actions in place, so integer state and actions stay integer (and float32 stays float32);
+    a mask shorter than the actions leaves the remaining dims alone."""
+    state = np.array([1, 2, 3], dtype=dtype)
+    actions = np.array([[3, 4, 5], [5, 6, 7]], dtype=dtype)
+    sent = actions.copy()
+    delta = DeltaActions([False, True])({"state": state, "actions": actions})["actions"]
+    assert delta.dtype == dtype
+    np.testing.assert_array_equal(delta, [[3, 2, 5], [5, 4, 7]])
+    np.testing.assert_array_equal(actions, sent)  # the caller's array is not changed
+    back = AbsoluteActions([False, True])({"state": state, "actions": delta})["actions"]
+    assert back.dtype == dtype
+    np.testing.assert_array_equal(back, sent)
+
+
 def test_generic_inputs_synthesise_blank_cameras():
     inputs = GenericInputs(cameras={"top": "obs/top", "blank": None}, state_key="obs/state", state_dim=3)
     out = inputs({"obs/top": np.full((10, 20, 3), 7, np.uint8), "obs/state": [1.0, 2.0, 3.0]})
@@ -393,7 +410,7 @@ def test_resize_with_pad_jax_and_pil_agree_on_geometry(case):
     np.testing.assert_array_equal(batched[0, 1], jx)
 
 
-def test_geometry_maps_model_points_back_to_a_non_square_original():
+def test_geometry_maps_original_points_into_a_non_square_letterbox():
     # A 100 x 300 image (portrait padding): a bright marker at original (x=210..240, y=40..60).
     orig = np.zeros((100, 300, 3), np.uint8)
     orig[40:60, 210:240] = 255
@@ -402,17 +419,14 @@ def test_geometry_maps_model_points_back_to_a_non_square_original():
     model = resize_with_pad_pil(orig, 96, 96)
     ys, xs = np.nonzero(model[..., 0] > 128)
     cx, cy = xs.mean() + 0.5, ys.mean() + 0.5  # pixel-centre convention
-    ox, oy = geo.model_to_original(cx, cy)
-    # The marker's centre is (225, 50); one model pixel is 300/96 = 3.125 original pixels, so allow one model pixel.
-    assert abs(ox - 225) <= geo.scale_x and abs(oy - 50) <= geo.scale_y
-    np.testing.assert_allclose(geo.original_to_model(*geo.model_to_original(10.0, 40.0)), (10.0, 40.0))
-    assert geo.model_to_original(0, 0, clip=True) == (0.0, 0.0)  # padding clamps onto the border
-    assert not geo.contains_model_point(50, 10) and geo.contains_model_point(50, 40)
-    assert geo.model_box_to_original((0, 32, 96, 64)) == (0.0, 0.0, 300.0, 100.0)
-    xs, ys = geo.model_to_original(np.array([0.0, 48.0, 96.0]), np.array([32.0, 48.0, 64.0]))  # arrays map elementwise
-    np.testing.assert_allclose(xs, [0.0, 150.0, 300.0])
-    np.testing.assert_allclose(ys, [0.0, 50.0, 100.0])
+    mx, my = geo.original_to_model(225.0, 50.0)  # the marker's centre in the original
+    # One model pixel is 300/96 = 3.125 original pixels: the resampled marker's centroid is within one model pixel.
+    assert abs(mx - cx) <= 1.0 and abs(my - cy) <= 1.0
+    # The original's corners land on the content's corners, inside the padding band; arrays map elementwise.
+    xs, ys = geo.original_to_model(np.array([0.0, 150.0, 300.0]), np.array([0.0, 50.0, 100.0]))
+    np.testing.assert_allclose(xs, [0.0, 48.0, 96.0])
+    np.testing.assert_allclose(ys, [32.0, 48.0, 64.0])
     assert type(geo).from_dict(geo.as_dict()) == geo
     tall = letterbox_geometry(300, 100, 96, 96)
     assert (tall.resized_w, tall.pad_left, tall.pad_top) == (32, 32, 0)
-    assert tall.model_to_original(32 + 16, 48) == (50.0, 150.0)
+    assert tall.original_to_model(50.0, 150.0) == (32 + 16, 48)

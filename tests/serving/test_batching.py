@@ -72,7 +72,7 @@ def test_the_side_channel_passes_a_bad_batch_row_to_the_policy_to_refuse(demo_po
     assert isinstance(results[1], InvalidRequest) and "must be a dict" in str(results[1])
     for i, obs in ((0, demo_observations[0]), (2, demo_observations[1])):
         np.testing.assert_array_equal(results[i]["actions"], demo_policy.infer(obs)["actions"])
-    assert sorted(s.meta["connection"] for s in load_run(cam.run_dir).steps) == ["conn0", "conn2"]
+    assert sorted(s.meta.connection for s in load_run(cam.run_dir).steps) == ["conn0", "conn2"]
 
 
 def test_flow_matching_batches_keep_each_requests_noise_and_the_rng_stream():
@@ -104,7 +104,7 @@ def test_side_channel_explains_batched_requests_per_connection(demo_policy, demo
     finally:
         running.stop()
     run = load_run(cam.run_dir)
-    steps = sorted((s.meta["connection"], s.meta["step"]) for s in run.steps)
+    steps = sorted((s.meta.connection, s.meta.step) for s in run.steps)
     assert steps == sorted((f"conn{c:04d}", j) for c in range(N_CLIENTS) for j in range(REQUESTS_PER_CLIENT))
     # Client i sends observation (i + j) % 4 as its j-th request: each observation is served three times.
     own = [demo_policy.infer_traced(obs)[1].output.tobytes() for obs in demo_observations]

@@ -105,7 +105,7 @@ def test_real_client_gets_upstream_stream_actions_with_the_side_channel_off_and_
     run = load_run(cam.run_dir)
     assert len(run.steps) == len(REQUESTS)
     for step, (_, trace) in zip(run.steps, traced, strict=True):
-        assert step.meta["target"] == "action" and step.meta["action_index"] == [2, 1]
+        assert step.meta.target == "action" and step.meta.action_index == (2, 1)
         assert set(step.maps_of("gradnorm")) == {"base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb"}
         assert step.maps_of("gradnorm")["base_0_rgb"].shape == (16, 16)
         assert not step.maps_of("gradnorm")["right_wrist_0_rgb"].any()  # the masked blank camera: exactly zero
@@ -115,4 +115,4 @@ def test_real_client_gets_upstream_stream_actions_with_the_side_channel_off_and_
         # tests/model/test_pi0.py).
         np.testing.assert_array_equal(step.inputs["noise"], trace.sample_inputs["noise"])
         np.testing.assert_array_equal(step.inputs["output"], trace.output)
-        assert step.meta["replay_max_abs_diff"] <= 5e-5 * np.abs(trace.output).max()
+        assert step.meta.details["replay_max_abs_diff"] <= 5e-5 * np.abs(trace.output).max()

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import asyncio
 import base64
-import contextlib
 import dataclasses
 import datetime as dt
 import itertools
@@ -20,11 +19,9 @@ import os
 import signal
 import socket
 import subprocess
-import sys
 import threading
 import time
 import tracemalloc
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -48,10 +45,13 @@ from real_clients import (
     serve_concurrent_clients,
     wrong_answers,
 )
+from serve_process import serve_cmd as _serve_cmd
+from serve_process import serve_subprocess
+from serve_process import stop as _stop
 from websockets.sync.client import connect
 
 from openpi_cam.cam.batching import explain_traces
-from openpi_cam.cam.runfmt import MANIFEST_JSON, list_runs, load_run, read_json
+from openpi_cam.cam.runfmt import MANIFEST_JSON, RUN_JSON, load_run, read_json
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.policies import demo_reach
@@ -65,6 +65,11 @@ from openpi_cam.serving.server import (
     RunningServer,
     start_server_in_thread,
 )
+
+
+def run_dirs(cam_dir: Path) -> list[Path]:
+    """The run directories a server wrote under `cam_dir` (each holds its run.json)."""
+    return sorted(p.parent for p in Path(cam_dir).glob(f"*/{RUN_JSON}"))
 
 
 def assert_same_response(served: dict, local: dict) -> None:
@@ -413,7 +418,7 @@ def test_the_concurrency_check_catches_a_server_that_swaps_replies(demo_policy, 
 
 
 def test_side_channel_leaves_the_response_bytes_alone(demo_policy, demo_observations, tmp_path):
-    """Through the real client, the responses of a server with the Grad-CAM side channel off (every_k=0) and on
+    """Through the real client, the responses of a server with the side channel off (every_k=0) and on
     (every_k=1) are byte for byte those of plain serving, timings aside."""
     plain_cam = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=0, cam_dir=tmp_path / "cam_off"))
     on_cam = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, cam_dir=tmp_path / "cam_on"))
@@ -708,16 +713,6 @@ done(first=first, second=error_of(lambda: policy.infer(obs)))
 # ---------------------------------------------------------------- `openpi-cam serve`
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _serve_cmd(*args: str) -> list[str]:
-    return [sys.executable, "-m", "openpi_cam", "serve", *args]
-
-
 def test_serve_reports_missing_files_without_traceback(tiny_policy_files, tmp_path):
     missing_checkpoint = tmp_path / "no_such_checkpoint"
     missing_tokenizer = tmp_path / "no_such_tokenizer.model"
@@ -751,39 +746,6 @@ def test_serve_reports_missing_files_without_traceback(tiny_policy_files, tmp_pa
         assert "Traceback" not in proc.stderr, proc.stderr
 
 
-@contextlib.contextmanager
-def serve_subprocess(tmp_path: Path, *args: str) -> Iterator[tuple[subprocess.Popen, int, Path]]:
-    """`python -m openpi_cam serve ARGS` on a free loopback port, once its /healthz answers: (process, port, log)."""
-    port = _free_port()
-    log_path = tmp_path / "serve.log"
-    with log_path.open("w") as log:
-        cmd = _serve_cmd("--host", "127.0.0.1", "--port", str(port), *args)
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=REPO_ROOT)
-        try:
-            deadline = time.monotonic() + 300
-            while True:
-                if proc.poll() is not None:
-                    raise AssertionError(f"serve exited with {proc.returncode}:\n{log_path.read_text()}")
-                try:
-                    if http_get(f"http://127.0.0.1:{port}/healthz", timeout=1)[0] == 200:
-                        break
-                except OSError:
-                    pass
-                if time.monotonic() > deadline:
-                    raise AssertionError(f"serve did not answer /healthz within 300 s:\n{log_path.read_text()}")
-                time.sleep(0.2)
-            yield proc, port, log_path
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
-
-
-def _stop(proc: subprocess.Popen, log_path: Path) -> None:
-    proc.send_signal(signal.SIGTERM)
-    assert proc.wait(120) == 0, log_path.read_text()
-
-
 def test_serve_without_a_checkpoint_serves_the_bundled_model_in_the_dtype_asked(demo_policy, tmp_path):
     """No --checkpoint-dir: the bundled demo model. `--dtype bfloat16` must reach it: on scenes where bf16 changes
     the actions (about 1 in 12 demo scenes), the served actions are the in-process bf16 policy's, not float32's."""
@@ -814,11 +776,11 @@ def test_serve_with_cam_flags_writes_an_explained_closed_run(demo_observations, 
         "--paligemma-tokenizer", str(demo_reach.PALIGEMMA_TOKENIZER),
         "--fast-tokenizer", str(demo_reach.FAST_TOKENIZER),
     ]  # fmt: skip
-    cam = ["--cam-every-k", "1", "--cam-dir", str(cam_dir), "--cam-target", "action-token", "--cam-action-index", "2"]
-    cam += ["--cam-per-connection", "4", "--cam-settle-ms", "5", "--cam-check-patches", "2"]
+    cam = ["--cam.every-k", "1", "--cam.dir", str(cam_dir), "--cam.target", "action-token", "--cam.action-index", "2"]
+    cam += ["--cam.per-connection", "4", "--cam.settle-ms", "5", "--cam.check-patches", "2"]
     # The side channel explains in the client's pauses and at shutdown; the first explanation compiles (seconds on a
     # loaded 2-core machine), more than the 5 s default drain of a container stop: this test wants every step.
-    cam += ["--cam-drain-timeout", "120"]
+    cam += ["--cam.drain-timeout", "120"]
     observations = demo_observations[:3]
     with serve_subprocess(tmp_path, *files, *cam) as (proc, port, log_path):
         # Compiled before /healthz answered (tests/cam checks that the first request then compiles nothing).
@@ -833,21 +795,21 @@ def test_serve_with_cam_flags_writes_an_explained_closed_run(demo_observations, 
         fast_tokenizer=demo_reach.FAST_TOKENIZER,
         dtype="float32",
     )
-    (run_dir,) = list_runs(cam_dir)
+    (run_dir,) = run_dirs(cam_dir)
     manifest = read_json(run_dir / MANIFEST_JSON)
     assert manifest is not None and manifest["closed"] is True and manifest["num_steps"] == len(observations)
     options = manifest["options"]
     assert (options["per_connection"], options["settle_ms"], options["check_patches"]) == (4, 5.0, 2)  # flags arrived
     run = load_run(run_dir)
-    assert [(s.meta["connection"], s.meta["step"]) for s in run.steps] == [("conn0000", i) for i in range(3)]
+    assert [(s.meta.connection, s.meta.step) for s in run.steps] == [("conn0000", i) for i in range(3)]
     request = ExplainRequest("action-token", 2, kinds=("gradcam", "gradnorm"))
     for step, obs, served in zip(run.steps, observations, responses(tmp_path / "client", 3), strict=True):
         local, trace = policy.infer_traced(obs)
         assert_same_response(served, local)
         np.testing.assert_array_equal(step.inputs["output"], trace.output)  # the step is this request's
-        assert step.meta["target"] == "action-token" and step.meta["action_indices"] == [2]
-        assert step.meta["malformed"] is None
-        assert all(len(c["random_patches"]) == 2 for c in step.meta["check"]["cameras"].values())
+        assert step.meta.target == "action-token" and step.meta.action_indices == (2,)
+        assert step.meta.malformed is None
+        assert all(len(c["random_patches"]) == 2 for c in step.meta.check["cameras"].values())
         (explanation,) = explain_traces(policy.explainer, [trace], request)
         for kind in ("gradcam", "gradnorm"):
             logged = step.maps_of(kind)
@@ -890,11 +852,11 @@ def test_sigterm_with_stalled_peers_exits_within_the_deadline_and_closes_the_run
     half of PEER_TIMEOUT_S after the signal (an empty-queue drain takes milliseconds; the first jobs here are drained
     before the signal)."""
     cam_dir = tmp_path / "cam"
-    cam = ["--cam-every-k", "1", "--cam-dir", str(cam_dir), "--cam-drain-timeout", "5"]
+    cam = ["--cam.every-k", "1", "--cam.dir", str(cam_dir), "--cam.drain-timeout", "5"]
     with serve_subprocess(tmp_path, "--dtype", "float32", *cam) as (proc, port, log_path):
         collect(send_observations(port, tmp_path / "client", demo_observations[:2]))
         deadline = time.monotonic() + 120
-        while get_stats(port)["policy"]["gradcam"].get("completed", 0) < 2 and time.monotonic() < deadline:
+        while get_stats(port)["policy"]["explanations"].get("completed", 0) < 2 and time.monotonic() < deadline:
             time.sleep(0.1)
         collect(send_observations(port, tmp_path / "client2", demo_observations[2:]))  # may be queued at the signal
         peers = [_stalled_peer(port) for _ in range(3)]
@@ -912,7 +874,7 @@ def test_sigterm_with_stalled_peers_exits_within_the_deadline_and_closes_the_run
             peer.close()
     assert exit_code == 0, log_path.read_text()
     assert elapsed < PEER_TIMEOUT_S + 5, (elapsed, log_path.read_text())  # closes, then exit; drain in parallel
-    (run_dir,) = list_runs(cam_dir)
+    (run_dir,) = run_dirs(cam_dir)
     manifest = read_json(run_dir / MANIFEST_JSON)
     assert manifest is not None and manifest["closed"] is True and manifest["num_steps"] == 4, manifest
     closed_at = dt.datetime.fromisoformat(manifest["updated_at"].replace("Z", "+00:00")).timestamp()
@@ -1048,8 +1010,8 @@ def test_hostile_clients_against_a_served_process_stay_within_memory_log_and_dis
         "--checkpoint-dir", str(tiny_policy_files.checkpoint), "--dtype", "float32",
         "--paligemma-tokenizer", str(tiny_policy_files.paligemma_tokenizer),
         "--fast-tokenizer", str(tiny_policy_files.fast_tokenizer),
-        "--max-message-mb", str(limit_mb), "--cam-every-k", "1", "--cam-dir", str(cam_dir),
-        "--cam-save-frames", "none",
+        "--max-message-mb", str(limit_mb), "--cam.every-k", "1", "--cam.dir", str(cam_dir),
+        "--cam.save-frames", "none",
     ]  # fmt: skip
     with serve_subprocess(tmp_path, *files) as (proc, port, log_path):
 
@@ -1067,7 +1029,7 @@ def test_hostile_clients_against_a_served_process_stay_within_memory_log_and_dis
             warm.send(flood_obs)
             warm.recv(timeout=60)
         deadline = time.monotonic() + 120
-        while get_stats(port)["policy"]["gradcam"].get("completed", 0) < 3:  # all three explained and written
+        while get_stats(port)["policy"]["explanations"].get("completed", 0) < 3:  # all three explained and written
             assert time.monotonic() < deadline, get_stats(port)
             time.sleep(0.2)
         # Plain serving first: the robot alone (its explanations' working set is part of any peak).
@@ -1106,9 +1068,10 @@ def test_hostile_clients_against_a_served_process_stay_within_memory_log_and_dis
     assert bloat_result["shapes"] == [[10, 8]] * 2 and "more than 10000 maps and lists" in bloat_result["error"]
     assert hostile_growth - plain_growth < HOSTILE_EXTRA_PEAK_FRAMES * limit_mb * 2**20, (hostile_growth, plain_growth)
     assert log_growth < 32 * 1024, log_growth
-    run = load_run(list_runs(cam_dir)[0], load_arrays=False)
+    (run_dir,) = run_dirs(cam_dir)
+    run = load_run(run_dir, load_arrays=False)
     sizes = {s.seq: s.file.stat().st_size for s in run.steps}
-    plain = max(sizes[s.seq] for s in run.steps if not s.meta["extra"] and not s.meta["extra_arrays"])
+    plain = max(sizes[s.seq] for s in run.steps if not s.meta.extra and not s.meta.extra_arrays)
     assert max(sizes.values()) <= plain + 64 * 1024, sizes
 
 
@@ -1195,7 +1158,7 @@ def test_requests_past_the_global_buffer_cap_close_their_connection_with_try_aga
 
 
 def test_sigterm_during_a_long_explanation_exits_cleanly_with_the_run_closed(tiny_policy_files, tmp_path):
-    """An explanation longer than `--cam-drain-timeout` (exhaustive occlusion on the tiny DROID checkpoint's 3 x 256
+    """An explanation longer than `--cam.drain-timeout` (exhaustive occlusion on the tiny DROID checkpoint's 3 x 256
     patches: seconds per step) is still computing when the drain deadline passes. The server writes the closed
     manifest, says so, and exits with 0 without the interpreter's teardown: a teardown under a running XLA computation
     can abort the process ("terminate called after throwing an instance of ..."; seen at the end of a demo run whose
@@ -1205,7 +1168,7 @@ def test_sigterm_during_a_long_explanation_exits_cleanly_with_the_run_closed(tin
         "--checkpoint-dir", str(tiny_policy_files.checkpoint), "--dtype", "float32",
         "--paligemma-tokenizer", str(tiny_policy_files.paligemma_tokenizer),
         "--fast-tokenizer", str(tiny_policy_files.fast_tokenizer),
-        "--cam-every-k", "1", "--cam-dir", str(cam_dir), "--cam-maps", "occlusion", "--cam-drain-timeout", "0.5",
+        "--cam.every-k", "1", "--cam.dir", str(cam_dir), "--cam.maps", "occlusion", "--cam.drain-timeout", "0.5",
         "--no-warm-up",
     ]  # fmt: skip
     with serve_subprocess(tmp_path, *files) as (proc, port, log_path):
@@ -1216,6 +1179,7 @@ def test_sigterm_during_a_long_explanation_exits_cleanly_with_the_run_closed(tin
     log = log_path.read_text()
     assert exit_code == 0, log
     assert "exiting with an explanation still computing" in log
-    manifest = read_json(list_runs(cam_dir)[0] / MANIFEST_JSON)
+    (run_dir,) = run_dirs(cam_dir)
+    manifest = read_json(run_dir / MANIFEST_JSON)
     assert manifest is not None and manifest["closed"] is True and manifest["num_steps"] == 0
     assert manifest["counters"]["external"]["unfinished_at_shutdown"] == 1

@@ -1,5 +1,5 @@
-"""Faithfulness metrics for attribution maps over a camera's patch grid: pure functions of maps, boxes and a
-re-scoring callback (no model here; `openpi_cam.model.pi0_fast_maps.rescore_masks` gives the callback).
+"""Faithfulness metrics for attribution maps over a camera's patch grid: pure functions of maps, boxes and the
+scores the model gave painted frames (no model here; `Explainer.rescore` gives the scores).
 
 Conventions shared by every function:
 * A map is [Hp, Wp], or a per-token stack [T, Hp, Wp] that is reduced by its mean over T (`reduce_map`): the mean
@@ -9,20 +9,21 @@ Conventions shared by every function:
   The pointing game uses the signed peak and counts a map whose peak is not positive as a miss.
 * Ties: patches are ordered by value descending, ties by row-major patch index ascending, so every order is
   deterministic.
-* Deletion paints patches with a baseline frame and re-runs the model through `rescore(masks) -> scores`, masks bool
-  [K, Hp, Wp] (True = painted), scores [K]. A drop is score(nothing painted) - score(painted), from the same call.
+* Deletion paints patches with a baseline frame (`deletion_masks`: bool [K, Hp, Wp], True = painted), the model
+  re-scores them in one call, and `deletion` turns the scores [K] into drops: score(nothing painted) -
+  score(painted), from the same call.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 from scipy import stats
 
-Rescore = Callable[[np.ndarray], np.ndarray]  # masks bool [K, Hp, Wp] -> scores [K]
+from openpi_cam.cam.runfmt import StepMeta
 
 
 def reduce_map(cam_map: np.ndarray) -> np.ndarray:
@@ -54,86 +55,85 @@ def single_patch_masks(grid: tuple[int, int]) -> np.ndarray:
     return np.concatenate([np.zeros((1, n), bool), np.eye(n, dtype=bool)]).reshape(n + 1, *grid)
 
 
-def _drops(rescore: Rescore, masks: np.ndarray) -> np.ndarray:
-    """Scores of masks whose row 0 paints nothing -> drops against it [K] (drop[0] = 0)."""
-    scores = np.asarray(rescore(masks), np.float64).reshape(-1)
-    if scores.shape[0] != masks.shape[0]:
-        raise ValueError(f"rescore returned {scores.shape[0]} scores for {masks.shape[0]} masks")
-    return scores[0] - scores
+RANDOM = "random"  # the name of the random orders' curve (their mean) in `Deletion.curves`
+_SINGLE = "single"  # the block of `DeletionMasks` that paints nothing, then each patch alone
 
 
-def single_patch_drops(rescore: Rescore, grid: tuple[int, int]) -> np.ndarray:
-    """Occlusion of every patch alone: drop when only that patch is painted. -> [Hp, Wp]"""
-    return _drops(rescore, single_patch_masks(grid))[1:].reshape(grid)
+@dataclasses.dataclass(frozen=True)
+class DeletionMasks:
+    """`deletion_masks`: the mask stack and where each block of it lies."""
+
+    masks: np.ndarray  # bool [K, Hp, Wp], True = painted
+    blocks: dict[str, slice]  # _SINGLE (N + 1 rows), each named order and RANDOM (k_max rows per order)
+    grid: tuple[int, int]
+    k_max: int
+    random_orders: int
 
 
-def deletion_drops(order: np.ndarray, rescore: Rescore, grid: tuple[int, int]) -> np.ndarray:
-    """Drops after painting the first k patches of `order`, k = 0..N (one rescore call). -> [N + 1]"""
-    return _drops(rescore, top_k_masks(order, grid))
-
-
-def random_deletion_drops(rescore: Rescore, grid: tuple[int, int], orders: int = 8, seed: int = 0) -> np.ndarray:
-    """Expected deletion drops of a random order: the mean over `orders` uniformly random permutations
-    (`numpy.random.default_rng(seed)`), all re-scored in one call. -> [N + 1]"""
+def deletion_masks(
+    orders: Mapping[str, np.ndarray],
+    grid: tuple[int, int],
+    *,
+    k_max: int | None = None,
+    random_orders: int = 8,
+    seed: int = 0,
+) -> DeletionMasks:
+    """The masks of one camera's deletion curves, for one re-scoring call: nothing painted, each patch alone
+    (row-major; their drops are the occlusion optimum's candidates), then per named order (`orders`: name -> patch
+    order, e.g. `patch_order` of each map kind) its top k patches for k = 1..k_max, then the same for `random_orders`
+    uniformly random permutations (`numpy.random.default_rng(seed)`). `k_max` defaults to every patch."""
+    if clash := {_SINGLE, RANDOM} & set(orders):
+        raise ValueError(f"order names {sorted(clash)} are taken by the reference blocks")
+    if random_orders < 1:
+        raise ValueError(f"random_orders must be >= 1, got {random_orders}")
     n = grid[0] * grid[1]
+    k_max = n if k_max is None else min(k_max, n)
     rng = np.random.default_rng(seed)
-    masks = np.concatenate(
-        [np.zeros((1, *grid), bool)] + [top_k_masks(rng.permutation(n), grid)[1:] for _ in range(orders)]
+    blocks = {_SINGLE: single_patch_masks(grid)}  # row 0: nothing painted
+    blocks |= {name: top_k_masks(order, grid)[1 : k_max + 1] for name, order in orders.items()}
+    blocks[RANDOM] = np.concatenate(
+        [top_k_masks(rng.permutation(n), grid)[1 : k_max + 1] for _ in range(random_orders)]
     )
-    drops = _drops(rescore, masks)[1:].reshape(orders, n)
-    return np.concatenate([[0.0], drops.mean(axis=0)])
-
-
-def deletion_summary(drops: np.ndarray, optimum: float, ks: Sequence[int] = (1, 2, 4)) -> tuple[np.ndarray, float]:
-    """(drop at each k / optimum, AUC) with AUC = mean over k = 1..N of drop_k / optimum (the area under the
-    normalised drop-vs-k curve divided by N). NaN when the optimum is not positive (no patch lowers the score)."""
-    drops = np.asarray(drops, np.float64)
-    if optimum <= 0:
-        return np.full(len(ks), np.nan), float("nan")
-    return drops[list(ks)] / optimum, float(drops[1:].mean() / optimum)
+    where, start = {}, 0
+    for name, block in blocks.items():
+        where[name] = slice(start, start + len(block))
+        start += len(block)
+    return DeletionMasks(np.concatenate(list(blocks.values())), where, grid, k_max, random_orders)
 
 
 @dataclasses.dataclass(frozen=True)
 class Deletion:
-    """A map's deletion curve next to a random order's, normalised by the single-patch occlusion optimum (the
-    largest drop any one patch causes alone): occlusion's own map scores 1.0 at k = 1 by definition."""
+    """One camera's deletion curves, normalised by the single-patch occlusion optimum (the largest drop any one
+    patch causes alone): occlusion's own map scores 1.0 at k = 1 by definition. A drop is score(nothing painted) -
+    score(painted), both from the same call. Where no patch lowers the score (optimum <= 0) there is nothing to
+    normalise by and every normalised value is NaN."""
 
-    ks: tuple[int, ...]
-    at_k: np.ndarray  # [len(ks)]: drop after painting the map's top k patches / optimum
-    auc: float  # mean over k = 1..N of drop_k / optimum
-    random_at_k: np.ndarray  # the same for a random order (expectation over `random_orders` permutations)
-    random_auc: float
     optimum: float
-    drops: np.ndarray  # [N + 1] raw drops along the map's order (drops[0] = 0)
-    random_drops: np.ndarray  # [N + 1]
-    order: np.ndarray  # [N] the patch order used (row-major indices)
+    single: np.ndarray  # [Hp, Wp] each patch's drop when painted alone
+    drops: dict[str, np.ndarray]  # name (and RANDOM: the mean over random orders) -> [k_max] raw drops, k = 1..k_max
+    curves: dict[str, np.ndarray]  # the same divided by the optimum
+
+    def at_k(self, name: str, ks: Sequence[int]) -> np.ndarray:
+        """The normalised drop after painting the top k patches of `name`'s order, for each k. -> [len(ks)]"""
+        return self.curves[name][np.asarray(ks) - 1]
+
+    def auc(self, name: str) -> float:
+        """The mean over k = 1..k_max of the normalised drop (the area under the curve divided by k_max)."""
+        return float(np.mean(self.curves[name]))
 
 
-def deletion_curve(
-    cam_map: np.ndarray,
-    rescore: Rescore,
-    *,
-    ks: Sequence[int] = (1, 2, 4),
-    random_orders: int = 8,
-    seed: int = 0,
-    single_drops: np.ndarray | None = None,
-    random_drops: np.ndarray | None = None,
-) -> Deletion:
-    """Deletion metric of one map: paint its patches highest first and measure the score drop after each.
-
-    `single_drops` ([Hp, Wp], `single_patch_drops`) and `random_drops` ([N + 1], `random_deletion_drops`) depend
-    only on the explained score, not the map: pass them to share them between maps of the same step."""
-    grid = reduce_map(cam_map).shape
-    if single_drops is None:
-        single_drops = single_patch_drops(rescore, grid)
-    if random_drops is None:
-        random_drops = random_deletion_drops(rescore, grid, random_orders, seed)
-    order = patch_order(cam_map)
-    drops = deletion_drops(order, rescore, grid)
-    optimum = float(np.max(single_drops))
-    at_k, auc = deletion_summary(drops, optimum, ks)
-    random_at_k, random_auc = deletion_summary(random_drops, optimum, ks)
-    return Deletion(tuple(ks), at_k, auc, random_at_k, random_auc, optimum, drops, np.asarray(random_drops), order)
+def deletion(masks: DeletionMasks, scores: np.ndarray) -> Deletion:
+    """The deletion curves of `masks` from the model's scores of them ([K], in the mask stack's order)."""
+    scores = np.asarray(scores, np.float64).reshape(-1)
+    if scores.shape[0] != masks.masks.shape[0]:
+        raise ValueError(f"{scores.shape[0]} scores for {masks.masks.shape[0]} masks")
+    drops_all = scores[0] - scores
+    single = drops_all[masks.blocks[_SINGLE]][1:].reshape(masks.grid)
+    optimum = float(single.max())
+    drops = {name: drops_all[where] for name, where in masks.blocks.items() if name not in (_SINGLE, RANDOM)}
+    drops[RANDOM] = drops_all[masks.blocks[RANDOM]].reshape(masks.random_orders, masks.k_max).mean(axis=0)
+    scale = optimum if optimum > 0 else np.nan
+    return Deletion(optimum, single, drops, {name: d / scale for name, d in drops.items()})
 
 
 def top1_agreement(cam_map: np.ndarray, reference: np.ndarray) -> bool:
@@ -223,7 +223,7 @@ def nuisance_mass_ratio(cam_map: np.ndarray, relevant_cells: np.ndarray) -> floa
 
 
 def target_cells(
-    meta: Mapping[str, Any],
+    meta: StepMeta,
     camera: str,
     grid: tuple[int, int],
     model_hw: Sequence[int] | None,
@@ -232,15 +232,15 @@ def target_cells(
     """The patches of the ground-truth box a client sent with a step (`cam_extra/target_box`: x0, y0, x1, y1 in the
     client image of `cam_extra/target_camera`, default the step's first camera), on `camera`'s model frame of size
     `model_hw` (taken from the camera's letterbox geometry when the step has it). None when the step has no box for
-    that camera. `extra`: the step's `cam_extra/` values (`CAMStep.extra`: arrays included); default: those in meta.
+    that camera. `extra`: the step's `cam_extra/` values (`CAMStep.extra`: arrays included); default: `meta.extra`.
     -> bool [Hp, Wp]"""
-    extra = (meta.get("extra") or {}) if extra is None else extra
-    cameras = meta.get("cameras") or {}
+    extra = meta.extra if extra is None else extra
     box = extra.get("target_box")
-    if box is None or camera != extra.get("target_camera", next(iter(cameras), None)):
+    if box is None or camera != extra.get("target_camera", next(iter(meta.cameras), None)):
         return None
     x0, y0, x1, y1 = (float(v) for v in box)
-    geometry = (cameras.get(camera) or {}).get("geometry")
+    info = meta.cameras.get(camera)
+    geometry = None if info is None else info.geometry
     if geometry:  # client pixels -> model pixels through the letterbox
         sx, sy = geometry["resized_w"] / geometry["orig_w"], geometry["resized_h"] / geometry["orig_h"]
         x0, x1 = geometry["pad_left"] + x0 * sx, geometry["pad_left"] + x1 * sx

@@ -1,7 +1,8 @@
-"""CAMLogger: all disk I/O of the Grad-CAM side channel (format: docs/FORMAT.md).
+"""CAMLogger: all disk I/O of the explanation side channel and offline explanation (format: docs/FORMAT.md).
 
-It runs on the CAM wrapper's background worker, next to a server that must keep serving, so I/O failures it can
-classify are counted and logged once per kind instead of raised. Wrong argument types still raise: those are bugs.
+It runs on the side channel's background worker, next to a server that must keep serving, so I/O failures it can
+classify are counted and logged once per cause (`io_error_key`) instead of raised. Wrong argument types still raise:
+those are bugs.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ from openpi_cam.counters import WarnOnceCounter
 
 log = logging.getLogger(__name__)
 
-_ERRNO_KINDS = {
+_ERRNO_KEYS = {
     errno.ENOSPC: "disk_full",
     errno.EDQUOT: "disk_full",
     errno.EACCES: "permission_denied",
@@ -58,9 +59,10 @@ _ERRNO_KINDS = {
 }
 
 
-def io_error_kind(e: OSError) -> str:
-    if e.errno in _ERRNO_KINDS:
-        return _ERRNO_KINDS[e.errno]
+def io_error_key(e: OSError) -> str:
+    """The counter key of an I/O error's cause, e.g. "disk_full"."""
+    if e.errno in _ERRNO_KEYS:
+        return _ERRNO_KEYS[e.errno]
     return errno.errorcode.get(e.errno, "unknown").lower() if e.errno else type(e).__name__
 
 
@@ -140,7 +142,7 @@ class CAMLogger:
             "steps_skipped_closed": 0,
             "bytes_written": 0,
         }
-        self._io_errors = WarnOnceCounter(log, "CAM logger: I/O error")  # by kind, e.g. disk_full
+        self._io_errors = WarnOnceCounter(log, "CAM logger: I/O error")  # by cause (`io_error_key`)
         self._cap_reached = False
         self._closed = False
         self._index_fd: int | None = None
@@ -185,9 +187,9 @@ class CAMLogger:
             if key in self._counters and isinstance(value, type(self._counters[key])):
                 self._counters[key] = copy.deepcopy(value)
         old_errors = logger_counters.get("io_errors")
-        for kind, n in (old_errors if isinstance(old_errors, dict) else {}).items():
+        for cause, n in (old_errors if isinstance(old_errors, dict) else {}).items():
             if isinstance(n, int):
-                self._io_errors.count(str(kind), n=n)
+                self._io_errors.count(str(cause), n=n)
         # What is on disk wins over a stale manifest for the counts caps are checked against.
         self._counters["steps_logged"] = len(steps)
         on_disk = sum(s.file.stat().st_size for s in steps)
@@ -328,4 +330,4 @@ class CAMLogger:
         return copy.deepcopy(self._counters) | {"io_errors": self._io_errors.snapshot()}
 
     def _count_io_error(self, e: OSError, what: str) -> None:
-        self._io_errors.count(io_error_kind(e), f"{self._run_dir}: {what}: {e}")
+        self._io_errors.count(io_error_key(e), f"{self._run_dir}: {what}: {e}")

@@ -3,11 +3,11 @@
 Sources:
   * upstream `PolicyRecorder` output: a folder of `step_N.npy` files, each a pickled dict with flattened
     `inputs/...` (the observation as the client sent it) and `outputs/...` (the response) keys;
-  * one of our CAM run directories saved with raw frames (`--cam-save-frames raw|both`): each step's client images
+  * one of our CAM run directories saved with raw frames (`--cam.save-frames raw|both`): each step's client images
     are replayed at their observation keys, with the prompt and whatever the client sent under `cam_extra/` (send
     the non-image observation, e.g. `cam_extra/observation/joint_position`, to make a run replayable).
 
-Inference stays per observation, exactly as served (`Policy.infer_traced`); Grad-CAM is then computed for a whole
+Inference stays per observation, exactly as served (`Policy.infer_traced`); the maps are then computed for a whole
 chunk of `batch_size` inferences in one model call, sharded over all local devices (`cam.batching`). Every step
 records its source id in `meta["extra"]["source"]`, so a run can be resumed: sources already in it are skipped and
 new steps are appended with the following seqs.
@@ -117,28 +117,27 @@ def iter_run_steps(run_dir: pathlib.Path) -> Iterator[Replay]:
         meta = step.meta
         frames = step.frames
         obs: dict[str, Any] = {
-            info["obs_key"]: frames[c]
-            for c, info in meta.get("cameras", {}).items()
-            if info.get("obs_key") and c in frames
+            info.obs_key: frames[c] for c, info in meta.cameras.items() if info.obs_key and c in frames
         }
         if not obs:
-            raise ValueError(f"{step.file}: no raw client frames; record the run with --cam-save-frames raw or both")
+            raise ValueError(f"{step.file}: no raw client frames; record the run with --cam.save-frames raw or both")
         # The step's extras were the client's cam_extra/ values: the policy gets them back at their keys, and they
         # stay extras of the new step so that the new run is replayable too. An earlier explain's source id is not
         # an observation.
         extra = {k: v for k, v in step.extra.items() if k != SOURCE_KEY}
         obs.update({k: np.asarray(v) for k, v in extra.items()})
-        if meta.get("prompt"):
-            obs["prompt"] = meta["prompt"]
+        if meta.prompt:
+            obs["prompt"] = meta.prompt
         source = step.file.relative_to(run.run_dir).as_posix()
-        connection = str(meta.get("connection", "replay"))
-        yield Replay(source, connection, int(meta.get("step", step.seq)), obs, extra, timestamp=meta.get("timestamp"))
+        connection = "replay" if meta.connection is None else meta.connection
+        index = step.seq if meta.step is None else meta.step
+        yield Replay(source, connection, index, obs, extra, timestamp=meta.timestamp)
 
 
 def explained_sources(run_dir: pathlib.Path) -> set[str]:
     """Source ids already explained in a run (complete step files only)."""
     run = load_run(run_dir, load_arrays=False)
-    return {str(s.meta["extra"][SOURCE_KEY]) for s in run.steps if SOURCE_KEY in (s.meta.get("extra") or {})}
+    return {str(s.meta.extra[SOURCE_KEY]) for s in run.steps if SOURCE_KEY in s.meta.extra}
 
 
 def _actions_match(ours: Any, recorded: np.ndarray) -> bool:
@@ -192,23 +191,29 @@ def explain_replays(
         # a short last batch is padded to batch_size so that it reuses the compiled program
         results = explain_traces(explainer, traces, options.request, mesh=mesh, pad_to=options.batch_size)
         per_row_ms = (time.perf_counter() - t0) * 1000.0 / len(chunk)
-        for r, trace, stamp, exp in zip(chunk, traces, stamps, results, strict=True):
-            if isinstance(exp, ExplainSkipped):
-                counts[f"skipped_{exp.kind}"] += 1
-                if counts[f"skipped_{exp.kind}"] == 1:
-                    log.warning("explain: %s: %s (further ones are only counted)", r.source, exp)
+        for r, trace, stamp, explanation in zip(chunk, traces, stamps, results, strict=True):
+            if isinstance(explanation, ExplainSkipped):
+                counts[f"skipped_{explanation.reason}"] += 1
+                if counts[f"skipped_{explanation.reason}"] == 1:
+                    log.warning("explain: %s: %s (further ones are only counted)", r.source, explanation)
                 continue
             counts["explained_malformed"] += trace.malformed_reason is not None
             check = None
             if options.check_patches:
                 check = check_trace(
-                    explainer, trace, exp, options.map_options, patches=options.check_patches, seed=r.step, mesh=mesh
+                    explainer,
+                    trace,
+                    explanation,
+                    options.map_options,
+                    patches=options.check_patches,
+                    seed=r.step,
+                    mesh=mesh,
                 )
                 if "skipped" in check:
                     counts[f"check_skipped_{check['skipped']}"] += 1
             record = step_record(
                 trace,
-                exp,
+                explanation,
                 connection=r.connection,
                 step=r.step,
                 timestamp=stamp,

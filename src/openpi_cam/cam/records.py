@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.cam.runfmt import StepRecord
+from openpi_cam.cam.runfmt import CameraMeta, StepMeta, StepRecord
 from openpi_cam.policies.family import Explanation
 from openpi_cam.policies.policy import InferenceTrace
 from openpi_cam.vocabulary import SaveFrames
@@ -71,7 +71,7 @@ def bounded_extra(
     kept, dropped, total = {}, [], 0
     for key, value in extra.items():
         # No value takes less than one byte per element (per character for text) as stored: a too large one is
-        # refused before it is converted or encoded (an 8 MB string would pass through ~50 MB of copies).
+        # refused before it is converted or encoded (each conversion would copy it again).
         least = len(value) if isinstance(value, str | bytes) else np.size(value)
         size = max_value_bytes + 1 if least > max_value_bytes else _stored_size(key, value)
         if size > max_value_bytes or total + size > max_total_bytes:
@@ -112,7 +112,7 @@ def model_inputs(trace: InferenceTrace) -> dict[str, np.ndarray]:
 
 def step_record(
     trace: InferenceTrace,
-    exp: Explanation,
+    explanation: Explanation,
     *,
     connection: str,
     step: int,
@@ -123,8 +123,8 @@ def step_record(
     check: Mapping[str, Any] | None = None,
 ) -> StepRecord:
     """The logger record of one explained inference, in the layout docs/FORMAT.md describes; `extra`: the client's
-    `cam_extra/` values (numeric arrays go to the step file, the rest to meta["extra"]); `check`: its spot check
-    (`cam.spot_check`), stored as meta["check"] when given."""
+    `cam_extra/` values (numeric arrays go to the step file, the rest to `StepMeta.extra`); `check`: its spot check
+    (`cam.spot_check`), stored as `StepMeta.check` when given."""
     extra_values, extra_arrays = split_extra_values(extra)
     frames = {}
     if save_frames in ("raw", "both"):
@@ -133,26 +133,36 @@ def step_record(
     if save_frames in ("model", "both"):
         model_frames = {c: model_frame_uint8(im) for c, im in trace.observation.images.items()}
     cameras = {
-        c: {
-            "obs_key": trace.camera_sources.get(c),
-            **info,
-            "geometry": trace.geometry[c].as_dict() if trace.geometry.get(c) is not None else None,
-        }
-        for c, info in exp.cameras.items()
+        c: CameraMeta.from_json(
+            {
+                "obs_key": trace.camera_sources.get(c),
+                **info,
+                "geometry": trace.geometry[c].as_dict() if trace.geometry.get(c) is not None else None,
+            }
+        )
+        for c, info in explanation.cameras.items()
     }
-    meta = {
-        "target": exp.target,
-        **exp.details,
-        "score": exp.score,
-        "map_kinds": list(exp.maps),
-        "prompt": trace.prompt,
-        "cameras": cameras,
-        "malformed": trace.malformed_reason,
-        "explain_ms": round(explain_ms, 3),
-        "extra": extra_values,
-        "extra_arrays": sorted(extra_arrays),  # stored as `extra/<key>` in the step file
-    }
-    if check is not None:
-        meta["check"] = dict(check)
-    inputs = model_inputs(trace)
-    return StepRecord(connection, step, timestamp, exp.maps, frames, model_frames, inputs, meta, extra_arrays)
+    meta = StepMeta(
+        target=explanation.target,
+        score=explanation.score,
+        map_kinds=tuple(explanation.maps),
+        prompt=trace.prompt,
+        cameras=cameras,
+        malformed=trace.malformed_reason,
+        explain_ms=round(explain_ms, 3),
+        extra=extra_values,
+        extra_arrays=tuple(sorted(extra_arrays)),  # stored as `extra/<key>` in the step file
+        check=None if check is None else dict(check),
+        details=dict(explanation.details),
+    )
+    return StepRecord(
+        connection,
+        step,
+        timestamp,
+        explanation.maps,
+        frames=frames,
+        model_frames=model_frames,
+        inputs=model_inputs(trace),
+        meta=meta.to_json(),
+        extra_arrays=extra_arrays,
+    )

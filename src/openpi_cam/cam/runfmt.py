@@ -13,6 +13,7 @@ import datetime as dt
 import io
 import json
 import logging
+import math
 import os
 import pathlib
 import re
@@ -25,10 +26,7 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-# 2: maps of several kinds (`<kind prefix><camera>`), the model inputs (`input/`), target `generated-tokens` and
-# `malformed` in meta. Version 1 runs (only `cam/` and `gradnorm/` maps) read unchanged.
-# 3: numeric `cam_extra/` arrays are stored as `extra/<key>` arrays (listed in meta["extra_arrays"]), no longer as JSON
-# in meta["extra"]; `CAMStep.extra` merges both, so version 2 runs read the same.
+# What each version changed, and how older runs read: docs/FORMAT.md, "Schema history".
 SCHEMA_VERSION = 3
 RUN_JSON = "run.json"
 INDEX_JSONL = "index.jsonl"
@@ -57,7 +55,7 @@ def utc_now_iso() -> str:
 
 
 def json_default(value: Any) -> Any:
-    """Lets numpy scalars and arrays (common in Grad-CAM metadata) pass through `json.dumps`."""
+    """Lets numpy scalars and arrays (common in step metadata) pass through `json.dumps`."""
     if isinstance(value, np.generic):
         return value.item()
     if isinstance(value, np.ndarray):
@@ -149,6 +147,203 @@ class StepRecord:
 RESERVED_META = ("schema_version", "run_id", "seq", "connection", "step", "timestamp")
 
 
+def _str_or_none(value: Any) -> str | None:
+    return None if value is None else str(value)
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _int_or_none(value: Any) -> int | None:
+    return int(value) if _number(value) and math.isfinite(value) else None
+
+
+def _float_or_none(value: Any) -> float | None:
+    return float(value) if _number(value) else None
+
+
+def _ints(value: Any) -> tuple[int, ...] | None:
+    if not isinstance(value, list | tuple) or not all(_int_or_none(v) is not None for v in value):
+        return None
+    return tuple(int(v) for v in value)
+
+
+def _pair(value: Any) -> tuple[int, int] | None:
+    ints = _ints(value)
+    return (ints[0], ints[1]) if ints is not None and len(ints) == 2 else None
+
+
+def _strs(value: Any) -> tuple[str, ...] | None:
+    return tuple(str(v) for v in value) if isinstance(value, list | tuple) else None
+
+
+def _score(value: Any) -> float | tuple[float, ...] | None:
+    if isinstance(value, np.ndarray | np.generic):
+        value = value.tolist()
+    if isinstance(value, list | tuple):
+        return tuple(float(v) if _number(v) else math.nan for v in value)
+    return float(value) if _number(value) else None
+
+
+def _list(value: tuple[Any, ...] | None) -> list[Any] | None:
+    return None if value is None else list(value)
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraMeta:
+    """One camera of a logged step (`meta.cameras.<camera>`, docs/FORMAT.md)."""
+
+    obs_key: str | None = None  # the client observation key its image came from
+    valid: bool = True  # the image mask the model saw
+    grid: tuple[int, int] | None = None  # (Hp, Wp): the token grid of its maps
+    span: tuple[int, int] | None = None  # [start, end) of its tokens in the model prefix
+    geometry: dict[str, int] | None = None  # the letterbox (`image_tools.LetterboxGeometry` fields); None: unknown
+    details: dict[str, Any] = dataclasses.field(default_factory=dict)  # fields this reader does not know, as read
+
+    @classmethod
+    def from_json(cls, value: Any) -> CameraMeta:
+        d = dict(value) if isinstance(value, Mapping) else {}
+        geometry = d.get("geometry")
+        return cls(
+            obs_key=_str_or_none(d.get("obs_key")),
+            valid=bool(d.get("valid", True)),
+            grid=_pair(d.get("grid")),
+            span=_pair(d.get("span")),
+            geometry={str(k): int(v) for k, v in geometry.items()} if isinstance(geometry, Mapping) else None,
+            details={k: v for k, v in d.items() if k not in _CAMERA_FIELDS},
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "obs_key": self.obs_key,
+            "valid": self.valid,
+            "grid": _list(self.grid),
+            "span": _list(self.span),
+            "geometry": self.geometry,
+            **self.details,
+        }
+
+
+_CAMERA_FIELDS = frozenset(f.name for f in dataclasses.fields(CameraMeta)) - {"details"}
+
+
+@dataclasses.dataclass(frozen=True)
+class StepMeta:
+    """A step's metadata (the step file's `meta` JSON, docs/FORMAT.md), read once into typed fields.
+
+    The fields the logger fills (`RESERVED_META`) are None in a record not yet written. `details` holds what the
+    model family wrote (pi0-FAST's token ids and decode steps, pi0's action index, the map options and IG's
+    completeness check; typed below as properties) and any field this reader does not know, exactly as read, so
+    `to_json` gives back what was written. Older schema versions read with the defaults of what they lack."""
+
+    schema_version: int | None = None
+    run_id: str | None = None
+    seq: int | None = None
+    connection: str | None = None
+    step: int | None = None  # the request's index within its connection
+    timestamp: float | None = None  # unix time of the request
+    target: str = ""  # what was explained
+    score: float | tuple[float, ...] | None = None  # the explained score(s)
+    map_kinds: tuple[str, ...] | None = None  # None: a schema 1 step, which does not list them (read its file)
+    prompt: str = ""
+    cameras: dict[str, CameraMeta] = dataclasses.field(default_factory=dict)  # in the model's camera order
+    malformed: str | None = None  # why the served generation decoded to zero actions
+    explain_ms: float | None = None
+    extra: dict[str, Any] = dataclasses.field(default_factory=dict)  # `cam_extra/` values other than numeric arrays
+    extra_arrays: tuple[str, ...] = ()  # the `cam_extra/` keys stored as `extra/<key>` arrays
+    check: dict[str, Any] | None = None  # the spot check (`cam.spot_check`); None when it was off
+    details: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    @classmethod
+    def from_json(cls, value: Mapping[str, Any]) -> StepMeta:
+        """The metadata of a step JSON object (or of an index line, whose extra fields land in `details`)."""
+        d = dict(value)
+        cameras, extra, check = d.get("cameras"), d.get("extra"), d.get("check")
+        return cls(
+            schema_version=_int_or_none(d.get("schema_version")),
+            run_id=_str_or_none(d.get("run_id")),
+            seq=_int_or_none(d.get("seq")),
+            connection=_str_or_none(d.get("connection")),
+            step=_int_or_none(d.get("step")),
+            timestamp=_float_or_none(d.get("timestamp")),
+            target="" if d.get("target") is None else str(d["target"]),
+            score=_score(d.get("score")),
+            map_kinds=_strs(d.get("map_kinds")),
+            prompt="" if d.get("prompt") is None else str(d["prompt"]),
+            cameras={str(c): CameraMeta.from_json(i) for c, i in cameras.items()} if isinstance(cameras, dict) else {},
+            # schema 1 called it `malformed_reason`
+            malformed=_str_or_none(d.get("malformed", d.get("malformed_reason"))),
+            explain_ms=_float_or_none(d.get("explain_ms")),
+            extra=dict(extra) if isinstance(extra, Mapping) else {},
+            extra_arrays=_strs(d.get("extra_arrays")) or (),
+            check=dict(check) if isinstance(check, Mapping) else None,
+            details={k: v for k, v in d.items() if k not in _STEP_FIELDS},
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        """The step JSON object: what the writer stores (the logger-filled fields only where set; `check` only
+        when there is one)."""
+        written = {name: getattr(self, name) for name in RESERVED_META if getattr(self, name) is not None}
+        body = {
+            "target": self.target,
+            **self.details,
+            "score": _list(self.score) if isinstance(self.score, tuple) else self.score,
+            "map_kinds": _list(self.map_kinds),
+            "prompt": self.prompt,
+            "cameras": {c: info.to_json() for c, info in self.cameras.items()},
+            "malformed": self.malformed,
+            "explain_ms": self.explain_ms,
+            "extra": self.extra,
+            "extra_arrays": list(self.extra_arrays),
+        }
+        return written | body | ({} if self.check is None else {"check": self.check})
+
+    def explained(self) -> dict[str, Any]:
+        """What the model family wrote about its explanation, with the target: what `Explainer.rescore` reads."""
+        return {"target": self.target, **self.details}
+
+    def valid_cameras(self) -> list[str]:
+        """The cameras whose image the model saw (mask true), in the model's order."""
+        return [c for c, info in self.cameras.items() if info.valid]
+
+    @property
+    def token_ids(self) -> tuple[int, ...]:
+        """pi0-FAST: the generated token(s) explained; () for other families."""
+        return _ints(self.details.get("token_ids")) or ()
+
+    @property
+    def decode_steps(self) -> tuple[int, ...]:
+        """pi0-FAST: the decode steps of those tokens; () for other families."""
+        return _ints(self.details.get("decode_steps")) or ()
+
+    @property
+    def action_indices(self) -> tuple[int, ...] | None:
+        """pi0-FAST: the action-token indices the target covers; None when it is not made of action tokens."""
+        return _ints(self.details.get("action_indices"))
+
+    @property
+    def action_index(self) -> tuple[int, int] | None:
+        """pi0 / pi0.5: (horizon step, action dimension) of an `action` target; None for `chunk`."""
+        return _pair(self.details.get("action_index"))
+
+    @property
+    def map_options(self) -> dict[str, Any] | None:
+        """The options the ig / occlusion maps ran with (`vocabulary.MapOptions` fields); None without those kinds."""
+        value = self.details.get("map_options")
+        return dict(value) if isinstance(value, Mapping) else None
+
+    @property
+    def ig_completeness(self) -> dict[str, Any] | None:
+        """IG's completeness check (score, baseline_score, attribution_sum, relative_error, steps); None without ig."""
+        value = self.details.get("ig_completeness")
+        return dict(value) if isinstance(value, Mapping) else None
+
+
+# The step JSON keys StepMeta reads into its own fields (schema 1's `malformed_reason` is read as `malformed`).
+_STEP_FIELDS = frozenset(f.name for f in dataclasses.fields(StepMeta)) - {"details"} | {"malformed_reason"}
+
+
 def _checked_maps(kind: str, maps: Any) -> dict[str, np.ndarray]:
     if kind not in MAP_PREFIXES:
         raise ValueError(f"unknown map kind {kind!r}; the format knows {sorted(MAP_PREFIXES)}")
@@ -230,20 +425,24 @@ def _split_arrays(npz: Any) -> StepArrays:
     return arrays
 
 
-def client_extra(meta: Mapping[str, Any], arrays: StepArrays | None) -> dict[str, Any]:
-    """What the client sent under `cam_extra/`: the JSON values of meta["extra"] and, from `arrays`, the numeric
+def client_extra(meta: StepMeta, arrays: StepArrays | None) -> dict[str, Any]:
+    """What the client sent under `cam_extra/`: the JSON values of `meta.extra` and, from `arrays`, the numeric
     arrays (None: the step lists none, so its file need not be read)."""
-    return {**(meta.get("extra") or {}), **({} if arrays is None else arrays.extra)}
+    return {**meta.extra, **({} if arrays is None else arrays.extra)}
 
 
 def _read_meta(npz: Any) -> dict[str, Any]:
-    return json.loads(str(npz[META_KEY][()]))
+    meta = json.loads(str(npz[META_KEY][()]))
+    if not isinstance(meta, dict):
+        raise ValueError(f"the step's {META_KEY} is not a JSON object")
+    return meta
 
 
 class CAMStep:
-    """One logged step. Arrays are read from the step file on first access unless loaded eagerly."""
+    """One logged step: its metadata (`meta`, read once) and its arrays, read from the step file on first access
+    unless loaded eagerly."""
 
-    def __init__(self, seq: int, meta: dict[str, Any], file: pathlib.Path, arrays: StepArrays | None = None) -> None:
+    def __init__(self, seq: int, meta: StepMeta, file: pathlib.Path, arrays: StepArrays | None = None) -> None:
         self.seq = seq
         self.meta = meta
         self.file = file
@@ -283,7 +482,7 @@ class CAMStep:
     @property
     def extra(self) -> dict[str, Any]:
         """`client_extra` of this step; its file is read only when meta lists array extras."""
-        return client_extra(self.meta, self.arrays() if self.meta.get("extra_arrays") else None)
+        return client_extra(self.meta, self.arrays() if self.meta.extra_arrays else None)
 
     def __repr__(self) -> str:
         return f"CAMStep(seq={self.seq}, file={str(self.file)!r})"
@@ -351,7 +550,7 @@ def scan_steps(
         except _UNREADABLE as e:
             problems.append(f"{path.relative_to(run_dir)}: {e}")
             continue
-        steps.append(CAMStep(seq, meta, path, arrays if load_arrays else None))
+        steps.append(CAMStep(seq, StepMeta.from_json(meta), path, arrays if load_arrays else None))
         # arrays were read above whenever the index lacks this step
         entries[seq] = index[seq] if seq in index else index_entry(seq, meta, arrays.maps)
     return steps, entries, problems
@@ -405,11 +604,3 @@ def rebuild_manifest(run_dir: str | os.PathLike[str]) -> dict[str, Any]:
         manifest["unreadable_files"] = problems
     write_json_atomic(run_dir / MANIFEST_JSON, manifest)
     return manifest
-
-
-def list_runs(cam_dir: str | os.PathLike[str]) -> list[pathlib.Path]:
-    """Run directories under `cam_dir`, oldest first (names start with a UTC timestamp)."""
-    cam_dir = pathlib.Path(cam_dir)
-    if not cam_dir.is_dir():
-        return []
-    return sorted(p for p in cam_dir.iterdir() if p.is_dir() and (p / RUN_JSON).is_file())

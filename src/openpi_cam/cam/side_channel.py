@@ -1,9 +1,9 @@
-"""The Grad-CAM side channel around a policy: decides when to explain and what to log; never changes actions.
+"""The explanation side channel around a policy: decides when to explain and what to log; never changes actions.
 
 Scheduled inferences run through `infer_traced`, which returns the very response `infer` would plus the exact model
 inputs and outputs of that call. A job carrying them becomes pending; one background worker has the policy's explainer
 compute the maps and hands the record to the `CAMLogger`. The response never waits for the worker; every failure
-inside the side channel is counted per kind and logged once.
+inside the side channel is counted under its own key and logged once.
 
 The robot must not feel the side channel, so the worker yields to inference: `infer` brackets every inference
 (scheduled or not), and the worker starts an explanation, and later the writing of its step, only while no inference
@@ -44,9 +44,9 @@ from openpi_cam.cam.records import bounded_extra, split_extra, step_record
 from openpi_cam.cam.spot_check import DEFAULT_PATCHES, check_trace
 from openpi_cam.counters import WarnOnceCounter
 from openpi_cam.model.sharding import BATCH_AXIS
-from openpi_cam.policies.family import Explainer, ExplainRequest, ExplainSkipped
+from openpi_cam.policies.family import Explainer, ExplainRequest, ExplainSkipped, resolve_target
 from openpi_cam.policies.policy import InferenceTrace
-from openpi_cam.vocabulary import SAVE_FRAMES, MapKind, MapOptions, SaveFrames, Target
+from openpi_cam.vocabulary import DEFAULT_KINDS, SAVE_FRAMES, MapKind, MapOptions, SaveFrames, Target
 
 logger = logging.getLogger(__name__)
 
@@ -82,13 +82,17 @@ MANIFEST_WRITE_S = 5.0
 
 @dataclasses.dataclass(frozen=True)
 class CAMOptions:
+    """The side channel's settings; `openpi-cam serve` builds them from its `--cam.*` flags (`cli.serve`)."""
+
     every_k: int = 1  # explain every k-th inference of each connection (0 = off)
-    cam_dir: str | pathlib.Path = "cam_runs"
+    cam_dir: str | pathlib.Path = pathlib.Path("cam_runs")  # a new run directory per wrapped policy goes under it
     save_frames: SaveFrames = "model"
-    target: Target = "action-token"
+    # What the maps explain. None: the wrapped policy's family's default (`Explainer.default_target`), resolved when
+    # the side channel wraps it; a target the family cannot explain is refused there.
+    target: Target | None = None
     action_index: int = 0  # pi0-FAST: which action token ("action-token"); pi0 / pi0.5: horizon step ("action")
     action_dim_index: int = 0  # pi0 / pi0.5: which action dimension ("action")
-    maps: tuple[MapKind, ...] = ("gradcam", "gradnorm")  # which map kinds each explained step carries
+    maps: tuple[MapKind, ...] = DEFAULT_KINDS  # which map kinds each explained step carries
     map_options: MapOptions = dataclasses.field(default_factory=MapOptions)  # of the "ig" / "occlusion" kinds
     # Random single patches of each explained step's spot check (`cam.spot_check`: each kind's top patch painted
     # against these, a few re-runs per camera in one call); 0: no check.
@@ -117,6 +121,8 @@ class CAMOptions:
     def __post_init__(self) -> None:
         if self.every_k < 0 or self.queue_size < 1 or self.stats_window < 1 or self.settle_ms < 0:
             raise ValueError("every_k >= 0, queue_size >= 1, stats_window >= 1 and settle_ms >= 0 are required")
+        if self.drain_timeout < 0:
+            raise ValueError(f"drain_timeout must be >= 0, got {self.drain_timeout}")
         if self.check_patches < 0:
             raise ValueError(f"check_patches must be >= 0, got {self.check_patches}")
         if self.device is not None and self.device < 0:
@@ -220,12 +226,12 @@ class CAMPolicy:
         self._last_end = 0.0  # time.monotonic() when the last one returned
         self._finishing = False  # set by the drain: the worker exits once nothing is pending
         self._timings: collections.deque[JobTiming] = collections.deque(maxlen=options.stats_window)
-        self._events = WarnOnceCounter(logger, "Grad-CAM side channel")
+        self._events = WarnOnceCounter(logger, "explanation side channel")
         self._steps: dict[str, int] = {}  # per-connection inference index
         self._closed = False
         self._closer: threading.Thread | None = None  # started by begin_close: drains, then writes the manifest
         self._deadline = 0.0
-        self._worker = threading.Thread(target=self._work, name="gradcam-worker", daemon=True)
+        self._worker = threading.Thread(target=self._work, name="explain-worker", daemon=True)
         self._worker.start()
 
     @property
@@ -240,8 +246,9 @@ class CAMPolicy:
     def run_dir(self) -> pathlib.Path | None:
         return None if self._logger is None else self._logger.run_dir
 
-    def count(self, kind: str, message: str | None = None, *, n: int = 1) -> None:
-        self._events.count(kind, message, n=n)
+    def count(self, event: str, message: str | None = None, *, n: int = 1) -> None:
+        """Counts `event` (a `/stats` key) `n` times; `message` is logged the first time."""
+        self._events.count(event, message, n=n)
 
     def infer(self, obs: dict[str, Any], context: object = None) -> dict[str, Any]:
         obs, extra = split_extra(obs)
@@ -378,14 +385,14 @@ class CAMPolicy:
 
     def _process(self, job: _Job, started: float) -> None:
         try:
-            (exp,) = explain_traces(self._explainer, [job.trace], self._options.request)
+            (explanation,) = explain_traces(self._explainer, [job.trace], self._options.request)
         except Exception as e:
             self._record(JobTiming(job.connection, job.step, job.ended, started, time.monotonic()))
             self.count(f"failed_{type(e).__name__}", f"explaining raised {type(e).__name__}: {e}")
             return
-        if isinstance(exp, ExplainSkipped):
+        if isinstance(explanation, ExplainSkipped):
             self._record(JobTiming(job.connection, job.step, job.ended, started, time.monotonic()))
-            self.count(f"skipped_{exp.kind}", str(exp))
+            self.count(f"skipped_{explanation.reason}", str(explanation))
             return
         if job.trace.malformed_reason is not None:
             self.count("explained_malformed")
@@ -395,7 +402,7 @@ class CAMPolicy:
             check = check_trace(
                 self._explainer,
                 job.trace,
-                exp,
+                explanation,
                 self._options.map_options,
                 patches=self._options.check_patches,
                 seed=job.step,
@@ -411,7 +418,7 @@ class CAMPolicy:
         try:
             record = step_record(
                 job.trace,
-                exp,
+                explanation,
                 connection=job.connection,
                 step=job.step,
                 timestamp=job.timestamp,
@@ -455,7 +462,7 @@ class CAMPolicy:
         if self._logger is not None:
             cam["logger"] = self._logger.counters
             cam["run"] = self._logger.run_dir.name  # the name only: /stats does not reveal the server's paths
-        return {**self._policy.stats(), "gradcam": cam}
+        return {**self._policy.stats(), "explanations": cam}
 
     def begin_close(self, timeout: float | None = None) -> None:
         """Stops scheduling and starts the drain without waiting: queued jobs are explained until `timeout` seconds
@@ -466,7 +473,7 @@ class CAMPolicy:
                 return
             self._closed = True  # `infer` checks it under the same lock: nothing is queued behind the end marker
             self._deadline = time.monotonic() + (self._options.drain_timeout if timeout is None else timeout)
-            self._closer = threading.Thread(target=self._drain, name="gradcam-drain", daemon=True)
+            self._closer = threading.Thread(target=self._drain, name="explain-drain", daemon=True)
             self._closer.start()
 
     def _drain(self) -> None:
@@ -506,13 +513,15 @@ class CAMPolicy:
             return "nothing (the robot transform offers no example observation)"
         if self._logger is None or self._options.every_k == 0:
             return "inference"
-        (exp,) = explain_traces(self._explainer, [trace], self._options.request)
-        if isinstance(exp, ExplainSkipped):
-            return f"inference (the example's explanation was skipped: {exp})"
-        what = f"inference and the {exp.target} explanation"
+        (explanation,) = explain_traces(self._explainer, [trace], self._options.request)
+        if isinstance(explanation, ExplainSkipped):
+            return f"inference (the example's explanation was skipped: {explanation})"
+        what = f"inference and the {explanation.target} explanation"
         if self._options.check_patches:
             opts = self._options
-            check = check_trace(self._explainer, trace, exp, opts.map_options, patches=opts.check_patches, seed=0)
+            check = check_trace(
+                self._explainer, trace, explanation, opts.map_options, patches=opts.check_patches, seed=0
+            )
             what += f" (spot check skipped: {check['skipped']})" if "skipped" in check else " with its spot check"
         if trace.malformed_reason is not None:
             # The example's generation holds no action tokens: the fallback target was compiled, not the configured
@@ -540,8 +549,10 @@ def wrap_policy_with_cam(
     policy: TracedPolicy, options: CAMOptions, *, run_config: dict[str, Any] | None = None, checkpoint: str = ""
 ) -> CAMPolicy:
     """Creates the run directory and the worker. If the run directory cannot be created, the server still serves:
-    the side channel is disabled and the reason logged and counted. A `device` the machine lacks is refused (ValueError)
-    before anything is created."""
+    the side channel is disabled and the reason logged and counted. A `device` the machine lacks, or a target the
+    policy's family cannot explain, is refused (ValueError) before anything is created; no target (None) becomes the
+    family's default, which the run then records."""
+    options = dataclasses.replace(options, target=resolve_target(policy.explainer, options.target))
     if options.device is not None:
         explanation_device(options.device)
     try:
@@ -554,11 +565,11 @@ def wrap_policy_with_cam(
             max_bytes=options.max_bytes,
         )
     except OSError as e:
-        logger.error("Grad-CAM side channel disabled: cannot create a run directory under %s: %s", options.cam_dir, e)
+        logger.error("explanation side channel off: cannot create a run directory under %s: %s", options.cam_dir, e)
         wrapped = CAMPolicy(policy, options, None)
         wrapped.count("disabled_logger_unavailable")
         return wrapped
     logger.info(
-        "Grad-CAM side channel on: every %d inference(s), run directory %s", options.every_k, cam_logger.run_dir
+        "explanation side channel on: every %d inference(s), run directory %s", options.every_k, cam_logger.run_dir
     )
     return CAMPolicy(policy, options, cam_logger)

@@ -26,7 +26,7 @@ from openpi_cam.policies.family import Explainer, ExplainSkipped, Explanation
 from openpi_cam.policies.policy import InferenceTrace
 from openpi_cam.vocabulary import MapOptions
 
-# Random single patches per camera and step (`--cam-check-patches`): with each kind's top patch and the unpainted
+# Random single patches per camera and step (`--cam.check-patches`): with each kind's top patch and the unpainted
 # score, 1 + kinds + 4 re-runs per camera in one call.
 DEFAULT_PATCHES = 4
 
@@ -88,7 +88,7 @@ def check_trace(
                 options,
             )
     except ExplainSkipped as e:
-        return {"skipped": e.kind}
+        return {"skipped": e.reason}
     except Exception as e:
         return {"skipped": f"failed_{type(e).__name__}", "error": str(e)[:200]}
     kinds = list(explanation.maps)
@@ -104,18 +104,3 @@ def check_trace(
             "random_patch_drops": [float(d) for d in drops[len(kinds) :]],
         }
     return {"patches": patches, "seed": seed, "cameras": cameras}
-
-
-def read_check(meta: Mapping[str, Any], kind: str) -> dict[str, tuple[float, tuple[float, ...]]]:
-    """A logged step's spot check of one map kind: camera -> (its top patch's score drop, the random patches' drops).
-    A random draw of the kind's own top patch is left out: it is no competitor, and without it a top patch no
-    better than a random one beats the R' others with probability 1 / (R' + 1)."""
-    out = {}
-    for camera, c in ((meta.get("check") or {}).get("cameras") or {}).items():
-        top = (c.get("top_patch_drop") or {}).get(kind)
-        if not isinstance(top, (int, float)):
-            continue
-        own = (c.get("top_patch") or {}).get(kind)
-        pairs = zip(c.get("random_patches") or (), c.get("random_patch_drops") or (), strict=False)
-        out[camera] = (float(top), tuple(float(d) for i, d in pairs if i != own))
-    return out

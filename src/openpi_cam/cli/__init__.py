@@ -12,7 +12,7 @@ import tyro
 
 # name -> (module, one-line help). Each module defines `main`, a function with tyro-parsable arguments.
 COMMANDS: dict[str, tuple[str, str]] = {
-    "serve": ("openpi_cam.cli.serve", "serve an OpenPI pi0-FAST checkpoint over websockets"),
+    "serve": ("openpi_cam.cli.serve", "serve an OpenPI checkpoint (pi0-FAST, pi0, pi0.5) over websockets"),
     "demo": ("openpi_cam.cli.demo", "run the bundled tiny model end to end with the side channel on"),
     "golden": ("openpi_cam.cli.golden", "check the model against an upstream golden folder"),
     "explain": ("openpi_cam.cli.explain", "compute maps offline for recorded observations"),

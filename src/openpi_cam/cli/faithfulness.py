@@ -4,16 +4,26 @@ from __future__ import annotations
 
 import pathlib
 import sys
+from collections.abc import Callable
 from typing import Literal
 
 import tyro
 
-from openpi_cam.cam.faithfulness_run import REPORT_FILE, FaithfulnessOptions, evaluate_run, format_report
+from openpi_cam.cam.dataset_explain import PolicySpec
+from openpi_cam.cam.dataset_faithfulness import REPORT_FILE as DATASET_REPORT_FILE
+from openpi_cam.cam.dataset_faithfulness import build_run
+from openpi_cam.cam.faithfulness_run import FaithfulnessOptions, evaluate_run, format_report
+from openpi_cam.cam.maps_dataset import is_maps_dataset, open_maps_dataset
+from openpi_cam.cam.run_evidence import REPORT_FILE
 from openpi_cam.cam.runfmt import dumps, load_run
+from openpi_cam.cli.options import DeletionBaseline
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.policy import Policy, create_policy
 from openpi_cam.viz.progress import progress as progress_bar
+
+# Frames of a maps dataset evaluated unless --max-steps says otherwise: each is served again and re-scored.
+DEFAULT_DATASET_STEPS = 64
 
 
 def load_policy(
@@ -53,7 +63,7 @@ def main(
     fast_tokenizer: pathlib.Path | None = None,
     dtype: Literal["bfloat16", "float32"] | None = None,
     randomize: Literal["none", "llm", "all"] = "llm",
-    baseline: Literal["run", "mean", "blur"] = "run",
+    baseline: DeletionBaseline = "run",
     max_steps: int | None = None,
     random_orders: int = 8,
     batch_size: int = 8,
@@ -63,7 +73,7 @@ def main(
     """Re-score every logged step of RUN_DIR under interventions and report, per map kind and camera, how faithful
     the maps are: deletion (k = 1, 2, 4, AUC) normalised by the single-patch occlusion optimum next to a random
     order, top-1 agreement with occlusion, model randomisation against its null, and the pointing game where the
-    client sent ground-truth boxes. Needs steps logged with model frames (`--cam-save-frames model|both`).
+    client sent ground-truth boxes. Needs steps logged with model frames (`serve --cam.save-frames model|both`).
 
     Args:
         run_dir: a CAM run directory.
@@ -83,6 +93,25 @@ def main(
             figures beside it.
         progress: show progress on stderr.
     """
+    if is_maps_dataset(run_dir):
+        return _maps_dataset_main(
+            run_dir,
+            checkpoint_dir=checkpoint_dir,
+            config=config,
+            paligemma_tokenizer=paligemma_tokenizer,
+            fast_tokenizer=fast_tokenizer,
+            dtype=dtype,
+            opts_of=lambda: FaithfulnessOptions(
+                randomize=randomize,
+                baseline=baseline,
+                max_steps=None,
+                random_orders=random_orders,
+                batch_size=batch_size,
+            ),
+            max_steps=max_steps,
+            json_out=json_out,
+            progress=progress,
+        )
     try:
         run = load_run(run_dir)
         policy = load_policy(
@@ -123,3 +152,57 @@ def main(
 
 
 __all__ = ["main"]
+
+
+def _maps_dataset_main(
+    root: pathlib.Path,
+    *,
+    checkpoint_dir: pathlib.Path | None,
+    config: str | None,
+    paligemma_tokenizer: pathlib.Path | None,
+    fast_tokenizer: pathlib.Path | None,
+    dtype: str | None,
+    opts_of: Callable[[], FaithfulnessOptions],
+    max_steps: int | None,
+    json_out: pathlib.Path | None,
+    progress: bool,
+) -> int:
+    """Faithfulness of a maps dataset: `max_steps` frames (default 64) spread over it, served again and re-scored."""
+    try:
+        maps = open_maps_dataset(root)
+        info = maps.info
+        bundled_checkpoints = {
+            str(assets / demo_reach.CHECKPOINT.name) for assets in demo_reach.DEFAULT_ASSETS.values()
+        }
+        bundled = checkpoint_dir is None and info["checkpoint"] in bundled_checkpoints
+        spec = PolicySpec(
+            config=config or info["config"],
+            checkpoint_dir=None if bundled else str(checkpoint_dir or info["checkpoint"]),
+            paligemma_tokenizer=None if paligemma_tokenizer is None else str(paligemma_tokenizer),
+            fast_tokenizer=None if fast_tokenizer is None else str(fast_tokenizer),
+            dtype=dtype or info["dtype"],
+        )
+        policy = spec.create()
+        run_dir, counts = build_run(
+            maps, policy, spec, max_steps=DEFAULT_DATASET_STEPS if max_steps is None else max_steps
+        )
+
+        def show(items, n):
+            return progress_bar(items, n, "faithfulness", progress)
+
+        report = evaluate_run(load_run(run_dir), policy.explainer, opts_of(), progress=show)
+        report["maps_dataset"] = {"root": str(root), "rows_served_again": counts["rows"], **dict(counts)}
+    except (FileNotFoundError, KeyError, ValueError, InvalidRequest, OSError) as e:
+        print(f"openpi-cam faithfulness: {e}", file=sys.stderr)
+        return 1
+    print(format_report(report))
+    out = root / DATASET_REPORT_FILE if json_out is None else json_out
+    out.write_text(dumps(report, indent=2))
+    print(f"saved the report to {out}", file=sys.stderr)
+    if counts["actions_mismatched"]:
+        print(
+            f"openpi-cam faithfulness: {counts['actions_mismatched']} frames served other actions than when they were "
+            "explained and were left out (another checkpoint or dtype?)",
+            file=sys.stderr,
+        )
+    return 0 if report["steps_evaluated"] else 1

@@ -1,14 +1,33 @@
-"""Argument forms shared by several subcommands."""
+"""Flags shared by several subcommands, each declared once: what an explanation explains and carries (`MapFlags`),
+and the baselines a command may name. Allowed values come from `openpi_cam.vocabulary`."""
 
 from __future__ import annotations
 
 import dataclasses
+from typing import Literal
 
-from openpi_cam.vocabulary import MapOptions
+from openpi_cam.cam.offline import ExplainOptions
+from openpi_cam.cam.spot_check import DEFAULT_PATCHES
+from openpi_cam.vocabulary import (
+    BASELINES,
+    DEFAULT_KINDS,
+    IG_SPACES,
+    MapKind,
+    MapOptions,
+    SaveFrames,
+    Target,
+    check_kinds,
+)
+
+# The vocabulary's tuples as the types tyro offers as choices (a Literal subscripted with a tuple spells its members).
+Baseline = Literal[BASELINES]  # type: ignore[valid-type]
+IgSpace = Literal[IG_SPACES]  # type: ignore[valid-type]
+# What `faithfulness` paints deletions with: the baseline the run's own maps used, or one named.
+DeletionBaseline = Literal[("run", *BASELINES)]  # type: ignore[valid-type]
 
 
 def parse_action_index(text: str) -> tuple[int, int]:
-    """`--cam-action-index`: "I" (pi0-FAST: the I-th action token; pi0 / pi0.5: horizon step I, dimension 0) or "H,D"
+    """`--action-index`: "I" (pi0-FAST: the I-th action token; pi0 / pi0.5: horizon step I, dimension 0) or "H,D"
     (pi0 / pi0.5: dimension D at horizon step H) -> (index, dimension)."""
     parts = [p.strip() for p in str(text).split(",")]
     if len(parts) not in (1, 2) or not all(p.isdigit() for p in parts):
@@ -16,14 +35,81 @@ def parse_action_index(text: str) -> tuple[int, int]:
     return int(parts[0]), int(parts[1]) if len(parts) == 2 else 0
 
 
-def map_options(
-    baseline: str, occlusion_region: int, occlusion_masks: int, ig_space: str = MapOptions.ig_space
-) -> MapOptions:
-    """The `ig` / `occlusion` options of the command-line flags: `occlusion_masks` 0 paints every region once,
-    M > 0 draws M random region masks per camera (Interventional Significance Score)."""
-    if occlusion_masks < 0:
-        raise ValueError(f"--occlusion-masks must be >= 0, got {occlusion_masks}")
-    options = MapOptions(baseline=baseline, occlusion_region=occlusion_region, ig_space=ig_space)
-    if occlusion_masks:
-        return dataclasses.replace(options, occlusion_mode="random", random_masks=occlusion_masks)
-    return options
+@dataclasses.dataclass(frozen=True)
+class MapFlags:
+    """What each explained step explains and which maps it carries. `serve` nests these under `--cam.`, `explain`
+    takes them unprefixed; they are checked here, as the command line is parsed."""
+
+    # which score the maps explain; default: the model family's own (pi0-FAST `action-token`, pi0 / pi0.5 `chunk`).
+    # A pi0-FAST generation without action tokens is explained with `generated-tokens` whatever this says.
+    target: Target | None = None
+    # pi0-FAST: which action token (`action-token`); pi0 / pi0.5: `H,D`, dimension D at horizon step H (`action`).
+    action_index: str = "0"
+    # which kinds of map each explained step carries (README, "Which map to trust"): `gradcam` and `gradnorm` cost one
+    # backward pass together; `ig` and `occlusion` cost several inferences each.
+    maps: tuple[MapKind, ...] = DEFAULT_KINDS
+    # the frame `ig` starts from and `occlusion` paints with: the frame's mean colour or a Gaussian-blurred copy.
+    baseline: Baseline = MapOptions.baseline
+    # side of an `occlusion` region in patches (1: every patch alone, C x (N + 1) re-runs per step).
+    occlusion_region: int = MapOptions.occlusion_region
+    # 0: every `occlusion` region once; M > 0: M random region masks per camera, scored with the Interventional
+    # Significance Score (for large grids).
+    occlusion_masks: int = 0
+    # where the `ig` path runs: between the SigLIP tokens of the baseline frame and the frame, or between the frames'
+    # pixels, through SigLIP.
+    ig_space: IgSpace = MapOptions.ig_space
+    # each explained step's spot check paints each map's top patch and this many random patches (a few re-runs per
+    # camera) and stores the score drops with the maps, so every map carries evidence of its own; 0: no check.
+    check_patches: int = DEFAULT_PATCHES
+
+    def __post_init__(self) -> None:
+        # What the options the flags build would refuse later is refused as the command line is parsed: an empty or
+        # unknown selection of kinds, an unreadable action index, options MapOptions refuses. The spot check's count
+        # is checked by the options each command builds (CAMOptions, ExplainOptions).
+        check_kinds(self.maps)
+        self.action_indices  # noqa: B018
+        self.map_options  # noqa: B018
+
+    @property
+    def action_indices(self) -> tuple[int, int]:
+        """(action token or horizon step, action dimension)."""
+        return parse_action_index(self.action_index)
+
+    @property
+    def map_options(self) -> MapOptions:
+        if self.occlusion_masks < 0:
+            raise ValueError(f"occlusion_masks must be >= 0 (0: every region once), got {self.occlusion_masks}")
+        options = MapOptions(baseline=self.baseline, occlusion_region=self.occlusion_region, ig_space=self.ig_space)
+        if self.occlusion_masks:
+            return dataclasses.replace(options, occlusion_mode="random", random_masks=self.occlusion_masks)
+        return options
+
+    def explain_options(self, save_frames: SaveFrames, batch_size: int, limit: int | None) -> ExplainOptions:
+        """The options of offline explanation (`openpi-cam explain`) with these flags."""
+        index, dim_index = self.action_indices
+        return ExplainOptions(
+            target=self.target,
+            action_index=index,
+            action_dim_index=dim_index,
+            maps=self.maps,
+            save_frames=save_frames,
+            batch_size=batch_size,
+            limit=limit,
+            map_options=self.map_options,
+            check_patches=self.check_patches,
+        )
+
+    def recorded(self) -> dict[str, object]:
+        """The flags as a run records them (`run.json` options; `explain --resume` compares them)."""
+        index, dim_index = self.action_indices
+        return {
+            "target": self.target,
+            "action_index": index,
+            "action_dim_index": dim_index,
+            "maps": list(self.maps),
+            "baseline": self.baseline,
+            "occlusion_region": self.occlusion_region,
+            "occlusion_masks": self.occlusion_masks,
+            "ig_space": self.ig_space,
+            "check_patches": self.check_patches,
+        }

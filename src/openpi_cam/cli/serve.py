@@ -1,28 +1,162 @@
-"""`openpi-cam serve`: load a pi0-FAST checkpoint and serve it like upstream's `scripts/serve_policy.py`.
+"""`openpi-cam serve`: load an OpenPI checkpoint of any family (pi0-FAST, pi0, pi0.5) and serve it like upstream's
+`scripts/serve_policy.py`.
 
-With `--cam-every-k K > 0` every K-th request per connection also gets its maps written to `--cam-dir` (off the
-request path; see docs/FORMAT.md).
+With `--cam.every-k K > 0` every K-th request per connection also gets its maps written under `--cam.dir` (off the
+request path; see docs/FORMAT.md). The side channel's flags are one dataclass, `SideChannelFlags`, nested as `--cam.*`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import sys
 import time
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Any, Literal
+
+import tyro
 
 from openpi_cam.cam.side_channel import CAMOptions, CAMPolicy, wrap_policy_with_cam
-from openpi_cam.cam.spot_check import DEFAULT_PATCHES
-from openpi_cam.cli.options import map_options, parse_action_index
+from openpi_cam.cli.options import MapFlags
 from openpi_cam.model.config import MAX_DECODING_STEPS
 from openpi_cam.policies import demo_reach
+from openpi_cam.policies.family import resolve_target
 from openpi_cam.policies.policy import Policy, create_policy
 from openpi_cam.serving.server import PolicyServer
-from openpi_cam.vocabulary import DEFAULT_KINDS, MapKind, SaveFrames, Target
+from openpi_cam.vocabulary import SaveFrames, Target
 
 logger = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass(frozen=True)
+class SideChannelFlags(MapFlags):
+    """The explanation side channel: which requests are explained, what each explained step carries, where the run is
+    written and how the worker makes room for inference. Defaults are `CAMOptions`' unless the command line's differ.
+    """
+
+    # explain every k-th request of each connection (0: off). `--cam-every-k` is the spelling of earlier releases.
+    every_k: Annotated[int, tyro.conf.arg(aliases=("--cam-every-k",))] = 0
+    # a new run directory per server start goes under this folder (an earlier run is never overwritten).
+    dir: Path = Path(CAMOptions.cam_dir)
+    # which camera frames are stored next to the maps (`model` is what `openpi-cam faithfulness` needs; `raw` and
+    # `both` keep the run re-explainable by `openpi-cam explain`).
+    save_frames: SaveFrames = CAMOptions.save_frames
+    # pending jobs in all; at the cap the oldest job of the connection holding the most is dropped.
+    queue_size: int = CAMOptions.queue_size
+    # pending jobs per connection at most (a newer one supersedes that connection's oldest); default: no such limit.
+    per_connection: int | None = CAMOptions.per_connection
+    # the worker starts an explanation only this long after the last inference ended (its reply is still being sent).
+    settle_ms: float = CAMOptions.settle_ms
+    # explain on this device (an index into `jax.devices()`, e.g. 1 for a second GPU), which holds a copy of the
+    # parameters; explanations then run while the served model infers. Default: share the served model's device,
+    # explaining only in its pauses.
+    device: int | None = CAMOptions.device
+    # stop recording after this many steps; default: no limit.
+    max_steps: int | None = CAMOptions.max_steps
+    # stop recording once the run directory holds this many MB; default: no limit.
+    max_mb: float | None = None
+    # on SIGTERM, seconds the side channel keeps explaining queued jobs (counted from the signal, while connections
+    # close) before the run's manifest is closed: SIGTERM exits within this, the in-flight inference and 2 s for
+    # unresponsive peers, inside a container's 10 s stop grace period.
+    drain_timeout: float = 5.0
+    # largest `cam_extra/` value a step stores (an array's bytes, other values' JSON); larger ones are dropped and named
+    # in the step's `extra_dropped`.
+    max_extra_value_kb: float = CAMOptions.max_extra_value_bytes / 1024
+    # all `cam_extra/` values a step stores together.
+    max_extra_kb: float = CAMOptions.max_extra_bytes / 1024
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self.options()  # CAMOptions refuses what it would refuse later, as the flags are parsed
+
+    def options(self, target: Target | None = None) -> CAMOptions:
+        """The side channel's options; `target`, when given, stands for the flag's (the served family's resolved
+        target)."""
+        index, dim_index = self.action_indices
+        return CAMOptions(
+            every_k=self.every_k,
+            cam_dir=self.dir,
+            save_frames=self.save_frames,
+            target=target or self.target,
+            action_index=index,
+            action_dim_index=dim_index,
+            maps=self.maps,
+            map_options=self.map_options,
+            check_patches=self.check_patches,
+            queue_size=self.queue_size,
+            per_connection=self.per_connection,
+            settle_ms=self.settle_ms,
+            device=self.device,
+            max_steps=self.max_steps,
+            max_bytes=None if self.max_mb is None else int(self.max_mb * 1024 * 1024),
+            drain_timeout=self.drain_timeout,
+            max_extra_value_bytes=int(self.max_extra_value_kb * 1024),
+            max_extra_bytes=int(self.max_extra_kb * 1024),
+        )
+
+
+SIDE_CHANNEL_OFF = SideChannelFlags()
+
+
+class StartupError(Exception):
+    """A start-up problem of the operator's making (a flag, a file, a checkpoint of another family): reported in one
+    line with this exit status, without a traceback."""
+
+    def __init__(self, message: str, status: int) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+@dataclasses.dataclass(frozen=True)
+class Checkpoint:
+    """What `serve` loads: the flags, with the bundled demo model's settings where no checkpoint is named."""
+
+    config: str
+    checkpoint_dir: Path
+    paligemma_tokenizer: Path | None
+    fast_tokenizer: Path | None
+    dtype: str
+    max_decoding_steps: int
+
+    @classmethod
+    def of_flags(
+        cls,
+        checkpoint_dir: Path | None,
+        config: str | None,
+        paligemma_tokenizer: Path | None,
+        fast_tokenizer: Path | None,
+        dtype: str | None,
+    ) -> Checkpoint:
+        if checkpoint_dir is None:  # the bundled default: a tiny pi0-FAST trained on the demo task
+            return cls(
+                config or demo_reach.DEMO_CONFIG.name,
+                demo_reach.CHECKPOINT,
+                paligemma_tokenizer or demo_reach.PALIGEMMA_TOKENIZER,
+                fast_tokenizer or demo_reach.FAST_TOKENIZER,
+                dtype or "float32",
+                demo_reach.MAX_DECODING_STEPS,
+            )
+        return cls(
+            config or "pi0_fast_droid",
+            checkpoint_dir,
+            paligemma_tokenizer,
+            fast_tokenizer,
+            dtype or "bfloat16",  # as upstream serves
+            MAX_DECODING_STEPS,
+        )
+
+    def run_config(self, default_prompt: str | None, stop_at_action_end: bool) -> dict[str, Any]:
+        """How the served policy was built, as the side channel's run records it."""
+        return {
+            "config": self.config,
+            "checkpoint_dir": str(self.checkpoint_dir),
+            "paligemma_tokenizer": None if self.paligemma_tokenizer is None else str(self.paligemma_tokenizer),
+            "fast_tokenizer": None if self.fast_tokenizer is None else str(self.fast_tokenizer),
+            "dtype": self.dtype,
+            "default_prompt": default_prompt,
+            "stop_at_action_end": stop_at_action_end,
+        }
 
 
 def main(
@@ -40,38 +174,21 @@ def main(
     max_buffered_mb: float = 256.0,
     debug: bool = False,
     stop_at_action_end: bool = False,
-    cam_every_k: int = 0,
-    cam_dir: Path = Path("cam_runs"),
-    cam_save_frames: SaveFrames = "model",
-    cam_target: Target = "action-token",
-    cam_action_index: str = "0",
-    cam_maps: tuple[MapKind, ...] = DEFAULT_KINDS,
-    cam_baseline: Literal["mean", "blur"] = "mean",
-    cam_occlusion_region: int = 1,
-    cam_occlusion_masks: int = 0,
-    cam_ig_space: Literal["tokens", "pixels"] = "tokens",
-    cam_check_patches: int = DEFAULT_PATCHES,
-    cam_queue_size: int = 8,
-    cam_per_connection: int | None = None,
-    cam_settle_ms: float = 10.0,
-    cam_device: int | None = None,
-    cam_max_steps: int | None = None,
-    cam_max_mb: float | None = None,
-    cam_drain_timeout: float = 5.0,
-    cam_max_extra_value_kb: float = 16.0,
-    cam_max_extra_kb: float = 64.0,
+    cam: SideChannelFlags = SIDE_CHANNEL_OFF,
     warm_up: bool = True,
     batch_window_ms: float | None = None,
     max_batch: int = 8,
 ) -> int:
-    """Serve a pi0-FAST checkpoint over websockets (openpi-client compatible), optionally logging Grad-CAM.
+    """Serve an OpenPI checkpoint (pi0-FAST, pi0 or pi0.5) over websockets (openpi-client compatible), optionally
+    explaining every k-th request of each connection in the background (`--cam.every-k`).
 
     Args:
         checkpoint_dir: checkpoint folder with `params/` and `assets/<asset_id>/norm_stats.json`; default: the
             bundled demo model (config `demo_reach`, its own tokenizers, float32).
-        config: named policy config (e.g. pi0_fast_droid, pi0_fast_libero); default pi0_fast_droid for a checkpoint.
+        config: named policy config (e.g. pi0_fast_droid, pi05_droid, pi0_libero); default pi0_fast_droid for a
+            checkpoint. It must be of the checkpoint's family.
         paligemma_tokenizer: PaliGemma SentencePiece model; default: the policy factory's standard location.
-        fast_tokenizer: FAST action tokenizer folder; default: the policy factory's standard location.
+        fast_tokenizer: FAST action tokenizer folder (pi0-FAST); default: the policy factory's standard location.
         port: TCP port.
         host: interface to listen on (0.0.0.0 = all, like upstream).
         default_prompt: prompt used when a request has none.
@@ -82,177 +199,174 @@ def main(
         max_buffered_mb: request bytes being handled at once over all connections (decoding, waiting for the model,
             computing); a request that would pass it closes its connection (code 1013). At least --max-message-mb.
         debug: send tracebacks of unexpected errors to clients.
-        stop_at_action_end: stop decoding at the end of the action string instead of running to EOS.
-        cam_every_k: record Grad-CAM for every k-th request (0 = off).
-        cam_dir: where Grad-CAM runs are written.
-        cam_save_frames: which camera frames to store next to the maps.
-        cam_target: which score the maps explain (a generation without action tokens is explained with
-            `generated-tokens` whatever this says).
-        cam_action_index: pi0-FAST: which action token (`action-token`); pi0 / pi0.5: `H,D`, dimension D at horizon
-            step H (`action`).
-        cam_maps: which kinds of map each explained step carries (README, "Which map to trust"): `gradcam` and
-            `gradnorm` cost one backward pass together; `ig` (about 8x an inference on the demo model) and
-            `occlusion` (one re-run per patch and camera) are opt-in live.
-        cam_baseline: the frame `ig` starts from and `occlusion` paints with: the frame's mean colour or a blurred copy.
-        cam_occlusion_region: side of an `occlusion` region in patches (1: every patch alone).
-        cam_occlusion_masks: 0: every region once; M > 0: M random region masks per camera (ISS), for large grids.
-        cam_ig_space: where the `ig` path runs: SigLIP tokens or the frames' pixels (README, "Map kinds").
-        cam_check_patches: each explained step's spot check paints each map's top patch and this many random
-            patches (a few re-runs per camera, in one call) and stores the score drops with the maps, so every map
-            carries evidence of its own (README, "Looking at the maps"); 0: no check.
-        cam_queue_size: pending Grad-CAM jobs in all; at the cap the busiest connection's oldest one is dropped.
-        cam_per_connection: pending jobs per connection at most (a newer one supersedes the oldest); None: no limit.
-        cam_settle_ms: the worker starts an explanation only this long after the last inference ended (the reply is
-            still being sent then).
-        cam_device: explain on this device (an index into `jax.devices()`, e.g. 1 for a second GPU), which holds a
-            copy of the parameters; explanations then run while the served model infers. Default: share the served
-            model's device, explaining only in pauses (`--cam-settle-ms`).
-        cam_max_steps: stop recording after this many steps (None = no limit).
-        cam_max_mb: stop recording once the run directory holds this many MB (None = no limit).
-        cam_drain_timeout: on SIGTERM, seconds the side channel keeps explaining queued jobs (counted from the
-            signal, while connections close) before the run's manifest is closed: SIGTERM exits within this, the
-            in-flight inference and 2 s for unresponsive peers, inside a container's 10 s stop grace period.
-        cam_max_extra_value_kb: largest `cam_extra/` value a step stores (an array's bytes, other values' JSON);
-            larger ones are dropped and named in the step's `extra_dropped`.
-        cam_max_extra_kb: all `cam_extra/` values a step stores together.
+        stop_at_action_end: pi0-FAST: stop decoding at the end of the action string instead of running to EOS.
+        cam: the explanation side channel (off unless --cam.every-k > 0).
         warm_up: compile inference (and the side channel's explanation) on the robot's example observation before
             listening, so `/healthz` answers only once the first request will not wait for compilation.
         batch_window_ms: serve a fleet in batches: requests from all connections arriving within this many ms of the
-            first share one model call, each row answered as if served alone (README, "Serving a fleet"). None: one
-            request per model call, as upstream.
+            first share one model call, each row answered as if served alone (docs/SERVING.md). None: one request
+            per model call, as upstream.
         max_batch: requests per batched call at most, a power of two (calls run at power-of-two batch sizes: one
             compiled program each, all compiled at warm-up).
     """
+    _configure_logging()
+    try:
+        _check_batching(batch_window_ms, max_batch)
+        checkpoint = Checkpoint.of_flags(checkpoint_dir, config, paligemma_tokenizer, fast_tokenizer, dtype)
+        policy = _create_policy(checkpoint, default_prompt, stop_at_action_end)
+        served = _with_side_channel(policy, cam, checkpoint, checkpoint.run_config(default_prompt, stop_at_action_end))
+        server = _server(
+            served,
+            policy.metadata,
+            family=policy.model.family,
+            host=host,
+            port=port,
+            api_key=api_key,
+            max_message_mb=max_message_mb,
+            max_connections=max_connections,
+            max_buffered_mb=max_buffered_mb,
+            debug=debug,
+            drain_timeout=cam.drain_timeout,
+            batch_window_ms=batch_window_ms,
+            max_batch=max_batch,
+        )
+    except StartupError as e:
+        print(f"openpi-cam serve: {e}", file=sys.stderr)
+        return e.status
+    if warm_up:
+        _warm_up(served, policy, batch_window_ms, max_batch)
+    return _serve(server, served, host, port)
+
+
+def _configure_logging() -> None:
     # force: importing orbax has already put a handler on the root logger; ours gives every line a time stamp. INFO
     # for this package only (readiness, connections, shutdown); libraries stay at WARNING.
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s", force=True)
     logging.getLogger("openpi_cam").setLevel(logging.INFO)
-    if max_message_mb <= 0 or max_buffered_mb < max_message_mb:
-        print(
-            "openpi-cam serve: need 0 < --max-message-mb <= --max-buffered-mb, "
-            f"got {max_message_mb} and {max_buffered_mb}",
-            file=sys.stderr,
-        )
-        return 2
-    if cam_drain_timeout < 0:
-        print(f"openpi-cam serve: --cam-drain-timeout must be >= 0, got {cam_drain_timeout}", file=sys.stderr)
-        return 2
-    if batch_window_ms is not None and (batch_window_ms < 0 or max_batch < 1 or max_batch & (max_batch - 1)):
-        print(
-            f"openpi-cam serve: need --batch-window-ms >= 0 and --max-batch a power of two, got {batch_window_ms} "
-            f"and {max_batch}",
-            file=sys.stderr,
-        )
-        return 2
-    if cam_every_k < 0:
-        print(f"openpi-cam serve: --cam-every-k must be >= 0, got {cam_every_k}", file=sys.stderr)
-        return 2
-    try:
-        action_index, action_dim_index = parse_action_index(cam_action_index)
-    except ValueError as e:
-        print(f"openpi-cam serve: --cam-action-index: {e}", file=sys.stderr)
-        return 2
 
-    max_decoding_steps = MAX_DECODING_STEPS
-    if checkpoint_dir is None:  # the bundled default: a tiny pi0-FAST trained on the demo task
-        max_decoding_steps = demo_reach.MAX_DECODING_STEPS
-        checkpoint_dir = demo_reach.CHECKPOINT
-        config = config or demo_reach.DEMO_CONFIG.name
-        paligemma_tokenizer = paligemma_tokenizer or demo_reach.PALIGEMMA_TOKENIZER
-        fast_tokenizer = fast_tokenizer or demo_reach.FAST_TOKENIZER
-        dtype = dtype or "float32"
-    config = config or "pi0_fast_droid"
-    dtype = dtype or "bfloat16"
+
+def _check_batching(batch_window_ms: float | None, max_batch: int) -> None:
+    """Batched serving runs (and warms up) one program per power-of-two batch size up to --max-batch."""
+    if batch_window_ms is not None and (batch_window_ms < 0 or max_batch < 1 or max_batch & (max_batch - 1)):
+        raise StartupError(
+            f"need --batch-window-ms >= 0 and --max-batch a power of two, got {batch_window_ms} and {max_batch}", 2
+        )
+
+
+def _create_policy(checkpoint: Checkpoint, default_prompt: str | None, stop_at_action_end: bool) -> Policy:
     try:
-        policy = create_policy(
-            config,
-            checkpoint_dir,
-            paligemma_tokenizer=paligemma_tokenizer,
-            fast_tokenizer=fast_tokenizer,
-            dtype=dtype,
+        return create_policy(
+            checkpoint.config,
+            checkpoint.checkpoint_dir,
+            paligemma_tokenizer=checkpoint.paligemma_tokenizer,
+            fast_tokenizer=checkpoint.fast_tokenizer,
+            dtype=checkpoint.dtype,
             default_prompt=default_prompt,
             stop_at_action_end=stop_at_action_end,
-            max_decoding_steps=max_decoding_steps,
+            max_decoding_steps=checkpoint.max_decoding_steps,
         )
-    except (FileNotFoundError, ValueError) as e:
+    except KeyError as e:  # an unknown config name: its message lists the known ones
+        raise StartupError(str(e.args[0]) if e.args else repr(e), 1) from None
+    except (FileNotFoundError, ValueError, OSError) as e:
         # Missing files or a checkpoint that is not the config's family are operator problems, not bugs: the message
         # says what is wrong and where.
-        print(f"openpi-cam serve: {e}", file=sys.stderr)
-        return 1
-    metadata = dict(policy.metadata)
+        raise StartupError(str(e), 1) from None
 
-    served: Policy | CAMPolicy = policy
-    if cam_every_k > 0:
-        options = CAMOptions(
-            every_k=cam_every_k,
-            cam_dir=cam_dir,
-            save_frames=cam_save_frames,
-            target=cam_target,
-            action_index=action_index,
-            action_dim_index=action_dim_index,
-            maps=cam_maps,
-            map_options=map_options(cam_baseline, cam_occlusion_region, cam_occlusion_masks, cam_ig_space),
-            check_patches=cam_check_patches,
-            queue_size=cam_queue_size,
-            per_connection=cam_per_connection,
-            settle_ms=cam_settle_ms,
-            device=cam_device,
-            max_steps=cam_max_steps,
-            max_bytes=None if cam_max_mb is None else int(cam_max_mb * 1024 * 1024),
-            max_extra_value_bytes=int(cam_max_extra_value_kb * 1024),
-            max_extra_bytes=int(cam_max_extra_kb * 1024),
+
+def _with_side_channel(
+    policy: Policy, flags: SideChannelFlags, checkpoint: Checkpoint, run_config: dict[str, Any]
+) -> Policy | CAMPolicy:
+    """The policy as served: itself, or wrapped in the side channel explaining the target the flags name (by default
+    the family's own); a target the family cannot explain is refused, naming those it can."""
+    if flags.every_k == 0:
+        return policy
+    try:
+        target = resolve_target(policy.explainer, flags.target)
+    except ValueError as e:
+        raise StartupError(f"--cam.target {e}", 2) from None
+    try:
+        served = wrap_policy_with_cam(
+            policy, flags.options(target), run_config=run_config, checkpoint=str(checkpoint.checkpoint_dir)
         )
-        run_config = {
-            "config": config,
-            "checkpoint_dir": str(checkpoint_dir),
-            "paligemma_tokenizer": None if paligemma_tokenizer is None else str(paligemma_tokenizer),
-            "fast_tokenizer": None if fast_tokenizer is None else str(fast_tokenizer),
-            "dtype": dtype,
-            "default_prompt": default_prompt,
-            "stop_at_action_end": stop_at_action_end,
-        }
-        try:
-            served = wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=str(checkpoint_dir))
-        except ValueError as e:  # e.g. --cam-device names a device this machine does not have
-            print(f"openpi-cam serve: {e}", file=sys.stderr)
-            return 2
-        logger.info("Grad-CAM on: every %d requests, target %s, writing to %s", cam_every_k, cam_target, cam_dir)
+    except ValueError as e:  # e.g. --cam.device names a device this machine does not have
+        raise StartupError(str(e), 2) from None
+    logger.info(
+        "side channel: explaining every %d request(s) of each connection, target %s, runs under %s",
+        flags.every_k,
+        target,
+        flags.dir,
+    )
+    return served
 
-    if batch_window_ms is not None and policy.model.family != "pi0_fast":
+
+def _server(
+    served: Policy | CAMPolicy,
+    metadata: dict[str, Any],
+    *,
+    family: str,
+    host: str,
+    port: int,
+    api_key: str | None,
+    max_message_mb: float,
+    max_connections: int,
+    max_buffered_mb: float,
+    debug: bool,
+    drain_timeout: float,
+    batch_window_ms: float | None,
+    max_batch: int,
+) -> PolicyServer:
+    """The websocket server, not yet listening; it refuses limits it cannot serve with."""
+    if batch_window_ms is not None and family != "pi0_fast":
         logger.warning(
             "batched %s serving: actions match serving each request alone only to floating-point rounding (batched "
-            "matrix products round differently; README, 'Serving a fleet')",
-            policy.model.family,
+            "matrix products round differently; docs/SERVING.md)",
+            family,
         )
-    if warm_up:
-        start = time.monotonic()
-        sizes = (1,) if batch_window_ms is None else tuple(1 << i for i in range(max_batch.bit_length()))
-        warmed = served.warm_up(sizes) if isinstance(served, CAMPolicy) else _warm_up_inference(policy, sizes)
-        batches = "" if batch_window_ms is None else f" (batch sizes {list(sizes)})"
-        logger.info("warmed up %s in %.1f s%s", warmed, time.monotonic() - start, batches)
-    server = PolicyServer(
-        served,
-        host=host,
-        port=port,
-        metadata=metadata,
-        api_key=api_key,
-        max_message_bytes=int(max_message_mb * 1024 * 1024),
-        max_connections=max_connections,
-        max_buffered_bytes=int(max_buffered_mb * 1024 * 1024),
-        debug=debug,
-        close_timeout=cam_drain_timeout,
-        batch_window_ms=batch_window_ms,
-        max_batch=max_batch,
-    )
-    server.serve_forever()
+    try:
+        return PolicyServer(
+            served,
+            host=host,
+            port=port,
+            metadata=dict(metadata),
+            api_key=api_key,
+            max_message_bytes=int(max_message_mb * 1024 * 1024),
+            max_connections=max_connections,
+            max_buffered_bytes=int(max_buffered_mb * 1024 * 1024),
+            debug=debug,
+            close_timeout=drain_timeout,
+            batch_window_ms=batch_window_ms,
+            max_batch=max_batch,
+        )
+    except ValueError as e:
+        served.close(0.0)  # the side channel may have opened its run: close it with its manifest
+        raise StartupError(f"server limits (--max-message-mb, --max-connections, --max-buffered-mb): {e}", 2) from None
+
+
+def _warm_up(served: Policy | CAMPolicy, policy: Policy, batch_window_ms: float | None, max_batch: int) -> None:
+    start = time.monotonic()
+    sizes = (1,) if batch_window_ms is None else tuple(1 << i for i in range(max_batch.bit_length()))
+    if isinstance(served, CAMPolicy):
+        warmed = served.warm_up(sizes)
+    elif policy.warm_up(sizes) is not None:
+        warmed = "inference"
+    else:
+        warmed = "nothing (the robot transform offers no example)"
+    batches = "" if batch_window_ms is None else f" (batch sizes {list(sizes)})"
+    logger.info("warmed up %s in %.1f s%s", warmed, time.monotonic() - start, batches)
+
+
+def _serve(server: PolicyServer, served: Policy | CAMPolicy, host: str, port: int) -> int:
+    """Listens until SIGINT / SIGTERM, then drains and closes."""
+    try:
+        server.serve_forever()
+    except OSError as e:  # the port is taken, or the host is not this machine's
+        print(f"openpi-cam serve: cannot listen on {host}:{port}: {e}", file=sys.stderr)
+        served.close(0.0)
+        return 1
     if isinstance(served, CAMPolicy) and served.computing:
         # The manifest is written; an explanation still runs in XLA on the worker thread, and interpreter shutdown
         # under a running XLA computation aborts the process. Exit without the interpreter's teardown instead.
-        logger.warning("exiting with an explanation still computing past --cam-drain-timeout (its step is not written)")
+        logger.warning("exiting with an explanation still computing past --cam.drain-timeout (its step is not written)")
         logging.shutdown()
         os._exit(0)
     return 0
-
-
-def _warm_up_inference(policy: Policy, batch_sizes: tuple[int, ...]) -> str:
-    return "inference" if policy.warm_up(batch_sizes) is not None else "nothing (the robot transform offers no example)"

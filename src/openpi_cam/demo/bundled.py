@@ -26,7 +26,8 @@ def model_config(
     scan: bool | None = None,
 ) -> Pi0FASTConfig:
     """pi0-FAST's architecture scaled down. 16 px patches rather than 8: each block then covers a larger share of the
-    image tokens (1-4 of 16), and colour binding is learned within the CPU budget (8 px patches: no binding seen).
+    image tokens (1-4 of 16), and colour binding is learned within the CPU budget (at 8 px it was not:
+    docs/DEMO_NOTES.md).
     `scan` None: the layout a checkpoint of this depth is served with (`scan_by_default`)."""
     scan = scan_by_default(depth) if scan is None else scan
     gemma = GemmaConfig(

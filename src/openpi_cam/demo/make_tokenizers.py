@@ -88,8 +88,8 @@ def fit_fast(
     """FAST fitted on normalised expert chunks; `normalize` must be the checkpoint's action normalisation.
 
     The BPE vocabulary is asked for as the coefficient alphabet plus `MERGES` merges, but FAST's byte-level BPE starts
-    from 256 byte symbols, more than that budget, so the fit learns no merges at all (measured: the same data fitted
-    with a vocabulary of 300 folds a constant chunk into 2 ids). A constant chunk is therefore 20 ids, and a policy
+    from 256 byte symbols, more than that budget, so the fit learns no merges at all (a larger vocabulary does fold a
+    constant chunk: docs/DESIGN_NOTES.md). A constant chunk is therefore 20 ids, and a policy
     must emit exactly 18 zero ids after the two informative ones or the chunk fails to decode (upstream then returns
     zeros). Room for merges needs more FAST ids than the 256 `<loc>` pieces, i.e. a larger text vocabulary.
     """

@@ -1,7 +1,7 @@
-"""Does the demo's Grad-CAM point at the right thing? Figures from a demo run directory and from fresh inferences.
+"""Do the demo's maps point at the right thing? Figures from a demo run directory and from fresh inferences.
 
-The map figures are reported for both maps the side channel logs from one gradient: Grad-CAM (`cam/`) and the
-per-token gradient norm (`gradnorm/`).
+The run's figures are reported for every map kind it logged; the fresh inferences', for the two kinds one gradient
+gives (Grad-CAM and the per-token gradient norm, `DEFAULT_KINDS`).
 
 * success rate of the run's episodes;
 * pointing game: share of logged steps whose base-camera map peaks on a patch overlapping the named block's box, next
@@ -160,8 +160,8 @@ OCCLUSIONS = ("none", "base", "wrist")
 def occlusion_figures(policy: Policy, samples: int = 40, seed: int = 4321) -> dict[str, dict[str, float]]:
     """Which camera drives the policy? Per occlusion (the blocks erased from no view, from the base view, from the wrist
     view; the end-effector marker stays), the share of fresh rollout starts whose executed chunk heads for the named
-    block, and for any block. A causal counterpart to the maps: a camera the policy does not use cannot be where its
-    Grad-CAM peak means anything."""
+    block, and for any block. A causal counterpart to the maps: a camera the policy does not use cannot be where a
+    map's peak means anything."""
     rng = np.random.default_rng(seed)
     size = task.TaskConfig().image_size
     empty = task.Scene(blocks=(), target=0)
@@ -188,8 +188,8 @@ def occlusion_figures(policy: Policy, samples: int = 40, seed: int = 4321) -> di
 
 
 def _explain(explainer: Explainer, trace: InferenceTrace, target: str) -> Explanation | None:
-    (exp,) = explain_traces(explainer, [trace], ExplainRequest(target))  # type: ignore[arg-type]
-    return exp if isinstance(exp, Explanation) and exp.target == target else None
+    (explanation,) = explain_traces(explainer, [trace], ExplainRequest(target))  # type: ignore[arg-type]
+    return explanation if isinstance(explanation, Explanation) and explanation.target == target else None
 
 
 def _trace(policy: Policy, obs: dict[str, Any]) -> InferenceTrace:
@@ -273,7 +273,7 @@ class Args:
     run_dir: Path | None = None  # a demo run directory; None: only the offline figures
     samples: int = 30
     seed: int = 1234
-    target: str = "chunk"  # what Grad-CAM explains in the offline checks (as `openpi-cam demo --target`)
+    target: str = "chunk"  # what the maps explain in the offline checks (as `openpi-cam demo --target`)
     assets: Path = demo_reach.ASSETS  # the model judged offline (as `openpi-cam demo --assets`; a training run's --out)
 
 

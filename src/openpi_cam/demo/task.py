@@ -27,7 +27,7 @@ MARKER = (255, 255, 255)
 @dataclasses.dataclass(frozen=True)
 class TaskConfig:
     image_size: int = 64
-    block_size: int = 12  # pixels: 1-4 of the model's 16 px patches, so the target shows on the Grad-CAM grid
+    block_size: int = 12  # pixels: 1-4 of the model's 16 px patches, so the target shows on the maps' patch grid
     min_blocks: int = 2
     max_blocks: int = 3
     wrist_crop: int = 32  # pixels of the base view around the end effector, upsampled to image_size
@@ -59,7 +59,7 @@ class Scene:
 
 @dataclasses.dataclass(frozen=True)
 class Sample:
-    """One observation of the task plus the expert's answer and the ground truth for judging Grad-CAM."""
+    """One observation of the task plus the expert's answer and the ground truth for judging the maps."""
 
     base_image: np.ndarray  # [S, S, 3] uint8
     wrist_image: np.ndarray  # [S, S, 3] uint8

@@ -51,15 +51,14 @@ class TrainArgs:
     depth: int = 2
     vit_width: int = 64
     patch_size: int = bundled.PATCH_SIZE
-    # Batches of (same scene, two prompts) pairs (`task.contrast_pair`). Without them the model settled on "head for
-    # a block" in every run (binding probe ~0.5); with them at batch 32 the probe climbs from step ~1500 to 0.92 at
-    # step 5000 and 0.99 at 10000.
+    # Batches of (same scene, two prompts) pairs (`task.contrast_pair`): without them the model settles on "head for
+    # a block" and never binds the colour the prompt names (training curves: docs/DEMO_NOTES.md).
     contrast_pairs: bool = True
     # RoPE offset of the action tokens in the first phase: 0 is where upstream's training puts them.
     decode_offset: int = 0
     # Second phase: a fresh optimizer trains the action tokens one position on, where upstream's decoder serves them
-    # (quirk 1). Trained at upstream's training positions only, the model binds the colour (probe 0.99) yet decodes
-    # toward the named block only 60% of the time when served (100% with the decoder's offset removed). 0: no phase.
+    # (quirk 1): trained at upstream's training positions only, the model binds the colour yet, served, decodes
+    # toward the named block much less often than with the decoder's offset removed (docs/DEMO_NOTES.md). 0: no phase.
     # (pi0-FAST only; the phase is skipped for pi0.5.)
     finetune_steps: int = 400
     finetune_lr: float = 1e-3

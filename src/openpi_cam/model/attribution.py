@@ -21,15 +21,14 @@ import numpy as np
 
 from openpi_cam.vocabulary import IG_RULES, MapOptions
 
-# Score gaps below this are not resolved relative to themselves: float32 evaluations of the same logits (magnitude
-# ~10) differ by up to ~5e-4 (golden README), so 2% of a smaller gap would be rounding noise.
+# Score gaps below this are not resolved relative to themselves: float32 evaluations of the same logits differ by
+# rounding errors of about this size (docs/DESIGN_NOTES.md), so 2% of a smaller gap would be rounding noise.
 COMPLETENESS_FLOOR = 1e-3
 # The IG steps stop doubling once a doubling leaves more than this share of the completeness error: the error is then
-# the arithmetic's, not the quadrature's, and the attempt with the smallest error is kept. Gauss-Legendre's error
-# shrinks several-fold per doubling across a kink in the integrand (golden tiny model: 4.8% -> 0.24%). In bfloat16,
-# as real checkpoints are served, the scores are rounded to bfloat16 and the error stops shrinking at a floor (demo
-# model, first action token: 0.1-4% of gaps of 1.4-20, flat from 16 to 128 points; docs/MAP_KINDS.md), where
-# doubling to the cap cost 15x the first try for nothing.
+# the arithmetic's, not the quadrature's, and the attempt with the smallest error is kept. While the quadrature limits
+# it, Gauss-Legendre's error shrinks several-fold per doubling, even across a kink in the integrand. In bfloat16, as
+# real checkpoints are served, the scores are rounded to bfloat16 and the error stops shrinking at a floor, where
+# doubling to the cap would multiply the cost for nothing (chosen by measurement: docs/DESIGN_NOTES.md).
 IG_STALL = 0.75
 
 
@@ -144,8 +143,9 @@ def per_score_grads(vjp_fn: Callable, scores: jax.Array) -> jax.Array:
     """Gradients of each score row scores[t] (shape [T, B]) from one VJP closure -> [T, *input shape].
 
     Rows of the batch are independent, so one cotangent per t (ones over B) gives every row's gradient. The
-    cotangents run as `lax.map`, not `vmap` (see `pi0_fast_maps._token_cams`: vmap of this VJP was wrong on jax
-    0.10.2 CPU)."""
+    cotangents run as `lax.map`, not `vmap`: `vmap` of the decoding replay's VJP gave wrong gradients for all but the
+    first cotangent on XLA:CPU at real prefix lengths (docs/DESIGN_NOTES.md), while `lax.map` agrees with one VJP per
+    score (tests/model/test_pi0_fast_maps.py checks the stack against upstream's per-step maps)."""
     t = scores.shape[0]
     cotangents = jnp.broadcast_to(jnp.eye(t, dtype=scores.dtype)[:, :, None], (t, *scores.shape))  # [T, T, B]
     return jax.lax.map(lambda cot: vjp_fn(cot)[0], cotangents)

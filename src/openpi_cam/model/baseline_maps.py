@@ -113,12 +113,6 @@ def baseline_kinds(
     return out
 
 
-def frames(obs: Observation, options: MapOptions) -> jax.Array:
-    """The baseline frame of every camera [C, B, H, W, 3] (traced)."""
-    images, valid = camera_stack(obs)
-    return baseline_images(images, valid, options)
-
-
 def compiled_options(options: MapOptions, kinds: Sequence[str] = BASELINE_KINDS) -> MapOptions:
     """The options the compiled program depends on: which masks occlusion uses is data (their count a shape), so
     the mask-drawing fields are reset and e.g. a new seed reuses the compilation; so are the fields of kinds not

@@ -1,4 +1,5 @@
-"""Model hyperparameters: named variants for building from scratch, and read-back from a checkpoint's shapes."""
+"""Model hyperparameters (the defaults are upstream's full-size architecture), and read-back from a checkpoint's
+shapes."""
 
 from __future__ import annotations
 
@@ -15,16 +16,16 @@ MAX_DECODING_STEPS = 256
 
 def remat_by_default(width: int) -> bool:
     """Read-back rule for the `remat` field: full-size stacks (Gemma 2B: width 2048; the 300M action expert: 1024)
-    recompute their layers in the backward pass. Measured on the full-size pi0-FAST, bfloat16, 3 cameras: the
-    one-token explanation's XLA temporaries are 27.1 GB without it and 11.1 GB with it (`bench_fullsize.py`); small
-    models keep their activations, which is faster."""
+    recompute their layers in the backward pass, because a full-size explanation's stored activations need more than
+    a CPU host's memory (docs/DESIGN_NOTES.md); small models keep their activations, which is faster. A device with
+    room drops remat per program (`remat.backward_layout`)."""
     return width >= 1024
 
 
 def scan_by_default(depth: int) -> bool:
     """Read-back rule for the `scan` field: deep stacks (real checkpoints, 18 / 27 layers) run as one scanned layer,
     which keeps compilation cheap; stacks of at most 2 layers are unrolled, because differentiating a scan on
-    XLA:CPU slices and transposes every stacked activation (`benchmarks/bench_train.py`)."""
+    XLA:CPU slices and transposes every stacked activation (docs/DESIGN_NOTES.md)."""
     return depth > 2
 
 
@@ -103,40 +104,6 @@ class Pi0Config:
     @property
     def image_resolution(self) -> tuple[int, int]:
         return (self.siglip.image_size, self.siglip.image_size)
-
-
-GEMMA_VARIANTS: dict[str, GemmaConfig] = {
-    "gemma_2b": GemmaConfig(remat=True),
-    "gemma_2b_lora": GemmaConfig(lora_rank=16, lora_alpha=16.0, remat=True),
-    "gemma_300m": GemmaConfig(width=1024, mlp_dim=4096, vocab_size=0, remat=True),
-    "gemma_300m_lora": GemmaConfig(width=1024, mlp_dim=4096, vocab_size=0, lora_rank=32, lora_alpha=32.0, remat=True),
-}
-
-# Widths/depths/mlp/heads of big_vision's ViT family that PaliGemma uses; "/N" gives the patch size.
-_SIGLIP_FAMILY: dict[str, tuple[int, int, int, int]] = {
-    "mu": (32, 1, 128, 2),
-    "Ti": (192, 12, 768, 3),
-    "S": (384, 12, 1536, 6),
-    "B": (768, 12, 3072, 12),
-    "L": (1024, 24, 4096, 16),
-    "So400m": (1152, 27, 4304, 16),
-}
-
-
-def siglip_variant(name: str, *, out_dim: int, image_size: int = 224, **overrides: Any) -> SiglipConfig:
-    """`siglip_variant("So400m/14", out_dim=2048)` -> the SigLIP config upstream builds for pi0-FAST."""
-    family, _, patch = name.partition("/")
-    if family not in _SIGLIP_FAMILY or not patch.isdigit():
-        raise ValueError(f"unknown SigLIP variant {name!r}; expected one of {sorted(_SIGLIP_FAMILY)} + '/<patch>'")
-    width, depth, mlp_dim, heads = _SIGLIP_FAMILY[family]
-    base = SiglipConfig(width, depth, mlp_dim, heads, int(patch), image_size, out_dim)
-    return dataclasses.replace(base, **overrides)
-
-
-def pi0_fast_config(paligemma_variant: str = "gemma_2b", siglip: str = "So400m/14", **kwargs: Any) -> Pi0FASTConfig:
-    """Upstream's `Pi0FASTConfig(paligemma_variant=...)` architecture, with the data-side sizes as keywords."""
-    gemma = GEMMA_VARIANTS[paligemma_variant]
-    return Pi0FASTConfig(gemma=gemma, siglip=siglip_variant(siglip, out_dim=gemma.width), **kwargs)
 
 
 def _leaf(flat: Mapping[str, Any], path: str) -> tuple[int, ...]:

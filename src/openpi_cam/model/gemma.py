@@ -117,9 +117,9 @@ def attend(q: jax.Array, k: jax.Array, v: jax.Array, mask: jax.Array, hidden_slo
     """Masked softmax attention: q [B, T, K, G, H] (scaled), k, v [B, S, K, H], mask [B, T, S] ->
     [B, T, K, G, H] in v's dtype. Masked logits are BIG_NEG, not -inf, as upstream; `hidden_slots`: see `_attention`.
 
-    The forward pass is the plain computation (inference runs nothing else). The backward pass is written out: the
-    differentiated `where` + softmax made XLA:CPU pass over the float32 [B, K, G, T, S] arrays several times more,
-    and took longer than every matmul of the backward pass together (bench_model's medium model)."""
+    The forward pass is the plain computation (inference runs nothing else). The backward pass is written out,
+    because the differentiated `where` + softmax made XLA:CPU pass over the float32 [B, K, G, T, S] arrays several
+    times more, at a cost above the backward pass's matmuls (docs/DESIGN_NOTES.md)."""
     return _masked_softmax_attention(q, k, v, mask, hidden_slots)[0]
 
 

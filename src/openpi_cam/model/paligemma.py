@@ -36,7 +36,7 @@ def make_attn_mask(input_mask: jax.Array, ar_mask: jax.Array) -> jax.Array:
 
 
 def embed_images(params: dict, obs: Observation, cfg: VLMConfig) -> jax.Array:
-    """SigLIP tokens of every camera, in camera order -> [B, C, N, D] (what the LLM sees; Grad-CAM's input)."""
+    """SigLIP tokens of every camera, in camera order -> [B, C, N, D] (what the LLM sees; the maps' input)."""
     dtype = jnp.dtype(cfg.dtype)
     img_params = params["PaliGemma"]["img"]
     return jnp.stack([siglip.encode_images(img_params, im, cfg.siglip, dtype) for im in obs.images.values()], axis=1)

@@ -59,7 +59,7 @@ def _weights(x_0: jax.Array, targets: tuple[tuple[int, int], ...]) -> jax.Array:
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "targets"))
-def _flow_cams(params, obs, noise, *, cfg: Pi0Config, targets: tuple[tuple[int, int], ...]):
+def _flow_gradient_maps(params, obs, noise, *, cfg: Pi0Config, targets: tuple[tuple[int, int], ...]):
     E = embed_images(params, obs, cfg)
     x_0, vjp_fn = jax.vjp(lambda image_tokens: denoise(params, image_tokens, obs, noise, cfg), E)
     weights = _weights(x_0, targets)  # [T, B, H, A]
@@ -122,8 +122,8 @@ def maps_for_actions(
     score = actions = None
     if any(k in GRADIENT_KINDS for k in kinds):
         args, static = (model.params, obs, noise), {"targets": targets}
-        flow_cfg = remat.backward_layout(_flow_cams, cfg, args, static)
-        score, actions, alpha, cam, token_norm = _flow_cams(*args, cfg=flow_cfg, **static)
+        flow_cfg = remat.backward_layout(_flow_gradient_maps, cfg, args, static)
+        score, actions, alpha, cam, token_norm = _flow_gradient_maps(*args, cfg=flow_cfg, **static)
         cam, token_norm = np.asarray(cam), np.asarray(token_norm)  # [B, T, C, N]
         grad_norm = np.sqrt(np.sum(np.square(token_norm.astype(np.float64)), axis=-1)).astype(np.float32)
         gradient_maps = {"gradcam": per_camera(cam), "gradnorm": per_camera(token_norm)}

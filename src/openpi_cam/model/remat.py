@@ -1,9 +1,8 @@
 """Whether an explanation's backward pass can keep its layer activations on the device it runs on.
 
-Full-size layer stacks recompute each layer in the backward pass (`GemmaConfig.remat`): on this project's 24 GB CPU
-machine the full-size pi0-FAST's one-token explanation needs 27.1 GB of XLA temporaries without it. A GPU has room
-to spare and gains time: on an H100 the same explanation took 45 ms without remat against 72 ms with it, at a device
-peak of 13.8 GB against 9.5 GB (`benchmarks/bench_fullsize.py`). So the choice is made per compiled program, by
+Full-size layer stacks recompute each layer in the backward pass (`GemmaConfig.remat`), because without it a
+full-size explanation's temporaries exceed a CPU host's memory. A GPU with room to spare runs the same explanation
+faster without remat, at a higher device peak (docs/DESIGN_NOTES.md). So the choice is made per compiled program, by
 XLA's own memory analysis of the remat-free program against the device's free memory; a backend that reports no
 device memory (the CPU) keeps the configured layout. The analysis compiles the very program that then runs (JAX
 caches it), so a program that fits costs no extra compilation.

@@ -60,6 +60,11 @@ class PolicyConfig:
     # pi0.5 only: the normalised state goes into the prompt as text (upstream `discrete_state_input`, default True for
     # pi0.5; `pi05_libero` turns it off).
     discrete_state_input: bool = False
+    # How a LeRobot dataset of this robot feeds the policy (upstream's `RepackTransform` of its training config):
+    # observation key -> dataset feature. `openpi-cam explain DATASET_DIR` uses it; `--keys` overrides it.
+    lerobot_keys: Mapping[str, str] | None = None
+    # Whether observation keys `a/b` are nested dicts (ALOHA's `images/cam_high`) rather than flat keys.
+    lerobot_nested: bool = False
 
     def __post_init__(self) -> None:
         for field in ("action_dim", "action_horizon", "max_token_len"):
@@ -88,6 +93,19 @@ class PolicyConfig:
         return self.robot_inputs.camera_sources
 
 
+# The LeRobot feature names of upstream's LIBERO and ALOHA training data (the `RepackTransform` of their configs);
+# `actions` names the recorded actions, which `--target dataset-actions` explains.
+LIBERO_LEROBOT_KEYS = {
+    "observation/image": "image",
+    "observation/wrist_image": "wrist_image",
+    "observation/state": "state",
+    "actions": "actions",
+}
+ALOHA_LEROBOT_KEYS = {"images/cam_high": "observation.images.top", "state": "observation.state", "actions": "action"}
+_LIBERO_DATA = {"lerobot_keys": LIBERO_LEROBOT_KEYS}
+_ALOHA_DATA = {"lerobot_keys": ALOHA_LEROBOT_KEYS, "lerobot_nested": True}
+
+
 PI0_FAST_DROID = PolicyConfig(
     name="pi0_fast_droid",
     inputs=(droid.DroidInputs(),),
@@ -109,6 +127,7 @@ PI0_FAST_LIBERO = PolicyConfig(
     action_dim=7,
     action_horizon=10,
     max_token_len=180,
+    **_LIBERO_DATA,
 )
 
 # Upstream (15a9616) has no pi0-FAST ALOHA config. This one combines upstream's `pi0_aloha` data pipeline (trossen
@@ -122,6 +141,7 @@ PI0_FAST_ALOHA = PolicyConfig(
     action_horizon=32,
     max_token_len=250,
     policy_metadata={"reset_pose": list(aloha.RESET_POSE)},
+    **_ALOHA_DATA,
 )
 
 # pi0 and pi0.5 (upstream's `Pi0Config`): the model's action dim is 32 (states and actions are zero-padded to it), the
@@ -152,6 +172,7 @@ PI0_LIBERO = PolicyConfig(
     asset_id="physical-intelligence/libero",
     action_horizon=50,
     **_PI0,
+    **_LIBERO_DATA,
 )
 # Upstream's pi05_libero: no delta-action transform and no state in the prompt.
 PI05_LIBERO = PolicyConfig(
@@ -161,6 +182,7 @@ PI05_LIBERO = PolicyConfig(
     asset_id="physical-intelligence/libero",
     action_horizon=10,
     **_PI05,
+    **_LIBERO_DATA,
 )
 PI0_ALOHA = PolicyConfig(
     name="pi0_aloha",
@@ -170,6 +192,7 @@ PI0_ALOHA = PolicyConfig(
     action_horizon=50,
     policy_metadata={"reset_pose": list(aloha.RESET_POSE)},
     **_PI0,
+    **_ALOHA_DATA,
 )
 PI05_ALOHA = PolicyConfig(
     name="pi05_aloha",
@@ -180,6 +203,7 @@ PI05_ALOHA = PolicyConfig(
     discrete_state_input=True,
     policy_metadata={"reset_pose": list(aloha.RESET_POSE)},
     **_PI05,
+    **_ALOHA_DATA,
 )
 
 _REGISTRY: dict[str, PolicyConfig] = {}

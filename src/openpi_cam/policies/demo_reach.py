@@ -25,6 +25,13 @@ WRIST_KEY = "observation/wrist_image"
 STATE_KEY = "observation/state"
 
 ASSET_ID = "demo_reach"
+# The demo task as LeRobot records it (../shared/lerobot, `openpi-cam explain DATASET_DIR`).
+LEROBOT_KEYS = {
+    IMAGE_KEY: "observation.images.base",
+    WRIST_KEY: "observation.images.wrist",
+    STATE_KEY: "observation.state",
+    "actions": "action",
+}
 ACTION_HORIZON = 10
 # An expert postfix is 27 tokens (`Action: ` in 5, 20 FAST ids, `|`, EOS); a short cap keeps a broken model cheap.
 MAX_DECODING_STEPS = 32
@@ -42,6 +49,7 @@ DEMO_CONFIG = register_config(
         action_dim=2,
         action_horizon=ACTION_HORIZON,
         max_token_len=56,  # the longest training sequence is 47 tokens
+        lerobot_keys=LEROBOT_KEYS,
     )
 )
 
@@ -66,6 +74,7 @@ DEMO_PI05_CONFIG = register_config(
         action_horizon=ACTION_HORIZON,
         max_token_len=48,
         discrete_state_input=True,
+        lerobot_keys=LEROBOT_KEYS,
     )
 )
 DEMO_CONFIGS = {"pi0_fast": DEMO_CONFIG, "pi05": DEMO_PI05_CONFIG}

@@ -1,6 +1,6 @@
 """The seam between a model family and everything above it.
 
-`Policy`, the Grad-CAM side channel and offline explanation see a family only through these types: a `Policy` holds
+`Policy`, the explanation side channel and offline explanation see a family only through these types: a `Policy` holds
 the family's model, its output decoder and its `Explainer`; the side channel hands the explainer the exact model
 inputs and outputs of a served call and gets one `Explanation` (or `ExplainSkipped`) per batch row. pi0-FAST is
 `policies.pi0_fast_family`; the flow-matching families (pi0, pi0.5) plug in the same way.
@@ -25,7 +25,7 @@ from openpi_cam.vocabulary import DEFAULT_KINDS, MAP_KINDS, TARGETS, MapKind, Ma
 
 @dataclasses.dataclass(frozen=True)
 class ExplainRequest:
-    target: Target = "action-token"
+    target: Target | None = None  # None: the family's own default (`Explainer.default_target`)
     action_index: int = 0  # pi0-FAST: which action token ("action-token"); pi0 / pi0.5: which horizon step ("action")
     action_dim_index: int = 0  # pi0 / pi0.5: which action dimension ("action")
     kinds: tuple[MapKind, ...] = DEFAULT_KINDS
@@ -33,7 +33,7 @@ class ExplainRequest:
     options: MapOptions = dataclasses.field(default_factory=MapOptions)
 
     def __post_init__(self) -> None:
-        if self.target not in TARGETS:
+        if self.target is not None and self.target not in TARGETS:
             raise ValueError(f"unknown target {self.target!r}; expected one of {TARGETS}")
         if self.action_index < 0 or self.action_dim_index < 0:
             raise ValueError(f"action indices must be >= 0, got {self.action_index}, {self.action_dim_index}")
@@ -53,11 +53,11 @@ class Explanation:
 
 
 class ExplainSkipped(Exception):
-    """This row cannot be explained with the request; `kind` names why (counted, not an error)."""
+    """This row cannot be explained with the request; `reason` names why (counted, not an error)."""
 
-    def __init__(self, kind: str, message: str):
+    def __init__(self, reason: str, message: str):
         super().__init__(message)
-        self.kind = kind
+        self.reason = reason
 
 
 class Explainer(Protocol):
@@ -67,8 +67,18 @@ class Explainer(Protocol):
     def camera_grid(self) -> tuple[int, int]: ...
 
     @property
+    def family(self) -> str:
+        """The model family explained: "pi0_fast", "pi0" or "pi05"."""
+        ...
+
+    @property
     def targets(self) -> tuple[str, ...]:
         """The targets this family explains."""
+        ...
+
+    @property
+    def default_target(self) -> Target:
+        """What a request that names no target explains."""
         ...
 
     def explain(
@@ -106,6 +116,21 @@ class Explainer(Protocol):
         """The same explainer over freshly initialised weights: the language model's only (`llm`: SigLIP kept), or
         every weight (`all`); for the model randomisation test of a map kind."""
         ...
+
+
+# How the families are named to people (messages); the seam's `family` strings are the checkpoints' own names.
+FAMILY_LABELS = {"pi0_fast": "pi0-FAST", "pi0": "pi0", "pi05": "pi0.5"}
+
+
+def resolve_target(explainer: Explainer, target: str | None) -> Target:
+    """The target a request explains: `target`, or the family's default for None. A target the family cannot explain
+    is refused in one line naming those it can (e.g. "action-token: pi0.5 explains action, chunk")."""
+    if target is None:
+        return explainer.default_target
+    if target not in explainer.targets:
+        label = FAMILY_LABELS.get(explainer.family, explainer.family)
+        raise ValueError(f"{target}: {label} explains {', '.join(explainer.targets)}")
+    return target  # type: ignore[return-value]  (one of the family's targets)
 
 
 class OutputDecoder(Protocol):
@@ -165,6 +190,10 @@ class ModelExplainer:
     @property
     def camera_grid(self) -> tuple[int, int]:
         return self.model.camera_grid
+
+    @property
+    def family(self) -> str:
+        return self.model.family
 
     def on_mesh(self, mesh: Mesh | None) -> Explainer:
         if mesh is None:

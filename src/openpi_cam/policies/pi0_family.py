@@ -31,17 +31,19 @@ from openpi_cam.policies.family import (
     ModelExplainer,
     Sampler,
     baseline_details,
+    resolve_target,
 )
 from openpi_cam.tokenizers.paligemma import load_paligemma_tokenizer
 from openpi_cam.tokenizers.pi0 import Pi0PromptTokenizer
 from openpi_cam.transforms import PadStatesAndActions, PassActions, TokenizePrompt
-from openpi_cam.vocabulary import MapOptions
+from openpi_cam.vocabulary import DEFAULT_TARGETS, MapOptions
 
 
 class FlowExplainer(ModelExplainer):
     """Explains pi0 / pi0.5 action chunks: target `action` (dimension d at horizon step h) or `chunk`."""
 
     targets = ("action", "chunk")
+    default_target = DEFAULT_TARGETS["pi0"]
 
     def __init__(self, model: Pi0) -> None:
         self.model = model
@@ -56,8 +58,7 @@ class FlowExplainer(ModelExplainer):
         request: ExplainRequest,
         sample_inputs: Mapping[str, np.ndarray] | None = None,
     ) -> list[Explanation | ExplainSkipped]:
-        if request.target not in self.targets:
-            raise ValueError(f"{self.model.family} explains the targets {self.targets}, not {request.target!r}")
+        request = dataclasses.replace(request, target=resolve_target(self, request.target))
         if sample_inputs is None or "noise" not in sample_inputs:
             raise ValueError("explaining a flow-matching policy needs the served call's noise")
         cfg = self.model.config

@@ -22,7 +22,7 @@ from openpi_cam.model import pi0_fast_maps
 from openpi_cam.model.config import EOS_TOKEN
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.pi0_fast import Pi0FAST
-from openpi_cam.model.pi0_fast_maps import GradCamResult
+from openpi_cam.model.pi0_fast_maps import MapResult
 from openpi_cam.policies.config import PolicyConfig
 from openpi_cam.policies.family import (
     ExplainRequest,
@@ -31,12 +31,13 @@ from openpi_cam.policies.family import (
     ModelExplainer,
     Sampler,
     baseline_details,
+    resolve_target,
 )
 from openpi_cam.tokenizers.fast import FastActionTokenizer, resolve_fast_tokenizer_dir
 from openpi_cam.tokenizers.paligemma import load_paligemma_tokenizer
 from openpi_cam.tokenizers.pi0_fast import Pi0FastTokenizer
 from openpi_cam.transforms import ExtractFASTActions, TokenizeFASTInputs
-from openpi_cam.vocabulary import FALLBACK_TARGET, MapOptions
+from openpi_cam.vocabulary import DEFAULT_TARGETS, FALLBACK_TARGET, MapOptions
 
 TOKEN_TARGETS = ("action-token", "all-action-tokens")  # one score per explained token
 SEQUENCE_TARGETS = ("chunk", FALLBACK_TARGET)  # one score: a sum of log-probabilities
@@ -77,6 +78,7 @@ class FastExplainer(ModelExplainer):
     """Explains pi0-FAST generations; every call explains a whole batch (a single inference is a batch of one)."""
 
     targets = (*TOKEN_TARGETS, *SEQUENCE_TARGETS)
+    default_target = DEFAULT_TARGETS["pi0_fast"]
 
     def __init__(self, model: Pi0FAST, tokenizer: Pi0FastTokenizer) -> None:
         self.model = model
@@ -92,8 +94,7 @@ class FastExplainer(ModelExplainer):
         request: ExplainRequest,
         sample_inputs: Mapping[str, np.ndarray] | None = None,
     ) -> list[Explanation | ExplainSkipped]:
-        if request.target not in self.targets:
-            raise ValueError(f"pi0-FAST explains the targets {self.targets}, not {request.target!r}")
+        request = dataclasses.replace(request, target=resolve_target(self, request.target))
         generated = np.asarray(outputs, np.int32)
         rows = int(np.shape(observation.state)[0])
         if generated.ndim != 2 or generated.shape[0] != rows:
@@ -108,19 +109,19 @@ class FastExplainer(ModelExplainer):
         # Each group is one model call over the whole batch (rows outside it ride along on a harmless step), so that
         # every batch of one size shares one compilation per group.
         if token_rows:
-            res = pi0_fast_maps.gradcam_for_steps(
+            res = pi0_fast_maps.maps_for_steps(
                 self.model, observation, generated, _step_matrix(plans, token_rows), **maps_args, logits=False
             )
             for b in token_rows:
                 results[b] = self._row(res, b, plans[b], request)  # type: ignore[arg-type]
         if sequence_rows:
             lists = [p.steps if b in sequence_rows else np.zeros(1, np.int32) for b, p in enumerate(plans)]
-            res = pi0_fast_maps.gradcam_for_chunk(self.model, observation, generated, lists, **maps_args)
+            res = pi0_fast_maps.maps_for_chunk(self.model, observation, generated, lists, **maps_args)
             for b in sequence_rows:
                 results[b] = self._row(res, b, plans[b], request)  # type: ignore[arg-type]
         return [r for r in results if r is not None]
 
-    def _row(self, res: GradCamResult, b: int, plan: _RowPlan, request: ExplainRequest) -> Explanation:
+    def _row(self, res: MapResult, b: int, plan: _RowPlan, request: ExplainRequest) -> Explanation:
         t = plan.steps.size
         if plan.target in SEQUENCE_TARGETS:
             index: Any = b

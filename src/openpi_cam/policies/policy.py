@@ -17,7 +17,7 @@ import sentencepiece
 
 from openpi_cam.counters import WarnOnceCounter
 from openpi_cam.errors import InvalidRequest
-from openpi_cam.image_tools import LetterboxGeometry, letterbox_geometry
+from openpi_cam.letterbox import LetterboxGeometry, letterbox_geometry
 from openpi_cam.model.checkpoint import read_param_shapes
 from openpi_cam.model.config import MAX_DECODING_STEPS, family_of
 from openpi_cam.model.observation import Observation, pad_rows, stack_observations
@@ -306,6 +306,16 @@ class Policy:
             malformed_reason=reason,
         )
         return outputs, trace
+
+    def training_inputs(self, obs: Mapping[str, Any], actions: np.ndarray) -> DataDict:
+        """The model inputs training builds from an observation and a recorded action chunk [horizon, action dim]:
+        the same input transforms, with the actions delta-coded, normalised and (pi0-FAST) tokenised into the
+        prompt's postfix. What a demonstrated chunk looks like to the model."""
+        if not isinstance(obs, Mapping):
+            raise InvalidRequest(f"an observation must be a dict, got {type(obs).__name__}")
+        data = _copy_containers(obs)
+        data["actions"] = np.asarray(actions)
+        return self._apply_inputs(data)[0]
 
     def _apply_inputs(self, data: DataDict) -> tuple[DataDict, dict[str, np.ndarray], str]:
         """Run the input transforms, keeping the images just before resizing and the prompt just before it is

@@ -2,7 +2,7 @@
 
 A robot's input transform turns a client observation into upstream's model layout (``state``, ``image``,
 ``image_mask``, ``prompt``) and knows which client key feeds each model camera (None for a synthesised blank camera);
-the Grad-CAM logger records that mapping. Its output transform turns model-space actions back into robot actions.
+the side channel's logger records that mapping. Its output transform turns model-space actions back into robot actions.
 """
 
 from __future__ import annotations

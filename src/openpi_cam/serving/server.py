@@ -7,7 +7,7 @@ is an error message; the real client raises it as RuntimeError.
 Beyond upstream: inference runs on one worker thread so the event loop keeps answering `/healthz`, `/stats`,
 websocket pings and other connections while the model computes; bad requests are answered with a text frame and the
 connection stays usable; an optional API key; a message size limit; graceful shutdown that lets in-flight requests
-finish and then closes the policy (which drains the Grad-CAM side channel).
+finish and then closes the policy (which drains the explanation side channel).
 """
 
 from __future__ import annotations
@@ -75,6 +75,12 @@ class ServerStats:
         self.connections_total = 0
         self.infer_ms: collections.deque[float] = collections.deque(maxlen=window)
         self.total_ms: collections.deque[float] = collections.deque(maxlen=window)
+
+    def record_ok(self, infer_ms: float, total_ms: float) -> None:
+        """An answered request: its inference time and its time from arrival to the reply sent."""
+        self.ok += 1
+        self.infer_ms.append(infer_ms)
+        self.total_ms.append(total_ms)
 
     @staticmethod
     def _percentiles(values: collections.deque[float]) -> dict[str, float] | None:
@@ -303,59 +309,13 @@ class PolicyServer:
     # ---------------------------------------------------------------- websocket side
 
     async def _handle(self, websocket: ws_server.ServerConnection, executor: concurrent.futures.Executor) -> None:
-        if len(self._connections) >= self._max_connections:
-            self._stats.errors["too_many_connections"] += 1
-            logger.warning("refused a connection from %s: %d open", websocket.remote_address, len(self._connections))
-            await websocket.close(websockets.CloseCode.TRY_AGAIN_LATER, "too many connections")
+        """One connection from its opening to its close."""
+        conn = await self._admit(websocket)
+        if conn is None:
             return
-        conn = _Connection(id=f"conn{next(self._connection_ids):04d}", websocket=websocket)
-        self._connections[conn.id] = conn
-        self._stats.connections_total += 1
-        logger.info("%s opened from %s", conn.id, websocket.remote_address)
         try:
             await websocket.send(self._metadata_frame)
-            prev_total_ms: float | None = None
-            for request_index in itertools.count():
-                # Upstream starts its per-request clock before waiting for the frame, so `prev_total_ms` includes
-                # the wait for the request; kept for compatibility. /stats measures from the frame's arrival.
-                wait_start = time.monotonic()
-                frame = await websocket.recv()
-                start = time.monotonic()
-                if self._buffered_bytes + len(frame) > self._max_buffered_bytes:
-                    self._stats.errors["server_busy"] += 1
-                    logger.warning(
-                        "%s closed: %d bytes of requests in progress, %d more would pass --max-buffered-mb",
-                        conn.id, self._buffered_bytes, len(frame),
-                    )  # fmt: skip
-                    await websocket.close(websockets.CloseCode.TRY_AGAIN_LATER, "server busy: too many bytes queued")
-                    break
-                conn.busy = True
-                self._stats.requests += 1
-                context = RequestContext(conn.id, request_index)
-                self._buffered_bytes += len(frame)
-                try:
-                    reply, infer_ms = await self._answer(frame, context, prev_total_ms, executor)
-                finally:
-                    self._buffered_bytes -= len(frame)
-                del frame
-                try:
-                    await asyncio.wait_for(websocket.send(reply), PEER_TIMEOUT_S)
-                except TimeoutError:
-                    self._stats.errors["send_timeout"] += 1
-                    logger.warning("%s dropped: reply not read within %.0f s", conn.id, PEER_TIMEOUT_S)
-                    websocket.transport.abort()
-                    break
-                finally:
-                    conn.busy = False
-                if infer_ms is not None:
-                    end = time.monotonic()
-                    prev_total_ms = (end - wait_start) * 1000
-                    self._stats.ok += 1
-                    self._stats.infer_ms.append(infer_ms)
-                    self._stats.total_ms.append((end - start) * 1000)
-                if self._stopping:
-                    await websocket.close(websockets.CloseCode.GOING_AWAY, "server shutting down")
-                    break
+            await self._serve_requests(conn, executor)
         except websockets.ConnectionClosed as e:
             if e.sent is not None and e.sent.code == websockets.CloseCode.MESSAGE_TOO_BIG:
                 self._stats.errors["too_large"] += 1
@@ -363,6 +323,85 @@ class PolicyServer:
         finally:
             del self._connections[conn.id]
             logger.info("%s closed", conn.id)
+
+    async def _admit(self, websocket: ws_server.ServerConnection) -> _Connection | None:
+        """Registers a new connection, or closes it (None) when `max_connections` are open."""
+        if len(self._connections) >= self._max_connections:
+            self._stats.errors["too_many_connections"] += 1
+            logger.warning("refused a connection from %s: %d open", websocket.remote_address, len(self._connections))
+            await websocket.close(websockets.CloseCode.TRY_AGAIN_LATER, "too many connections")
+            return None
+        conn = _Connection(id=f"conn{next(self._connection_ids):04d}", websocket=websocket)
+        self._connections[conn.id] = conn
+        self._stats.connections_total += 1
+        logger.info("%s opened from %s", conn.id, websocket.remote_address)
+        return conn
+
+    async def _serve_requests(self, conn: _Connection, executor: concurrent.futures.Executor) -> None:
+        """Answers a connection's requests one at a time until it closes, stops reading or the server stops."""
+        prev_total_ms: float | None = None
+        for request_index in itertools.count():
+            # Upstream starts its per-request clock before waiting for the frame, so `prev_total_ms` includes the
+            # wait for the request; kept for compatibility. /stats measures from the frame's arrival.
+            wait_start = time.monotonic()
+            frame = await conn.websocket.recv()
+            start = time.monotonic()
+            if not await self._has_room(conn, len(frame)):
+                break
+            conn.busy = True
+            self._stats.requests += 1
+            reply, infer_ms = await self._answer_buffered(
+                frame, RequestContext(conn.id, request_index), prev_total_ms, executor
+            )
+            del frame  # not held while the reply is sent
+            if not await self._send_reply(conn, reply):
+                break
+            if infer_ms is not None:
+                end = time.monotonic()
+                prev_total_ms = (end - wait_start) * 1000
+                self._stats.record_ok(infer_ms, (end - start) * 1000)
+            if self._stopping:
+                await conn.websocket.close(websockets.CloseCode.GOING_AWAY, "server shutting down")
+                break
+
+    async def _has_room(self, conn: _Connection, size: int) -> bool:
+        """Whether a request of `size` bytes fits under `max_buffered_bytes`; if not, its connection is closed."""
+        if self._buffered_bytes + size <= self._max_buffered_bytes:
+            return True
+        self._stats.errors["server_busy"] += 1
+        logger.warning(
+            "%s closed: %d bytes of requests in progress, %d more would pass --max-buffered-mb",
+            conn.id, self._buffered_bytes, size,
+        )  # fmt: skip
+        await conn.websocket.close(websockets.CloseCode.TRY_AGAIN_LATER, "server busy: too many bytes queued")
+        return False
+
+    async def _answer_buffered(
+        self,
+        frame: bytes | str,
+        context: RequestContext,
+        prev_total_ms: float | None,
+        executor: concurrent.futures.Executor,
+    ) -> tuple[bytes | str, float | None]:
+        """`_answer`, with the frame counted in the bytes in progress meanwhile."""
+        self._buffered_bytes += len(frame)
+        try:
+            return await self._answer(frame, context, prev_total_ms, executor)
+        finally:
+            self._buffered_bytes -= len(frame)
+
+    async def _send_reply(self, conn: _Connection, reply: bytes | str) -> bool:
+        """Sends a reply; a peer that does not read it within PEER_TIMEOUT_S is dropped (False)."""
+        try:
+            await asyncio.wait_for(conn.websocket.send(reply), PEER_TIMEOUT_S)
+            return True
+        except TimeoutError:
+            self._stats.errors["send_timeout"] += 1
+            logger.warning("%s dropped: reply not read within %.0f s", conn.id, PEER_TIMEOUT_S)
+            conn.websocket.transport.abort()
+            return False
+        finally:
+            conn.busy = False
 
     async def _answer(
         self,

@@ -20,9 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.cam.faithfulness_run import REPORT_FILE, ig_summary, read_report
+from openpi_cam.cam.run_evidence import REPORT_FILE, ig_summary, read_check, read_report
 from openpi_cam.cam.runfmt import CAMRun
-from openpi_cam.cam.spot_check import read_check
 from openpi_cam.viz.stats import StepStats
 
 # What each kind is, in a reader's words, and what that implies for reading it.
@@ -101,7 +100,7 @@ class MapEvidence:
     checks: Mapping[int, Mapping[str, CheckFigures]]  # seq -> camera -> the step's spot check of this kind
     check_summary: tuple[CheckSummary, ...]
     zero_share: float | None  # share of valid camera-steps whose map is all zero (None: no valid camera-step)
-    ig_completeness: Mapping[str, Any] | None  # `faithfulness_run.ig_summary` of the run's steps (ig only)
+    ig_completeness: Mapping[str, Any] | None  # `run_evidence.ig_summary` of the run's steps (ig only)
 
     def step_line(self, seq: int, camera: str) -> str:
         """This step's figure for one camera, in a few words: the report's (top patch's drop / the best patch's, next
@@ -118,11 +117,13 @@ class MapEvidence:
         return "step not in the report" if self.status == "measured" else "not measured"
 
 
-def _field(entry: Mapping[str, Any] | None, field: str = "median") -> float | None:
-    if not isinstance(entry, Mapping):
-        return None
-    value = entry.get(field)
+def _finite(value: Any) -> float | None:
+    """A report's number, None where it has none (null; a report written with NaN reads the same)."""
     return float(value) if isinstance(value, (int, float)) and math.isfinite(value) else None
+
+
+def _field(entry: Mapping[str, Any] | None, field: str = "median") -> float | None:
+    return _finite(entry.get(field)) if isinstance(entry, Mapping) else None
 
 
 def _camera_figures(camera: str, cam: Mapping[str, Any], kind: str) -> CameraFigures:
@@ -130,15 +131,15 @@ def _camera_figures(camera: str, cam: Mapping[str, Any], kind: str) -> CameraFig
     e, rand = kinds.get(kind, {}), kinds.get("random", {})
     chance = e.get("pointing_chance")
     return CameraFigures(
-        camera,
-        int(cam.get("steps_with_positive_optimum", 0)),
-        _field(e.get("deletion_k1")),
-        _field(rand.get("deletion_k1")),
-        _field(e.get("top1_occlusion"), "mean"),
-        _field(e.get("randomisation_abs_spearman"), "mean"),
-        _field(e.get("null_abs_spearman"), "mean"),
-        _field(e.get("pointing"), "mean"),
-        float(chance) if isinstance(chance, (int, float)) else None,
+        camera=camera,
+        steps=int(cam.get("steps_with_positive_optimum", 0)),
+        deletion_k1=_field(e.get("deletion_k1")),
+        random_k1=_field(rand.get("deletion_k1")),
+        top1_occlusion=_field(e.get("top1_occlusion"), "mean"),
+        randomisation=_field(e.get("randomisation_abs_spearman"), "mean"),
+        null=_field(e.get("null_abs_spearman"), "mean"),
+        pointing=_field(e.get("pointing"), "mean"),
+        pointing_chance=_finite(chance),
     )
 
 
@@ -150,7 +151,8 @@ def _step_figures(report: Mapping[str, Any], kind: str) -> dict[int, dict[str, S
         for camera, f in cams.items():
             k1, top1 = f.get("deletion_k1", {}), f.get("top1_occlusion", {})
             if kind in k1:
-                out.setdefault(int(seq), {})[camera] = StepFigures(k1[kind], k1.get("random"), top1.get(kind))
+                figures = StepFigures(_finite(k1[kind]), _finite(k1.get("random")), top1.get(kind))
+                out.setdefault(int(seq), {})[camera] = figures
     return out
 
 
@@ -176,12 +178,12 @@ def _check_summary(checks: Mapping[int, Mapping[str, CheckFigures]]) -> tuple[Ch
                 by_camera.setdefault(camera, []).append(f)
     return tuple(
         CheckSummary(
-            camera,
-            len(fs),
-            float(np.median([f.top_drop for f in fs])),
-            float(np.median([np.mean(f.random_drops) for f in fs])),
-            float(np.mean([f.beats_random for f in fs])),
-            float(np.mean([1.0 / (len(f.random_drops) + 1) for f in fs])),
+            camera=camera,
+            steps=len(fs),
+            median_top_drop=float(np.median([f.top_drop for f in fs])),
+            median_random_drop=float(np.median([np.mean(f.random_drops) for f in fs])),
+            beats_random=float(np.mean([f.beats_random for f in fs])),
+            chance=float(np.mean([1.0 / (len(f.random_drops) + 1) for f in fs])),
         )
         for camera, fs in by_camera.items()
     )
@@ -220,16 +222,16 @@ def map_evidence(run: CAMRun, kind: str, stats: Sequence[StepStats]) -> MapEvide
         line = f"Measured on this run by `openpi-cam faithfulness` ({REPORT_FILE}): {evaluated} steps re-scored"
         line += f" of the {drawn} drawn." if evaluated < drawn else "."
     return MapEvidence(
-        kind,
-        KIND_NOTES.get(kind, ""),
-        status,
-        line,
-        cameras,
-        steps,
-        checks,
-        _check_summary(checks),
-        zero_share(stats),
-        ig_summary(run) if kind == "ig" else None,
+        kind=kind,
+        note=KIND_NOTES.get(kind, ""),
+        status=status,
+        status_line=line,
+        cameras=cameras,
+        steps=steps,
+        checks=checks,
+        check_summary=_check_summary(checks),
+        zero_share=zero_share(stats),
+        ig_completeness=ig_summary(run) if kind == "ig" else None,
     )
 
 

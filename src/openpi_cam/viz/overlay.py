@@ -11,7 +11,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from openpi_cam.image_tools import LetterboxGeometry
+from openpi_cam.cam.runfmt import CameraMeta, StepMeta
+from openpi_cam.letterbox import LetterboxGeometry
 from openpi_cam.viz.colormap import colorize
 
 
@@ -20,7 +21,7 @@ class StepView(Protocol):
     (`viz.stats.MapView` over a run's steps)."""
 
     seq: int
-    meta: Mapping[str, Any]
+    meta: StepMeta
     maps: Mapping[str, np.ndarray]
     frames: Mapping[str, np.ndarray]
     model_frames: Mapping[str, np.ndarray]
@@ -95,14 +96,13 @@ def camera_image(step: StepView, camera: str) -> tuple[np.ndarray, LetterboxGeom
 
     Prefers the client's original frame; falls back to the model frame, then to a blank model-sized canvas.
     """
-    cam_meta = step.meta.get("cameras", {}).get(camera, {})
-    geometry = cam_meta.get("geometry")
-    box = LetterboxGeometry.from_dict(geometry) if geometry else None
+    info = step.meta.cameras.get(camera, CameraMeta())
+    box = LetterboxGeometry.from_dict(info.geometry) if info.geometry else None
     if camera in step.frames:
         return np.asarray(step.frames[camera], dtype=np.uint8), box
     if camera in step.model_frames:
         return np.asarray(step.model_frames[camera], dtype=np.uint8), None
-    hp, wp = cam_meta.get("grid") or np.shape(step.maps[camera])[-2:]
+    hp, wp = info.grid or np.shape(step.maps[camera])[-2:]
     h, w = (box.model_h, box.model_w) if box else (hp * 14, wp * 14)
     return np.zeros((h, w, 3), np.uint8), None
 
@@ -110,8 +110,8 @@ def camera_image(step: StepView, camera: str) -> tuple[np.ndarray, LetterboxGeom
 def camera_overlay(step: StepView, camera: str, scale: float, alpha: float) -> np.ndarray:
     """The camera's map, divided by `scale` and colour-blended over its image; masked cameras stay plain."""
     image, box = camera_image(step, camera)
-    valid = bool(step.meta.get("cameras", {}).get(camera, {}).get("valid", True))
-    if camera not in step.maps or not valid:
+    info = step.meta.cameras.get(camera)
+    if camera not in step.maps or (info is not None and not info.valid):
         return image
     heat = map_for_frame(reduce_tokens(step.maps[camera]), image.shape[:2], box)
     heat = heat / scale if scale > 0 else np.zeros_like(heat)

@@ -6,7 +6,6 @@ import dataclasses
 import math
 import pathlib
 import re
-import sys
 from collections.abc import Mapping
 from typing import Any, Literal
 
@@ -20,6 +19,7 @@ from openpi_cam.viz.overlay import StepView, camera_overlay
 from openpi_cam.viz.progress import progress
 from openpi_cam.viz.report import RenderResult, StepAssets, write_report
 from openpi_cam.viz.stats import DEFAULT_MAP_KIND, MAP_LABELS, StepStats, compute_stats, step_scale, view_steps
+from openpi_cam.viz.video import Mp4Writer
 
 Norm = Literal["step", "run"]
 
@@ -50,7 +50,7 @@ def slug(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._") or "_"
 
 
-def _font(size: int = 13) -> ImageFont.ImageFont | ImageFont.FreeTypeFont:
+def label_font(size: int = 13) -> ImageFont.ImageFont | ImageFont.FreeTypeFont:
     try:
         return ImageFont.load_default(size=size)
     except (TypeError, OSError):  # Pillow without FreeType: fixed bitmap font
@@ -79,7 +79,7 @@ def step_panel(
     """All cameras of a step side by side, with the explained tokens, score and normalisation written above, and
     (`evidence`) how faithful this step's map of each camera measured, under its caption."""
     meta = step.meta
-    font, small = _font(13), _font(11)
+    font, small = label_font(13), label_font(11)
     tiles = []
     for camera, img in overlays.items():
         h, w = img.shape[:2]
@@ -87,9 +87,9 @@ def step_panel(
         tiles.append((camera, Image.fromarray(img).resize((tw, tile_height), Image.Resampling.BILINEAR)))
     header = [
         f"seq {st.seq} | connection {st.connection} | step {st.step} | target {st.target}",
-        f"tokens [{_fmt_list(meta.get('token_ids'))}] decode steps [{_fmt_list(meta.get('decode_steps'))}]"
-        f" | score {_fmt_list(meta.get('score'), 4)}",
-        f"{norm_label} | prompt: {str(meta.get('prompt', ''))[:90]}",
+        f"tokens [{_fmt_list(meta.token_ids)}] decode steps [{_fmt_list(meta.decode_steps)}]"
+        f" | score {_fmt_list(meta.score, 4)}",
+        f"{norm_label} | prompt: {meta.prompt[:90]}",
         *([panel_header(evidence)] if evidence else []),
     ]
     notes = evidence is not None and evidence.status != "missing"
@@ -147,22 +147,11 @@ class _ConnectionVideo:
 
     def add(self, panel: Image.Image) -> None:
         if self.size is None:
-            # libx264 with yuv420p wants even sizes; 16-aligned avoids imageio's own resize.
+            # Every frame of a video has the first panel's size; 16-aligned sides suit H.264's macroblocks.
             self.size = (-(-panel.width // 16) * 16, -(-panel.height // 16) * 16)
-            import imageio.v2 as iio
-
-            self.writer = iio.get_writer(
-                self.mp4,
-                format="FFMPEG",
-                mode="I",
-                fps=self.fps,
-                codec="libx264",
-                pixelformat="yuv420p",
-                macro_block_size=16,
-                ffmpeg_log_level="error",
-            )
+            self.writer = Mp4Writer(self.mp4, self.fps)
         frame = _fit(panel, self.size)
-        self.writer.append_data(np.asarray(frame))
+        self.writer.add(np.asarray(frame))
         if self.count % self.stride == 0:
             small = frame.copy()
             small.thumbnail((self.gif_max_width, self.gif_max_width), Image.Resampling.BILINEAR)
@@ -179,18 +168,6 @@ class _ConnectionVideo:
             )
 
 
-def _videos_available() -> bool:
-    try:
-        import imageio.v2  # noqa: F401
-        import imageio_ffmpeg  # noqa: F401
-    except ImportError:
-        print(
-            "openpi-cam render: no videos (pip install 'openpi-cam[viz]' for imageio + imageio-ffmpeg)", file=sys.stderr
-        )
-        return False
-    return True
-
-
 def render_run(run: CAMRun, out_dir: pathlib.Path, opts: RenderOptions) -> RenderResult:
     """Writes overlays, panels, thumbnails, per-connection videos and (with `opts.html`) index.html for a run under
     `out_dir` (`MissingMaps`, before anything is written, when the run has no `opts.map` maps)."""
@@ -203,14 +180,14 @@ def render_run(run: CAMRun, out_dir: pathlib.Path, opts: RenderOptions) -> Rende
     per_connection: dict[str, int] = {}
     for st in stats:
         per_connection[st.connection] = per_connection.get(st.connection, 0) + 1
-    make_videos = opts.videos and _videos_available()
+    make_videos = opts.videos
     videos: dict[str, _ConnectionVideo] = {}
     assets: dict[int, StepAssets] = {}
     for view, st in progress(zip(steps, stats, strict=True), len(steps), "render", opts.progress):
         step = view.loaded()
         scale = run_max if opts.norm == "run" else step_scale(st)
         norm_label = f"{MAP_LABELS[opts.map]}, normalised per {opts.norm} (max {scale:.3g})"
-        cameras = list(step.meta.get("cameras", {})) or list(step.maps)
+        cameras = list(step.meta.cameras) or list(step.maps)
         overlays = {c: camera_overlay(step, c, scale, opts.alpha) for c in cameras}
         name = f"{st.seq:08d}"
         overlay_paths = {}
@@ -218,7 +195,7 @@ def render_run(run: CAMRun, out_dir: pathlib.Path, opts: RenderOptions) -> Rende
             rel = f"overlays/{name}-{slug(c)}.png"
             Image.fromarray(img).save(out_dir / rel)
             overlay_paths[c] = rel
-        panel = step_panel(step, st, overlays, norm_label, opts.tile_height, evidence)
+        panel = step_panel(step, st, overlays, norm_label=norm_label, tile_height=opts.tile_height, evidence=evidence)
         panel.save(out_dir / f"panels/{name}.png")
         thumb = panel.copy()
         thumb.thumbnail((10 * opts.thumb_height, opts.thumb_height), Image.Resampling.BILINEAR)
@@ -228,7 +205,11 @@ def render_run(run: CAMRun, out_dir: pathlib.Path, opts: RenderOptions) -> Rende
             if st.connection not in videos:
                 base = out_dir / "videos" / slug(st.connection)
                 videos[st.connection] = _ConnectionVideo(
-                    base.with_suffix(".mp4"), base.with_suffix(".gif"), opts.fps, per_connection[st.connection], opts
+                    mp4=base.with_suffix(".mp4"),
+                    gif=base.with_suffix(".gif"),
+                    fps=opts.fps,
+                    total=per_connection[st.connection],
+                    opts=opts,
                 )
             videos[st.connection].add(panel)
     for v in videos.values():

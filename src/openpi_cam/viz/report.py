@@ -10,6 +10,7 @@ from collections import Counter
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+from openpi_cam.cam.runfmt import StepMeta
 from openpi_cam.viz.evidence import CHECK_COLUMNS, SUMMARY_COLUMNS, MapEvidence, check_rows, summary_rows
 from openpi_cam.viz.stats import StepStats, aggregate, camera_names
 
@@ -52,29 +53,20 @@ class Failure:
     target: str
 
 
-def malformed_reason(meta: Mapping[str, Any]) -> str | None:
-    """Why a step's generation was malformed, or None: `malformed` in schema 2, `malformed_reason` in schema 1."""
-    reason = meta.get("malformed", meta.get("malformed_reason"))
-    return None if reason is None else str(reason)
-
-
-def failure_steps(step_meta: Mapping[int, Mapping[str, Any]]) -> list[Failure]:
-    """The failure steps among `step_meta` (seq -> step JSON, or the manifest's index entries), in seq order."""
-    failures = []
-    for seq, meta in sorted(step_meta.items()):
-        reason = malformed_reason(meta)
-        if reason is not None:
-            step = meta.get("step")
-            failures.append(
-                Failure(
-                    seq=int(seq),
-                    connection=str(meta.get("connection", "")),
-                    step=-1 if step is None else int(step),
-                    reason=reason,
-                    target=str(meta.get("target", "")),
-                )
-            )
-    return failures
+def failure_steps(step_meta: Mapping[int, StepMeta]) -> list[Failure]:
+    """The failure steps among `step_meta` (seq -> the step's metadata, or the manifest's index entries read as
+    such), in seq order."""
+    return [
+        Failure(
+            seq=int(seq),
+            connection=meta.connection or "",
+            step=-1 if meta.step is None else meta.step,
+            reason=meta.malformed,
+            target=meta.target,
+        )
+        for seq, meta in sorted(step_meta.items())
+        if meta.malformed is not None
+    ]
 
 
 def usual_camera(stats: Sequence[StepStats]) -> str | None:
@@ -106,7 +98,7 @@ def by_connection(stats: Sequence[StepStats]) -> dict[str, list[StepStats]]:
     return groups
 
 
-def _e(x: Any) -> str:
+def _escape(x: Any) -> str:
     return html.escape(str(x), quote=True)
 
 
@@ -155,7 +147,7 @@ def timeline_svg(
 
     parts = [
         f'<svg class="timeline" viewBox="0 0 {width} {height}" width="{width}" height="{height}" role="img">',
-        f'<text x="{left}" y="13" class="t">{_e(title)}</text>',
+        f'<text x="{left}" y="13" class="t">{_escape(title)}</text>',
         f'<rect x="{left}" y="{top}" width="{plot_w}" height="{plot_h}" class="frame"/>',
         f'<text x="{left - 4}" y="{top + 9}" class="ax" text-anchor="end">{hi:.3g}</text>',
         f'<text x="{left - 4}" y="{top + plot_h}" class="ax" text-anchor="end">{lo:.3g}</text>',
@@ -167,7 +159,7 @@ def timeline_svg(
         tip = f"seq {st.seq}, step {st.step}" + (": " + "; ".join(reasons) if reasons else "")
         parts.append(
             f'<a href="#step-{st.seq}"><rect x="{left + i * slot:.1f}" y="{top}" width="{max(slot, 1):.1f}"'
-            f' height="{plot_h}" class="{cls}"><title>{_e(tip)}</title></rect></a>'
+            f' height="{plot_h}" class="{cls}"><title>{_escape(tip)}</title></rect></a>'
         )
     xs = [x_of(i) for i in range(n)]
     legend_x = left
@@ -179,7 +171,7 @@ def timeline_svg(
         mark = f'<line x1="{legend_x}" y1="24" x2="{legend_x + 14}" y2="24" stroke="{color}" stroke-width="2"' + (
             f' stroke-dasharray="{dash}"/>' if dash else "/>"
         )
-        parts.append(f'{mark}<text x="{legend_x + 18}" y="28" class="lg">{_e(label)}</text>')
+        parts.append(f'{mark}<text x="{legend_x + 18}" y="28" class="lg">{_escape(label)}</text>')
         legend_x += 6 * len(label) + 34
     parts.append(
         f'<text x="{left}" y="{height - 4}" class="ax">steps {steps[0].step if n else ""}..'
@@ -236,23 +228,24 @@ def _connection_section(
     )
     conn_flags = [(st, flags[st.seq]) for st in steps if st.seq in flags]
     flag_items = "".join(
-        f'<li><a href="#step-{st.seq}">seq {st.seq} (step {st.step})</a>: {_e("; ".join(r))}</li>'
+        f'<li><a href="#step-{st.seq}">seq {st.seq} (step {st.step})</a>: {_escape("; ".join(r))}</li>'
         for st, r in conn_flags
     )
     video = result.videos.get(conn)
     media = (
-        f'<p><a href="{_e(video["mp4"])}">MP4</a> · <a href="{_e(video["gif"])}">GIF</a></p>'
-        f'<video src="{_e(video["mp4"])}" controls loop muted preload="metadata"></video>'
+        f'<p><a href="{_escape(video["mp4"])}">MP4</a> · <a href="{_escape(video["gif"])}">GIF</a></p>'
+        f'<video src="{_escape(video["mp4"])}" controls loop muted preload="metadata"></video>'
         if video
         else ""
     )
     thumbs = "".join(
         f'<a href="#step-{st.seq}" class="th{" flagged" if st.seq in flags else ""}" title="seq {st.seq}">'
-        f'<img src="{_e(result.steps[st.seq].thumb)}" alt="seq {st.seq}" loading="lazy"></a>'
+        f'<img src="{_escape(result.steps[st.seq].thumb)}" alt="seq {st.seq}" loading="lazy"></a>'
         for st in steps
     )
     return (
-        f'<section class="conn" id="conn-{_e(conn)}"><h2>connection {_e(conn)} · {len(steps)} steps</h2>{media}'
+        f'<section class="conn" id="conn-{_escape(conn)}">'
+        f"<h2>connection {_escape(conn)} · {len(steps)} steps</h2>{media}"
         f"{share}{peaks}{score}{nuisance}"
         f"<h3>flagged steps ({len(conn_flags)})</h3><ul>{flag_items or '<li>none</li>'}</ul>"
         f'<div class="thumbs">{thumbs}</div></section>'
@@ -273,25 +266,25 @@ def _evidence_section(evidence: MapEvidence) -> str:
         facts.append(
             f"IG completeness over {ig['steps']} steps: largest relative error {_pct(ig['max_relative_error'])}"
         )
-    items = "".join(f"<li>{_e(f)}</li>" for f in facts)
+    items = "".join(f"<li>{_escape(f)}</li>" for f in facts)
     return (
-        f'<section class="evidence" id="evidence" data-status="{_e(evidence.status)}">'
-        f"<h2>how faithful are these maps?</h2><p>{_e(evidence.note)}</p>"
-        f'<p class="{"warn" if evidence.status == "missing" else "dim"}">{_e(evidence.status_line)}</p>'
+        f'<section class="evidence" id="evidence" data-status="{_escape(evidence.status)}">'
+        f"<h2>how faithful are these maps?</h2><p>{_escape(evidence.note)}</p>"
+        f'<p class="{"warn" if evidence.status == "missing" else "dim"}">{_escape(evidence.status_line)}</p>'
         f"{table}<ul>{items}</ul></section>"
     )
 
 
 def _table(head: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
-    body = "".join("<tr>" + "".join(f"<td>{_e(v)}</td>" for v in row) + "</tr>" for row in rows)
-    return "<table><tr>" + "".join(f"<th>{_e(h)}</th>" for h in head) + f"</tr>{body}</table>"
+    body = "".join("<tr>" + "".join(f"<td>{_escape(v)}</td>" for v in row) + "</tr>" for row in rows)
+    return "<table><tr>" + "".join(f"<th>{_escape(h)}</th>" for h in head) + f"</tr>{body}</table>"
 
 
 def _failures_section(failures: Sequence[Failure]) -> str:
     items = "".join(
-        f'<li><a href="#step-{f.seq}">seq {f.seq} (connection {_e(f.connection)}, step {f.step})</a>: '
-        f'malformed generation <code class="reason">{_e(f.reason)}</code>, explained with target '
-        f'<code class="target">{_e(f.target)}</code></li>'
+        f'<li><a href="#step-{f.seq}">seq {f.seq} (connection {_escape(f.connection)}, step {f.step})</a>: '
+        f'malformed generation <code class="reason">{_escape(f.reason)}</code>, explained with target '
+        f'<code class="target">{_escape(f.target)}</code></li>'
         for f in failures
     )
     return (
@@ -320,31 +313,31 @@ def _step_section(
         shift = "-" if math.isnan(cs.peak_shift) else f"{cs.peak_shift:.2f}"
         entropy = "-" if math.isnan(cs.entropy_norm) else f"{cs.entropy_norm:.3f}"
         link = assets.overlays.get(c)
-        name = f'<a href="{_e(link)}">{_e(c)}</a>' if link else _e(c)
+        name = f'<a href="{_escape(link)}">{_escape(c)}</a>' if link else _escape(c)
         rows.append(
             f"<tr><td>{name}</td><td>{'yes' if cs.valid else 'no'}</td><td>{100 * cs.share:.1f}%</td>"
             f"<td>{entropy}</td><td>{peak}</td><td>{shift}</td>"
-            f'<td class="evidence">{_e(evidence.step_line(st.seq, c)) if evidence else "-"}</td></tr>'
+            f'<td class="evidence">{_escape(evidence.step_line(st.seq, c)) if evidence else "-"}</td></tr>'
         )
     nav = " ".join(
         f'<a href="#step-{s.seq}">{label}</a>' for s, label in zip(prev_next, ("prev", "next"), strict=True) if s
     )
-    warn = f'<p class="warn">{_e("; ".join(flags))}</p>' if flags else ""
+    warn = f'<p class="warn">{_escape("; ".join(flags))}</p>' if flags else ""
     if failure is not None:
-        warn = f'<p class="fail">malformed generation: {_e(failure.reason)}</p>' + warn
+        warn = f'<p class="fail">malformed generation: {_escape(failure.reason)}</p>' + warn
     return (
         f'<section class="step{" failure" if failure else ""}" id="step-{st.seq}" data-seq="{st.seq}">'
-        f"<h3>seq {st.seq} · connection {_e(st.connection)} · step {st.step} · {_e(st.target)} · "
+        f"<h3>seq {st.seq} · connection {_escape(st.connection)} · step {st.step} · {_escape(st.target)} · "
         f"score {st.score:.4g} <small>{nav}</small></h3>{warn}"
-        f'<a href="{_e(assets.panel)}"><img class="panel" src="{_e(assets.panel)}" alt="seq {st.seq}"></a>'
+        f'<a href="{_escape(assets.panel)}"><img class="panel" src="{_escape(assets.panel)}" alt="seq {st.seq}"></a>'
         "<table><tr><th>camera</th><th>valid</th><th>share</th><th>entropy (norm.)</th><th>peak (row, col)</th>"
         "<th>peak shift</th><th>top patch's drop / best patch's</th></tr>"
         f"{''.join(rows)}</table>"
-        f"<p class='dim'>tokens {_e(' '.join(map(str, st.token_ids)))}</p></section>"
+        f"<p class='dim'>tokens {_escape(' '.join(map(str, st.token_ids)))}</p></section>"
     )
 
 
-_STYLE = """
+REPORT_STYLE = """
 body{background:#18181c;color:#e8e8e8;font:14px/1.4 system-ui,sans-serif;margin:16px 24px}
 a{color:#8cb8ff}h1,h2,h3{font-weight:600}table{border-collapse:collapse;margin:6px 0}
 td,th{border:1px solid #444;padding:2px 8px;text-align:left}.dim{color:#999}.warn{color:#ff8a80}
@@ -374,19 +367,20 @@ def write_report(
     map_label: str,
     norm: str,
     score_drop: float = 0.3,
-    step_meta: Mapping[int, Mapping[str, Any]] | None = None,
+    step_meta: Mapping[int, StepMeta] | None = None,
     evidence: MapEvidence | None = None,
 ) -> pathlib.Path:
     """Writes `index.html` into the render directory and returns its path.
 
     `evidence` (how faithful the drawn kind measured on this run, `viz.evidence`) opens the report and gives each
     step's figure beside its cameras. Failure steps (malformed generations) are listed first, from `step_meta`
-    (seq -> step JSON, which names them in every schema version) or else from the manifest's index entries (schema 2
-    names them there too)."""
+    (seq -> the step's metadata, which names them in every schema version) or else from the manifest's index entries
+    (schema 2 names them there too)."""
     stats = result.stats
     rendered = {st.seq for st in stats}
     if step_meta is None:
-        step_meta = {e["seq"]: e for e in manifest.get("steps", []) if isinstance(e, dict) and "seq" in e}
+        entries = [e for e in manifest.get("steps", []) if isinstance(e, dict) and isinstance(e.get("seq"), int)]
+        step_meta = {e["seq"]: StepMeta.from_json(e) for e in entries}
     failures = [f for f in failure_steps(step_meta) if f.seq in rendered]
     failure_of = {f.seq: f for f in failures}
     cams = camera_names(stats)
@@ -404,9 +398,9 @@ def write_report(
         "flagged": f"attention left the connection's usual camera, or the score fell by more than "
         f"{100 * score_drop:.0f}% from the previous step",
     }
-    info_html = "".join(f"<dt>{_e(k)}</dt><dd>{_e(v)}</dd>" for k, v in info.items() if v is not None)
+    info_html = "".join(f"<dt>{_escape(k)}</dt><dd>{_escape(v)}</dd>" for k, v in info.items() if v is not None)
     cam_rows = "".join(
-        f"<tr><td>{_e(c)}</td><td>{a['valid_steps']}</td><td>{_pct(a['mean_share'])}</td>"
+        f"<tr><td>{_escape(c)}</td><td>{a['valid_steps']}</td><td>{_pct(a['mean_share'])}</td>"
         f"<td>{_num(a['mean_entropy_norm'])}</td><td>{_pct(a['peak_stay_rate'])}</td>"
         f"<td>{_num(a['mean_peak_shift'])}</td><td>{a['dominant_steps']}</td></tr>"
         for c, a in summary["cameras"].items()
@@ -420,18 +414,18 @@ def write_report(
             step_html.append(
                 _step_section(
                     st,
-                    cams,
-                    result.steps[st.seq],
-                    flag_map.get(st.seq, []),
-                    neighbours,
-                    failure_of.get(st.seq),
-                    evidence,
+                    meta_cams=cams,
+                    assets=result.steps[st.seq],
+                    flags=flag_map.get(st.seq, []),
+                    prev_next=neighbours,
+                    failure=failure_of.get(st.seq),
+                    evidence=evidence,
                 )
             )
     doc = (
-        f'<!doctype html><html lang="en"><head><meta charset="utf-8"><title>CAM run {_e(run_id)}</title>'
-        f"<style>{_STYLE}</style></head><body>"
-        f"<h1>CAM run {_e(run_id)}: {_e(map_label)} maps</h1>"
+        f'<!doctype html><html lang="en"><head><meta charset="utf-8"><title>CAM run {_escape(run_id)}</title>'
+        f"<style>{REPORT_STYLE}</style></head><body>"
+        f"<h1>CAM run {_escape(run_id)}: {_escape(map_label)} maps</h1>"
         f"<dl>{info_html}</dl>"
         "<table><tr><th>camera</th><th>valid steps</th><th>mean share</th><th>mean entropy (norm.)</th>"
         f"<th>peak stayed</th><th>mean peak shift (cells)</th><th>dominant in</th></tr>{cam_rows}</table>"

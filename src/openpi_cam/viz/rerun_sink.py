@@ -43,17 +43,6 @@ def _import_rerun() -> Any:
     return rerun
 
 
-def entity_paths(connection: str, cameras: list[str]) -> list[str]:
-    """Every entity path one connection's steps log to (what a reader of the recording can look for)."""
-    rr = _import_rerun()
-    conn = rr.escape_entity_path_part(connection)
-    paths = [f"/{conn}/score"]
-    for c in cameras:
-        cam = rr.escape_entity_path_part(c)
-        paths += [f"/{conn}/{cam}/frame", f"/{conn}/{cam}/overlay", f"/{conn}/share/{cam}"]
-    return paths
-
-
 def _markdown_table(columns: tuple[str, ...], rows: list[tuple[str, ...]]) -> list[str]:
     return ["| " + " | ".join(row) + " |" for row in (columns, ("---",) * len(columns), *rows)]
 
@@ -103,7 +92,7 @@ def write_rrd(
             scale = run_max if norm == "run" else step_scale(st)
             if math.isfinite(st.score):
                 rec.log(f"/{conn}/score", rr.Scalars(st.score))
-            for camera in list(step.meta.get("cameras", {})) or list(step.maps):
+            for camera in list(step.meta.cameras) or list(step.maps):
                 cam = rr.escape_entity_path_part(camera)
                 image, _ = camera_image(step, camera)
                 rec.log(f"/{conn}/{cam}/frame", rr.Image(image))

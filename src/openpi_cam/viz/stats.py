@@ -18,12 +18,12 @@ from typing import Any, Literal
 import numpy as np
 
 from openpi_cam.cam.faithfulness import nuisance_mass_ratio, target_cells
-from openpi_cam.cam.runfmt import MAP_PREFIXES, CAMStep, client_extra
-from openpi_cam.cam.spot_check import read_check
+from openpi_cam.cam.run_evidence import read_check
+from openpi_cam.cam.runfmt import MAP_PREFIXES, CAMStep, StepMeta, client_extra
 from openpi_cam.viz.overlay import reduce_tokens
 
 # What render, the report and the demo draw unless told otherwise: the map that measured most faithful on the demo
-# model at the cost of one backward pass (README, "Which map to trust").
+# model at the cost of one backward pass (docs/MAP_KINDS.md, "Which map to trust").
 DEFAULT_MAP_KIND = "gradnorm"
 # Display names of the map kinds (what each one is, in a figure's words).
 MAP_LABELS: dict[str, str] = {
@@ -39,7 +39,7 @@ class LoadedView:
     """A step's arrays of one kind, read once (what one rendering iteration needs)."""
 
     seq: int
-    meta: Mapping[str, Any]
+    meta: StepMeta
     maps: Mapping[str, np.ndarray]
     frames: Mapping[str, np.ndarray]
     model_frames: Mapping[str, np.ndarray]
@@ -59,7 +59,14 @@ class MapView:
     def loaded(self) -> LoadedView:
         arrays = self._step.lazy().arrays()
         maps, extra = arrays.maps.get(self.kind, {}), client_extra(self.meta, arrays)
-        return LoadedView(self.seq, self.meta, maps, arrays.frames, arrays.model_frames, extra)
+        return LoadedView(
+            seq=self.seq,
+            meta=self.meta,
+            maps=maps,
+            frames=arrays.frames,
+            model_frames=arrays.model_frames,
+            extra=extra,
+        )
 
     @property
     def maps(self) -> Mapping[str, np.ndarray]:
@@ -94,8 +101,8 @@ def view_steps(steps: Iterable[CAMStep], kind: str) -> list[MapView]:
 
 def step_kinds(step: CAMStep) -> tuple[str, ...]:
     """The map kinds a step carries, from its metadata when it lists them (no array read), else from its file."""
-    listed = step.meta.get("map_kinds")
-    return tuple(listed) if isinstance(listed, list) else step.map_kinds
+    listed = step.meta.map_kinds
+    return listed if listed is not None else step.map_kinds
 
 
 @dataclasses.dataclass(frozen=True)
@@ -152,9 +159,19 @@ def map_entropy(m: np.ndarray) -> float:
     return float(-(p * np.log(p)).sum())
 
 
-def _camera_stats(m: np.ndarray | None, valid: bool, total: float) -> CameraStats:
+def camera_stats(m: np.ndarray | None, valid: bool, total: float) -> CameraStats:
     if m is None or not valid:
-        return CameraStats(False, 0.0, 0.0, math.nan, math.nan, None, math.nan, math.nan, None)
+        return CameraStats(
+            valid=False,
+            mass=0.0,
+            share=0.0,
+            entropy=math.nan,
+            entropy_norm=math.nan,
+            peak=None,
+            peak_value=math.nan,
+            peak_shift=math.nan,
+            peak_stayed=None,
+        )
     mass = float(m.sum())
     entropy = map_entropy(m)
     cells = m.size
@@ -178,16 +195,15 @@ def compute_stats(steps: Iterable[MapView]) -> list[StepStats]:
     last_peak: dict[tuple[str, str], tuple[int, int] | None] = {}
     for s in sorted(steps, key=lambda s: s.seq):
         meta = s.meta
-        cams_meta: Mapping[str, Any] = meta.get("cameras", {})
-        names = list(cams_meta) + [c for c in s.maps if c not in cams_meta]
-        valid = {c: bool(cams_meta.get(c, {}).get("valid", True)) for c in names}
+        names = list(meta.cameras) + [c for c in s.maps if c not in meta.cameras]
+        valid = {c: meta.cameras[c].valid if c in meta.cameras else True for c in names}
         maps = {c: reduce_tokens(s.maps[c]) if c in s.maps else None for c in names}
         total = sum(float(m.sum()) for c, m in maps.items() if m is not None and valid[c])
-        connection = str(meta.get("connection", ""))
+        connection = meta.connection or ""
         checked = read_check(meta, s.kind)
         cameras: dict[str, CameraStats] = {}
         for c in names:
-            cs = _camera_stats(maps[c], valid[c], total)
+            cs = camera_stats(maps[c], valid[c], total)
             if c in checked:
                 top, randoms = checked[c]
                 cs = dataclasses.replace(cs, check_top_drop=top, check_random_max=max(randoms, default=math.nan))
@@ -206,11 +222,11 @@ def compute_stats(steps: Iterable[MapView]) -> list[StepStats]:
             StepStats(
                 seq=int(s.seq),
                 connection=connection,
-                step=int(meta.get("step", -1)),
-                timestamp=float(meta.get("timestamp", math.nan)),
-                target=str(meta.get("target", "")),
-                score=mean_score(meta.get("score")),
-                token_ids=tuple(int(t) for t in meta.get("token_ids", ())),
+                step=-1 if meta.step is None else meta.step,
+                timestamp=math.nan if meta.timestamp is None else meta.timestamp,
+                target=meta.target,
+                score=mean_score(meta.score),
+                token_ids=meta.token_ids,
                 cameras=cameras,
             )
         )

@@ -1,0 +1,476 @@
+"""Explaining a LeRobot dataset into a maps dataset (`openpi-cam explain DATASET_DIR`).
+
+An episode is the unit of work: its frames are decoded forward once (`data.lerobot`), every selected frame is served
+to the policy as a robot would send it (one `infer_traced` call each, exactly as served), the traced calls are
+explained `batch_size` at a time, each explanation gets its spot check, and the episode's rows are written as one
+shard (`cam.maps_dataset`). The local engine runs episodes in a loop; the Ray engine (`cam.ray_engine`) runs the same
+`EpisodeExplainer` in an actor per worker, so both write the same rows.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import logging
+import pathlib
+import time
+from collections.abc import Callable, Container, Iterable, Iterator, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from openpi_cam.cam import maps_dataset as fmt
+from openpi_cam.cam.batching import data_mesh, explain_traces
+from openpi_cam.cam.offline import ExplainOptions
+from openpi_cam.cam.runfmt import dumps
+from openpi_cam.cam.spot_check import check_trace
+from openpi_cam.data.lerobot import DatasetError, LeRobotDataset, open_dataset
+from openpi_cam.nested import unflatten_dict
+from openpi_cam.policies import demo_reach
+from openpi_cam.policies.config import resolve_config
+from openpi_cam.policies.family import ExplainSkipped, Explanation, resolve_target
+from openpi_cam.policies.policy import InferenceTrace, Policy, create_policy
+from openpi_cam.vocabulary import DATASET_ACTIONS
+
+log = logging.getLogger(__name__)
+
+PROMPT_KEY = "prompt"
+ACTIONS_KEY = "actions"  # in a LeRobot mapping: the feature holding the recorded actions, not an observation key
+NOISE_SEED = 0  # with the frame's index, seeds a flow-matching policy's noise for that frame
+
+
+@dataclasses.dataclass(frozen=True)
+class PolicySpec:
+    """How to build the policy: what an actor on another machine needs to load its own copy."""
+
+    config: str = demo_reach.DEMO_CONFIG.name
+    checkpoint_dir: str | None = None  # None: the bundled demo model
+    paligemma_tokenizer: str | None = None
+    fast_tokenizer: str | None = None
+    dtype: str = "float32"
+    default_prompt: str | None = None
+
+    def create(self) -> Policy:
+        if self.checkpoint_dir is None:
+            return demo_reach.create_demo_policy(model=self._demo_model, dtype=self.dtype)
+        return create_policy(
+            self.config,
+            self.checkpoint_dir,
+            paligemma_tokenizer=self.paligemma_tokenizer,
+            fast_tokenizer=self.fast_tokenizer,
+            dtype=self.dtype,
+            default_prompt=self.default_prompt,
+        )
+
+    @property
+    def _demo_model(self) -> str:
+        models = {config.name: model for model, config in demo_reach.DEMO_CONFIGS.items()}
+        if self.config not in models:
+            raise ValueError(f"config {self.config!r} needs --checkpoint-dir (the bundled models are {sorted(models)})")
+        return models[self.config]
+
+    @property
+    def checkpoint(self) -> str:
+        if self.checkpoint_dir is None:
+            return str(demo_reach.DEFAULT_ASSETS[self._demo_model] / demo_reach.CHECKPOINT.name)
+        return str(self.checkpoint_dir)
+
+
+@dataclasses.dataclass(frozen=True)
+class DatasetJob:
+    """One explanation of a LeRobot dataset into a maps dataset."""
+
+    source: pathlib.Path
+    out: pathlib.Path
+    policy: PolicySpec
+    options: ExplainOptions
+    keys: Mapping[str, str]  # observation key -> dataset feature
+    extra: Mapping[str, str] = dataclasses.field(default_factory=dict)  # dataset feature -> `extra/<name>` column
+    episodes: tuple[int, ...] | None = None  # None: every episode
+    every: int = 1  # explain every N-th frame of an episode (frame_index % every == 0)
+    nested_keys: bool = False  # observation keys `a/b` are nested dicts (ALOHA's `images/cam_high`)
+    keep_going: bool = False  # a bad episode is skipped, counted and named in the summary instead of ending the job
+    # `--target dataset-actions`: the dataset feature whose recorded chunk (this frame's action and the next ones, the
+    # last repeated past the episode's end, as LeRobot pads) is explained instead of the model's own generation.
+    recorded_actions: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.every < 1:
+            raise ValueError(f"--every must be >= 1, got {self.every}")
+        if not self.keys:
+            raise ValueError("no observation keys mapped to dataset features (--keys OBS_KEY=FEATURE ...)")
+        if ACTIONS_KEY in self.keys:
+            raise ValueError(f"{ACTIONS_KEY!r} is not an observation key; the recorded actions are `recorded_actions`")
+        if self.recorded_actions is not None and self.options.target != "chunk":
+            raise ValueError("the recorded actions are explained as a whole chunk: options.target must be 'chunk'")
+
+
+def parse_pairs(pairs: Sequence[str], flag: str) -> dict[str, str]:
+    """`A=B` strings -> {A: B}; a malformed one is an error naming the flag."""
+    out = {}
+    for pair in pairs:
+        left, sep, right = pair.partition("=")
+        if not sep or not left.strip() or not right.strip():
+            raise ValueError(f"{flag} takes KEY=VALUE pairs, got {pair!r}")
+        out[left.strip()] = right.strip()
+    return out
+
+
+def dataset_keys(config: str, overrides: Mapping[str, str]) -> tuple[dict[str, str], bool]:
+    """(observation key -> dataset feature, whether keys `a/b` nest): the config's declared LeRobot mapping,
+    overridden key by key, without its `actions` entry (`recorded_actions_feature`)."""
+    cfg = resolve_config(config)
+    keys = {**(cfg.lerobot_keys or {}), **overrides}
+    keys.pop(ACTIONS_KEY, None)
+    return keys, cfg.lerobot_nested
+
+
+def recorded_actions_feature(config: str, overrides: Mapping[str, str]) -> str | None:
+    """The feature holding the recorded actions: the mapping's `actions` entry (`--keys actions=FEATURE`)."""
+    return {**(resolve_config(config).lerobot_keys or {}), **overrides}.get(ACTIONS_KEY)
+
+
+def check_features(ds: LeRobotDataset, job: DatasetJob) -> None:
+    """Every mapped and carried feature exists in the dataset (one line naming the missing one and what exists)."""
+    wanted = [(f"--keys {k}", f) for k, f in job.keys.items()] + [(f"--extra {f}", f) for f in job.extra]
+    if job.recorded_actions is not None:
+        wanted.append((f"--target {DATASET_ACTIONS} (--keys {ACTIONS_KEY}=FEATURE)", job.recorded_actions))
+    for flag, feature in wanted:
+        if feature not in ds.features:
+            raise DatasetError(
+                f"{ds.root / 'meta/info.json'}: feature {feature!r} ({flag}) is not in the dataset; it has "
+                f"{sorted(ds.features)}"
+            )
+
+
+def selected_episodes(ds: LeRobotDataset, job: DatasetJob) -> list[int]:
+    if job.episodes is None:
+        return list(ds.episodes)
+    missing = sorted(set(job.episodes) - set(ds.episodes))
+    if missing:
+        raise DatasetError(f"{ds.root}: episodes {missing} are not in the dataset (it has {len(ds.episodes)})")
+    return list(job.episodes)
+
+
+def job_info(ds: LeRobotDataset, job: DatasetJob, policy: Policy) -> dict[str, Any]:
+    """The maps dataset's meta/info.json for this job (cameras and grids from the model)."""
+    grid = [int(g) for g in policy.model.config.siglip.grid]
+    cameras = list(policy.camera_sources)
+    options = job.options
+    return {
+        "format": fmt.FORMAT,
+        "format_version": fmt.FORMAT_VERSION,
+        "source": str(pathlib.Path(job.source).resolve()),
+        "source_version": ds.version,
+        "source_fps": ds.fps,
+        "checkpoint": job.policy.checkpoint,
+        "config": job.policy.config,
+        "family": policy.model.family,
+        "dtype": job.policy.dtype,
+        "target": DATASET_ACTIONS if job.recorded_actions is not None else options.target,
+        "recorded_actions": job.recorded_actions,
+        "kinds": list(options.maps),
+        "grids": {c: grid for c in cameras},
+        "camera_sources": {c: (None if k is None else job.keys.get(k, k)) for c, k in policy.camera_sources.items()},
+        "keys": dict(job.keys),
+        "extra": dict(job.extra),
+        "every": job.every,
+        "nested_keys": job.nested_keys,
+        "scores_per_row": 0 if options.target == "all-action-tokens" else 1,
+        "options": {
+            "action_index": options.action_index,
+            "action_dim_index": options.action_dim_index,
+            "baseline": options.map_options.baseline,
+            "ig_space": options.map_options.ig_space,
+            "occlusion_region": options.map_options.occlusion_region,
+            "occlusion_masks": options.map_options.random_masks
+            if options.map_options.occlusion_mode == "random"
+            else 0,
+            "check_patches": options.check_patches,
+            "batch_size": options.batch_size,
+        },
+    }
+
+
+def _observation(frame: Mapping[str, Any], job: DatasetJob) -> dict[str, Any]:
+    obs: dict[str, Any] = {key: frame[feature] for key, feature in job.keys.items()}
+    if job.nested_keys:
+        obs = unflatten_dict(obs)
+    obs.setdefault(PROMPT_KEY, frame["task"])
+    return obs
+
+
+def _flat(values: Any, dtype: Any = np.float32) -> list[float]:
+    return np.asarray(values, dtype).reshape(-1).tolist()
+
+
+def frame_row(
+    frame: Mapping[str, Any],
+    trace: InferenceTrace,
+    explanation: Explanation,
+    response: Mapping[str, Any],
+    check: Mapping[str, Any] | None,
+    *,
+    info: Mapping[str, Any],
+    job: DatasetJob,
+    explain_ms: float,
+) -> dict[str, Any]:
+    """The maps-dataset row of one explained frame (`cam.maps_dataset` lists the columns)."""
+    score = explanation.score
+    row: dict[str, Any] = {
+        "index": int(frame["index"]),
+        "episode_index": int(frame["episode_index"]),
+        "frame_index": int(frame["frame_index"]),
+        "timestamp": float(np.asarray(frame["timestamp"]).reshape(-1)[0]),
+        "task": str(frame["task"]),
+        "target": DATASET_ACTIONS if job.recorded_actions is not None else explanation.target,
+        "score": [float(s) for s in score] if isinstance(score, list | tuple) else float(score),
+        "malformed": trace.malformed_reason,
+        "actions": _flat(response["actions"]),
+        "explain_ms": round(explain_ms, 3),
+        "cameras": dumps(
+            {
+                camera: {
+                    **values,
+                    "geometry": None if trace.geometry.get(camera) is None else trace.geometry[camera].as_dict(),
+                }
+                for camera, values in explanation.cameras.items()
+            }
+        ),
+        "details": dumps(explanation.details),
+        "check": None if check is None else dumps(check),
+    }
+    for kind in info["kinds"]:
+        for camera in info["grids"]:
+            m = explanation.maps.get(kind, {}).get(camera)
+            row[fmt.map_column(kind, camera)] = None if m is None else _flat(m)
+    check_cameras = (check or {}).get("cameras", {})
+    for camera in info["grids"]:
+        figures = check_cameras.get(camera, {})
+        for kind in info["kinds"]:
+            row[fmt.check_column(kind, camera)] = figures.get("top_patch_drop", {}).get(kind)
+        row[fmt.check_column(fmt.CHECK_RANDOM, camera)] = figures.get("random_patch_drops")
+    for feature, name in job.extra.items():
+        row[f"extra/{name}"] = _flat(frame[feature], np.float64)
+    return row
+
+
+@dataclasses.dataclass
+class EpisodeResult:
+    episode: int
+    rows: list[dict[str, Any]]
+    counts: collections.Counter[str]
+    seconds: dict[str, float]  # decode, inference, explanation, writing
+
+
+class EpisodeExplainer:
+    """Explains whole episodes of one dataset with one loaded policy; the unit both engines run."""
+
+    def __init__(self, job: DatasetJob, policy: Policy | None = None, *, mesh: Any = "auto") -> None:
+        self.job = job
+        self.dataset = open_dataset(job.source)
+        check_features(self.dataset, job)
+        self.episodes = selected_episodes(self.dataset, job)  # checked before a model is loaded
+        self.policy = job.policy.create() if policy is None else policy
+        # The info and rows record the target actually explained: the family's default when none was named.
+        self.job = job = dataclasses.replace(
+            job,
+            options=dataclasses.replace(job.options, target=resolve_target(self.policy.explainer, job.options.target)),
+        )
+        self.mesh = data_mesh() if mesh == "auto" else mesh
+        self.explainer = self.policy.explainer.on_mesh(self.mesh)
+        self.info = job_info(self.dataset, job, self.policy)
+        if job.recorded_actions is not None and self.policy.model.family != "pi0_fast":
+            raise ValueError(
+                f"--target {DATASET_ACTIONS}: {self.policy.model.family} has no likelihood of a given chunk to explain "
+                "(README, 'Explaining a LeRobot dataset'); pi0-FAST explains the recorded chunk's FAST tokens"
+            )
+        self.horizon = resolve_config(job.policy.config).action_horizon
+
+    def explain(self, episode: int) -> EpisodeResult:
+        """The rows of one episode (raises `DatasetError` for bad data: nothing of the episode is written)."""
+        job, options = self.job, self.job.options
+        counts: collections.Counter[str] = collections.Counter()
+        seconds = dict.fromkeys(("decode", "inference", "explanation", "writing"), 0.0)
+        length = self.dataset.episode_length(episode)
+        wanted = set(range(0, length, job.every))
+        rows: list[dict[str, Any]] = []
+        pending: list[tuple[Mapping[str, Any], InferenceTrace, dict[str, Any]]] = []
+
+        def flush() -> None:
+            t0 = time.perf_counter()
+            traces = [trace for _, trace, _ in pending]
+            results = explain_traces(self.explainer, traces, options.request, mesh=self.mesh, pad_to=options.batch_size)
+            per_row_ms = (time.perf_counter() - t0) * 1000.0 / len(pending)
+            for (frame, trace, response), result in zip(pending, results, strict=True):
+                if isinstance(result, ExplainSkipped):
+                    counts[f"skipped_{result.reason}"] += 1
+                    continue
+                check = None
+                if options.check_patches:
+                    check = check_trace(
+                        self.explainer,
+                        trace,
+                        result,
+                        options.map_options,
+                        patches=options.check_patches,
+                        seed=int(frame["index"]),
+                        mesh=self.mesh,
+                    )
+                counts["explained_malformed"] += trace.malformed_reason is not None
+                counts["explained"] += 1
+                rows.append(
+                    frame_row(frame, trace, result, response, check, info=self.info, job=job, explain_ms=per_row_ms)
+                )
+            seconds["explanation"] += time.perf_counter() - t0
+            pending.clear()
+
+        for frame, response, trace in self.served(episode, wanted, seconds):
+            counts["frames"] += 1
+            pending.append((frame, trace, response))
+            if len(pending) == options.batch_size:
+                flush()
+        if pending:
+            flush()
+        return EpisodeResult(episode, rows, counts, seconds)
+
+    def served(
+        self, episode: int, frame_indices: Container[int], seconds: dict[str, float] | None = None
+    ) -> Iterator[tuple[dict[str, Any], dict[str, Any], InferenceTrace]]:
+        """(frame, response, trace) of each wanted frame of an episode, served one at a time as a robot's requests
+        are; `seconds` accumulates the decode and inference time."""
+        seconds = {} if seconds is None else seconds
+        features = sorted(set(self.job.keys.values()) | set(self.job.extra))
+        recorded = None
+        if self.job.recorded_actions is not None:
+            column = self.dataset.frames(episode, features=[self.job.recorded_actions])
+            recorded = np.stack([np.asarray(f[self.job.recorded_actions]) for f in column])
+        frames = iter(self.dataset.frames(episode, features=features, frame_indices=frame_indices))
+        while True:
+            t0 = time.perf_counter()
+            frame = next(frames, None)
+            seconds["decode"] = seconds.get("decode", 0.0) + time.perf_counter() - t0
+            if frame is None:
+                return
+            t0 = time.perf_counter()
+            obs = _observation(frame, self.job)
+            response, trace = self.policy.infer_traced(obs, noise=self._noise(frame))
+            if recorded is not None:
+                trace = self._recorded_output(obs, trace, recorded, int(frame["frame_index"]))
+            seconds["inference"] = seconds.get("inference", 0.0) + time.perf_counter() - t0
+            yield frame, response, trace
+
+    def _recorded_output(
+        self, obs: Mapping[str, Any], trace: InferenceTrace, recorded: np.ndarray, frame_index: int
+    ) -> InferenceTrace:
+        """The traced call with its generation replaced by the tokens of the recorded chunk starting at this frame,
+        as training tokenises it: explaining them with the `chunk` target differentiates the log-probability the
+        model gives the demonstrated actions."""
+        steps = np.minimum(np.arange(frame_index, frame_index + self.horizon), len(recorded) - 1)
+        inputs = self.policy.training_inputs(obs, recorded[steps])
+        postfix = np.asarray(inputs["tokenized_prompt"])[np.asarray(inputs["token_loss_mask"], bool)]
+        output = np.zeros_like(np.asarray(trace.output))
+        if len(postfix) > len(output):
+            raise ValueError(
+                f"the recorded chunk at frame {frame_index} is {len(postfix)} tokens, more than the {len(output)} "
+                "decoding steps the policy allows"
+            )
+        output[: len(postfix)] = postfix
+        return dataclasses.replace(trace, output=output, malformed_reason=None)
+
+    def _noise(self, frame: Mapping[str, Any]) -> np.ndarray | None:
+        """A flow-matching policy's noise for a frame, drawn from the frame's dataset `index`: the frame's actions and
+        maps are then the same whichever worker explains it and in whatever order (pi0-FAST decodes greedily)."""
+        if self.policy.model.family == "pi0_fast":
+            return None
+        config = self.policy.model.config
+        rng = np.random.default_rng([NOISE_SEED, int(frame["index"])])
+        return rng.standard_normal((config.action_horizon, config.action_dim)).astype(np.float32)
+
+    def write(self, result: EpisodeResult) -> str:
+        t0 = time.perf_counter()
+        path = fmt.write_shard(self.job.out, self.info, result.episode, result.rows)
+        result.seconds["writing"] += time.perf_counter() - t0
+        return path
+
+
+def prepare_output(job: DatasetJob, info: Mapping[str, Any]) -> set[int]:
+    """Creates the maps dataset (or checks that the one at `job.out` was made with the same settings) and returns
+    the episodes it already holds."""
+    info_path = job.out / fmt.INFO_JSON
+    if info_path.is_file():
+        old = fmt.open_maps_dataset(job.out).info
+        if diffs := fmt.resume_mismatch(old, info):
+            raise ValueError(f"cannot add to {job.out}, it was made with other settings: {'; '.join(diffs)}")
+    else:
+        if job.out.exists() and any(job.out.iterdir()):
+            raise ValueError(f"{job.out} exists and is not a maps dataset: choose an empty or new folder")
+        fmt.write_json(info_path, info)
+    return fmt.written_episodes(job.out)
+
+
+@dataclasses.dataclass
+class JobSummary:
+    """What a job did: counts, the episodes it skipped (with why), and where the time went."""
+
+    episodes_written: int = 0
+    episodes_already_written: int = 0
+    episodes_skipped: dict[int, str] = dataclasses.field(default_factory=dict)
+    counts: collections.Counter[str] = dataclasses.field(default_factory=collections.Counter)
+    seconds: dict[str, float] = dataclasses.field(
+        default_factory=lambda: dict.fromkeys(("decode", "inference", "explanation", "writing"), 0.0)
+    )
+    engine: str = "local"
+    workers: int = 1
+
+    def add(self, result: EpisodeResult) -> None:
+        self.episodes_written += 1
+        self.counts.update(result.counts)
+        for k, v in result.seconds.items():
+            self.seconds[k] = self.seconds.get(k, 0.0) + v
+
+    def as_json(self) -> dict[str, Any]:
+        return {
+            "engine": self.engine,
+            "workers": self.workers,
+            "episodes_written": self.episodes_written,
+            "episodes_already_written": self.episodes_already_written,
+            "episodes_skipped": {str(k): v for k, v in sorted(self.episodes_skipped.items())},
+            **dict(self.counts),
+            "seconds": {k: round(v, 3) for k, v in self.seconds.items()},
+        }
+
+    def line(self) -> str:
+        skipped = f", {len(self.episodes_skipped)} episodes skipped" if self.episodes_skipped else ""
+        return (
+            f"{self.counts['explained']} frames explained in {self.episodes_written} episodes "
+            f"({self.episodes_already_written} already written{skipped})"
+        )
+
+
+def run_local(
+    job: DatasetJob,
+    *,
+    policy: Policy | None = None,
+    progress: Callable[[Iterable[int], int], Iterable[int]] | None = None,
+) -> JobSummary:
+    """Explains the job's episodes one after another on this machine's devices, writing each episode's shard."""
+    worker = EpisodeExplainer(job, policy)
+    done = prepare_output(job, worker.info)
+    summary = JobSummary()
+    todo = [e for e in worker.episodes if e not in done]
+    summary.episodes_already_written = len(worker.episodes) - len(todo)
+    episodes: Iterable[int] = todo if progress is None else progress(todo, len(todo))
+    for episode in episodes:
+        try:
+            result = worker.explain(episode)
+        except DatasetError as e:
+            if not job.keep_going:
+                raise
+            summary.episodes_skipped[episode] = str(e)
+            log.warning("explain: skipping episode %d: %s", episode, e)
+            continue
+        worker.write(result)
+        summary.add(result)
+    fmt.write_json(job.out / fmt.SUMMARY_JSON, summary.as_json())
+    return summary

@@ -1,0 +1,138 @@
+"""How faithful a maps dataset's maps are (`openpi-cam faithfulness MAPS_DATASET`).
+
+The faithfulness report re-scores logged steps under interventions (`cam.faithfulness_run`), which needs each step's
+exact model inputs. A maps dataset stores maps, not model inputs, so `max_steps` frames spread evenly over it are
+served again from the source dataset (the same frames, prompt and noise rule as when they were explained), checked
+against the actions the row recorded, and logged as a CAM run with the maps the dataset holds for them. The run is
+then evaluated like any other, and the report is saved beside the maps.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import json
+import pathlib
+import time
+from typing import Any
+
+import numpy as np
+
+from openpi_cam.cam import maps_dataset as fmt
+from openpi_cam.cam.dataset_explain import DatasetJob, EpisodeExplainer, PolicySpec
+from openpi_cam.cam.logger import CAMLogger
+from openpi_cam.cam.offline import ExplainOptions
+from openpi_cam.cam.records import step_record
+from openpi_cam.policies.family import Explanation
+from openpi_cam.policies.policy import Policy
+from openpi_cam.vocabulary import MapOptions
+
+RUN_DIR = "meta/faithfulness_run"  # the CAM run of the evaluated frames, inside the maps dataset
+REPORT_FILE = "meta/faithfulness.json"
+# The re-served chunk must be the explained one: float32 replays of the same program agree to rounding.
+ACTIONS_ATOL = 1e-4
+
+
+def evenly(indices: list[int], limit: int | None) -> list[int]:
+    """At most `limit` of `indices`, spread evenly over them (all of them when `limit` is None)."""
+    if limit is None or limit >= len(indices):
+        return list(indices)
+    picks = np.linspace(0, len(indices) - 1, max(limit, 1)).round().astype(int)
+    return [indices[i] for i in dict.fromkeys(picks.tolist())]
+
+
+def job_of(maps: fmt.MapsDataset, spec: PolicySpec) -> DatasetJob:
+    """The job that made a maps dataset, as far as serving its frames again needs it."""
+    info = maps.info
+    options = info.get("options", {})
+    explain = ExplainOptions(
+        target=info["target"],
+        action_index=int(options.get("action_index", 0)),
+        action_dim_index=int(options.get("action_dim_index", 0)),
+        maps=tuple(info["kinds"]),
+        check_patches=0,
+        map_options=MapOptions(baseline=options.get("baseline", "mean"), ig_space=options.get("ig_space", "tokens")),
+    )
+    return DatasetJob(
+        source=pathlib.Path(info["source"]),
+        out=maps.root,
+        policy=spec,
+        options=explain,
+        keys=info["keys"],
+        extra=info.get("extra", {}),
+        every=int(info.get("every", 1)),
+        nested_keys=bool(info.get("nested_keys", False)),
+    )
+
+
+def _explanation(row: dict[str, Any], maps: fmt.MapsDataset) -> Explanation:
+    by_kind: dict[str, dict[str, np.ndarray]] = {}
+    for kind in maps.kinds:
+        for camera in maps.cameras:
+            values = row.get(fmt.map_column(kind, camera))
+            if values is not None:
+                hp, wp = maps.grid(camera)
+                flat = np.asarray(values, np.float32)
+                shape = (hp, wp) if flat.size == hp * wp else (-1, hp, wp)
+                by_kind.setdefault(kind, {})[camera] = flat.reshape(shape)
+    return Explanation(
+        target=row["target"],
+        maps=by_kind,
+        score=row["score"],
+        cameras=json.loads(row["cameras"]),
+        details=json.loads(row["details"]),
+    )
+
+
+def build_run(
+    maps: fmt.MapsDataset, policy: Policy, spec: PolicySpec, *, max_steps: int | None
+) -> tuple[pathlib.Path, collections.Counter[str]]:
+    """Serves `max_steps` rows of the maps dataset again and logs them with their maps as a CAM run (replacing an
+    earlier one). Returns the run directory and counts (rows evaluated, actions that did not match)."""
+    job = job_of(maps, spec)
+    worker = EpisodeExplainer(dataclasses.replace(job, episodes=tuple(maps.episodes)), policy, mesh=None)
+    table = maps.table(columns=["index", "episode_index", "frame_index"]).to_pydict()
+    chosen = set(evenly(table["index"], max_steps))
+    by_episode: dict[int, set[int]] = collections.defaultdict(set)
+    for index, episode, frame in zip(table["index"], table["episode_index"], table["frame_index"], strict=True):
+        if index in chosen:
+            by_episode[episode].add(frame)
+    parent = maps.root / RUN_DIR
+    for old in parent.glob("*") if parent.is_dir() else ():
+        if old.is_dir():
+            for path in sorted(old.rglob("*"), reverse=True):
+                path.rmdir() if path.is_dir() else path.unlink()
+            old.rmdir()
+    run_config = {
+        "config": spec.config,
+        "checkpoint_dir": spec.checkpoint_dir,
+        "dtype": spec.dtype,
+        "source": str(maps.root),
+    }
+    logger = CAMLogger(parent, run_config=run_config, checkpoint=spec.checkpoint, options={"maps": maps.kinds})
+    counts: collections.Counter[str] = collections.Counter()
+    try:
+        for episode, frames in sorted(by_episode.items()):
+            rows = {r["frame_index"]: r for r in maps.rows(episode)}
+            for frame, response, trace in worker.served(episode, frames):
+                row = rows[int(frame["frame_index"])]
+                served = np.asarray(response["actions"], np.float32).reshape(-1)
+                if served.shape != (len(row["actions"]),) or not np.allclose(served, row["actions"], atol=ACTIONS_ATOL):
+                    counts["actions_mismatched"] += 1
+                    continue
+                extra = {name: np.asarray(row[f"extra/{name}"]) for name in job.extra.values()}
+                record = step_record(
+                    trace,
+                    _explanation(row, maps),
+                    connection=f"episode_{episode:06d}",
+                    step=int(frame["frame_index"]),
+                    timestamp=time.time(),
+                    save_frames="both",
+                    extra={**extra, "index": int(row["index"])},
+                    explain_ms=float(row["explain_ms"] or 0.0),
+                    check=None if row["check"] is None else json.loads(row["check"]),
+                )
+                counts["rows"] += logger.log_step(record)
+    finally:
+        logger.close()
+    return logger.run_dir, counts

@@ -1,0 +1,53 @@
+"""What a logged run says about its own faithfulness, read without the model: the faithfulness report saved beside
+its steps (`openpi-cam faithfulness`, `REPORT_FILE`), IG's completeness over its steps, and each step's spot check
+(`meta.check`, written by `cam.spot_check`). NumPy only, so `render` and `stats` load no JAX.
+"""
+
+from __future__ import annotations
+
+import pathlib
+from typing import Any
+
+import numpy as np
+
+from openpi_cam.cam.runfmt import CAMRun, StepMeta, read_json
+
+# Where a run's faithfulness report lives: beside its steps, where `render` looks for it.
+REPORT_FILE = "faithfulness.json"
+
+
+def read_report(run_dir: str | pathlib.Path) -> dict[str, Any] | None:
+    """The run's saved faithfulness report (`REPORT_FILE`), or None when there is none or it cannot be read."""
+    return read_json(pathlib.Path(run_dir) / REPORT_FILE)
+
+
+def ig_summary(run: CAMRun) -> dict[str, Any] | None:
+    """IG's completeness over the run's logged steps (as the side channel stored it): the largest and median
+    relative error |sum of attributions - (score - baseline score)| / |score - baseline score|, and the quadrature
+    points used."""
+    checks = [check for s in run.steps if (check := s.meta.ig_completeness)]
+    if not checks:
+        return None
+    errors = np.concatenate([np.ravel(np.asarray(c["relative_error"], np.float64)) for c in checks])
+    points, counts = np.unique([int(c["steps"]) for c in checks], return_counts=True)
+    return {
+        "steps": len(checks),
+        "max_relative_error": float(errors.max()),
+        "median_relative_error": float(np.median(errors)),
+        "quadrature_points": {int(p): int(n) for p, n in zip(points, counts, strict=True)},
+    }
+
+
+def read_check(meta: StepMeta, kind: str) -> dict[str, tuple[float, tuple[float, ...]]]:
+    """A logged step's spot check of one map kind: camera -> (its top patch's score drop, the random patches' drops).
+    A random draw of the kind's own top patch is left out: it is no competitor, and without it a top patch no
+    better than a random one beats the R' others with probability 1 / (R' + 1)."""
+    out = {}
+    for camera, c in ((meta.check or {}).get("cameras") or {}).items():
+        top = (c.get("top_patch_drop") or {}).get(kind)
+        if not isinstance(top, (int, float)):
+            continue
+        own = (c.get("top_patch") or {}).get(kind)
+        pairs = zip(c.get("random_patches") or (), c.get("random_patch_drops") or (), strict=False)
+        out[camera] = (float(top), tuple(float(d) for i, d in pairs if i != own))
+    return out

@@ -1,0 +1,485 @@
+"""Rendering a maps dataset (`openpi-cam render MAPS_DATASET`): per episode an overlay video aligned with the
+dataset's frames, and one HTML report of the dataset-level views.
+
+The frames are decoded again from the LeRobot dataset the maps were computed from (`info["source"]`, read with
+`data.lerobot`), frame by frame as the maps dataset lists them, and each row's `index` is checked against the
+source's (`viz.dataset_frames`), so a video can never pair a map with another frame. Each explained frame becomes one
+video frame, the cameras side by side (the map bilinearly stretched over the frame and colour-blended,
+`viz.overlay`), at the source's frame rate divided by the explain job's `every`. Videos are H.264 (libx264, yuv420p)
+written with PyAV.
+
+The report (OUT/index.html, relative links to the files beside it, no network) opens with the spot checks stored in
+the maps dataset, then the positional prior with its flagged hot patches, the episodes ranked oddest first, the
+per-task table, and a section per rendered episode (its video and a strip of its frames). Figures:
+`viz.dataset_views`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import html
+import math
+import pathlib
+import sys
+from collections.abc import Mapping, Sequence
+from typing import Any, Literal
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+from openpi_cam.cam.maps_dataset import MapsDataset, open_maps_dataset
+from openpi_cam.data.lerobot import LeRobotDataset, parse_episodes
+from openpi_cam.viz.colormap import colorize
+from openpi_cam.viz.dataset_frames import (
+    EpisodeRows,
+    aligned_frames,
+    dataset_scale,
+    episode_rows,
+    frame_scale,
+    select_episodes,
+    source_dataset,
+    video_fps,
+)
+from openpi_cam.viz.dataset_rerun import write_dataset_rrd
+from openpi_cam.viz.dataset_views import DatasetViews, compute_views
+from openpi_cam.viz.evidence import KIND_NOTES
+from openpi_cam.viz.overlay import blend, upsample
+from openpi_cam.viz.progress import progress
+from openpi_cam.viz.render import label_font, slug
+from openpi_cam.viz.report import REPORT_STYLE
+from openpi_cam.viz.stats import DEFAULT_MAP_KIND, MAP_LABELS
+from openpi_cam.viz.video import Mp4Writer
+
+Norm = Literal["step", "run"]
+
+_BG = (24, 24, 28)
+_FG = (232, 232, 232)
+_DIM = (150, 150, 160)
+_HOT = (80, 230, 255)  # outline of a flagged hot patch: a colour the heat colormap never takes
+_PAD = 6
+_LINE = 16
+
+
+@dataclasses.dataclass(frozen=True)
+class DatasetRenderOptions:
+    map: str = DEFAULT_MAP_KIND
+    norm: Norm = "step"  # "step": each frame's maximum over its cameras; "run": the rendered episodes' maximum
+    alpha: float = 0.5
+    tile_height: int = 240
+    videos: bool = True
+    html: bool = True
+    progress: bool = True
+    strip_frames: int = 6  # frames shown per episode in the report
+    strip_height: int = 96
+    prior_height: int = 160
+    crf: int = 18  # libx264 quality: visually lossless for these overlays
+
+
+@dataclasses.dataclass
+class DatasetRenderResult:
+    out_dir: pathlib.Path
+    views: DatasetViews
+    videos: dict[int, str]  # episode -> path relative to out_dir
+    strips: dict[int, str]
+    frames: dict[int, int]  # episode -> video frames written
+    report: pathlib.Path | None = None
+
+
+def camera_tile(frame: np.ndarray | None, m: np.ndarray | None, scale: float, alpha: float, height: int) -> np.ndarray:
+    """The frame scaled to `height` with the map stretched over it, divided by `scale` and colour-blended; without a
+    map (masked camera) the plain frame; without a frame, a blank square."""
+    if frame is None:
+        return np.zeros((height, height, 3), np.uint8)
+    h, w = frame.shape[:2]
+    width = max(1, round(w * height / h))
+    base = np.asarray(Image.fromarray(frame).resize((width, height), Image.Resampling.BILINEAR))
+    if m is None:
+        return base
+    heat = upsample(m, height, width)
+    heat = heat / scale if scale > 0 else np.zeros_like(heat)
+    return blend(base, heat, alpha)
+
+
+def compose_frame(
+    frames: Mapping[str, np.ndarray],
+    maps: Mapping[str, np.ndarray],
+    valid: Mapping[str, bool],
+    scale: float,
+    caption: str,
+    labels: Mapping[str, str],
+    opts: DatasetRenderOptions,
+) -> np.ndarray:
+    """One video frame: a caption line, then per camera (in `maps` order) its label and tile, side by side. Both
+    sides are even (yuv420p needs them so)."""
+    tiles = {
+        c: camera_tile(frames.get(c), m if valid.get(c, True) else None, scale, opts.alpha, opts.tile_height)
+        for c, m in maps.items()
+    }
+    width = _PAD + sum(t.shape[1] + _PAD for t in tiles.values())
+    height = _PAD + 2 * _LINE + opts.tile_height + _PAD
+    width, height = width + width % 2, height + height % 2
+    canvas = Image.new("RGB", (width, height), _BG)
+    draw = ImageDraw.Draw(canvas)
+    font = label_font(12)
+    draw.text((_PAD, _PAD), caption, fill=_FG, font=font)
+    x = _PAD
+    for c, tile in tiles.items():
+        draw.text((x, _PAD + _LINE), labels.get(c, c), fill=_DIM, font=font)
+        canvas.paste(Image.fromarray(tile), (x, _PAD + 2 * _LINE))
+        x += tile.shape[1] + _PAD
+    return np.asarray(canvas)
+
+
+def _labels(views: DatasetViews, row: Mapping[str, Any]) -> dict[str, str]:
+    out = {}
+    for c in views.cameras:
+        share, peak = row.get(f"{c}/share"), (row.get(f"{c}/peak_row"), row.get(f"{c}/peak_col"))
+        if not row.get(f"{c}/valid", True):
+            out[c] = f"{c} (masked)"
+        else:
+            where = f"peak {peak[0]},{peak[1]}" if peak[0] is not None else "no mass"
+            out[c] = f"{c} {100 * (share or 0):.0f}% {where}"
+    return out
+
+
+def render_episode(
+    ds: MapsDataset,
+    lr: LeRobotDataset,
+    views: DatasetViews,
+    episode: int,
+    out_dir: pathlib.Path,
+    opts: DatasetRenderOptions,
+    dataset_max: float,
+    stats: Mapping[int, Mapping[str, Any]],
+) -> tuple[str | None, str | None, int]:
+    """Writes the episode's video (with `opts.videos`) and its strip of frames; returns their paths relative to
+    `out_dir` and the number of frames drawn. `stats`: the frames' rows of `views` by `index`."""
+    rows = episode_rows(ds, episode, opts.map)
+    name = f"episode_{episode:06d}"
+    video = Mp4Writer(out_dir / "videos" / f"{name}.mp4", video_fps(ds, lr), opts.crf) if opts.videos else None
+    n = len(rows)
+    picks = set(np.linspace(0, n - 1, min(n, opts.strip_frames)).round().astype(int).tolist()) if n else set()
+    strip: list[Image.Image] = []
+    try:
+        for i, images in enumerate(aligned_frames(ds, lr, rows)):
+            image = episode_frame(rows, i, images, stats.get(rows.index[i], {}), views, opts, dataset_max)
+            if video is not None:
+                video.add(image)
+            if i in picks:
+                thumb = Image.fromarray(image)
+                thumb.thumbnail((10 * opts.strip_height, opts.strip_height), Image.Resampling.BILINEAR)
+                strip.append(thumb)
+    finally:
+        if video is not None:
+            video.close()
+    strip_rel = None
+    if strip:
+        sheet = Image.new("RGB", (sum(t.width + 4 for t in strip), opts.strip_height), _BG)
+        x = 0
+        for t in strip:
+            sheet.paste(t, (x, 0))
+            x += t.width + 4
+        strip_rel = f"strips/{name}.jpg"
+        (out_dir / "strips").mkdir(parents=True, exist_ok=True)
+        sheet.save(out_dir / strip_rel, quality=85)
+    video_rel = video.path.relative_to(out_dir).as_posix() if video is not None and video.count else None
+    return video_rel, strip_rel, n
+
+
+def episode_frame(
+    rows: EpisodeRows,
+    i: int,
+    images: Mapping[str, np.ndarray],
+    stats: Mapping[str, Any],
+    views: DatasetViews,
+    opts: DatasetRenderOptions,
+    dataset_max: float,
+) -> np.ndarray:
+    """Row `i`'s video frame: its caption, and each camera's source frame with the map over it."""
+    maps, valid = rows.frame_maps(i), rows.valid[i]
+    scale = dataset_max if opts.norm == "run" else frame_scale(maps, valid)
+    caption = (
+        f"episode {rows.episode} | frame {rows.frame_index[i]} | t {rows.timestamp[i]:.2f} s | {opts.map} | "
+        f"{rows.task[i][:60]}"
+    )
+    return compose_frame(images, maps, valid, scale, caption, _labels(views, stats), opts)
+
+
+def prior_image(
+    values: np.ndarray, hot: Sequence[tuple[int, int]], height: int, vmax: float | None = None
+) -> Image.Image:
+    """A [Hp, Wp] map drawn as patches (nearest, so each patch reads as a cell), divided by `vmax` (default its own
+    maximum), with the `hot` patches outlined."""
+    hp, wp = values.shape
+    top = float(values.max()) if vmax is None else vmax
+    norm = values / top if top > 0 else np.zeros_like(values)
+    cell = max(1, height // hp)
+    img = Image.fromarray(colorize(norm)).resize((wp * cell, hp * cell), Image.Resampling.NEAREST)
+    draw = ImageDraw.Draw(img)
+    for r, c in hot:
+        draw.rectangle((c * cell, r * cell, (c + 1) * cell - 1, (r + 1) * cell - 1), outline=_HOT, width=2)
+    return img
+
+
+def render_dataset(
+    ds: MapsDataset,
+    out_dir: pathlib.Path,
+    opts: DatasetRenderOptions = DatasetRenderOptions(),
+    episodes: list[int] | None = None,
+    source: pathlib.Path | None = None,
+) -> DatasetRenderResult:
+    """Videos and strips for `episodes` (default: every written one) and index.html over the whole dataset's views."""
+    chosen = select_episodes(ds, episodes)
+    views = compute_views(ds, opts.map)
+    lr = source_dataset(ds, source)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    dataset_max = dataset_scale(ds, opts.map, chosen) if opts.norm == "run" else 0.0
+    stats = {int(r["index"]): r for r in views.rows}
+    result = DatasetRenderResult(out_dir, views, {}, {}, {})
+    for episode in progress(chosen, len(chosen), "render episodes", opts.progress):
+        video, strip, n = render_episode(ds, lr, views, episode, out_dir, opts, dataset_max, stats)
+        if video:
+            result.videos[episode] = video
+        if strip:
+            result.strips[episode] = strip
+        result.frames[episode] = n
+    if opts.html:
+        result.report = write_dataset_report(ds, result, opts)
+    return result
+
+
+def _e(x: Any) -> str:
+    return html.escape(str(x), quote=True)
+
+
+def _f(x: Any, digits: int = 3) -> str:
+    return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{digits}g}"
+
+
+def _pct(x: Any) -> str:
+    return "-" if x is None else f"{100 * x:.0f}%"
+
+
+def _table(head: Sequence[str], rows: Sequence[Sequence[str]], raw: bool = False) -> str:
+    """An HTML table; cells are escaped unless `raw` (cells that already hold markup)."""
+    body = "".join("<tr>" + "".join(f"<td>{v if raw else _e(v)}</td>" for v in row) + "</tr>" for row in rows)
+    return "<table><tr>" + "".join(f"<th>{_e(h)}</th>" for h in head) + f"</tr>{body}</table>"
+
+
+def _checks_section(views: DatasetViews) -> str:
+    rows = [
+        (
+            ("<b>" + _e(s["kind"]) + "</b>") if s["kind"] == views.kind else _e(s["kind"]),
+            _e(s["camera"]),
+            str(s["frames"]),
+            _f(s["median_top_drop"]),
+            _f(s["median_random_drop"]),
+            f"{_pct(s['beats_median_random'])} (chance ~50%)",
+            f"{_pct(s['beats_every_random'])} (chance {_pct(s['chance_every'])})",
+        )
+        for s in views.checks
+    ]
+    head = (
+        "kind",
+        "camera",
+        "frames checked",
+        "top patch's score drop (median)",
+        "random patch's (median)",
+        "top patch beats the median random patch",
+        "top patch beats every random patch",
+    )
+    table = (
+        _table(head, rows, raw=True)
+        if rows
+        else "<p class='warn'>no spot checks stored (explain with --check-patches N to store them)</p>"
+    )
+    return (
+        "<section id='evidence'><h2>how faithful are these maps? (spot checks stored with the frames)</h2>"
+        f"<p>{_e(KIND_NOTES.get(views.kind, ''))}</p>"
+        "<p class='dim'>each frame's map was checked when it was computed: the explained score's drop with the map's "
+        "top patch painted by the baseline, next to the drops of a few random patches painted alone</p>"
+        f"{table}</section>"
+    )
+
+
+def _prior_section(views: DatasetViews, out_dir: pathlib.Path, opts: DatasetRenderOptions) -> str:
+    (out_dir / "prior").mkdir(parents=True, exist_ok=True)
+    parts = []
+    for c in views.cameras:
+        hot = [(h.row, h.col) for h in views.hot[c]]
+        prior_rel, rate_rel = f"prior/{slug(c)}-prior.png", f"prior/{slug(c)}-hot-rate.png"
+        prior_image(views.prior[c], hot, opts.prior_height).save(out_dir / prior_rel)
+        prior_image(views.hot_rate[c], hot, opts.prior_height, vmax=1.0).save(out_dir / rate_rel)
+        fit = views.fit[c]
+        patches = int(np.prod(views.prior[c].shape))
+        k = max(1, math.ceil(views.options.top_fraction * patches))
+        flagged = "".join(
+            f"<li class='warn hot' data-row='{h.row}' data-col='{h.col}'>patch row {h.row}, col {h.col}: in the "
+            f"top-{k} of {_pct(h.rate)} of frames (chance {_pct(k / patches)})</li>"
+            for h in views.hot[c]
+        )
+        parts.append(
+            f"<div class='prior' data-camera='{_e(c)}'><h3>{_e(c)} <small class='dim'>"
+            f"{_e(views.camera_sources.get(c, ''))}</small></h3>"
+            f"<figure><img src='{_e(prior_rel)}' alt='mean map {_e(c)}'><figcaption>mean map</figcaption></figure>"
+            f"<figure><img src='{_e(rate_rel)}' alt='hot rate {_e(c)}'><figcaption>share of frames in the top-{k}"
+            "</figcaption></figure>"
+            f"<p>{fit['frames']} frames with mass; cosine to the prior: mean {_f(fit['mean_cosine'])}, median "
+            f"{_f(fit['median_cosine'])}; pooled R² {_f(fit['pooled_r2'])}; mean total-variation distance "
+            f"{_f(fit['mean_distance'])}; frames whose peak sits on a flagged patch: {_pct(fit['peak_on_hot'])}</p>"
+            f"<ul>{flagged or '<li>no patch flagged</li>'}</ul></div>"
+        )
+    return (
+        "<section id='prior'><h2>positional prior</h2><p class='dim'>the mean of each camera's maps (each normalised "
+        "to sum 1) over the dataset; how much of a frame's map it explains; and the patches hot in most frames "
+        f"whatever they show (flagged: in a frame's top-k in more than {_pct(views.options.hot_threshold)} of "
+        "frames, OpenPI #947), outlined</p>" + "".join(parts) + "</section>"
+    )
+
+
+def _ranking_section(views: DatasetViews, result: DatasetRenderResult) -> str:
+    head = ["rank", "episode", "task", "frames", "distance to the prior", "z", "malformed", "mean score"]
+    head += [f"{c} share" for c in views.cameras]
+    rows = []
+    for e in views.episodes:
+        ep = e["episode_index"]
+        link = f"<a href='#episode-{ep}'>{ep}</a>" if ep in result.frames else str(ep)
+        rows.append(
+            (
+                str(e["rank"]),
+                link,
+                _e(e["task"]),
+                str(e["frames"]),
+                _f(e["distance"]),
+                _f(e["z"], 2),
+                str(e["malformed"]),
+                _f(e["mean_score"]),
+                *(_pct(e["cameras"][c]["mean_share"]) for c in views.cameras),
+            )
+        )
+    return (
+        "<section id='ranking'><h2>episodes, oddest first</h2><p class='dim'>distance: the mean over the episode's "
+        "frames of the total-variation distance between each camera's map and the camera's prior; z over the "
+        f"dataset's episodes</p>{_table(head, rows, raw=True)}</section>"
+    )
+
+
+def _peak(cam: Mapping[str, Any]) -> str:
+    mode = cam.get("peak_mode")
+    return "-" if not mode else f"{mode[0]},{mode[1]} ({_pct(cam['peak_mode_rate'])})"
+
+
+def _tasks_section(views: DatasetViews) -> str:
+    head = ["task", "episodes", "frames"]
+    head += [f"{c} {what}" for c in views.cameras for what in ("share", "entropy (norm.)", "usual peak")]
+    rows = [
+        (
+            t["task"],
+            str(t["episodes"]),
+            str(t["frames"]),
+            *(
+                v
+                for c in views.cameras
+                for v in (
+                    _pct(t["cameras"][c]["mean_share"]),
+                    _f(t["cameras"][c]["mean_entropy_norm"]),
+                    _peak(t["cameras"][c]),
+                )
+            ),
+        )
+        for t in views.tasks
+    ]
+    return f"<section id='tasks'><h2>per task</h2>{_table(head, rows)}</section>"
+
+
+def _episode_section(views: DatasetViews, result: DatasetRenderResult, episode: int) -> str:
+    e = next((x for x in views.episodes if x["episode_index"] == episode), None)
+    video, strip = result.videos.get(episode), result.strips.get(episode)
+    media = (
+        f"<p><a href='{_e(video)}'>MP4</a></p><video src='{_e(video)}' controls loop muted preload='metadata'></video>"
+        if video
+        else ""
+    )
+    media += f"<img class='strip' src='{_e(strip)}' alt='episode {episode}'>" if strip else ""
+    head = ("camera", "share", "entropy (norm.)", "usual peak (row, col)", "cosine to the prior", "distance")
+    rows = []
+    if e is not None:
+        for c in views.cameras:
+            cam = e["cameras"][c]
+            rows.append(
+                (
+                    c,
+                    _pct(cam["mean_share"]),
+                    _f(cam["mean_entropy_norm"]),
+                    _peak(cam),
+                    _f(cam["mean_prior_cosine"]),
+                    _f(cam["mean_prior_distance"]),
+                )
+            )
+    title = f"episode {episode}" + (f" · {_e(e['task'])} · rank {e['rank']} · z {_f(e['z'], 2)}" if e else "")
+    return (
+        f"<section class='episode' id='episode-{episode}' data-episode='{episode}' "
+        f"data-frames='{result.frames.get(episode, 0)}'><h3>{title}</h3>{media}{_table(head, rows)}</section>"
+    )
+
+
+def write_dataset_report(ds: MapsDataset, result: DatasetRenderResult, opts: DatasetRenderOptions) -> pathlib.Path:
+    views = result.views
+    info = ds.info
+    facts = {
+        "source": f"{info.get('source')} (LeRobot {info.get('source_version')})",
+        "model": f"{info.get('config')} ({info.get('family')}), {info.get('checkpoint')}",
+        "target": info.get("target"),
+        "frames": f"{len(views.rows)} in {len(views.episodes)} episodes; {len(result.frames)} episodes rendered",
+        "normalisation": "per frame (the largest value over its cameras)"
+        if opts.norm == "step"
+        else "over the rendered episodes",
+    }
+    dl = "".join(f"<dt>{_e(k)}</dt><dd>{_e(v)}</dd>" for k, v in facts.items())
+    episodes = "".join(_episode_section(views, result, e) for e in result.frames)
+    style = (
+        REPORT_STYLE + ".prior figure{display:inline-block;margin:4px 12px 4px 0}img.strip{display:block;margin:4px 0}"
+    )
+    doc = (
+        f"<!doctype html><html lang='en'><head><meta charset='utf-8'><title>maps dataset {_e(ds.root.name)}</title>"
+        f"<style>{style}</style></head><body>"
+        f"<h1>maps dataset {_e(ds.root.name)}: {_e(MAP_LABELS.get(views.kind, views.kind))} maps</h1><dl>{dl}</dl>"
+        f"{_checks_section(views)}{_prior_section(views, result.out_dir, opts)}{_ranking_section(views, result)}"
+        f"{_tasks_section(views)}<h2>episodes</h2>{episodes}</body></html>\n"
+    )
+    path = result.out_dir / "index.html"
+    path.write_text(doc, encoding="utf-8")
+    return path
+
+
+def render_dataset_command(
+    root: pathlib.Path,
+    *,
+    out: pathlib.Path | None,
+    opts: DatasetRenderOptions,
+    episodes: str | None = None,
+    rerun: pathlib.Path | None = None,
+) -> int:
+    """`openpi-cam render MAPS_DATASET`: videos and the report, and with `rerun` the Rerun recording."""
+    ds = open_maps_dataset(root)
+    out_dir = pathlib.Path(out) if out is not None else pathlib.Path(root) / f"render-{opts.map}"
+    try:
+        chosen = parse_episodes(episodes)
+        result = render_dataset(ds, out_dir, opts, chosen)
+    except (ValueError, FileNotFoundError) as e:
+        print(f"openpi-cam render: {e}", file=sys.stderr)
+        return 2
+    print(
+        f"rendered {sum(result.frames.values())} frames of {len(result.frames)} episodes to {result.report or out_dir}",
+        file=sys.stderr,
+    )
+    if rerun is not None:
+        try:
+            write_dataset_rrd(
+                ds, rerun, map_kind=opts.map, episodes=chosen, norm=opts.norm, alpha=opts.alpha, views=result.views
+            )
+        except ImportError as e:
+            print(f"openpi-cam render: {e}", file=sys.stderr)
+            return 1
+        print(f"wrote Rerun recording {rerun}", file=sys.stderr)
+    return 0

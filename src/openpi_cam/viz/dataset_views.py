@@ -1,0 +1,479 @@
+"""Statistics of a maps dataset (`openpi-cam stats MAPS_DATASET`): one row per explained frame, and the views that
+only a whole dataset can give.
+
+Every figure is computed on the displayable map the renderers draw (`viz.overlay.reduce_tokens`: multi-token maps
+averaged, NaN and negatives set to 0), per camera, with the run statistics' own per-map figures (`viz.stats`: share
+of the frame's mass over cameras, entropy, peak cell). Cameras the model masked (`valid: false`) and maps without
+positive mass take no part in the views below.
+
+Definitions (the frame's map of a camera normalised to sum 1 is `p`; the camera's patch count is `P`):
+
+* **Positional prior** of a camera: the mean of `p` over the dataset's frames. How much of a frame's map it
+  explains: `prior_cosine` (cosine similarity of `p` and the prior, in [0, 1] for non-negative maps) and `prior_r2`
+  (1 - |p - prior|^2 / |p - mean(p)|^2: the share of the frame's variation from patch to patch that the prior
+  accounts for; NaN for a flat map); over the dataset the R^2 is pooled (1 - sum of residuals / sum of variations).
+  `prior_distance` is the total-variation distance 0.5 * sum |p - prior|, in [0, 1].
+* **Hot patch**: a patch is in a frame's top-k when its value is positive and at least the frame's k-th largest
+  value (ties at that value all count), with k = ceil(`top_fraction` * P) (at least 1). Its hot rate is the share of
+  the camera's frames (valid, with mass) whose top-k holds it. A patch whose hot rate exceeds `hot_threshold` is
+  flagged: a map unrelated to position puts a patch in its top-k in about k / P of the frames, so a patch in the
+  top-k of most frames, whatever they show, points at the model's position embeddings more than at the image (the
+  artefact of OpenPI issue #947). `peak_on_hot`, per frame: whether the frame's peak sits on a flagged patch.
+* **Odd episodes**: an episode's distance is the mean over its frames of the mean `prior_distance` over the frame's
+  cameras; episodes are ranked by it, largest first, with its z-score over the dataset's episodes (0 when they all
+  lie at one distance), so the episodes whose maps look least like the dataset's usual ones come first.
+* **Spot checks** (`check/<kind>/<camera>`, `check/random/<camera>`): per kind and camera, the share of frames whose
+  top patch lowers the score more than the median random patch does (about 50% for a top patch no better than a
+  random one) and more than every random patch (chance 1 / (R + 1) for R random patches).
+
+Reading needs pyarrow and numpy only (no JAX): the maps are read an episode at a time, twice (once for the prior,
+once for each frame's distance to it), so memory holds the rows but never every map.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import pathlib
+import sys
+from collections import Counter
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any, Literal
+
+import numpy as np
+
+from openpi_cam.cam.maps_dataset import CHECK_RANDOM, MapsDataset, check_column, map_column, open_maps_dataset
+from openpi_cam.viz.overlay import reduce_tokens
+from openpi_cam.viz.stats import camera_stats, mean_score, write_table
+
+FRAME_COLUMNS = ("index", "episode_index", "frame_index", "timestamp", "task", "target", "score", "malformed")
+
+
+@dataclasses.dataclass(frozen=True)
+class ViewOptions:
+    top_fraction: float = 0.05  # k = ceil(top_fraction * patches), at least 1: a frame's hottest patches
+    hot_threshold: float = 0.5  # a patch in the top-k of more than this share of frames is flagged
+
+
+@dataclasses.dataclass(frozen=True)
+class HotPatch:
+    camera: str
+    row: int
+    col: int
+    rate: float  # share of the camera's frames whose top-k holds the patch
+
+
+def top_k(cells: int, top_fraction: float) -> int:
+    return max(1, math.ceil(top_fraction * cells))
+
+
+def displayable(maps: np.ndarray) -> np.ndarray:
+    """[N, Hp, Wp] or [N, T, Hp, Wp] raw maps -> [N, Hp, Wp] float64, as the renderers draw each of them."""
+    maps = np.asarray(maps)
+    if len(maps) == 0:
+        return np.zeros((0, *maps.shape[-2:]))
+    return np.stack([reduce_tokens(m) for m in maps])
+
+
+def normalised(maps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """[N, Hp, Wp] non-negative maps -> (each divided by its sum, [N] whether it has positive mass; zeros if not)."""
+    maps = np.asarray(maps, np.float64)
+    total = maps.reshape(len(maps), -1).sum(axis=1)
+    has_mass = total > 0
+    p = np.zeros_like(maps)
+    p[has_mass] = maps[has_mass] / total[has_mass, None, None]
+    return p, has_mass
+
+
+def in_top_k(maps: np.ndarray, k: int) -> np.ndarray:
+    """bool [N, Hp, Wp]: the patches of each map that are positive and at least its k-th largest value."""
+    maps = np.asarray(maps, np.float64)
+    flat = maps.reshape(len(maps), -1)
+    k = min(k, flat.shape[1])
+    kth = -np.partition(-flat, k - 1, axis=1)[:, k - 1 : k] if len(flat) else np.zeros((0, 1))
+    return ((flat >= kth) & (flat > 0)).reshape(maps.shape)
+
+
+def hot_rates(maps: np.ndarray, k: int) -> np.ndarray:
+    """[Hp, Wp]: for each patch, the share of the maps with positive mass whose top-k holds it."""
+    maps = np.asarray(maps, np.float64)
+    _, has_mass = normalised(maps)
+    if not has_mass.any():
+        return np.zeros(maps.shape[1:])
+    return in_top_k(maps[has_mass], k).mean(axis=0)
+
+
+def flag_hot(camera: str, rates: np.ndarray, threshold: float) -> list[HotPatch]:
+    """The patches whose hot rate exceeds `threshold`, hottest first."""
+    rows, cols = np.nonzero(rates > threshold)
+    found = [HotPatch(camera, int(r), int(c), float(rates[r, c])) for r, c in zip(rows, cols, strict=True)]
+    return sorted(found, key=lambda h: (-h.rate, h.row, h.col))
+
+
+def prior_fit(p: np.ndarray, prior: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """For normalised maps p [N, Hp, Wp] against the prior [Hp, Wp]: (cosine, R^2, total-variation distance, residual
+    sum of squares, variation sum of squares), each [N]."""
+    flat = np.asarray(p, np.float64).reshape(len(p), -1)
+    ref = np.asarray(prior, np.float64).reshape(-1)
+    norms = np.linalg.norm(flat, axis=1) * np.linalg.norm(ref)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cosine = np.where(norms > 0, flat @ ref / np.where(norms > 0, norms, 1.0), np.nan)
+        sse = ((flat - ref) ** 2).sum(axis=1)
+        sst = ((flat - flat.mean(axis=1, keepdims=True)) ** 2).sum(axis=1)
+        r2 = np.where(sst > 0, 1.0 - sse / np.where(sst > 0, sst, 1.0), np.nan)
+    distance = 0.5 * np.abs(flat - ref).sum(axis=1)
+    return cosine, r2, distance, sse, sst
+
+
+def episode_ranking(distances: Mapping[int, float]) -> list[tuple[int, float, float]]:
+    """(episode, distance, z-score) ranked by distance, largest first; NaN distances (no map with mass) last."""
+    finite = np.array([d for d in distances.values() if math.isfinite(d)])
+    mean = float(finite.mean()) if finite.size else math.nan
+    std = float(finite.std()) if finite.size else math.nan
+    ranked = []
+    for episode, d in distances.items():
+        z = (d - mean) / std if math.isfinite(d) and std > 0 else (0.0 if math.isfinite(d) else math.nan)
+        ranked.append((episode, d, z))
+    return sorted(ranked, key=lambda t: (not math.isfinite(t[1]), -t[1] if math.isfinite(t[1]) else 0.0, t[0]))
+
+
+@dataclasses.dataclass
+class _Camera:
+    """What pass one gathers of a camera over the dataset."""
+
+    prior_sum: np.ndarray  # [Hp, Wp] sum of the normalised maps
+    hot_counts: np.ndarray  # [Hp, Wp] frames whose top-k holds the patch
+    frames: int = 0  # valid frames with positive mass
+
+
+@dataclasses.dataclass
+class DatasetViews:
+    """A maps dataset's per-frame rows and dataset-level views of one kind of map (see the module docstring)."""
+
+    kind: str
+    cameras: list[str]
+    camera_sources: dict[str, str]
+    options: ViewOptions
+    rows: list[dict[str, Any]]
+    prior: dict[str, np.ndarray]  # camera -> mean normalised map [Hp, Wp] (zeros without any map with mass)
+    hot_rate: dict[str, np.ndarray]  # camera -> [Hp, Wp] share of frames whose top-k holds the patch
+    hot: dict[str, list[HotPatch]]
+    fit: dict[str, dict[str, Any]]  # camera -> dataset-level prior fit
+    episodes: list[dict[str, Any]]  # ranked, oddest first
+    tasks: list[dict[str, Any]]
+    checks: list[dict[str, Any]]  # per kind and camera: the spot checks' summary
+    info: dict[str, Any]
+
+    def summary(self) -> dict[str, Any]:
+        """The dataset-level views as plain JSON data."""
+        k = {c: top_k(int(np.prod(self.prior[c].shape)), self.options.top_fraction) for c in self.cameras}
+        return {
+            "maps_dataset": {key: self.info.get(key) for key in ("source", "source_version", "config", "target")},
+            "kind": self.kind,
+            "frames": len(self.rows),
+            "episodes": len(self.episodes),
+            "cameras": {
+                c: {
+                    "feature": self.camera_sources.get(c),
+                    "grid": list(self.prior[c].shape),
+                    "prior": self.prior[c].tolist(),
+                    "prior_fit": self.fit[c],
+                    "top_k": k[c],
+                    "hot_rate": self.hot_rate[c].tolist(),
+                    "hot_patches": [dataclasses.asdict(h) for h in self.hot[c]],
+                    "hot_chance": k[c] / max(1, int(np.prod(self.prior[c].shape))),
+                }
+                for c in self.cameras
+            },
+            "hot_rule": f"a patch is hot in a frame when it is among the frame's top-k (k = ceil("
+            f"{self.options.top_fraction} * patches)); flagged when hot in more than {self.options.hot_threshold:.0%}"
+            " of the camera's frames",
+            "episode_ranking": self.episodes,
+            "tasks": self.tasks,
+            "spot_checks": self.checks,
+        }
+
+
+def _frame_maps(table: Any, kind: str, cameras: Sequence[str], grids: Mapping[str, tuple[int, int]]) -> dict:
+    out = {}
+    for c in cameras:
+        flat = np.asarray(table.column(map_column(kind, c)).combine_chunks().flatten(), np.float32)
+        rows, (hp, wp) = table.num_rows, grids[c]
+        per_row = flat.size // max(rows, 1)
+        shape = (rows, hp, wp) if per_row == hp * wp else (rows, per_row // (hp * wp), hp, wp)
+        out[c] = displayable(flat.reshape(shape))
+    return out
+
+
+def _validity(cameras_json: Sequence[str | None], cameras: Sequence[str]) -> dict[str, np.ndarray]:
+    """camera -> bool [N]: whether the model saw the camera in each frame (`cameras` column; absent: it did)."""
+    parsed = [json.loads(text) if text else {} for text in cameras_json]
+    return {c: np.array([bool(p.get(c, {}).get("valid", True)) for p in parsed], bool) for c in cameras}
+
+
+def _finite_or_none(x: Any) -> Any:
+    return None if isinstance(x, float) and not math.isfinite(x) else x
+
+
+def _mean(values: Iterable[Any]) -> float | None:
+    v = [float(x) for x in values if x is not None and isinstance(x, (int, float)) and math.isfinite(x)]
+    return float(np.mean(v)) if v else None
+
+
+def _check_figures(top: Any, randoms: Any) -> tuple[float, float, float]:
+    """(top patch's drop, median random drop, largest random drop), NaN where the frame has no check."""
+    drops = [float(d) for d in (randoms or []) if d is not None and math.isfinite(d)]
+    top = float(top) if top is not None and math.isfinite(top) else math.nan
+    if not drops:
+        return top, math.nan, math.nan
+    return top, float(np.median(drops)), max(drops)
+
+
+def _frame_row(
+    meta: Mapping[str, Any],
+    maps: Mapping[str, np.ndarray],
+    valid: Mapping[str, bool],
+    checks: Mapping[str, Any],
+    kind: str,
+) -> dict[str, Any]:
+    """One frame's row: its dataset columns and, per camera, the run statistics' figures of its map and its spot
+    check (the prior's columns stay None until pass two fills them)."""
+    total = sum(float(m.sum()) for c, m in maps.items() if valid[c])
+    per_camera = {c: camera_stats(m, valid[c], total) for c, m in maps.items()}
+    best = max(per_camera.items(), key=lambda kv: kv[1].share, default=None)
+    row: dict[str, Any] = {key: meta[key] for key in FRAME_COLUMNS}
+    row["dominant"] = best[0] if best is not None and best[1].share > 0 else None
+    for c, cs in per_camera.items():
+        top, rand_median, rand_max = _check_figures(
+            checks[check_column(kind, c)], checks[check_column(CHECK_RANDOM, c)]
+        )
+        row |= {
+            f"{c}/valid": cs.valid,
+            f"{c}/share": cs.share,
+            f"{c}/entropy": _finite_or_none(cs.entropy),
+            f"{c}/entropy_norm": _finite_or_none(cs.entropy_norm),
+            f"{c}/peak_row": cs.peak[0] if cs.peak else None,
+            f"{c}/peak_col": cs.peak[1] if cs.peak else None,
+            f"{c}/peak_value": _finite_or_none(cs.peak_value),
+            f"{c}/check_top_drop": _finite_or_none(top),
+            f"{c}/check_random_median": _finite_or_none(rand_median),
+            f"{c}/check_random_max": _finite_or_none(rand_max),
+            f"{c}/prior_cosine": None,
+            f"{c}/prior_r2": None,
+            f"{c}/prior_distance": None,
+            f"{c}/peak_on_hot": None,
+        }
+    return row
+
+
+def compute_views(
+    ds: MapsDataset, kind: str, options: ViewOptions = ViewOptions(), episodes: Sequence[int] | None = None
+) -> DatasetViews:
+    """Per-frame rows and the dataset-level views of `kind`'s maps over `episodes` (default: every written one)."""
+    if kind not in ds.kinds:
+        raise ValueError(f"this maps dataset has no {kind!r} maps (it holds {', '.join(ds.kinds) or 'none'})")
+    cameras = ds.cameras
+    grids = {c: ds.grid(c) for c in cameras}
+    episodes = list(ds.episodes if episodes is None else episodes)
+    acc = {c: _Camera(np.zeros(grids[c]), np.zeros(grids[c], np.int64)) for c in cameras}
+    k = {c: top_k(grids[c][0] * grids[c][1], options.top_fraction) for c in cameras}
+    check_cols = [check_column(kd, c) for kd in ds.kinds for c in cameras]
+    check_cols += [check_column(CHECK_RANDOM, c) for c in cameras]
+    columns = [*FRAME_COLUMNS, "cameras", *(map_column(kind, c) for c in cameras), *check_cols]
+    rows: list[dict[str, Any]] = []
+    check_acc: dict[tuple[str, str], list[tuple[float, float, float, int]]] = {}
+    # Pass one: the run statistics' per-map figures per frame, the prior's sums and the top-k counts.
+    for episode in episodes:
+        table = ds.table(episode, columns)
+        maps = _frame_maps(table, kind, cameras, grids)
+        valid = _validity(table.column("cameras").to_pylist(), cameras)
+        meta = table.select(list(FRAME_COLUMNS)).to_pylist()
+        checks = {col: table.column(col).to_pylist() for col in check_cols}
+        for c in cameras:
+            p, has_mass = normalised(maps[c])
+            use = valid[c] & has_mass
+            acc[c].prior_sum += p[use].sum(axis=0)
+            acc[c].frames += int(use.sum())
+            acc[c].hot_counts += in_top_k(maps[c][use], k[c]).sum(axis=0)
+        for i, m in enumerate(meta):
+            rows.append(
+                _frame_row(
+                    m,
+                    {c: maps[c][i] for c in cameras},
+                    {c: bool(valid[c][i]) for c in cameras},
+                    {col: values[i] for col, values in checks.items()},
+                    kind,
+                )
+            )
+            for kd in ds.kinds:
+                for c in cameras:
+                    randoms = checks[check_column(CHECK_RANDOM, c)][i] or []
+                    top, rand_median, rand_max = _check_figures(checks[check_column(kd, c)][i], randoms)
+                    if math.isfinite(top) and math.isfinite(rand_median):
+                        count = sum(1 for d in randoms if d is not None and math.isfinite(d))
+                        check_acc.setdefault((kd, c), []).append((top, rand_median, rand_max, count))
+    prior = {c: acc[c].prior_sum / acc[c].frames if acc[c].frames else np.zeros(grids[c]) for c in cameras}
+    rates = {c: acc[c].hot_counts / acc[c].frames if acc[c].frames else np.zeros(grids[c]) for c in cameras}
+    hot = {c: flag_hot(c, rates[c], options.hot_threshold) for c in cameras}
+    hot_cells = {c: {(h.row, h.col) for h in hot[c]} for c in cameras}
+    # Pass two: each frame against the prior.
+    sums = {c: {"sse": 0.0, "sst": 0.0} for c in cameras}
+    distances: dict[int, float] = {}
+    first = 0
+    for episode in episodes:
+        table = ds.table(episode, ["cameras", *(map_column(kind, c) for c in cameras)])
+        maps = _frame_maps(table, kind, cameras, grids)
+        valid = _validity(table.column("cameras").to_pylist(), cameras)
+        frame_distances: list[list[float]] = [[] for _ in range(table.num_rows)]
+        for c in cameras:
+            p, has_mass = normalised(maps[c])
+            use = valid[c] & has_mass
+            cosine, r2, distance, sse, sst = prior_fit(p, prior[c])
+            sums[c]["sse"] += float(sse[use].sum())
+            sums[c]["sst"] += float(sst[use].sum())
+            for i in np.nonzero(use)[0]:
+                row = rows[first + i]
+                row[f"{c}/prior_cosine"] = _finite_or_none(float(cosine[i]))
+                row[f"{c}/prior_r2"] = _finite_or_none(float(r2[i]))
+                row[f"{c}/prior_distance"] = float(distance[i])
+                row[f"{c}/peak_on_hot"] = (row[f"{c}/peak_row"], row[f"{c}/peak_col"]) in hot_cells[c]
+                frame_distances[i].append(float(distance[i]))
+        per_frame = [float(np.mean(d)) for d in frame_distances if d]
+        distances[episode] = float(np.mean(per_frame)) if per_frame else math.nan
+        first += table.num_rows
+    fit = {}
+    for c in cameras:
+        cos = [row[f"{c}/prior_cosine"] for row in rows]
+        fit[c] = {
+            "frames": acc[c].frames,
+            "mean_cosine": _mean(cos),
+            "median_cosine": _finite_or_none(float(np.median([x for x in cos if x is not None])))
+            if any(x is not None for x in cos)
+            else None,
+            "pooled_r2": 1.0 - sums[c]["sse"] / sums[c]["sst"] if sums[c]["sst"] > 0 else None,
+            "mean_distance": _mean(row[f"{c}/prior_distance"] for row in rows),
+            "peak_on_hot": _mean(row[f"{c}/peak_on_hot"] for row in rows if row[f"{c}/peak_on_hot"] is not None),
+        }
+    by_episode: dict[int, list[dict[str, Any]]] = {}
+    by_task: dict[str, list[dict[str, Any]]] = {}
+    for row in rows:
+        by_episode.setdefault(int(row["episode_index"]), []).append(row)
+        by_task.setdefault(str(row["task"]), []).append(row)
+    ranked = []
+    for rank, (episode, d, z) in enumerate(episode_ranking(distances), start=1):
+        group = by_episode.get(episode, [])
+        tasks = Counter(str(row["task"]) for row in group)
+        ranked.append(
+            {
+                "rank": rank,
+                "episode_index": episode,
+                "task": tasks.most_common(1)[0][0] if tasks else None,
+                "distance": _finite_or_none(d),
+                "z": _finite_or_none(z),
+                **group_summary(group, cameras),
+            }
+        )
+    task_rows = [
+        {"task": task, "episodes": len({int(row["episode_index"]) for row in group}), **group_summary(group, cameras)}
+        for task, group in sorted(by_task.items())
+    ]
+    return DatasetViews(
+        kind=kind,
+        cameras=cameras,
+        camera_sources=dict(ds.info.get("camera_sources", {})),
+        options=options,
+        rows=rows,
+        prior=prior,
+        hot_rate=rates,
+        hot=hot,
+        fit=fit,
+        episodes=ranked,
+        tasks=task_rows,
+        checks=check_summary(check_acc),
+        info=dict(ds.info),
+    )
+
+
+def group_summary(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str]) -> dict[str, Any]:
+    """A group of frames (an episode, a task): frames, mean score, malformed generations, and per camera the mean
+    share, normalised entropy, the most frequent peak cell (with its rate), the mean peak cell and the fit to the
+    prior."""
+    out: dict[str, Any] = {
+        "frames": len(rows),
+        "mean_score": _mean(mean_score(row["score"]) for row in rows),
+        "malformed": sum(1 for row in rows if row["malformed"]),
+        "dominant": dict(Counter(row["dominant"] for row in rows if row["dominant"] is not None)),
+    }
+    per_camera = {}
+    for c in cameras:
+        valid = [row for row in rows if row[f"{c}/valid"]]
+        peaks = Counter(
+            (row[f"{c}/peak_row"], row[f"{c}/peak_col"]) for row in valid if row[f"{c}/peak_row"] is not None
+        )
+        mode, count = peaks.most_common(1)[0] if peaks else (None, 0)
+        per_camera[c] = {
+            "valid_frames": len(valid),
+            "mean_share": _mean(row[f"{c}/share"] for row in valid),
+            "mean_entropy": _mean(row[f"{c}/entropy"] for row in valid),
+            "mean_entropy_norm": _mean(row[f"{c}/entropy_norm"] for row in valid),
+            "peak_mode": list(mode) if mode else None,
+            "peak_mode_rate": count / sum(peaks.values()) if peaks else None,
+            "mean_peak": [_mean(row[f"{c}/peak_row"] for row in valid), _mean(row[f"{c}/peak_col"] for row in valid)],
+            "mean_prior_cosine": _mean(row.get(f"{c}/prior_cosine") for row in valid),
+            "mean_prior_distance": _mean(row.get(f"{c}/prior_distance") for row in valid),
+        }
+    out["cameras"] = per_camera
+    return out
+
+
+def check_summary(checks: Mapping[tuple[str, str], Sequence[tuple[float, float, float, int]]]) -> list[dict[str, Any]]:
+    """Per (kind, camera): frames checked, median top-patch drop, median of the frames' median random drop, the share
+    of frames whose top patch beats the median random patch (about 50% by chance) and every random patch (chance
+    1 / (R + 1))."""
+    out = []
+    for (kind, camera), figures in checks.items():
+        top = np.array([f[0] for f in figures])
+        median = np.array([f[1] for f in figures])
+        largest = np.array([f[2] for f in figures])
+        out.append(
+            {
+                "kind": kind,
+                "camera": camera,
+                "frames": len(figures),
+                "median_top_drop": float(np.median(top)),
+                "median_random_drop": float(np.median(median)),
+                "beats_median_random": float(np.mean(top > median)),
+                "beats_every_random": float(np.mean(top > largest)),
+                "chance_every": float(np.mean([1.0 / (f[3] + 1) for f in figures])),
+            }
+        )
+    return out
+
+
+def dataset_stats_command(
+    root: pathlib.Path, fmt: Literal["csv", "json", "parquet"], out: pathlib.Path | None, kind: str
+) -> int:
+    """`openpi-cam stats MAPS_DATASET`: the per-frame rows as CSV or parquet (the views in its metadata), or JSON
+    holding the dataset-level views (`summary`) and the rows (`frames`). Parquet defaults to
+    MAPS_DATASET/stats-<kind>.parquet, the others to stdout."""
+    ds = open_maps_dataset(root)
+    try:
+        views = compute_views(ds, kind)
+    except ValueError as e:
+        print(f"openpi-cam stats: {e}", file=sys.stderr)
+        return 2
+    if fmt == "json":
+        data = (json.dumps({"summary": views.summary(), "frames": views.rows}, indent=1) + "\n").encode()
+    else:
+        data = write_table(views.rows, fmt, views.summary())
+    if out is None and fmt == "parquet":
+        out = pathlib.Path(root) / f"stats-{kind}.parquet"
+    if out is None:
+        sys.stdout.buffer.write(data)
+        sys.stdout.flush()
+    else:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_bytes(data)
+        print(f"wrote {len(views.rows)} frames to {out}", file=sys.stderr)
+    return 0
