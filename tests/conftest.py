@@ -19,6 +19,9 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import shutil
+import sys
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -55,6 +58,50 @@ def pytest_make_collect_report(collector: pytest.Collector) -> Any:
         report.outcome = "failed"
         report.longrepr = f"collection skipped under CI=true, which runs every test: {reason}"
     return report
+
+
+# Compiling XLA programs is most of the suite's CPU time, and the same programs are compiled again by every process
+# that builds the same model: the subprocesses the tests start (`serve`, `explain`, `faithfulness`, scripts), each
+# xdist worker, and this process after `_bounded_compiled_programs` drops its in-memory caches. JAX's persistent
+# compilation cache lets them load a program instead. It lives in pytest's cache directory (a fresh clone starts
+# cold; `pytest --cache-clear` empties it), or in a directory of this run only when the cache plugin is off. The
+# environment carries it to subprocesses and workers. A program loaded from it still fires JAX's compile event and
+# log line, so tests that count compilations count the same; its key covers the program, the jax version and the
+# XLA flags, so a stale entry is never used.
+JAX_CACHE_ENV = "JAX_COMPILATION_CACHE_DIR"
+# Past this size the cache is emptied at the start of a run (entries of earlier code versions are never evicted).
+MAX_JAX_CACHE_BYTES = 2 << 30
+
+
+def _jax_compilation_cache(config: pytest.Config) -> Path:
+    cache = getattr(config, "cache", None)
+    if cache is None:
+        path = Path(tempfile.mkdtemp(prefix="jax-compilation-cache-"))
+        config.add_cleanup(lambda: shutil.rmtree(path, ignore_errors=True))
+        return path
+    path = cache.mkdir("jax-compilation-cache")
+    if sum(f.stat().st_size for f in path.iterdir() if f.is_file()) > MAX_JAX_CACHE_BYTES:
+        shutil.rmtree(path, ignore_errors=True)
+        path = cache.mkdir("jax-compilation-cache")
+    return path
+
+
+# Every program is cached, however small or quick to compile (the defaults keep only those over a second).
+JAX_CACHE_SETTINGS = {"jax_persistent_cache_min_compile_time_secs": 0, "jax_persistent_cache_min_entry_size_bytes": 0}
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    # Already set: by the user, or by the xdist controller for its workers (which inherit its environment).
+    if JAX_CACHE_ENV not in os.environ:
+        os.environ[JAX_CACHE_ENV] = str(_jax_compilation_cache(config))
+    for name, value in JAX_CACHE_SETTINGS.items():
+        os.environ.setdefault(name.upper(), str(value))
+    if "jax" in sys.modules:  # imported before this hook, so it read its settings from the environment already
+        import jax
+
+        jax.config.update(JAX_CACHE_ENV.lower(), os.environ[JAX_CACHE_ENV])
+        for name, value in JAX_CACHE_SETTINGS.items():
+            jax.config.update(name, type(value)(os.environ[name.upper()]))
 
 
 # Every compiled XLA program keeps ~3 memory mappings per kernel (one demo inference and its explanation: ~1,100), and

@@ -47,7 +47,9 @@ def _logged_run(tmp_path, policy, target, save_frames="model", **request):
         for obs in observations:
             wrapped.infer(obs)
     finally:
-        wrapped.close()
+        # Every queued step must be explained: the drain's deadline is not under test here, and compiling the four
+        # map kinds on a loaded machine can outlast the default one.
+        wrapped.close(300)
     return load_run(wrapped.run_dir)
 
 

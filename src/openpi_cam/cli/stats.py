@@ -16,6 +16,7 @@ from openpi_cam.viz.stats import (
     MissingMaps,
     aggregate,
     compute_stats,
+    emit_table,
     to_rows,
     view_steps,
     write_table,
@@ -49,11 +50,5 @@ def main(
     data = write_table(to_rows(stats), format, aggregate(stats))
     if out is None and format == "parquet":
         out = pathlib.Path(run_dir) / "stats.parquet"
-    if out is None:
-        sys.stdout.buffer.write(data)
-        sys.stdout.flush()
-    else:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_bytes(data)
-        print(f"wrote {len(stats)} steps to {out}", file=sys.stderr)
+    emit_table(data, out, f"{len(stats)} steps")
     return 0

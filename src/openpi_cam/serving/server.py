@@ -411,20 +411,20 @@ class PolicyServer:
         executor: concurrent.futures.Executor,
     ) -> tuple[bytes | str, float | None]:
         """Returns (packed response, infer_ms) on success, (error text, None) otherwise."""
-        kind = "decode"
+        stage = "decode"
         try:
             if isinstance(frame, str):
-                kind = "text_frame"
+                stage = "text_frame"
                 raise InvalidRequest("expected a binary msgpack frame, got a text frame")
             # Off the event loop: a large frame must not stall /healthz and the other connections while it decodes.
             obs = await asyncio.to_thread(msgpack_numpy.unpack_request, frame)
-            kind = "invalid_request"
+            stage = "invalid_request"
             if self._batcher is not None:
                 result, infer_ms = await self._batcher.infer(obs, context)
             else:
                 loop = asyncio.get_running_loop()
                 result, infer_ms = await loop.run_in_executor(executor, self._infer, obs, context)
-            kind = "internal"
+            stage = "internal"
             if not isinstance(result, dict):
                 raise TypeError(f"policy returned {type(result).__name__}, expected a dict")
             timing = {"infer_ms": infer_ms}
@@ -433,7 +433,7 @@ class PolicyServer:
                 timing["prev_total_ms"] = prev_total_ms
             return msgpack_numpy.packb({**result, "server_timing": timing}), infer_ms
         except InvalidRequest as e:
-            self._stats.errors[kind] += 1
+            self._stats.errors[stage] += 1
             text = str(e)[:_MAX_ERROR_TEXT]  # messages quote short prefixes; this bounds whatever else they hold
             logger.info("%s request %d rejected: %s", context.connection_id, context.request_index, text)
             return f"InvalidRequest: {text}", None

@@ -45,7 +45,7 @@ import numpy as np
 
 from openpi_cam.cam.maps_dataset import CHECK_RANDOM, MapsDataset, check_column, map_column, open_maps_dataset
 from openpi_cam.viz.overlay import reduce_tokens
-from openpi_cam.viz.stats import camera_stats, mean_score, write_table
+from openpi_cam.viz.stats import camera_stats, emit_table, mean_score, write_table
 
 FRAME_COLUMNS = ("index", "episode_index", "frame_index", "timestamp", "task", "target", "score", "malformed")
 
@@ -469,11 +469,5 @@ def dataset_stats_command(
         data = write_table(views.rows, fmt, views.summary())
     if out is None and fmt == "parquet":
         out = pathlib.Path(root) / f"stats-{kind}.parquet"
-    if out is None:
-        sys.stdout.buffer.write(data)
-        sys.stdout.flush()
-    else:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_bytes(data)
-        print(f"wrote {len(views.rows)} frames to {out}", file=sys.stderr)
+    emit_table(data, out, f"{len(views.rows)} frames")
     return 0

@@ -12,6 +12,8 @@ import dataclasses
 import io
 import json
 import math
+import pathlib
+import sys
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any, Literal
 
@@ -336,3 +338,14 @@ def step_scale(st: StepStats) -> float:
     """The per-step normaliser: the largest value over the step's valid cameras."""
     values = [cs.peak_value for cs in st.cameras.values() if cs.valid and not math.isnan(cs.peak_value)]
     return max(values, default=0.0)
+
+
+def emit_table(data: bytes, out: pathlib.Path | None, what: str) -> None:
+    """Writes a statistics table to `out` (saying so on stderr), or to stdout when `out` is None."""
+    if out is None:
+        sys.stdout.buffer.write(data)
+        sys.stdout.flush()
+        return
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_bytes(data)
+    print(f"wrote {what} to {out}", file=sys.stderr)
