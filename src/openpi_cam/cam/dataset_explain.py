@@ -64,10 +64,12 @@ class PolicySpec:
 
     @property
     def _demo_model(self) -> str:
-        models = {config.name: model for model, config in demo_reach.DEMO_CONFIGS.items()}
-        if self.config not in models:
-            raise ValueError(f"config {self.config!r} needs --checkpoint-dir (the bundled models are {sorted(models)})")
-        return models[self.config]
+        if self.config not in demo_reach.DEMO_MODELS:
+            raise ValueError(
+                f"config {self.config!r} needs --checkpoint-dir (the bundled models serve "
+                f"{sorted(demo_reach.DEMO_MODELS)})"
+            )
+        return demo_reach.DEMO_MODELS[self.config]
 
     @property
     def checkpoint(self) -> str:
@@ -152,10 +154,18 @@ def selected_episodes(ds: LeRobotDataset, job: DatasetJob) -> list[int]:
     return list(job.episodes)
 
 
-def job_info(ds: LeRobotDataset, job: DatasetJob, policy: Policy) -> dict[str, Any]:
-    """The maps dataset's meta/info.json for this job (cameras and grids from the model)."""
-    grid = [int(g) for g in policy.model.config.siglip.grid]
-    cameras = list(policy.camera_sources)
+def job_info(
+    ds: LeRobotDataset,
+    job: DatasetJob,
+    *,
+    family: str,
+    grid: Sequence[int],
+    camera_sources: Mapping[str, str | None],
+) -> dict[str, Any]:
+    """The maps dataset's meta/info.json for this job: the model's family, patch grid and cameras (model camera ->
+    observation key) are all it needs of the model, so a driver can make it without loading one."""
+    grid = [int(g) for g in grid]
+    cameras = list(camera_sources)
     options = job.options
     return {
         "format": fmt.FORMAT,
@@ -165,13 +175,13 @@ def job_info(ds: LeRobotDataset, job: DatasetJob, policy: Policy) -> dict[str, A
         "source_fps": ds.fps,
         "checkpoint": job.policy.checkpoint,
         "config": job.policy.config,
-        "family": policy.model.family,
+        "family": family,
         "dtype": job.policy.dtype,
         "target": DATASET_ACTIONS if job.recorded_actions is not None else options.target,
         "recorded_actions": job.recorded_actions,
         "kinds": list(options.maps),
         "grids": {c: grid for c in cameras},
-        "camera_sources": {c: (None if k is None else job.keys.get(k, k)) for c, k in policy.camera_sources.items()},
+        "camera_sources": {c: (None if k is None else job.keys.get(k, k)) for c, k in camera_sources.items()},
         "keys": dict(job.keys),
         "extra": dict(job.extra),
         "every": job.every,
@@ -279,7 +289,13 @@ class EpisodeExplainer:
         )
         self.mesh = data_mesh() if mesh == "auto" else mesh
         self.explainer = self.policy.explainer.on_mesh(self.mesh)
-        self.info = job_info(self.dataset, job, self.policy)
+        self.info = job_info(
+            self.dataset,
+            job,
+            family=self.policy.model.family,
+            grid=self.policy.model.config.siglip.grid,
+            camera_sources=self.policy.camera_sources,
+        )
         if job.recorded_actions is not None and self.policy.model.family != "pi0_fast":
             raise ValueError(
                 f"--target {DATASET_ACTIONS}: {self.policy.model.family} has no likelihood of a given chunk to explain "

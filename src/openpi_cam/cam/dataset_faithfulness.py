@@ -13,6 +13,7 @@ import collections
 import dataclasses
 import json
 import pathlib
+import shutil
 import time
 from typing import Any
 
@@ -98,11 +99,7 @@ def build_run(
         if index in chosen:
             by_episode[episode].add(frame)
     parent = maps.root / RUN_DIR
-    for old in parent.glob("*") if parent.is_dir() else ():
-        if old.is_dir():
-            for path in sorted(old.rglob("*"), reverse=True):
-                path.rmdir() if path.is_dir() else path.unlink()
-            old.rmdir()
+    shutil.rmtree(parent, ignore_errors=True)  # an earlier evaluation's run is replaced
     run_config = {
         "config": spec.config,
         "checkpoint_dir": spec.checkpoint_dir,

@@ -72,6 +72,8 @@ def is_maps_dataset(path: pathlib.Path) -> bool:
 
 
 def _write_atomic(path: pathlib.Path, write: Any) -> None:
+    # Not runfmt.write_bytes_atomic: the temporary name starts with ".", which pyarrow's dataset discovery skips, so a
+    # reader of OUT/data never opens a shard still being written; and a shard is written by pyarrow, not from bytes.
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
     try:
@@ -172,8 +174,8 @@ class MapsDataset:
         )
         if not paths:
             return schema(self.info).empty_table()
-        cols = None if columns is None else list(columns)
-        table = pa.concat_tables([pq.read_table(p, columns=cols, schema=schema(self.info)) for p in paths])
+        cols, shards = None if columns is None else list(columns), schema(self.info)
+        table = pa.concat_tables([pq.read_table(p, columns=cols, schema=shards) for p in paths])
         return table.sort_by("index") if "index" in table.column_names else table
 
     def maps(self, kind: str, camera: str, episode: int | None = None) -> np.ndarray:

@@ -28,7 +28,6 @@ import os
 import pathlib
 import socket
 import time
-import types
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from typing import Any
 
@@ -67,11 +66,7 @@ def planned_info(dataset: LeRobotDataset, job: DatasetJob) -> dict[str, Any]:
     config = resolve_config(job.policy.config)
     shapes = read_param_shapes(pathlib.Path(job.policy.checkpoint) / "params")
     _, siglip = architecture_from_params(shapes)
-    outline = types.SimpleNamespace(
-        model=types.SimpleNamespace(config=types.SimpleNamespace(siglip=siglip), family=family_of(shapes)),
-        camera_sources=config.camera_sources,
-    )
-    return job_info(dataset, job, outline)  # type: ignore[arg-type]  # the policy's outline is all job_info reads
+    return job_info(dataset, job, family=family_of(shapes), grid=siglip.grid, camera_sources=config.camera_sources)
 
 
 class _ExplainEpisodes:

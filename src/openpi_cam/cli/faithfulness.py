@@ -41,9 +41,8 @@ def load_policy(
     if config is None:
         raise ValueError("the run does not record its policy config; pass --config")
     checkpoint = checkpoint_dir or run_config.get("checkpoint_dir")
-    demo_models = {c.name: model for model, c in demo_reach.DEMO_CONFIGS.items()}
-    if config in demo_models and checkpoint is None:
-        return demo_reach.create_demo_policy(model=demo_models[config])
+    if config in demo_reach.DEMO_MODELS and checkpoint is None:
+        return demo_reach.create_demo_policy(model=demo_reach.DEMO_MODELS[config])
     if checkpoint is None:
         raise ValueError("the run does not record its checkpoint; pass --checkpoint-dir")
     return create_policy(

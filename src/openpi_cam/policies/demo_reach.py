@@ -79,6 +79,7 @@ DEMO_PI05_CONFIG = register_config(
 )
 DEMO_CONFIGS = {"pi0_fast": DEMO_CONFIG, "pi05": DEMO_PI05_CONFIG}
 DEFAULT_ASSETS = {"pi0_fast": ASSETS, "pi05": ASSETS_PI05}
+DEMO_MODELS = {config.name: model for model, config in DEMO_CONFIGS.items()}  # config name -> bundled model
 
 
 def create_demo_policy(
