@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 
@@ -32,14 +33,17 @@ SEEDS = (200, 201, 202, 203)
 # float conversion), so only XLA's fusion order differs from the live call. Measured: <= 3e-6 on scores of
 # magnitude 1-10 (pi0-FAST chunk log-probs, pi0.5 actions); 1e-4 absolute is 10x above that at the largest score.
 REPLAY_ATOL = 1e-4
+# Random patch orders of the deletion reference on the demo run (the command's default is 8): one painted-variant
+# count, so the one-process reports and the commands share their re-scoring program.
+RANDOM_ORDERS = 4
 
 
-def _logged_run(tmp_path, policy, target, save_frames="model", **request):
-    observations = [demo_obs(s) for s in SEEDS]
+def _logged_run(tmp_path, policy, target, save_frames="model", seeds=SEEDS, maps=MAP_KINDS, **request):
+    observations = [demo_obs(s) for s in seeds]
     actions = [policy.infer(policy_part(o))["actions"] for o in observations]
     assert_pairwise_different(actions)  # the steps are distinct inferences, so a mixed-up replay would show
     options = CAMOptions(
-        every_k=1, cam_dir=tmp_path, save_frames=save_frames, target=target, maps=MAP_KINDS, queue_size=16, **request
+        every_k=1, cam_dir=tmp_path, save_frames=save_frames, target=target, maps=maps, queue_size=16, **request
     )
     family = "pi05" if policy.explainer.targets == ("action", "chunk") else "pi0_fast"
     wrapped = wrap_policy_with_cam(policy, options, run_config={"config": demo_reach.DEMO_CONFIGS[family].name})
@@ -58,13 +62,27 @@ def pi05_policy():
     return demo_reach.create_demo_policy(model="pi05")
 
 
+@pytest.fixture(scope="module")
+def chunk_run(tmp_path_factory, demo_policy):
+    """The demo (pi0-FAST) run most tests read: chunk target, every kind, model frames. Logged once: the tests only
+    read it (the faithfulness command, which writes its report into the run, gets a copy)."""
+    return _logged_run(tmp_path_factory.mktemp("chunk_run"), demo_policy, "chunk")
+
+
 @pytest.mark.parametrize("family", ["pi0_fast", "pi05"])
-def test_steps_rescore_exactly_and_occlusion_is_its_own_optimum(tmp_path, demo_policy, pi05_policy, family):
-    policy, target = (demo_policy, "chunk") if family == "pi0_fast" else (pi05_policy, "action")
-    request = {"action_index": 3, "action_dim_index": 1} if target == "action" else {}
-    run = _logged_run(tmp_path, policy, target, **request)
+def test_steps_rescore_exactly_and_occlusion_is_its_own_optimum(request, tmp_path, pi05_policy, family):
+    if family == "pi0_fast":
+        policy, run = request.getfixturevalue("demo_policy"), request.getfixturevalue("chunk_run")
+    else:
+        run = _logged_run(tmp_path, pi05_policy, "action", action_index=3, action_dim_index=1)
+        policy = pi05_policy
     assert len(run.steps) == len(SEEDS) and all(set(s.map_kinds) == set(MAP_KINDS) for s in run.steps)
-    report = evaluate_run(run, policy.explainer, FaithfulnessOptions(randomize="llm", random_orders=4))
+    # One step per call of the randomised model: the programs the side channel compiled for the logged steps (batch
+    # 1) serve it too (batched calls are the two-device test's). pi0.5 re-runs its whole denoising loop per painted
+    # variant, so its deletion curves stop at k = 4, the deepest depth reported (AUC is not checked here).
+    max_k = 4 if family == "pi05" else 16
+    opts = FaithfulnessOptions(randomize="llm", random_orders=RANDOM_ORDERS, batch_size=1, max_k=max_k)
+    report = evaluate_run(run, policy.explainer, opts)
     # JSON data as it is saved: a figure that was not measured is None, never NaN (which JSON lacks).
     json.dumps(report, allow_nan=False)
 
@@ -129,7 +147,8 @@ def _assert_step_figures_are_each_steps_own(run, report, policy) -> None:
 def test_logged_occlusion_maps_equal_the_single_patch_drops_rescored_offline(tmp_path, demo_policy):
     """The live side channel's occlusion map and the offline re-scoring of one patch at a time agree value by value:
     the step file holds everything the explained score depends on."""
-    run = _logged_run(tmp_path, demo_policy, "action-token", action_index=1)
+    # Only the kind under test: the other kinds' programs for this target would be compiled for nothing.
+    run = _logged_run(tmp_path, demo_policy, "action-token", maps=("occlusion",), action_index=1)
     for step in run.steps:
         obs, outputs, sample_inputs = step_model_inputs(step)
         cameras = list(step.meta.cameras)
@@ -148,8 +167,8 @@ def test_logged_occlusion_maps_equal_the_single_patch_drops_rescored_offline(tmp
         assert abs(scores[cameras[0]][0] - step.meta.score) < REPLAY_ATOL
 
 
-def test_ig_completeness_is_stored_per_step_and_holds(tmp_path, demo_policy):
-    run = _logged_run(tmp_path, demo_policy, "chunk")
+def test_ig_completeness_is_stored_per_step_and_holds(chunk_run):
+    run = chunk_run
     for step in run.steps:
         check = step.meta.ig_completeness
         total = sum(float(np.sum(m)) for m in step.maps_of("ig").values())
@@ -162,18 +181,19 @@ def test_ig_completeness_is_stored_per_step_and_holds(tmp_path, demo_policy):
 
 
 def test_steps_without_model_frames_are_reported_not_replayable(tmp_path, demo_policy):
-    run = _logged_run(tmp_path, demo_policy, "chunk", save_frames="raw")
+    seeds = SEEDS[:2]  # every step is refused alike: two show it is counted per step
+    run = _logged_run(tmp_path, demo_policy, "chunk", save_frames="raw", seeds=seeds)
     with pytest.raises(ExplainSkipped, match="frame"):
         step_model_inputs(run.steps[0])
     report = evaluate_run(run, demo_policy.explainer, FaithfulnessOptions(randomize="none"))
-    assert report["steps_evaluated"] == 0 and report["skipped"] == {"not_replayable": len(SEEDS)}
+    assert report["steps_evaluated"] == 0 and report["skipped"] == {"not_replayable": len(seeds)}
 
 
-def test_faithfulness_command_on_a_demo_run(tmp_path, demo_policy):
+def test_faithfulness_command_on_a_demo_run(tmp_path, chunk_run):
     """The CLI finds the bundled model from the run's config, prints the table and saves the JSON report beside the
     run, where `render` finds it: the rendered report then shows each step's own figure beside its maps."""
-    run = _logged_run(tmp_path / "cam", demo_policy, "chunk")
-    cmd = [sys.executable, "-m", "openpi_cam", "faithfulness", str(run.run_dir)]
+    run = load_run(shutil.copytree(chunk_run.run_dir, tmp_path / "cam" / chunk_run.run_dir.name))
+    cmd = [sys.executable, "-m", "openpi_cam", "faithfulness", str(run.run_dir), "--random-orders", str(RANDOM_ORDERS)]
     done = subprocess.run([*cmd, "--randomize", "none", "--no-progress"], capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     assert "camera base_0_rgb" in done.stdout and "occlusion | 1.00" in done.stdout
@@ -193,11 +213,11 @@ def test_faithfulness_command_on_a_demo_run(tmp_path, demo_policy):
     assert bad.returncode == 1 and "openpi-cam faithfulness" in bad.stderr
 
 
-def test_nuisance_mass_ratio_in_stats_uses_the_clients_box(tmp_path, demo_policy):
+def test_nuisance_mass_ratio_in_stats_uses_the_clients_box(chunk_run):
     """`openpi-cam stats` reports the share of each map's positive mass outside the box the client sent, on the
     camera the box belongs to (the first one) only. Expected value by hand: the demo's 64 px frames are not
     letterboxed, so patch (r, c) covers pixels [16 r, 16 r + 16) x [16 c, 16 c + 16)."""
-    run = _logged_run(tmp_path, demo_policy, "chunk")
+    run = chunk_run
     rows = to_rows(compute_stats(view_steps(run.steps, "gradnorm")))
     seen = []
     for step, row in zip(run.steps, rows, strict=True):
@@ -220,34 +240,40 @@ def test_offline_explain_render_stats_and_faithfulness_on_a_pi05_run(tmp_path, p
         Replay(f"obs{i}", "offline", i, policy_part(o), {"target_box": o["cam_extra/target_box"].tolist()})
         for i, o in enumerate(observations)
     ]
-    options = ExplainOptions(target="action", action_index=2, action_dim_index=1, maps=MAP_KINDS, batch_size=2)
+    # The live pi0.5 test's target, so that the re-scoring below reuses that test's program.
+    options = ExplainOptions(target="action", action_index=3, action_dim_index=1, maps=MAP_KINDS, batch_size=2)
     with CAMLogger(tmp_path / "cam", run_config={"config": "demo_reach_pi05"}, checkpoint="demo", options={}) as log:
         summary = explain_replays(pi05_policy, replays, options, log, mesh=None)
     assert summary["completed"] == 3
     run = load_run(log.run_dir)
     for step in run.steps:
-        assert step.meta.action_index == (2, 1) and set(step.map_kinds) == set(MAP_KINDS)
+        assert step.meta.action_index == (3, 1) and set(step.map_kinds) == set(MAP_KINDS)
         # the explained chunk is the returned one (float32 re-run)
         assert step.meta.details["replay_max_abs_diff"] < 1e-4
     result = render_run(run, tmp_path / "render", RenderOptions(map="ig", videos=False, progress=False))
     assert result.report is not None and "nuisance mass ratio" in result.report.read_text()
     rows = to_rows(compute_stats(view_steps(run.steps, "occlusion")))
     assert [r["seq"] for r in rows] == [0, 1, 2] and all(r["base_0_rgb/nuisance_mass"] is not None for r in rows)
-    report = evaluate_run(run, pi05_policy.explainer, FaithfulnessOptions(randomize="none", random_orders=2))
+    # Depth 4 is the deepest k reported; pi0.5 re-runs its whole denoising loop per painted variant.
+    opts = FaithfulnessOptions(randomize="none", random_orders=RANDOM_ORDERS, max_k=4)
+    report = evaluate_run(run, pi05_policy.explainer, opts)
     assert report["steps_evaluated"] == 3 and report["score_replay_max_abs_diff"] < REPLAY_ATOL
     occlusion = report["cameras"]["base_0_rgb"]["kinds"]["occlusion"]["deletion_k1"]
     assert occlusion["median"] == pytest.approx(1.0, abs=1e-4)
 
 
-def test_faithfulness_over_two_host_devices_matches_one_device(tmp_path, demo_policy):
+def test_faithfulness_over_two_host_devices_matches_one_device(tmp_path, demo_policy, chunk_run):
     """The report's work spread over two devices (painted variants split between them, the randomised model's steps
     sharded in calls of 3 rows padded to 4) gives the one-device figures: the devices only share the work."""
-    run = _logged_run(tmp_path / "cam", demo_policy, "chunk")
-    opts = FaithfulnessOptions(randomize="llm", batch_size=3)
+    run = chunk_run
+    # The one-device reference explains one step per call (the batch-1 programs the side channel compiled; rows are
+    # independent, so the batch does not change a figure) with the command's painted variants (same random orders).
+    opts = FaithfulnessOptions(randomize="llm", random_orders=RANDOM_ORDERS, batch_size=1)
     one = evaluate_run(run, demo_policy.explainer, opts, mesh=None)
     out = tmp_path / "two.json"
     env = os.environ | {"XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu"}
     cmd = [sys.executable, "-m", "openpi_cam", "faithfulness", str(run.run_dir), "--json-out", str(out)]
+    cmd += ["--random-orders", str(RANDOM_ORDERS)]
     done = subprocess.run(
         [*cmd, "--batch-size", "3", "--no-progress"], capture_output=True, text=True, timeout=900, env=env
     )

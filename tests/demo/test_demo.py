@@ -319,7 +319,11 @@ def test_decode_offset_trains_the_positions_the_decoder_serves(demo_policy):
     obs, generated = trace.observation, np.asarray(trace.output)
     n = int(np.argmax(generated == EOS_TOKEN)) + 1  # up to and including EOS
     fed = jnp.asarray(generated[None])
-    pre = replay_prelogits(model.params, embed_images(model.params, obs, model.config), obs, fed, model.config)
+    # Jitted as whole programs: run op by op, each of the model's operations would be compiled on its own.
+    cfg = model.config
+    replay = jax.jit(lambda params, obs, fed: replay_prelogits(params, embed_images(params, obs, cfg), obs, fed, cfg))
+    loss = jax.jit(compute_loss, static_argnames=("cfg", "decode_offset"))
+    pre = replay(model.params, obs, fed)
     logp = jax.nn.log_softmax(gemma.logits_from_prelogits(model.params["PaliGemma"]["llm"], pre), -1)[0]
     decoded = -float(np.mean([logp[k, generated[k]] for k in range(n)]))
 
@@ -338,10 +342,10 @@ def test_decode_offset_trains_the_positions_the_decoder_serves(demo_policy):
             "token_loss_mask": pad(np.r_[np.zeros(len(prefix), bool), np.ones(n, bool)]),
         }
     )
-    served = float(compute_loss(model.params, train_obs, model.config, decode_offset=1)[0])
-    upstream = float(compute_loss(model.params, train_obs, model.config)[0])
-    # float32 sums in a different order: measured |served - decoded| 7e-8 and |upstream - decoded| 2.1e-3 with the
-    # shipped model (1.5e-8 and 1.7e-3 with an earlier one trained at offset 0).
+    served = float(loss(model.params, train_obs, cfg=cfg, decode_offset=1)[0])
+    upstream = float(loss(model.params, train_obs, cfg=cfg, decode_offset=0)[0])
+    # float32 sums in a different order: measured |served - decoded| 0 (7e-8 run op by op) and |upstream - decoded|
+    # 2.1e-3 with the shipped model (1.5e-8 and 1.7e-3 with an earlier one trained at offset 0).
     assert served == pytest.approx(decoded, abs=1e-5)
     assert abs(upstream - decoded) > 1e-4
 
@@ -408,8 +412,9 @@ def test_run_figures_on_a_hand_made_run(tmp_path):
 
 def test_short_demo_run_is_readable(tmp_path):
     """`openpi-cam demo` end to end at toy length: a readable run of every map kind with the client's ground truth,
-    the episode file, a report per kind listing every step, and the faithfulness report of the run."""
-    result = run_demo(DemoOptions(out=tmp_path, episodes=1, max_calls=2, seed=3))
+    the episode file, a report per kind listing every step, and the faithfulness report of the run. One call: each
+    logged step costs every kind's maps and their faithfulness re-scoring, and a second step proves nothing more."""
+    result = run_demo(DemoOptions(out=tmp_path, episodes=1, max_calls=1, seed=3))
     run = load_run(result.run_dir)
     (episode,) = result.episodes
     assert json.loads((result.run_dir / quality.EPISODES_FILE).read_text()) == result.episodes

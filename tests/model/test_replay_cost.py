@@ -3,6 +3,8 @@ outputs onto the vocabulary: same maps and scores as the full-length replay, a b
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -68,26 +70,54 @@ def assert_same_result(cut: maps.MapResult, full: maps.MapResult, what: str) -> 
     np.testing.assert_array_equal(cut.positions, full.positions)
 
 
-@pytest.mark.parametrize("name", ["case_b", "case_c"])
-def test_cut_replay_gives_the_full_length_maps_and_scores(tiny_fast_model: Pi0FAST, monkeypatch, name: str):
-    """One token at steps in four buckets (case_b: a masked camera, whose rows softmax over the full cache; case_c:
-    two rows with different prompt lengths), and a chunk cut at 32 tokens, against the full 100-token replay."""
-    obs = observation(name)
+# The cases' rows in one batch (case_b's one row, then case_c's two): every program below compiles once for both.
+ROWS = {"case_b": slice(0, 1), "case_c": slice(1, 3)}
+CHUNK = [1, 5, 9, 30]
+
+
+def rows_of(res: maps.MapResult, rows: slice) -> maps.MapResult:
+    """The batch rows `rows` of every per-row field that `assert_same_result` compares."""
+    per_camera = {f: {c: getattr(res, f)[c][rows] for c in CAMERAS} for f in ("alphas", "grad_norms")}
+    return dataclasses.replace(
+        res,
+        by_kind={kind: {c: m[rows] for c, m in by_camera.items()} for kind, by_camera in res.by_kind.items()},
+        score=res.score[rows],
+        logits=None if res.logits is None else res.logits[rows],
+        token_ids=res.token_ids[rows],
+        positions=res.positions[rows],
+        **per_camera,
+    )
+
+
+@pytest.fixture(scope="module")
+def cut_and_full(tiny_fast_model: Pi0FAST):
+    """One token at each of STEPS and the chunk CHUNK, explained with the cut replay and with the full one, for the
+    rows of case_b and case_c together."""
+    obs = jax.tree.map(lambda *x: np.concatenate(x), *(observation(name) for name in ROWS))
     generated = sequence(obs.state.shape[0], S)
-    assert [maps.replay_length(k, S) for k in STEPS] == [16, 16, 32, 64, S]
-    chunk = [1, 5, 9, 30]
 
     def run():
         one = [maps.gradcam_for_action_token(tiny_fast_model, obs, generated, k) for k in STEPS]
-        return one, maps.maps_for_chunk(tiny_fast_model, obs, generated, chunk)
+        return one, maps.maps_for_chunk(tiny_fast_model, obs, generated, CHUNK)
 
-    cut_one, cut_chunk = run()
-    with monkeypatch.context() as m:
+    cut = run()
+    with pytest.MonkeyPatch.context() as m:
         full_length(m)
-        full_one, full_chunk = run()
+        full = run()
+    return cut, full
+
+
+@pytest.mark.parametrize("name", ["case_b", "case_c"])
+def test_cut_replay_gives_the_full_length_maps_and_scores(cut_and_full, name: str):
+    """One token at steps in four buckets (case_b: a masked camera, whose rows softmax over the full cache; case_c:
+    two rows with different prompt lengths), and a chunk cut at 32 tokens, against the full 100-token replay."""
+    assert [maps.replay_length(k, S) for k in STEPS] == [16, 16, 32, 64, S]
+    assert maps.replay_length(max(CHUNK), S) == 32
+    (cut_one, cut_chunk), (full_one, full_chunk) = cut_and_full
+    rows = ROWS[name]
     for k, cut, full in zip(STEPS, cut_one, full_one, strict=True):
-        assert_same_result(cut, full, f"{name} step {k}")
-    assert_same_result(cut_chunk, full_chunk, f"{name} chunk")
+        assert_same_result(rows_of(cut, rows), rows_of(full, rows), f"{name} step {k}")
+    assert_same_result(rows_of(cut_chunk, rows), rows_of(full_chunk, rows), f"{name} chunk")
 
 
 def test_masked_rows_see_the_decode_length(tiny_fast_model: Pi0FAST):

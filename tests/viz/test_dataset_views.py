@@ -38,7 +38,9 @@ CAMERA_FEATURES = {"base_0_rgb": "observation.images.base", "wrist_0_rgb": "obse
 def maps_root(tmp_path_factory):
     out = tmp_path_factory.mktemp("maps") / "demo_maps"
     keys, nested = dataset_keys("demo_reach", {})
-    options = ExplainOptions(target="action-token", maps=KINDS, check_patches=2)
+    # The options of tests/cam's dataset jobs (batches of 4 included): the same compiled programs, which a process of
+    # the test run may then load from JAX's compilation cache instead of compiling.
+    options = ExplainOptions(target="action-token", maps=KINDS, batch_size=4, check_patches=2)
     job = DatasetJob(SOURCE, out, PolicySpec(), options, keys, episodes=EPISODES, nested_keys=nested)
     summary = run_local(job)
     assert summary.as_json()["episodes_written"] == len(EPISODES)

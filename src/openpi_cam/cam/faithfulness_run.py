@@ -241,14 +241,17 @@ def evaluate_run(
     pointing figures, plus what was skipped and why.
 
     Work is spread over the local devices as in offline explanation (`mesh`: "auto" = all of them, None = one): each
-    step's painted variants are split over them, and the randomised model explains `opts.batch_size` steps per call,
-    their rows sharded."""
+    step's painted variants are split over them, and the randomised model explains `opts.batch_size` steps per call
+    (fewer when the run has fewer), their rows sharded."""
     mesh = data_mesh() if mesh == "auto" else mesh
     explainer = explainer.on_mesh(mesh)
     random_explainer = None
     if opts.randomize != "none":
         random_explainer = explainer.randomized(opts.randomize, opts.seed).on_mesh(mesh)
     steps = _evenly([s for s in run.steps if s.meta.map_kinds], opts.max_steps)
+    # Rows per randomised call, the same for every call of this run (one program); a run shorter than a batch pads
+    # to its own length rather than to rows it never fills.
+    rows_per_call = max(1, min(opts.batch_size, len(steps)))
     evaluation = _Evaluation()
     for step in iter(steps) if progress is None else progress(iter(steps), len(steps)):
         try:
@@ -259,10 +262,10 @@ def evaluate_run(
         evaluation.add(step, rescored)
         if random_explainer is not None:
             evaluation.waiting.append(_randomisation_row(step, rescored, random_explainer.targets))
-            if len(evaluation.waiting) == opts.batch_size:
-                _explain_randomised(random_explainer, evaluation, mesh, opts.batch_size)
+            if len(evaluation.waiting) == rows_per_call:
+                _explain_randomised(random_explainer, evaluation, mesh, rows_per_call)
     if random_explainer is not None:
-        _explain_randomised(random_explainer, evaluation, mesh, opts.batch_size)
+        _explain_randomised(random_explainer, evaluation, mesh, rows_per_call)
     report = _report(run, evaluation, opts)
     report["devices"] = 1 if mesh is None else int(mesh.devices.size)
     return _json_safe(report)
