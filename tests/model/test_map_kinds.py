@@ -241,27 +241,17 @@ def test_ig_steps_double_only_while_it_helps(errors, asked, steps):
     assert sum(m.sum() for m in out["ig"].values()) == pytest.approx(2.0 * (1.0 + errors[steps]), rel=1e-9)
 
 
-class FixedPoints(dict):
-    """IG's completeness check at n fixed points (no refinement), computed the first time n is looked up."""
+class FixedErrors(dict):
+    """IG's completeness error at n fixed points (no refinement), each run made the first time n is looked up; the
+    runs' completeness checks in `checks`."""
 
     def __init__(self, ig):
         super().__init__()
         self.ig = ig
-
-    def __missing__(self, n: int):
-        self[n] = self.ig(MapOptions(ig_steps=n, ig_tolerance=0.0, ig_max_steps=n))
-        return self[n]
-
-
-class FixedErrors(dict):
-    """The completeness error at n fixed points, from `FixedPoints`, computed the first time n is looked up."""
-
-    def __init__(self, fixed: FixedPoints):
-        super().__init__()
-        self.fixed = fixed
+        self.checks = {}
 
     def __missing__(self, n: int) -> float:
-        c = self.fixed[n]
+        c = self.checks[n] = self.ig(MapOptions(ig_steps=n, ig_tolerance=0.0, ig_max_steps=n))
         self[n] = attribution.completeness_error(c.score, c.baseline_score, c.attribution_sum)
         return self[n]
 
@@ -293,14 +283,13 @@ def test_bfloat16_ig_refines_only_where_doubling_helps():
 
         # Fixed-point runs on demand: the rule reads the error only at the attempts it makes, and a 128-point run
         # costs eight 16-point ones.
-        fixed = FixedPoints(ig)
-        error = FixedErrors(fixed)
+        error = FixedErrors(ig)
         if error[16] <= 0.02:
             continue
         adaptive = ig(MapOptions())
         want = expected_ig_steps(error)
         assert adaptive.steps == want, (seed, dict(error))
-        np.testing.assert_array_equal(adaptive.attribution_sum, fixed[want].attribution_sum)
+        np.testing.assert_array_equal(adaptive.attribution_sum, error.checks[want].attribution_sum)
         seen.add("converging" if error[want] <= 0.02 else "floor")
         if seen == {"floor", "converging"}:
             return

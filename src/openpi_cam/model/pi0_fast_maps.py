@@ -270,6 +270,28 @@ def _baseline_maps(
     return baseline_maps.collect(run, tuple(obs.images), model.config.siglip.grid, kinds, options)
 
 
+def _baseline_outputs(
+    model, obs, generated, target, *, decode_len, kinds, options, base_outputs, rows, logits=False
+) -> tuple[dict[str, Any], int | None]:
+    """`_baseline_maps` for the requested baseline kinds (nothing when there are none), every array re-laid by
+    `rows`, and the IG step count taken out: (outputs, ig_steps)."""
+    if not any(k in BASELINE_KINDS for k in kinds):
+        return {}, None
+    extra = _baseline_maps(
+        model,
+        obs,
+        generated,
+        target,
+        decode_len=decode_len,
+        kinds=kinds,
+        options=options,
+        base_outputs=base_outputs,
+        logits=logits,
+    )
+    ig_steps = extra.pop("ig_steps", None)
+    return _map_tree(rows, extra), ig_steps
+
+
 def _camera_maps(x: np.ndarray, cams: Sequence[str], grid: tuple[int, int]) -> dict[str, np.ndarray]:
     """[..., C, N] -> camera -> [..., Hp, Wp] (row-major patch grid)."""
     return {c: x[..., i, :].reshape(*x.shape[:-2], *grid) for i, c in enumerate(cams)}
@@ -468,24 +490,20 @@ def _explain_tokens(
         grad = tuple(batch_first(x) for x in (alpha, cam, token_norm))
         score = batch_first(score)
         logits = None if logits is None else batch_first(logits)
-    extra, ig_steps = {}, None
-    if any(k in BASELINE_KINDS for k in kinds):
-        target_spec = _token_target(targets, steps_tb)
-        extra = _baseline_maps(
-            model,
-            obs,
-            generated,
-            target_spec,
-            decode_len=decode_len,
-            kinds=kinds,
-            options=options,
-            base_outputs=grad is None,
-            logits=with_logits,
-        )
-        ig_steps = extra.pop("ig_steps", None)
-        extra = _map_tree(batch_first, extra)
-        if grad is None:
-            score, logits = extra["score"], extra.get("logits")
+    extra, ig_steps = _baseline_outputs(
+        model,
+        obs,
+        generated,
+        _token_target(targets, steps_tb),
+        decode_len=decode_len,
+        kinds=kinds,
+        options=options,
+        base_outputs=grad is None,
+        logits=with_logits,
+        rows=batch_first,
+    )
+    if extra and grad is None:
+        score, logits = extra["score"], extra.get("logits")
     token_ids = np.take_along_axis(np.asarray(targets), steps, axis=1)
     return _result(
         model,
@@ -575,21 +593,19 @@ def _explain_chunk(
         cfg = remat.backward_layout(_chunk_gradient_maps, model.config, args, static)
         score, alpha, cam, token_norm = _chunk_gradient_maps(*args, cfg=cfg, **static)
         grad = (alpha, cam, token_norm)
-    extra, ig_steps = {}, None
-    if any(k in BASELINE_KINDS for k in kinds):
-        extra = _baseline_maps(
-            model,
-            obs,
-            generated,
-            target_spec,
-            decode_len=decode_len,
-            kinds=kinds,
-            options=options,
-            base_outputs=grad is None,
-        )
-        ig_steps = extra.pop("ig_steps", None)
-        extra = _map_tree(lambda x: x[0], extra)  # the one score row
-        score = extra["score"] if grad is None else score
+    extra, ig_steps = _baseline_outputs(
+        model,
+        obs,
+        generated,
+        target_spec,
+        decode_len=decode_len,
+        kinds=kinds,
+        options=options,
+        base_outputs=grad is None,
+        rows=lambda x: x[0],  # the one score row
+    )
+    if extra and grad is None:
+        score = extra["score"]
     valid = padded >= 0
     token_ids = np.where(valid, np.take_along_axis(np.asarray(generated), np.maximum(padded, 0), axis=1), -1)
     return _result(

@@ -46,7 +46,7 @@ from openpi_cam.viz.evidence import KIND_NOTES
 from openpi_cam.viz.overlay import blend, upsample
 from openpi_cam.viz.progress import progress
 from openpi_cam.viz.render import label_font, slug
-from openpi_cam.viz.report import REPORT_STYLE
+from openpi_cam.viz.report import REPORT_STYLE, write_page
 from openpi_cam.viz.stats import DEFAULT_MAP_KIND, MAP_LABELS
 from openpi_cam.viz.video import Mp4Writer
 
@@ -440,16 +440,12 @@ def write_dataset_report(ds: MapsDataset, result: DatasetRenderResult, opts: Dat
     style = (
         REPORT_STYLE + ".prior figure{display:inline-block;margin:4px 12px 4px 0}img.strip{display:block;margin:4px 0}"
     )
-    doc = (
-        f"<!doctype html><html lang='en'><head><meta charset='utf-8'><title>maps dataset {_e(ds.root.name)}</title>"
-        f"<style>{style}</style></head><body>"
+    body = (
         f"<h1>maps dataset {_e(ds.root.name)}: {_e(MAP_LABELS.get(views.kind, views.kind))} maps</h1><dl>{dl}</dl>"
         f"{_checks_section(views)}{_prior_section(views, result.out_dir, opts)}{_ranking_section(views, result)}"
-        f"{_tasks_section(views)}<h2>episodes</h2>{episodes}</body></html>\n"
+        f"{_tasks_section(views)}<h2>episodes</h2>{episodes}"
     )
-    path = result.out_dir / "index.html"
-    path.write_text(doc, encoding="utf-8")
-    return path
+    return write_page(result.out_dir / "index.html", f"maps dataset {ds.root.name}", body, style)
 
 
 def render_dataset_command(

@@ -422,18 +422,21 @@ def write_report(
                     evidence=evidence,
                 )
             )
-    doc = (
-        f'<!doctype html><html lang="en"><head><meta charset="utf-8"><title>CAM run {_escape(run_id)}</title>'
-        f"<style>{REPORT_STYLE}</style></head><body>"
+    body = (
         f"<h1>CAM run {_escape(run_id)}: {_escape(map_label)} maps</h1>"
         f"<dl>{info_html}</dl>"
         "<table><tr><th>camera</th><th>valid steps</th><th>mean share</th><th>mean entropy (norm.)</th>"
         f"<th>peak stayed</th><th>mean peak shift (cells)</th><th>dominant in</th></tr>{cam_rows}</table>"
         f"{_evidence_section(evidence) if evidence else ''}{_failures_section(failures)}{sections}"
-        f"<h2>steps</h2>{''.join(step_html)}<script>{_SCRIPT}</script></body></html>\n"
+        f"<h2>steps</h2>{''.join(step_html)}<script>{_SCRIPT}</script>"
     )
-    path = result.out_dir / "index.html"
-    path.write_text(doc, encoding="utf-8")
+    return write_page(result.out_dir / "index.html", f"CAM run {run_id}", body)
+
+
+def write_page(path: pathlib.Path, title: str, body: str, style: str = REPORT_STYLE) -> pathlib.Path:
+    """Writes an HTML page with the reports' head (charset, escaped title, style) around `body` (HTML)."""
+    head = f'<head><meta charset="utf-8"><title>{_escape(title)}</title><style>{style}</style></head>'
+    path.write_text(f'<!doctype html><html lang="en">{head}<body>{body}</body></html>\n', encoding="utf-8")
     return path
 
 
