@@ -7,6 +7,7 @@ completeness and logged-logit checks also run on the golden tiny upstream model 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 import subprocess
@@ -141,7 +142,7 @@ def test_ig_is_exact_on_linear_and_quadratic_scores():
 
     exact = np.einsum("bcnd,tcnd->tbcn", E - E0, W)
     for rule in RULES:
-        attr, s, s0 = attribution.integrated_gradients(linear, E, E0, rule, 3)
+        attr, s, s0 = attribution.integrated_gradients(linear, E, E0, *attribution.quadrature(rule, 3))
         assert attr.shape == (3, 2, 2, 3)
         np.testing.assert_allclose(attr, exact, atol=1e-5)
         np.testing.assert_allclose(attr.sum((-2, -1)), s - s0, atol=1e-4)
@@ -153,9 +154,33 @@ def test_ig_is_exact_on_linear_and_quadratic_scores():
 
     exact = np.einsum("bcnd,tcnd->tbcn", E**2 - E0**2, W)
     for rule in ("gauss-legendre", "midpoint", "trapezoid"):
-        np.testing.assert_allclose(attribution.integrated_gradients(quadratic, E, E0, rule, 2)[0], exact, atol=1e-4)
-    riemann = attribution.integrated_gradients(quadratic, E, E0, "right-riemann", 2)[0]
+        attr = attribution.integrated_gradients(quadratic, E, E0, *attribution.quadrature(rule, 2))[0]
+        np.testing.assert_allclose(attr, exact, atol=1e-4)
+    riemann = attribution.integrated_gradients(quadratic, E, E0, *attribution.quadrature("right-riemann", 2))[0]
     assert np.abs(riemann - exact).max() > 0.1
+
+
+def test_ig_points_as_data_in_a_padded_buffer():
+    """The programs take IG's points as data: a buffer of fixed length with the count used as a run-time value gives
+    the attributions of the unpadded rule (float32 reordering only), and one compilation serves every rule and count."""
+    k = jax.random.split(jax.random.key(1), 3)
+    E, E0 = jax.random.normal(k[0], (2, 2, 3, 4)), jax.random.normal(k[1], (2, 2, 3, 4))
+    W = jax.random.normal(k[2], (3, 2, 3, 4))
+
+    def cubic(x):  # [B, C, N, D] -> [T, B]; not integrated exactly by 2 or 3 points, so the count shows
+        return jnp.einsum("bcnd,tcnd->tb", x**3, W)
+
+    program = jax.jit(functools.partial(attribution.integrated_gradients, cubic))
+    for rule, steps in (("gauss-legendre", 2), ("trapezoid", 3), ("right-riemann", 3)):
+        want = attribution.integrated_gradients(cubic, E, E0, *attribution.quadrature(rule, steps))[0]
+        nodes, weights = attribution.quadrature_buffer(rule, steps, 8)
+        assert nodes.shape == weights.shape == (8,) and not weights[steps:].any()
+        got = program(E, E0, nodes, weights, jnp.int32(steps))[0]
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+        assert np.abs(program(E, E0, nodes, weights, jnp.int32(steps - 1))[0] - want).max() > 1e-2
+    assert program._cache_size() == 1
+    with pytest.raises(ValueError, match="do not fit"):
+        attribution.quadrature_buffer("midpoint", 9, 8)
 
 
 @pytest.mark.parametrize("sigma", [1.5, 8.0, 40.0])
@@ -228,9 +253,11 @@ def test_ig_steps_double_only_while_it_helps(errors, asked, steps):
     assert expected_ig_steps(errors) == steps
     tried = []
 
-    def run(kinds, options, cams, masks, first):
-        tried.append(options.ig_steps)
-        attribution_sum = 2.0 * (1.0 + errors[options.ig_steps])
+    def run(kinds, options, inputs, first):
+        n = int(inputs.ig_count)
+        np.testing.assert_allclose(inputs.ig_nodes[:n], attribution.quadrature("gauss-legendre", n)[0], rtol=1e-6)
+        tried.append(n)
+        attribution_sum = 2.0 * (1.0 + errors[n])
         ig = np.full((1, 1, 2, 4), attribution_sum / 8)  # [T, B, C, N]
         return {"ig": ig, "ig_score": np.full((1, 1), 3.0), "ig_baseline_score": np.full((1, 1), 1.0)}
 
@@ -251,7 +278,7 @@ class FixedErrors(dict):
         self.checks = {}
 
     def __missing__(self, n: int) -> float:
-        c = self.checks[n] = self.ig(MapOptions(ig_steps=n, ig_tolerance=0.0, ig_max_steps=n))
+        c = self.checks[n] = self.ig(MapOptions(ig_steps=n, ig_tolerance=0.0))
         self[n] = attribution.completeness_error(c.score, c.baseline_score, c.attribution_sum)
         return self[n]
 
@@ -447,11 +474,16 @@ def test_masked_camera_gets_zero_maps(demo):
 def test_other_steps_and_seeds_reuse_one_compilation_and_default_kinds_skip_it(demo):
     first = int(demo.action_steps[0][0])
     kinds = ("ig", "occlusion")
-    fixed = MapOptions(ig_tolerance=0.0)  # a step that needs more IG steps compiles one more program, by design
+    # IG kept at its first try: a refinement runs an IG-only program, compiled once for all its doublings.
+    fixed = MapOptions(ig_tolerance=0.0)
     maps.gradcam_for_action_token(demo.model, demo.obs, demo.generated, first, kinds=kinds, options=fixed)
     before = maps._baseline_kinds._cache_size()
     for k in (first + 1, first + 4, 0):
         maps.gradcam_for_action_token(demo.model, demo.obs, demo.generated, k, kinds=kinds, options=fixed)
+    assert maps._baseline_kinds._cache_size() == before
+    # IG's points are data too: another rule and step count reuse the program.
+    other_points = dataclasses.replace(fixed, ig_rule="midpoint", ig_steps=24)
+    maps.gradcam_for_action_token(demo.model, demo.obs, demo.generated, first, kinds=kinds, options=other_points)
     assert maps._baseline_kinds._cache_size() == before
     # Which masks are drawn is data: another mode, seed or keep probability with as many masks (16, as the 4 x 4
     # regions) reuses the program too.

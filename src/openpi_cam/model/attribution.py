@@ -166,31 +166,48 @@ def unpatchify(patches: jax.Array, patch: int, hw: tuple[int, int]) -> jax.Array
     return jnp.einsum("bcijpqk->cbipjqk", x).reshape(c, b, h, w, x.shape[-1])
 
 
+def quadrature_buffer(rule: str, steps: int, length: int) -> tuple[np.ndarray, np.ndarray]:
+    """`quadrature(rule, steps)` padded with zero-weight nodes to `length` entries: float32 nodes and weights [length],
+    the first `steps` of which are used. A program takes the points as data in a buffer of fixed length, so one
+    compilation serves every rule and step count up to `length`."""
+    if steps > length:
+        raise ValueError(f"{steps} quadrature steps do not fit a buffer of {length}")
+    nodes, weights = (np.zeros(length, np.float32) for _ in range(2))
+    nodes[:steps], weights[:steps] = quadrature(rule, steps)
+    return nodes, weights
+
+
 def integrated_gradients(
-    score_fn: Callable[[jax.Array], jax.Array], E: jax.Array, E0: jax.Array, rule: str, steps: int
+    score_fn: Callable[[jax.Array], jax.Array],
+    E: jax.Array,
+    E0: jax.Array,
+    nodes: jax.Array,
+    weights: jax.Array,
+    count: jax.Array | int | None = None,
 ) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Integrated gradients over the image tokens (or any [B, C, N, D] input, e.g. patchified pixels), with its
     completeness terms.
 
     score_fn maps tokens [B, C, N, D] to scores [T, B]. attr[t, b, c, n] = sum_d (E - E0)[b, c, n, d] *
-    int_0^1 dscore_t/dE (E0 + a (E - E0))[b, c, n, d] da, the integral by `quadrature(rule, steps)`. Completeness:
-    attr summed over cameras and tokens equals score(E) - score(E0) up to the quadrature error, which is how the
-    step count is judged. The weighted gradient sum is a scan carry, so memory does not grow with `steps`.
-    -> attr [T, B, C, N], score(E) [T, B], score(E0) [T, B]."""
-    nodes, weights = quadrature(rule, steps)
+    int_0^1 dscore_t/dE (E0 + a (E - E0))[b, c, n, d] da, the integral by the quadrature points nodes[:count],
+    weights[:count] (`quadrature`, or `quadrature_buffer` with the count as a run-time value; None: all of them).
+    Completeness: attr summed over cameras and tokens equals score(E) - score(E0) up to the quadrature error, which
+    is how the step count is judged. The weighted gradient sum is a loop carry, so memory does not grow with the
+    count. -> attr [T, B, C, N], score(E) [T, B], score(E0) [T, B]."""
+    nodes, weights = jnp.asarray(nodes, jnp.float32), jnp.asarray(weights, jnp.float32)
+    count = nodes.shape[0] if count is None else count
     # The path runs in float32 even for a bfloat16 model (score_fn casts to the compute dtype): bfloat16 points on
     # the path would round the small steps of a fine quadrature away.
     E, E0 = E.astype(jnp.float32), E0.astype(jnp.float32)
     delta = E - E0
     score_e = score_fn(E)
 
-    def point(acc, node_weight):
-        a, w = node_weight
-        scores, vjp_fn = jax.vjp(score_fn, E0 + a * delta)
-        return acc + w.astype(acc.dtype) * per_score_grads(vjp_fn, scores).astype(acc.dtype), None
+    def point(i, acc):
+        scores, vjp_fn = jax.vjp(score_fn, E0 + nodes[i] * delta)
+        return acc + weights[i] * per_score_grads(vjp_fn, scores).astype(acc.dtype)
 
     init = jnp.zeros((score_e.shape[0], *E.shape), jnp.float32)
-    mean_grad, _ = jax.lax.scan(point, init, (jnp.asarray(nodes, jnp.float32), jnp.asarray(weights, jnp.float32)))
+    mean_grad = jax.lax.fori_loop(0, count, point, init)
     attr = jnp.einsum("bcnd,tbcnd->tbcn", delta, mean_grad)
     return attr, score_e, score_fn(E0)
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -26,6 +26,7 @@ from openpi_cam.model.attribution import (
     iss_map,
     paint,
     patchify,
+    quadrature_buffer,
     random_region_masks,
     region_map,
     region_masks,
@@ -37,6 +38,24 @@ from openpi_cam.model.sharding import spread
 from openpi_cam.vocabulary import BASELINE_KINDS, MapOptions
 
 ScoreFn = Callable[[jax.Array], jax.Array]  # image tokens [B, C, N, D] -> scores [T, B]
+
+
+class BaselineInputs(NamedTuple):
+    """What a baseline-kinds program takes as data rather than compiling in (a field is None when its kind is not
+    asked for): the occlusion variants (`variants`) and IG's quadrature points in a buffer of `ig_max_steps`
+    (`ig_inputs`), so other masks, rules and step counts reuse one compilation."""
+
+    cams: jax.Array | None = None  # int32 [K]: the camera each variant paints
+    masks: jax.Array | None = None  # bool [K, Hp, Wp]
+    ig_nodes: jax.Array | None = None  # float32 [ig_max_steps]
+    ig_weights: jax.Array | None = None  # float32 [ig_max_steps]
+    ig_count: jax.Array | None = None  # int32 []: how many of the points are used
+
+
+def ig_inputs(options: MapOptions, steps: int) -> BaselineInputs:
+    """IG's points for `steps` evaluations of `options.ig_rule`, in the buffer the program is compiled for."""
+    nodes, weights = quadrature_buffer(options.ig_rule, steps, options.ig_max_steps)
+    return BaselineInputs(ig_nodes=jnp.asarray(nodes), ig_weights=jnp.asarray(weights), ig_count=jnp.int32(steps))
 
 
 def camera_stack(obs: Observation) -> tuple[jax.Array, jax.Array]:
@@ -78,13 +97,12 @@ def baseline_kinds(
     cfg: VLMConfig,
     score_fn: ScoreFn,
     E: jax.Array,
-    cams: jax.Array | None,
-    masks: jax.Array | None,
+    inputs: BaselineInputs,
     kinds: Sequence[str],
     options: MapOptions,
 ) -> dict[str, jax.Array]:
     """Traced core (call inside a jitted program). Returns "ig" [T, B, C, N] with "ig_score" / "ig_baseline_score"
-    [T, B]; "occlusion_scores" [K, T, B] for the variants (cams, masks) of `variants`."""
+    [T, B], over the inputs' quadrature points; "occlusion_scores" [K, T, B] for the inputs' variants."""
     images, valid = camera_stack(obs)
     base = baseline_images(images, valid, options)  # [C, B, H, W, 3]
     out = {}
@@ -98,28 +116,28 @@ def baseline_kinds(
         X, X0 = patchify(images, patch), patchify(base, patch)
         X0 = jnp.where(valid.T[:, :, None, None], X0, X)  # a masked camera is its own baseline
         out["ig"], out["ig_score"], out["ig_baseline_score"] = integrated_gradients(
-            pixel_score, X, X0, options.ig_rule, options.ig_steps
+            pixel_score, X, X0, inputs.ig_nodes, inputs.ig_weights, inputs.ig_count
         )
     elif "ig" in kinds:
         E0 = embed_images(params, with_images(obs, dict(zip(obs.images, base, strict=True))), cfg)
         E0 = jnp.where(valid.T[:, :, None, None], E0, E)  # a masked camera is its own baseline
         out["ig"], out["ig_score"], out["ig_baseline_score"] = integrated_gradients(
-            score_fn, E, E0, options.ig_rule, options.ig_steps
+            score_fn, E, E0, inputs.ig_nodes, inputs.ig_weights, inputs.ig_count
         )
     if "occlusion" in kinds:
         out["occlusion_scores"] = _painted_scores(
-            params, obs, cfg, score_fn, E, images, base, cams, masks, options.mask_chunk
+            params, obs, cfg, score_fn, E, images, base, inputs.cams, inputs.masks, options.mask_chunk
         )
     return out
 
 
 def compiled_options(options: MapOptions, kinds: Sequence[str] = BASELINE_KINDS) -> MapOptions:
-    """The options the compiled program depends on: which masks occlusion uses is data (their count a shape), so
-    the mask-drawing fields are reset and e.g. a new seed reuses the compilation; so are the fields of kinds not
-    requested."""
+    """The options the compiled program depends on: which masks occlusion uses and IG's quadrature points are data
+    (`BaselineInputs`; their counts shapes), so the fields that choose them are reset and e.g. a new seed or step
+    count reuses the compilation; so are the fields of kinds not requested."""
     defaults = MapOptions()
     keep = {"baseline", "blur_sigma"}
-    keep |= {"ig_steps", "ig_rule", "ig_space"} if "ig" in kinds else set()
+    keep |= {"ig_max_steps", "ig_space"} if "ig" in kinds else set()
     keep |= {"mask_chunk"} if "occlusion" in kinds else set()
     reset = {f.name: getattr(defaults, f.name) for f in dataclasses.fields(MapOptions) if f.name not in keep}
     return dataclasses.replace(options, **reset)
@@ -133,9 +151,9 @@ def occlusion_masks(grid: tuple[int, int], options: MapOptions) -> np.ndarray:
     return random_region_masks(grid, options.occlusion_region, options.random_masks, options.keep_prob, options.seed)
 
 
-def variants(per_camera: Sequence[np.ndarray | None], chunk: int) -> tuple[jax.Array, jax.Array, list[slice]]:
-    """Flattens per-camera mask stacks into one variant list (cams [K], masks [K, Hp, Wp]) padded with no-op
-    variants to a multiple of `chunk`; slice c selects camera c's variants."""
+def variants(per_camera: Sequence[np.ndarray | None], chunk: int) -> tuple[BaselineInputs, list[slice]]:
+    """Flattens per-camera mask stacks into one variant list (the inputs' cams [K] and masks [K, Hp, Wp]) padded
+    with no-op variants to a multiple of `chunk`; slice c selects camera c's variants."""
     cams, masks, where, start = [], [], [], 0
     for c, m in enumerate(per_camera):
         m = np.zeros((0,), bool) if m is None else np.asarray(m, bool)
@@ -148,7 +166,7 @@ def variants(per_camera: Sequence[np.ndarray | None], chunk: int) -> tuple[jax.A
     pad = -len(cams) % chunk
     cams = np.concatenate([cams, np.zeros(pad, np.int32)])
     masks = np.concatenate([masks, np.zeros((pad, *masks.shape[1:]), bool)])
-    return jnp.asarray(cams), jnp.asarray(masks), where
+    return BaselineInputs(cams=jnp.asarray(cams), masks=jnp.asarray(masks)), where
 
 
 def checked_masks(masks: Mapping[str, Any], cameras: Sequence[str], grid: tuple[int, int]) -> list[np.ndarray | None]:
@@ -162,7 +180,7 @@ def checked_masks(masks: Mapping[str, Any], cameras: Sequence[str], grid: tuple[
     return per_camera
 
 
-RunFn = Callable[[tuple[str, ...], MapOptions, Any, Any, bool], Mapping[str, Any]]
+RunFn = Callable[[tuple[str, ...], MapOptions, BaselineInputs, bool], Mapping[str, Any]]
 
 
 def collect(
@@ -172,19 +190,24 @@ def collect(
     kinds: Sequence[str],
     options: MapOptions,
 ) -> dict[str, Any]:
-    """Runs the family's program `run(kinds, compiled options, cams, masks, first_call)` for the requested baseline
-    kinds and turns its output into maps; every array keeps the program's leading [T, B] axes.
+    """Runs the family's program `run(kinds, compiled options, inputs, first_call)` for the requested baseline kinds
+    and turns its output into maps; every array keeps the program's leading [T, B] axes. An IG refinement runs the
+    IG-only program: the first call's own when it asked for IG alone (its first-call outputs computed again, a
+    forward pass beside the refinement's backward ones, rather than a second compilation).
 
     Returns "ig" and "occlusion" (camera -> [T, B, Hp, Wp]), "ig_check" (score, baseline score, attribution sum,
     each [T, B]), "ig_steps" (quadrature steps used), and whatever else the first call returned."""
     kinds = tuple(k for k in BASELINE_KINDS if k in kinds)
-    variant_cams = variant_masks = masks = where = None
+    inputs, masks, where = BaselineInputs(), None, None
+    if "ig" in kinds:
+        inputs = ig_inputs(options, options.ig_steps)
     if "occlusion" in kinds:
         masks = occlusion_masks(grid, options)
         reference = np.zeros((1, *grid), bool)  # every camera's drops against its own unpainted re-run
         stacks = [np.concatenate([reference, masks])] * len(cameras)
-        variant_cams, variant_masks, where = variants(stacks, options.mask_chunk)
-    out = run(kinds, compiled_options(options, kinds), variant_cams, variant_masks, True)
+        painted, where = variants(stacks, options.mask_chunk)
+        inputs = inputs._replace(cams=painted.cams, masks=painted.masks)
+    out = run(kinds, compiled_options(options, kinds), inputs, True)
     core = ("ig", "ig_score", "ig_baseline_score", "occlusion_scores")
     res: dict[str, Any] = {k: np.asarray(v) for k, v in out.items() if k not in core}
     if where is not None:
@@ -206,9 +229,8 @@ def collect(
             met = options.ig_tolerance == 0 or error <= options.ig_tolerance
             if met or error > IG_STALL * last_error or 2 * steps > options.ig_max_steps:
                 break
-            steps, last_error = 2 * steps, error  # one more program per doubling; only the rare sharp paths pay
-            refined = dataclasses.replace(options, ig_steps=steps)
-            out = run(("ig",), compiled_options(refined, ("ig",)), None, None, False)
+            steps, last_error = 2 * steps, error
+            out = run(("ig",), compiled_options(options, ("ig",)), ig_inputs(options, steps), kinds == ("ig",))
         _, steps, attr, check = best  # a doubling into the arithmetic's noise can come out worse than the one before
         res["ig"] = {c: attr[..., i, :].reshape(*attr.shape[:2], *grid) for i, c in enumerate(cameras)}
         res["ig_check"] = check

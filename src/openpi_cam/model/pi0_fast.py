@@ -161,10 +161,10 @@ def sample_tokens(
     return out[2], out[6], out[7]
 
 
-# One compiled program per (shape, config, decoding settings); shared by every model object.
+# One compiled program per (shape, config, decoding settings); shared by every model object. The stop tokens are data
+# (only how many there are is compiled in), so policies whose stop tokens differ share the program.
 sample_tokens_jit = jax.jit(
-    sample_tokens,
-    static_argnames=("cfg", "max_decoding_steps", "temperature", "stop_token_ids", "record_logits", "rows_alone"),
+    sample_tokens, static_argnames=("cfg", "max_decoding_steps", "temperature", "record_logits", "rows_alone")
 )
 
 

@@ -209,8 +209,7 @@ def _baseline_kinds(
     obs,
     generated,
     target,
-    cams,
-    masks,
+    inputs,
     *,
     cfg: Pi0FASTConfig,
     decode_len: int,
@@ -224,7 +223,7 @@ def _baseline_kinds(
     targets with `logits`, "logits" [T, B, V]."""
     E = embed_images(params, obs, cfg)
     score_fn = _score_fn(params, obs, generated, target, cfg, decode_len)
-    out = baseline_maps.baseline_kinds(params, obs, cfg, score_fn, E, cams, masks, kinds, options)
+    out = baseline_maps.baseline_kinds(params, obs, cfg, score_fn, E, inputs, kinds, options)
     if base_outputs:
         out["score"] = score_fn(E)
         if "steps" in target and logits:
@@ -251,14 +250,13 @@ def _baseline_maps(
     """`baseline_maps.collect` over this family's program (replaying generated [B, L] of a decode of `decode_len`
     steps); with `base_outputs` also "score" [T, B] and with `logits` "logits" [T, B, V] (token targets)."""
 
-    def run(kinds, options, cams, masks, first):
+    def run(kinds, options, inputs, first):
         return _baseline_kinds(
             model.params,
             obs,
             generated,
             target,
-            cams,
-            masks,
+            inputs,
             cfg=model.config,
             decode_len=decode_len,
             kinds=kinds,
@@ -673,14 +671,13 @@ def rescore_masks(
     target, t, generated, decode_len = _rescore_target(generated, steps, weights)
     cams = tuple(obs.images)
     per_camera = baseline_maps.checked_masks(masks, cams, model.config.siglip.grid)
-    variant_cams, variant_masks, where = baseline_maps.variants(per_camera, options.mask_chunk)
+    inputs, where = baseline_maps.variants(per_camera, options.mask_chunk)
     out = _baseline_kinds(
         model.params,
         obs,
         generated,
         target,
-        variant_cams,
-        variant_masks,
+        inputs,
         cfg=model.config,
         decode_len=decode_len,
         kinds=("occlusion",),

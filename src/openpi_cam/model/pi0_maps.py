@@ -70,7 +70,7 @@ def _flow_gradient_maps(params, obs, noise, *, cfg: Pi0Config, targets: tuple[tu
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "targets", "kinds", "options", "base_outputs"))
-def _flow_baseline_kinds(params, obs, noise, cams, masks, *, cfg: Pi0Config, targets, kinds, options, base_outputs):
+def _flow_baseline_kinds(params, obs, noise, inputs, *, cfg: Pi0Config, targets, kinds, options, base_outputs):
     """IG / occlusion of the targets' scores, each a fixed weighting of x_0 from the same noise (see
     `baseline_maps.baseline_kinds`); with `base_outputs` also "score" [T, B] and "actions" [B, H, A]."""
     E = embed_images(params, obs, cfg)
@@ -80,7 +80,7 @@ def _flow_baseline_kinds(params, obs, noise, cams, masks, *, cfg: Pi0Config, tar
     def score_fn(image_tokens):
         return jnp.einsum("tbha,bha->tb", weights, denoise(params, image_tokens, obs, noise, cfg).astype(jnp.float32))
 
-    out = baseline_maps.baseline_kinds(params, obs, cfg, score_fn, E, cams, masks, kinds, options)
+    out = baseline_maps.baseline_kinds(params, obs, cfg, score_fn, E, inputs, kinds, options)
     if base_outputs:
         out["score"], out["actions"] = jnp.einsum("tbha,bha->tb", weights, x_0), x_0
     return out
@@ -133,13 +133,12 @@ def maps_for_actions(
     if any(k in BASELINE_KINDS for k in kinds):
         first_outputs = score is None
 
-        def run(kinds, options, cam_ids, masks, first):
+        def run(kinds, options, inputs, first):
             return _flow_baseline_kinds(
                 model.params,
                 obs,
                 noise,
-                cam_ids,
-                masks,
+                inputs,
                 cfg=cfg,
                 targets=targets,
                 kinds=kinds,
@@ -187,13 +186,12 @@ def rescore_masks(
     obs = preprocess(obs, cfg)
     cams = tuple(obs.images)
     per_camera = baseline_maps.checked_masks(masks, cams, cfg.siglip.grid)
-    cam_ids, variant_masks, where = baseline_maps.variants(per_camera, options.mask_chunk)
+    inputs, where = baseline_maps.variants(per_camera, options.mask_chunk)
     out = _flow_baseline_kinds(
         model.params,
         obs,
         jnp.asarray(noise, jnp.float32),
-        cam_ids,
-        variant_masks,
+        inputs,
         cfg=cfg,
         targets=targets,
         kinds=("occlusion",),
