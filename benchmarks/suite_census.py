@@ -74,10 +74,13 @@ if _OUT:
 
 
 def run_suite(out: pathlib.Path, pytest_args: list[str]) -> tuple[float, float, int]:
-    """Runs pytest cold with the census hook -> (wall seconds, CPU seconds of all children, exit code)."""
-    hook = pathlib.Path(tempfile.mkdtemp(prefix="suite-census-hook-"))
+    """Runs pytest cold with the census hook -> (wall seconds, CPU seconds of all children, exit code). The hook lives
+    in the census folder; the compilation cache is kept (and named) for a warm rerun."""
+    hook = out / "hook"
+    hook.mkdir(exist_ok=True)
     (hook / "sitecustomize.py").write_text(SITECUSTOMIZE)
     cache = tempfile.mkdtemp(prefix="suite-census-jax-cache-")
+    print(f"cold JAX compilation cache: {cache} (rerun warm with JAX_COMPILATION_CACHE_DIR={cache})", flush=True)
     env = os.environ | {
         "SUITE_CENSUS_DIR": str(out),
         "JAX_COMPILATION_CACHE_DIR": cache,

@@ -244,11 +244,15 @@ def backward_config(cfg: Pi0FASTConfig, tokens: int) -> Pi0FASTConfig:
     return dataclasses.replace(cfg, gemma=dataclasses.replace(cfg.gemma, scan=False))
 
 
-def _baseline_maps(
-    model, obs, generated, target, *, decode_len, kinds, options, base_outputs, logits=False
-) -> dict[str, Any]:
+def _baseline_outputs(
+    model, obs, generated, target, *, decode_len, kinds, options, base_outputs, rows, logits=False
+) -> tuple[dict[str, Any], int | None]:
     """`baseline_maps.collect` over this family's program (replaying generated [B, L] of a decode of `decode_len`
-    steps); with `base_outputs` also "score" [T, B] and with `logits` "logits" [T, B, V] (token targets)."""
+    steps) for the requested baseline kinds, nothing when there are none; with `base_outputs` also "score" [T, B] and
+    with `logits` "logits" [T, B, V] (token targets). Every array is re-laid by `rows` and the IG step count taken
+    out: (outputs, ig_steps)."""
+    if not any(k in BASELINE_KINDS for k in kinds):
+        return {}, None
 
     def run(kinds, options, inputs, first):
         return _baseline_kinds(
@@ -265,27 +269,7 @@ def _baseline_maps(
             logits=logits and base_outputs and first,
         )
 
-    return baseline_maps.collect(run, tuple(obs.images), model.config.siglip.grid, kinds, options)
-
-
-def _baseline_outputs(
-    model, obs, generated, target, *, decode_len, kinds, options, base_outputs, rows, logits=False
-) -> tuple[dict[str, Any], int | None]:
-    """`_baseline_maps` for the requested baseline kinds (nothing when there are none), every array re-laid by
-    `rows`, and the IG step count taken out: (outputs, ig_steps)."""
-    if not any(k in BASELINE_KINDS for k in kinds):
-        return {}, None
-    extra = _baseline_maps(
-        model,
-        obs,
-        generated,
-        target,
-        decode_len=decode_len,
-        kinds=kinds,
-        options=options,
-        base_outputs=base_outputs,
-        logits=logits,
-    )
+    extra = baseline_maps.collect(run, tuple(obs.images), model.config.siglip.grid, kinds, options)
     ig_steps = extra.pop("ig_steps", None)
     return _map_tree(rows, extra), ig_steps
 
@@ -298,7 +282,7 @@ def _camera_maps(x: np.ndarray, cams: Sequence[str], grid: tuple[int, int]) -> d
 def _result(
     model, obs, *, target, kinds, grad, score, logits, extra, ig_steps, token_ids, steps, positions, options
 ) -> MapResult:
-    """grad: (alpha, cam, token_norm) batch-first or None; extra: `_baseline_maps` output made batch-first."""
+    """grad: (alpha, cam, token_norm) batch-first or None; extra: `_baseline_outputs` made batch-first."""
     cams = tuple(obs.images)
     n = model.config.siglip.num_tokens
     grid = model.config.siglip.grid
