@@ -1,7 +1,7 @@
 """Where the test suite's time goes: the README's test command run cold, with every XLA compilation of every process
 it starts (xdist workers, `serve` / `explain` / `faithfulness` subprocesses, Ray workers) recorded.
 
-    python benchmarks/suite_census.py [--out /tmp/census] [-- <pytest arguments>]
+    python benchmarks/suite_census.py [--out /tmp/census] [-- <pytest arguments>]   (`-- --full`: both tiers)
 
 A fresh, empty JAX compilation cache is used, as in a fresh clone. Each Python process imports a `sitecustomize`
 placed on PYTHONPATH that listens to JAX's compile-duration event (`jax.monitoring`) and appends (test, program,

@@ -13,6 +13,9 @@ model's compiled programs) are built once per session:
 - `demo_observations`: distinct demo-robot observations, each with its own actions under `demo_policy`.
 
 Under `CI=true` a skipped test fails (see `pytest_runtest_makereport`), so a missing dependency cannot pass silently.
+
+Two tiers (`pytest_collection_modifyitems`): the README's test command runs the fast tier, every behaviour on the
+configuration it is served in; `-m slow` runs the rest, and CI runs both, so every test runs there.
 """
 
 from __future__ import annotations
@@ -58,6 +61,39 @@ def pytest_make_collect_report(collector: pytest.Collector) -> Any:
         report.outcome = "failed"
         report.longrepr = f"collection skipped under CI=true, which runs every test: {reason}"
     return report
+
+
+# The slow tier holds what repeats a computation the fast tier already checks, under another configuration or along
+# another path (a second layout, remat, bfloat16, a second device, batched rows, larger occlusion regions, re-scoring,
+# pi0 beside pi0.5, the batch-of-two golden case), and the long runs of extra processes (hostile clients, the training
+# script, Ray's retries) or of compilation counting. The fast tier leaves it out unless tests are named by node id,
+# `-m` selects, or `--full` asks for everything.
+SLOW = "slow"
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--full", action="store_true", help="run the slow tier too (CI runs it as `-m slow`)")
+
+
+def _fast_tier_only(config: pytest.Config) -> bool:
+    named = any("::" in arg for arg in config.args)
+    return not (config.option.markexpr or config.getoption("--full") or named)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    if not _fast_tier_only(config):
+        return
+    slow = [item for item in items if item.get_closest_marker(SLOW)]
+    if slow:
+        config.hook.pytest_deselected(items=slow)
+        items[:] = [item for item in items if not item.get_closest_marker(SLOW)]
+
+
+def pytest_terminal_summary(terminalreporter: Any, config: pytest.Config) -> None:
+    if _fast_tier_only(config):
+        terminalreporter.write_line(
+            "fast tier: the slow tier was left out (`python -m pytest -q -m slow` runs it; CI runs both)"
+        )
 
 
 # Compiling XLA programs is most of the suite's CPU time, and the same programs are compiled again by every process

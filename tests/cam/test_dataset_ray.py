@@ -131,6 +131,7 @@ def _decoding(proc: psutil.Process) -> bool:
         return False
 
 
+@pytest.mark.slow
 def test_a_killed_worker_is_retried_and_every_frame_written_once(ray_instance, reference, tmp_path, caplog):
     caplog.set_level(logging.DEBUG, logger=ENGINE_LOG)
     root = tmp_path / "maps"
@@ -172,6 +173,7 @@ def test_a_killed_worker_is_retried_and_every_frame_written_once(ray_instance, r
     assert got.summary()["episodes_written"] == len(EPISODES)
 
 
+@pytest.mark.slow
 def test_a_bad_episode_stops_the_job_or_is_skipped_with_keep_going(ray_instance, tmp_path):
     source = tmp_path / "source"
     shutil.copytree(LEROBOT_DIR / "demo_reach_v21_video", source)

@@ -69,13 +69,13 @@ def chunk_run(tmp_path_factory, demo_policy):
     return _logged_run(tmp_path_factory.mktemp("chunk_run"), demo_policy, "chunk")
 
 
-@pytest.mark.parametrize("family", ["pi0_fast", "pi05"])
-def test_steps_rescore_exactly_and_occlusion_is_its_own_optimum(request, tmp_path, pi05_policy, family):
+@pytest.mark.parametrize("family", ["pi0_fast", pytest.param("pi05", marks=pytest.mark.slow)])
+def test_steps_rescore_exactly_and_occlusion_is_its_own_optimum(request, tmp_path, family):
     if family == "pi0_fast":
         policy, run = request.getfixturevalue("demo_policy"), request.getfixturevalue("chunk_run")
     else:
-        run = _logged_run(tmp_path, pi05_policy, "action", action_index=3, action_dim_index=1)
-        policy = pi05_policy
+        policy = request.getfixturevalue("pi05_policy")
+        run = _logged_run(tmp_path, policy, "action", action_index=3, action_dim_index=1)
     assert len(run.steps) == len(SEEDS) and all(set(s.map_kinds) == set(MAP_KINDS) for s in run.steps)
     # One step per call of the randomised model: the programs the side channel compiled for the logged steps (batch
     # 1) serve it too (batched calls are the two-device test's). pi0.5 re-runs its whole denoising loop per painted
@@ -144,6 +144,7 @@ def _assert_step_figures_are_each_steps_own(run, report, policy) -> None:
     assert len(seen) >= 2 and len(set(np.round(seen, 3))) > 1, seen
 
 
+@pytest.mark.slow
 def test_logged_occlusion_maps_equal_the_single_patch_drops_rescored_offline(tmp_path, demo_policy):
     """The live side channel's occlusion map and the offline re-scoring of one patch at a time agree value by value:
     the step file holds everything the explained score depends on."""
@@ -232,6 +233,7 @@ def test_nuisance_mass_ratio_in_stats_uses_the_clients_box(chunk_run):
     assert max(seen) > min(seen)  # different scenes, different ratios
 
 
+@pytest.mark.slow
 def test_offline_explain_render_stats_and_faithfulness_on_a_pi05_run(tmp_path, pi05_policy):
     """The run tools know no family: a pi0.5 policy explained offline (action target, all four kinds) gives a run that
     renders, has statistics and re-scores exactly, with maps of the very chunks the replays returned."""
@@ -262,6 +264,7 @@ def test_offline_explain_render_stats_and_faithfulness_on_a_pi05_run(tmp_path, p
     assert occlusion["median"] == pytest.approx(1.0, abs=1e-4)
 
 
+@pytest.mark.slow
 def test_faithfulness_over_two_host_devices_matches_one_device(tmp_path, demo_policy, chunk_run):
     """The report's work spread over two devices (painted variants split between them, the randomised model's steps
     sharded in calls of 3 rows padded to 4) gives the one-device figures: the devices only share the work."""

@@ -104,6 +104,7 @@ def test_record_observation_reads_flat_and_nested_keys():
     assert record_observation(record, nested=True) == {"images": {"cam_high": 1}, "state": 2, "cam_extra/a/b": 3}
 
 
+@pytest.mark.slow
 def test_batched_rows_equal_single_rows(demo_policy):
     """Two rows with different observations and action-token counts, explained in one call, give each row's result
     explained alone (rows neither mix nor swap)."""
@@ -393,6 +394,7 @@ _DATA_PARALLEL = textwrap.dedent(
 )
 
 
+@pytest.mark.slow
 def test_data_parallel_over_two_host_devices_matches_one_device(tmp_path):
     result = tmp_path / "dp.npz"
     env = os.environ | {

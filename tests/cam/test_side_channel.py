@@ -152,6 +152,7 @@ def test_schedule_is_per_connection_and_every_k(demo_policy, tmp_path):
     assert all(not s.frames and not s.model_frames for s in run.steps)
 
 
+@pytest.mark.slow
 def test_multi_token_and_chunk_targets_log_the_models_maps(demo_policy, tmp_path):
     """`all-action-tokens` logs one map per action token and `chunk` one map of the summed log-probabilities, equal
     to direct calls of the model's map functions on the call's exact inputs."""
@@ -583,6 +584,7 @@ print(json.dumps({"warmed": warmed, "single": single, "batch": batch, "stats": c
 """
 
 
+@pytest.mark.slow
 def test_warm_up_compiles_what_the_first_request_and_its_explanation_need():
     """`serve` warms up before listening: after `CAMPolicy.warm_up()` the first request and its explanation compile
     nothing, and with batched serving's sizes warmed (1, 2, 4) neither does a batch of three. Without the warm-up the
@@ -680,6 +682,7 @@ print(json.dumps(results))
 """
 
 
+@pytest.mark.slow
 def test_cam_device_explains_on_its_own_device_while_inference_runs():
     """`--cam.device 1` (two host devices here): the explainer's parameters live on device 1 only, an explanation
     completes while an inference is held in flight (on the shared device the worker waits for it, which the same

@@ -283,6 +283,7 @@ class FixedErrors(dict):
         return self[n]
 
 
+@pytest.mark.slow
 def test_bfloat16_ig_refines_only_where_doubling_helps():
     """The demo model served in bfloat16 (as real checkpoints are): its scores are rounded to bfloat16, so the
     completeness error can stop shrinking at a floor (measured on the first action token, 20 scenes: 0.1-4% of gaps of
@@ -327,6 +328,7 @@ def test_bfloat16_ig_refines_only_where_doubling_helps():
 # Golden tiny model
 
 
+@pytest.mark.slow
 def test_ig_completeness_on_the_golden_tiny_model(tiny):
     """case_b (base_1_rgb masked), chunk of all 16 steps, blur (sigma 8) baseline, Gauss-Legendre from 16 steps.
 
@@ -374,6 +376,7 @@ def test_rescoring_reproduces_the_logged_decode_logits(tiny):
 # Demo model
 
 
+@pytest.mark.slow
 def test_rescoring_unmodified_images_gives_the_explained_score(demo):
     weights = maps.chunk_weights(demo.chunk_rows, 2, demo.generated.shape[1])[0]
     explained = maps.maps_for_chunk(demo.model, demo.obs, demo.generated, demo.chunk_rows)
@@ -408,6 +411,7 @@ def test_occlusion_reads_the_patch_grid_row_major(demo):
     assert abs(drop - occ[c, r]) > 20 * SCORE_ATOL
 
 
+@pytest.mark.slow
 def test_region_occlusion_equals_manual_rescoring_of_each_region(demo):
     """3 x 3 regions on the 4 x 4 grid (uneven tiling), per-row token targets [B, T]; each camera painted alone."""
     options = MapOptions(occlusion_region=3)
@@ -471,6 +475,7 @@ def test_masked_camera_gets_zero_maps(demo):
         assert np.abs(res.by_kind[kind]["base_0_rgb"][1]).max() > 0
 
 
+@pytest.mark.slow
 def test_other_steps_and_seeds_reuse_one_compilation_and_default_kinds_skip_it(demo):
     first = int(demo.action_steps[0][0])
     kinds = ("ig", "occlusion")
@@ -498,6 +503,7 @@ def test_other_steps_and_seeds_reuse_one_compilation_and_default_kinds_skip_it(d
         maps.gradcam_for_action_token(demo.model, demo.obs, demo.generated, first, kinds=("saliency",))
 
 
+@pytest.mark.slow
 def test_rematerialised_layers_give_the_same_maps(tiny):
     """`GemmaConfig.remat` (what full-size checkpoints read back with) recomputes each layer in the backward pass: the
     maps and scores are those of the stored-activation program, to float32 reordering (measured max difference
@@ -519,6 +525,7 @@ def test_rematerialised_layers_give_the_same_maps(tiny):
             np.testing.assert_allclose(got.by_kind["gradnorm"][camera], norm, rtol=0, atol=1e-5 * scale)
 
 
+@pytest.mark.slow
 def test_pixel_space_ig_completeness_and_patch_order(demo):
     """`ig_space="pixels"`: the path runs between the frames through SigLIP; attributions summed per patch still add
     up to score - baseline score (2% target), a masked camera gets zeros, and patchify / unpatchify keep SigLIP's

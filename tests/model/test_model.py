@@ -196,7 +196,9 @@ def test_criterion_scales_with_the_reference():
     assert not golden.compare("x", "tokens", np.array([1, 2]), np.array([1, 3]), exact=True).ok
 
 
-@pytest.fixture(scope="module", params=["unrolled", "scanned"])
+# Every other tiny pi0-FAST test runs the unrolled layout against these goldens too: the fast tier checks the
+# scanned one (real checkpoints' layout).
+@pytest.fixture(scope="module", params=[pytest.param("unrolled", marks=pytest.mark.slow), "scanned"])
 def golden_results(request, golden_dir) -> list[golden.Comparison]:
     """The golden model is 2 layers deep, so it is served unrolled; forced to scan, it runs the layout that real
     checkpoints (18 / 27 layers) use, which must match the same goldens."""
@@ -254,6 +256,7 @@ def test_golden_command_fails_on_mismatch_and_bad_input(tmp_path, capsys):
 # ------------------------------------------------------------------------------------------------------ decoding
 
 
+@pytest.mark.slow
 def test_decode_compiles_once_per_shape_and_stops_on_stop_tokens(tiny_fast_model: Pi0FAST):
     case = load_case("case_a")
     obs = golden.load_observation(case, CAMERAS)
@@ -296,6 +299,7 @@ def test_stop_tokens_finish_each_row_on_its_own(tiny_fast_model: Pi0FAST, stop: 
     assert not np.asarray(tokens)[:, last + 1 :].any()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("stop", [261, 678])
 def test_rows_alone_decodes_each_row_as_a_batch_of_one(tiny_fast_model: Pi0FAST, stop: int):
     """Batched serving's decode (`rows_alone`): case_c's two rows reach the stop token at different steps; each row of

@@ -91,8 +91,19 @@ def test_full_size_trees_equal_upstreams(name):
     assert (expert.width, expert.depth, expert.lora_rank) == (1024, 18, 32 if "lora" in name else 0)
 
 
-@pytest.mark.parametrize("family", ["pi0", "pi05"])
-@pytest.mark.parametrize("name", ["case_a", "case_b", "case_c"])
+def flow_cases(slow_families: tuple[str, ...] = ()) -> list:
+    """(family, case) pairs, the slow tier's marked: case_c, the batch of two, compiles programs of its own (the fast
+    tier batches flow models in serving/test_batching.py), and so does each family in `slow_families`."""
+    return [
+        pytest.param(family, name, id=f"{name}-{family}", marks=[pytest.mark.slow] if slow else [])
+        for family in ("pi0", "pi05")
+        for name in ("case_a", "case_b", "case_c")
+        for slow in [name == "case_c" or family in slow_families]
+    ]
+
+
+# pi0.5's sampled actions are upstream's in the fast tier too, from a raw observation (policies/test_pi0_policy.py).
+@pytest.mark.parametrize(("family", "name"), flow_cases(slow_families=("pi05",)))
 def test_sampling_and_loss_match_upstream(family, name):
     model = load_model(family)
     d, obs = load_case(family, name)
@@ -111,8 +122,7 @@ def test_sampling_and_loss_match_upstream(family, name):
     assert_close(loss, d["loss"], REL, "loss")
 
 
-@pytest.mark.parametrize("family", ["pi0", "pi05"])
-@pytest.mark.parametrize("name", ["case_a", "case_b", "case_c"])
+@pytest.mark.parametrize(("family", "name"), flow_cases())
 def test_gradients_through_the_denoising_loop_match_upstream(family, name):
     model = load_model(family)
     d, obs = load_case(family, name)
@@ -157,7 +167,7 @@ def test_bad_targets_are_refused_by_name():
         )
 
 
-@pytest.mark.parametrize("family", ["pi0", "pi05"])
+@pytest.mark.parametrize("family", ["pi0", pytest.param("pi05", marks=pytest.mark.slow)])
 def test_ig_and_occlusion_through_the_denoising_loop(family):
     """The baseline kinds explain the same x_0 as the gradient kinds: IG's attributions add up to score(frame) -
     score(baseline frame) (its completeness check), occlusion is the drop of exactly the re-scoring a user can run
@@ -200,7 +210,9 @@ def test_ig_and_occlusion_through_the_denoising_loop(family):
 @pytest.mark.parametrize(
     ("folder", "expected"),
     [
-        ("tiny_pi0", 69),  # 3 cases x (3 SigLIP + iterates + velocities + actions + loss + 4 targets x 4 arrays)
+        # 3 cases x (3 SigLIP + iterates + velocities + actions + loss + 4 targets x 4 arrays); the comparisons
+        # themselves are this file's in-process tests, so the command's own run is slow tier
+        pytest.param("tiny_pi0", 69, marks=pytest.mark.slow),
         ("tiny_policy_pi0_libero", 22),  # 2 cases x (2 prompt arrays + 3 images + 3 masks + state + output + actions)
         ("param_trees", 4),  # pi0, pi0.5 and their LoRA variants
     ],

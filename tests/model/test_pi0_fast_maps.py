@@ -47,7 +47,9 @@ def log_softmax(x: np.ndarray) -> np.ndarray:
     return x - m - np.log(np.exp(x - m).sum(-1, keepdims=True))
 
 
-@pytest.mark.parametrize("name", ["case_a", "case_b", "case_c"])
+# case_c, the batch of two, compiles programs of its own: slow tier (the fast tier explains batches in
+# cam/test_offline.py).
+@pytest.mark.parametrize("name", ["case_a", "case_b", pytest.param("case_c", marks=pytest.mark.slow)])
 def test_explained_logits_are_upstreams_decode_logits(tiny_fast_model: Pi0FAST, name: str):
     """Every one of the 16 steps, each row: the logit vector the explained score is taken from is the one upstream's
     decoding chose that token with (`decode_step_logits`), including case_b's masked camera."""
@@ -63,6 +65,7 @@ def test_explained_logits_are_upstreams_decode_logits(tiny_fast_model: Pi0FAST, 
     assert_close_rel(np.concatenate([p.score for p in parts], axis=1), picked, LOGITS_REL, "score")
 
 
+@pytest.mark.slow
 def test_without_logits_the_maps_and_scores_are_the_same(tiny_fast_model: Pi0FAST):
     """`logits=False` (what the side channel and `explain` ask for) leaves out only the vocabulary projection: same
     scores and maps, for the gradient pass and for a baseline kind alone (which then reports the score itself)."""
@@ -154,6 +157,7 @@ def test_all_tokens_in_one_call_are_upstreams_per_token_maps(tiny_fast_model: Pi
         assert_close_rel(total, data[f"{ref}_grad_norm"], GRAD_REL, f"{ref} gradnorm map")
 
 
+@pytest.mark.slow
 def test_explaining_other_steps_does_not_recompile(tiny_fast_model: Pi0FAST):
     data, obs = case("case_a")
     maps.gradcam_for_action_token(tiny_fast_model, obs, data["output_tokens"], 0)

@@ -70,6 +70,7 @@ def test_without_remat_turns_off_every_stack_and_leaves_other_fields():
     assert remat.without_remat(lean) is lean
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("steps", [[3], [1, 2]], ids=["one token", "two tokens"])
 def test_pi0_fast_drops_remat_only_where_the_program_fits(tiny_fast_model: Pi0FAST, device_reports, caplog, steps):
     """Room on the device: the remat-free program runs, compiled once (the memory analysis compiles the program that
@@ -104,6 +105,7 @@ def test_pi0_fast_drops_remat_only_where_the_program_fits(tiny_fast_model: Pi0FA
     assert list(decisions.values()) == [False] and compiled == 2  # the analysed one, then the remat program
 
 
+@pytest.mark.slow
 def test_pi0_fast_chunk_target_follows_the_same_rule(tiny_fast_model: Pi0FAST, device_reports):
     data, obs = case("case_a")
     tokens = data["output_tokens"]
@@ -120,6 +122,7 @@ def test_pi0_fast_chunk_target_follows_the_same_rule(tiny_fast_model: Pi0FAST, d
             assert_close_rel(m, reference.by_kind["gradcam"][c], GRAD_REL, f"gradcam {c}")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("family", ["pi0", "pi05"])
 def test_pi0_flow_explanations_follow_the_same_rule(device_reports, family):
     """pi0 / pi0.5: both stacks (PaliGemma and the action expert) drop remat together where the program fits."""

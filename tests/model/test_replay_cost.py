@@ -107,6 +107,7 @@ def cut_and_full(tiny_fast_model: Pi0FAST):
     return cut, full
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["case_b", "case_c"])
 def test_cut_replay_gives_the_full_length_maps_and_scores(cut_and_full, name: str):
     """One token at steps in four buckets (case_b: a masked camera, whose rows softmax over the full cache; case_c:
@@ -138,6 +139,7 @@ def test_masked_rows_see_the_decode_length(tiny_fast_model: Pi0FAST):
     assert np.abs(short[:, 1:] - full[:, 1:]).max() > 100 * LOGIT_REL * np.abs(full).max()  # measured 9e-3
 
 
+@pytest.mark.slow
 def test_compilations_over_all_steps_of_a_request(tiny_fast_model: Pi0FAST):
     """Every step of a 48-step decode, one token at a time, compiles one program per replay bucket (16, 32, 48);
     chunks of every size compile one per bucket too (their vocabulary rows are bucketed with the replay)."""

@@ -76,7 +76,8 @@ def _wait_for_step(cam_dir: Path) -> None:
         time.sleep(0.5)
 
 
-@pytest.mark.parametrize("family", list(FAMILIES))
+# pi0 and pi0.5 share the flow-matching default: the fast tier starts pi0.5, the slow tier pi0 too.
+@pytest.mark.parametrize("family", [pytest.param(f, marks=[pytest.mark.slow] if f == "pi0" else []) for f in FAMILIES])
 def test_serve_with_default_flags_explains_with_the_familys_target(family, tmp_path):
     """Warm-up on (it compiles the configured explanation: with another family's target it would fail there), one
     request from the real client, and its step holds the default kinds' maps of the family's default target."""

@@ -746,6 +746,7 @@ def test_serve_reports_missing_files_without_traceback(tiny_policy_files, tmp_pa
         assert "Traceback" not in proc.stderr, proc.stderr
 
 
+@pytest.mark.slow
 def test_serve_without_a_checkpoint_serves_the_bundled_model_in_the_dtype_asked(demo_policy, tmp_path):
     """No --checkpoint-dir: the bundled demo model. `--dtype bfloat16` must reach it: on scenes where bf16 changes
     the actions (about 1 in 12 demo scenes), the served actions are the in-process bf16 policy's, not float32's."""
@@ -990,6 +991,7 @@ ROBOT_REQUESTS = 15
 HOSTILE_EXTRA_PEAK_FRAMES = 12  # what the hostile probes may add to plain serving's peak, in message-limit units
 
 
+@pytest.mark.slow
 def test_hostile_clients_against_a_served_process_stay_within_memory_log_and_disk_bounds(tiny_policy_files, tmp_path):
     """`openpi-cam serve` (tiny DROID checkpoint, side channel on, 16 MiB message limit), first serving a robot alone,
     then the same robot while every hostile probe runs at once: the 19 bad-request classes (amplifying frames, deep
