@@ -196,6 +196,7 @@ def _explain_argv(source: pathlib.Path, out: pathlib.Path) -> list[str]:
     return ["explain", str(source), *DEMO_MODEL_ARGS, "--out", str(out), "--batch-size", "1", "--no-progress"]
 
 
+@pytest.mark.slow
 def test_explain_command_exit_codes_follow_the_replay_check(demo_policy, tmp_path):
     """`openpi-cam explain` exits 3 when a re-run inference returns other actions than recorded, 0 when they agree.
     The mismatching case runs as a user would (`python -m openpi_cam`, a fresh process)."""

@@ -450,6 +450,7 @@ def test_random_mode_is_the_iss_of_its_masks(demo):
         np.testing.assert_allclose(res.by_kind["occlusion"][camera], expected, atol=SCORE_ATOL)
 
 
+@pytest.mark.slow
 def test_ig_completeness_on_the_demo_model_at_the_default_steps(demo):
     """The 2% target at the default options, for a chunk and a token target (measured worst case over 100 scenes in
     /work/scratch/maps_results.md of the maps branch)."""

@@ -842,6 +842,7 @@ def _stalled_peer(port: int) -> socket.socket:
 CONTAINER_GRACE_S = 10.0
 
 
+@pytest.mark.slow
 def test_sigterm_with_stalled_peers_exits_within_the_deadline_and_closes_the_run(demo_observations, tmp_path):
     """A container stop with three peers that stopped answering and explanations still queued: SIGTERM starts the
     side channel's drain at once, closes every connection at once (each gets PEER_TIMEOUT_S to answer the close
