@@ -14,8 +14,7 @@ model's compiled programs) are built once per session:
 
 Under `CI=true` a skipped test fails (see `pytest_runtest_makereport`), so a missing dependency cannot pass silently.
 
-Two tiers (`pytest_collection_modifyitems`): the README's test command runs the fast tier, every behaviour on the
-configuration it is served in; `-m slow` runs the rest, and CI runs both, so every test runs there.
+Two tiers (see `SLOW`): the README's test command runs the fast tier, `-m slow` the rest; CI runs both.
 """
 
 from __future__ import annotations
@@ -63,11 +62,12 @@ def pytest_make_collect_report(collector: pytest.Collector) -> Any:
     return report
 
 
-# The slow tier holds what repeats a computation the fast tier already checks, under another configuration or along
-# another path (a second layout, remat, bfloat16, a second device, batched rows, larger occlusion regions, re-scoring,
-# pi0 beside pi0.5, the batch-of-two golden case), and the long runs of extra processes (hostile clients, the training
-# script, Ray's retries) or of compilation counting. The fast tier leaves it out unless tests are named by node id,
-# `-m` selects, or `--full` asks for everything.
+# The fast tier checks every behaviour once. The slow tier holds what repeats a computation the fast tier already
+# checks, under another configuration or along another path (a second layout, remat, bfloat16, a second device,
+# batched rows, larger occlusion regions, re-scoring, other side-channel targets, pi0 beside pi0.5, the batch-of-two
+# golden case), and the long runs of extra processes (hostile clients, stalled peers at SIGTERM, the training script,
+# `explain` in a fresh process, Ray's retries) or of compilation counting. The fast tier leaves it out unless tests
+# are named by node id, `-m` selects, or `--full` asks for everything.
 SLOW = "slow"
 
 
@@ -83,10 +83,12 @@ def _fast_tier_only(config: pytest.Config) -> bool:
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     if not _fast_tier_only(config):
         return
-    slow = [item for item in items if item.get_closest_marker(SLOW)]
+    fast, slow = [], []
+    for item in items:
+        (slow if item.get_closest_marker(SLOW) else fast).append(item)
     if slow:
         config.hook.pytest_deselected(items=slow)
-        items[:] = [item for item in items if not item.get_closest_marker(SLOW)]
+        items[:] = fast
 
 
 def pytest_terminal_summary(terminalreporter: Any, config: pytest.Config) -> None:

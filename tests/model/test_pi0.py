@@ -95,10 +95,14 @@ def flow_cases(slow_families: tuple[str, ...] = ()) -> list:
     """(family, case) pairs, the slow tier's marked: case_c, the batch of two, compiles programs of its own (the fast
     tier batches flow models in serving/test_batching.py), and so does each family in `slow_families`."""
     return [
-        pytest.param(family, name, id=f"{name}-{family}", marks=[pytest.mark.slow] if slow else [])
+        pytest.param(
+            family,
+            name,
+            id=f"{name}-{family}",
+            marks=pytest.mark.slow if name == "case_c" or family in slow_families else (),
+        )
         for family in ("pi0", "pi05")
         for name in ("case_a", "case_b", "case_c")
-        for slow in [name == "case_c" or family in slow_families]
     ]
 
 
