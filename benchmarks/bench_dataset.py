@@ -48,8 +48,8 @@ PHASES = ("decode", "inference", "explanation", "writing")
 
 
 def _job(spec: dict[str, Any], out: pathlib.Path) -> Any:
-    from openpi_cam.cam.dataset_explain import DatasetJob, PolicySpec, dataset_keys
     from openpi_cam.cam.offline import ExplainOptions
+    from openpi_cam.datasets.explain import DatasetJob, PolicySpec, dataset_keys
 
     keys, nested = dataset_keys("demo_reach", {})
     options = ExplainOptions(target="action-token", maps=("gradcam", "gradnorm"))
@@ -57,8 +57,8 @@ def _job(spec: dict[str, Any], out: pathlib.Path) -> Any:
 
 
 def run_local_job(spec: dict[str, Any]) -> dict[str, Any]:
-    from openpi_cam.cam import maps_dataset as fmt
-    from openpi_cam.cam.dataset_explain import PolicySpec, run_local
+    from openpi_cam.datasets import maps_dataset as fmt
+    from openpi_cam.datasets.explain import PolicySpec, run_local
 
     t0 = time.perf_counter()
     ends: list[tuple[int, float]] = []
@@ -92,7 +92,7 @@ def run_local_job(spec: dict[str, Any]) -> dict[str, Any]:
 
 
 def run_ray_job(spec: dict[str, Any]) -> dict[str, Any]:
-    from openpi_cam.cam import ray_engine
+    from openpi_cam.datasets import ray_engine
 
     records: list[tuple[dict[str, Any], float]] = []
 
@@ -181,7 +181,7 @@ def main() -> None:
         print(json.dumps(run_local_job(spec) if spec["engine"] == "local" else run_ray_job(spec)))
         return
 
-    from openpi_cam.data.lerobot import open_dataset
+    from openpi_cam.datasets.lerobot import open_dataset
 
     source = pathlib.Path(args.dataset)
     source = source if source.is_dir() else SHARED_LEROBOT / args.dataset

@@ -36,7 +36,7 @@ import numpy as np
 
 from openpi_cam.cam import faithfulness as fm
 from openpi_cam.cam.faithfulness_run import painting_options, step_model_inputs
-from openpi_cam.cam.runfmt import load_run
+from openpi_cam.cam.run_format import load_run
 from openpi_cam.cli.faithfulness import load_policy
 from openpi_cam.model import gemma
 from openpi_cam.model.observation import preprocess_observation

@@ -1,7 +1,8 @@
 """The package's layers, drawn from its imports (function-local ones included), point one way: down.
 
-cli > demo > viz > cam > serving > policies > {model, tokenizers, data, transforms and the package-root utilities}.
-A function-local import is allowed only for an optional heavy dependency (not a module of this package)."""
+cli > demo > datasets > viz > cam > serving > policies > {model, tokenizers, transforms and the package-root
+utilities}. A function-local import is allowed only for an optional heavy dependency (not a module of this package).
+The datasets room is imported by the command line only, and the side channel's room reaches none of it."""
 
 from __future__ import annotations
 
@@ -13,8 +14,7 @@ import sys
 from paths import REPO_ROOT
 
 SRC = REPO_ROOT / "src"
-LAYERS = ("cli", "demo", "viz", "cam", "serving", "policies", "base")
-BASE_PACKAGES = ("model", "tokenizers", "data")  # the lowest layer, beside transforms.py and the other root modules
+LAYERS = ("cli", "demo", "datasets", "viz", "cam", "serving", "policies", "base")
 
 
 def _module(path: pathlib.Path) -> str:
@@ -63,17 +63,36 @@ def test_every_import_points_down_the_layers():
     assert not local, "function-local imports of the package:\n" + "\n".join(local)
 
 
-def test_the_dataset_readers_import_nothing_of_the_package_but_its_errors():
-    """`data` sits in the lowest layer and stays usable on its own: only `openpi_cam.errors` may come in."""
-    paths = sorted((SRC / "openpi_cam" / "data").rglob("*.py"))
-    assert paths, "no openpi_cam/data package"
+def test_the_lerobot_reader_imports_nothing_of_the_package_but_its_errors():
+    """The LeRobot format reader stays usable on its own: only `openpi_cam.errors` may come in."""
+    path = SRC / "openpi_cam" / "datasets" / "lerobot.py"
+    found = [
+        target for target, _ in _imports(path) if target.startswith("openpi_cam") and target != "openpi_cam.errors"
+    ]
+    assert not found, found
+
+
+def test_only_the_command_line_imports_the_datasets_room():
     found = [
         f"{_module(path)} imports {target}"
-        for path in paths
+        for path in sorted(SRC.rglob("*.py"))
+        if _layer(_module(path)) not in ("cli", "datasets")
         for target, _ in _imports(path)
-        if target.startswith("openpi_cam") and target != "openpi_cam.errors"
+        if _layer(target) == "datasets"
     ]
     assert not found, "\n".join(found)
+
+
+def test_a_dataset_job_does_not_load_the_threaded_side_channel():
+    """A Ray worker explaining episodes imports the datasets room; nothing it imports, however indirectly, is the
+    live side channel (its worker thread and queue belong to `serve`)."""
+    code = (
+        "import sys, openpi_cam.datasets.explain, openpi_cam.datasets.ray_engine, openpi_cam.datasets.faithfulness; "
+        "print(sorted(m for m in sys.modules if m == 'openpi_cam.cam.side_channel'))"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "[]"
 
 
 def test_the_checker_sees_an_upward_import(tmp_path):

@@ -20,7 +20,7 @@ from openpi_cam.cam import faithfulness as fm
 from openpi_cam.cam.faithfulness_run import FaithfulnessOptions, evaluate_run, format_report, step_model_inputs
 from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.offline import ExplainOptions, Replay, explain_replays
-from openpi_cam.cam.runfmt import load_run
+from openpi_cam.cam.run_format import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import ExplainSkipped

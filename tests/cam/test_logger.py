@@ -22,7 +22,7 @@ from paths import REPO_ROOT
 from openpi_cam import cli
 from openpi_cam.cam import logger as logger_mod
 from openpi_cam.cam.logger import CAMLogger
-from openpi_cam.cam.runfmt import (
+from openpi_cam.cam.run_format import (
     RUN_JSON,
     SCHEMA_VERSION,
     StepMeta,
@@ -31,7 +31,7 @@ from openpi_cam.cam.runfmt import (
     map_summary,
     rebuild_manifest,
 )
-from openpi_cam.cli import cam_index
+from openpi_cam.cli import rebuild_manifest as rebuild_manifest_command
 
 REPO = REPO_ROOT
 CAMERAS = ("base_0_rgb", "left_wrist_0_rgb")
@@ -579,7 +579,7 @@ def test_kill_9_mid_run_loses_no_completed_step(tmp_path, capsys):
 
     old = json.loads((run_dir / "manifest.json").read_text())
     assert old["closed"] is False and old["num_steps"] % 5 == 0 and old["num_steps"] <= len(seqs)
-    assert cam_index.main(run_dir) == 0
+    assert rebuild_manifest_command.main(run_dir) == 0
     assert f"{len(seqs)} steps" in capsys.readouterr().out
     rebuilt = json.loads((run_dir / "manifest.json").read_text())
     assert [e["seq"] for e in rebuilt["steps"]] == seqs and rebuilt["num_steps"] == len(seqs)
@@ -625,9 +625,11 @@ def test_cli_and_docs_example(tmp_path, capsys):
     lg.log_step(rec)
     lg.close()
 
-    cli.main(["cam-index", str(lg.run_dir)])
-    assert re.search(r": 1 steps \(seq 0\.\.0\), cameras \['base_0_rgb', 'left_wrist_0_rgb'\]", capsys.readouterr().out)
-    assert cam_index.main(tmp_path / "missing") == 1
+    for name in ("rebuild-manifest", "cam-index"):  # the command and its earlier name
+        cli.main([name, str(lg.run_dir)])
+        out = capsys.readouterr().out
+        assert re.search(r": 1 steps \(seq 0\.\.0\), cameras \['base_0_rgb', 'left_wrist_0_rgb'\]", out)
+    assert rebuild_manifest_command.main(tmp_path / "missing") == 1
 
     # the NumPy-only example in docs/FORMAT.md runs as written and its geometry recipe is right
     doc = (REPO / "docs" / "FORMAT.md").read_text()

@@ -35,7 +35,7 @@ from openpi_cam.cam.offline import (
     iter_run_steps,
     record_observation,
 )
-from openpi_cam.cam.runfmt import StepRecord, load_run
+from openpi_cam.cam.run_format import StepRecord, load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.cli import explain as explain_cli
 from openpi_cam.policies import demo_reach

@@ -33,7 +33,7 @@ from client_env import run_client
 from paths import REPO_ROOT
 from real_clients import get_stats, read_packed
 
-from openpi_cam.cam.runfmt import load_run
+from openpi_cam.cam.run_format import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.model import pi0_fast_maps
 from openpi_cam.model.config import EOS_TOKEN
@@ -668,7 +668,7 @@ for mode in sys.argv[2:]:  # each mode wraps the same policy anew
     param_devices = {d.id for leaf in jax.tree.leaves(cam._explainer.model.params) for d in leaf.devices()}
     _, trace = policy.infer_traced(observation)
     (reference,) = explain_traces(policy.explainer, [trace], options.request)
-    from openpi_cam.cam.runfmt import load_run
+    from openpi_cam.cam.run_format import load_run
     (step,) = load_run(cam.run_dir).steps
     results[mode] = {
         "devices": len(jax.devices()),

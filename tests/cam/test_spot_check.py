@@ -13,7 +13,7 @@ from cam_support import assert_pairwise_different, demo_obs, policy_part
 
 from openpi_cam.cam import faithfulness as fm
 from openpi_cam.cam.faithfulness_run import step_model_inputs
-from openpi_cam.cam.runfmt import load_run
+from openpi_cam.cam.run_format import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.cam.spot_check import spot_check_masks
 from openpi_cam.vocabulary import MapOptions

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from openpi_cam.cam.logger import CAMLogger
-from openpi_cam.cam.runfmt import StepRecord, load_run
+from openpi_cam.cam.run_format import StepRecord, load_run
 from openpi_cam.demo import bundled, quality, sim, task, train
 from openpi_cam.demo.data import Batches, load_normalize
 from openpi_cam.demo.run import DemoOptions, run_demo

@@ -17,7 +17,7 @@ from demo_inputs import demo_observation
 from real_clients import N_CLIENTS, REQUESTS_PER_CLIENT, get_stats, serve_concurrent_clients, wrong_answers
 from websockets.sync.client import connect
 
-from openpi_cam.cam.runfmt import load_run
+from openpi_cam.cam.run_format import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.policies import demo_reach

@@ -17,7 +17,7 @@ import pytest
 from client_env import run_client
 from paths import GOLDEN_DIR
 
-from openpi_cam.cam.runfmt import load_run
+from openpi_cam.cam.run_format import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.policies.policy import create_policy
 from openpi_cam.serving.server import start_server_in_thread

@@ -20,7 +20,7 @@ from paths import GOLDEN_DIR, REPO_ROOT
 from real_clients import round_trip, send_observations
 from serve_process import serve_cmd, serve_subprocess, stop
 
-from openpi_cam.cam.runfmt import RUN_JSON, load_run, read_json
+from openpi_cam.cam.run_format import RUN_JSON, load_run, read_json
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.cli import serve
 from openpi_cam.cli.options import MapFlags

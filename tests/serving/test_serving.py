@@ -51,7 +51,7 @@ from serve_process import stop as _stop
 from websockets.sync.client import connect
 
 from openpi_cam.cam.batching import explain_traces
-from openpi_cam.cam.runfmt import MANIFEST_JSON, RUN_JSON, load_run, read_json
+from openpi_cam.cam.run_format import MANIFEST_JSON, RUN_JSON, load_run, read_json
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.policies import demo_reach

@@ -18,7 +18,7 @@ from PIL import Image
 from viz_support import assert_overlay_matches, expected_overlay, step_peak
 
 from openpi_cam.cam.logger import CAMLogger
-from openpi_cam.cam.runfmt import StepRecord, load_run
+from openpi_cam.cam.run_format import StepRecord, load_run
 from openpi_cam.cli import main as cli_main
 from openpi_cam.letterbox import letterbox_geometry
 from openpi_cam.viz.colormap import LUT, colorize

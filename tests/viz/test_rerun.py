@@ -12,7 +12,7 @@ from viz_support import assert_overlay_matches, expected_overlay, shares, step_p
 
 from openpi_cam import cli
 from openpi_cam.cam.logger import CAMLogger
-from openpi_cam.cam.runfmt import StepRecord, load_run
+from openpi_cam.cam.run_format import StepRecord, load_run
 
 CAMERAS = ("base_0_rgb", "left_wrist_0_rgb")
 GEOMETRY = {  # a 90 x 160 client frame letterboxed into 224 x 224

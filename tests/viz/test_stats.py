@@ -15,7 +15,7 @@ import pytest
 import scipy.stats
 
 from openpi_cam.cam.logger import CAMLogger
-from openpi_cam.cam.runfmt import StepRecord, load_run
+from openpi_cam.cam.run_format import StepRecord, load_run
 from openpi_cam.cli import main as cli_main
 from openpi_cam.viz.stats import MissingMaps, aggregate, compute_stats, to_rows, view_steps, write_table
 

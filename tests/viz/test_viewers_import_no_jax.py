@@ -12,7 +12,7 @@ import sys
 import numpy as np
 
 from openpi_cam.cam.logger import CAMLogger
-from openpi_cam.cam.runfmt import StepRecord
+from openpi_cam.cam.run_format import StepRecord
 
 CAMERA = "base_0_rgb"
 # One line per imported module: "import time: <self us> | <cumulative us> | <indent><module>".

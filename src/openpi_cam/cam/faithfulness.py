@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from openpi_cam.cam.runfmt import StepMeta
+from openpi_cam.cam.run_format import StepMeta
 
 
 def reduce_map(cam_map: np.ndarray) -> np.ndarray:

@@ -36,7 +36,7 @@ from jax.sharding import Mesh
 from openpi_cam.cam import faithfulness as metrics
 from openpi_cam.cam.batching import data_mesh, explain_rows
 from openpi_cam.cam.run_evidence import ig_summary
-from openpi_cam.cam.runfmt import CAMRun, CAMStep, StepMeta
+from openpi_cam.cam.run_format import CAMRun, CAMStep, StepMeta
 from openpi_cam.model.observation import Observation
 from openpi_cam.policies.family import Explainer, ExplainRequest, ExplainSkipped, Explanation
 from openpi_cam.vocabulary import MAP_KINDS, MapOptions

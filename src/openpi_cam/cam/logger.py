@@ -18,7 +18,7 @@ import secrets
 import threading
 from typing import Any
 
-from openpi_cam.cam.runfmt import (
+from openpi_cam.cam.run_format import (
     INDEX_JSONL,
     MANIFEST_JSON,
     RUN_JSON,

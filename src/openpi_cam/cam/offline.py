@@ -31,11 +31,11 @@ from jax.sharding import Mesh
 from openpi_cam.cam.batching import data_mesh, explain_traces
 from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.records import EXTRA_PREFIX, split_extra, step_record
-from openpi_cam.cam.runfmt import RUN_JSON, load_run
-from openpi_cam.cam.side_channel import TracedPolicy
+from openpi_cam.cam.run_format import RUN_JSON, load_run
 from openpi_cam.cam.spot_check import DEFAULT_PATCHES, check_trace
 from openpi_cam.nested import unflatten_dict
 from openpi_cam.policies.family import ExplainRequest, ExplainSkipped
+from openpi_cam.policies.policy import Policy
 from openpi_cam.vocabulary import MapKind, MapOptions, SaveFrames, Target
 
 log = logging.getLogger(__name__)
@@ -146,7 +146,7 @@ def _actions_match(ours: Any, recorded: np.ndarray) -> bool:
 
 
 def explain_replays(
-    policy: TracedPolicy,
+    policy: Policy,
     replays: Iterable[Replay],
     options: ExplainOptions,
     cam_logger: CAMLogger,

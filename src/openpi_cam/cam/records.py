@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.cam.runfmt import CameraMeta, StepMeta, StepRecord
+from openpi_cam.cam.run_format import CameraMeta, StepMeta, StepRecord
 from openpi_cam.policies.family import Explanation
 from openpi_cam.policies.policy import InferenceTrace
 from openpi_cam.vocabulary import SaveFrames

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.cam.runfmt import CAMRun, StepMeta, read_json
+from openpi_cam.cam.run_format import CAMRun, StepMeta, read_json
 
 # Where a run's faithfulness report lives: beside its steps, where `render` looks for it.
 REPORT_FILE = "faithfulness.json"

@@ -19,8 +19,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "faithfulness": ("openpi_cam.cli.faithfulness", "how faithful a run's maps are, re-scored by the model"),
     "render": ("openpi_cam.cli.render", "overlays, videos and an HTML report for a CAM run"),
     "stats": ("openpi_cam.cli.stats", "per-step, per-camera map statistics of a CAM run"),
-    "cam-index": ("openpi_cam.cli.cam_index", "rebuild a CAM run's manifest from its step files"),
+    "rebuild-manifest": ("openpi_cam.cli.rebuild_manifest", "rebuild a CAM run's manifest from its step files"),
 }
+# Earlier names of commands, still accepted: alias -> command.
+ALIASES: dict[str, str] = {"cam-index": "rebuild-manifest"}
 
 
 def _usage() -> str:
@@ -34,7 +36,7 @@ def main(argv: list[str] | None = None) -> None:
     if not argv or argv[0] in ("-h", "--help"):
         print(_usage())
         return
-    name, rest = argv[0], argv[1:]
+    name, rest = ALIASES.get(argv[0], argv[0]), argv[1:]
     if name not in COMMANDS:
         print(f"openpi-cam: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
         raise SystemExit(2)

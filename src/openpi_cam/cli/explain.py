@@ -10,7 +10,11 @@ from typing import Literal
 
 import tyro
 
-from openpi_cam.cam.dataset_explain import (
+from openpi_cam.cam.logger import CAMLogger
+from openpi_cam.cam.offline import ExplainOptions, Replay, explain_replays, open_source, resume_mismatch
+from openpi_cam.cam.run_format import RUN_JSON, load_run
+from openpi_cam.cli.options import MapFlags
+from openpi_cam.datasets.explain import (
     DatasetJob,
     JobSummary,
     PolicySpec,
@@ -19,12 +23,8 @@ from openpi_cam.cam.dataset_explain import (
     recorded_actions_feature,
     run_local,
 )
-from openpi_cam.cam.logger import CAMLogger
-from openpi_cam.cam.offline import ExplainOptions, Replay, explain_replays, open_source, resume_mismatch
-from openpi_cam.cam.ray_engine import run_ray
-from openpi_cam.cam.runfmt import RUN_JSON, load_run
-from openpi_cam.cli.options import MapFlags
-from openpi_cam.data.lerobot import DatasetError, is_lerobot_dataset, parse_episodes
+from openpi_cam.datasets.lerobot import DatasetError, is_lerobot_dataset, parse_episodes
+from openpi_cam.datasets.ray_engine import run_ray
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.config import resolve_config

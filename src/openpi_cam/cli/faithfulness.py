@@ -9,14 +9,14 @@ from typing import Literal
 
 import tyro
 
-from openpi_cam.cam.dataset_explain import PolicySpec
-from openpi_cam.cam.dataset_faithfulness import REPORT_FILE as DATASET_REPORT_FILE
-from openpi_cam.cam.dataset_faithfulness import build_run
 from openpi_cam.cam.faithfulness_run import FaithfulnessOptions, evaluate_run, format_report
-from openpi_cam.cam.maps_dataset import is_maps_dataset, open_maps_dataset
 from openpi_cam.cam.run_evidence import REPORT_FILE
-from openpi_cam.cam.runfmt import dumps, load_run
+from openpi_cam.cam.run_format import dumps, load_run
 from openpi_cam.cli.options import DeletionBaseline
+from openpi_cam.datasets.explain import PolicySpec
+from openpi_cam.datasets.faithfulness import REPORT_FILE as DATASET_REPORT_FILE
+from openpi_cam.datasets.faithfulness import build_run
+from openpi_cam.datasets.maps_dataset import is_maps_dataset, open_maps_dataset
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.policy import Policy, create_policy

@@ -1,16 +1,18 @@
-"""`openpi-cam stats RUN_DIR`: per-step, per-camera statistics of one kind of map, as CSV, JSON or parquet."""
+"""`openpi-cam stats RUN_DIR | MAPS_DATASET`: per-step (per-frame), per-camera statistics of one kind of map, as CSV,
+JSON or parquet."""
 
 from __future__ import annotations
 
+import json
 import pathlib
 import sys
 from typing import Literal
 
 import tyro
 
-from openpi_cam.cam.maps_dataset import is_maps_dataset
-from openpi_cam.cam.runfmt import load_run
-from openpi_cam.viz.dataset_views import dataset_stats_command
+from openpi_cam.cam.run_format import load_run
+from openpi_cam.datasets.maps_dataset import is_maps_dataset, open_maps_dataset
+from openpi_cam.datasets.views import compute_views
 from openpi_cam.viz.stats import (
     DEFAULT_MAP_KIND,
     MissingMaps,
@@ -23,24 +25,27 @@ from openpi_cam.viz.stats import (
 )
 from openpi_cam.vocabulary import MapKind
 
+Format = Literal["csv", "json", "parquet"]
+
 
 def main(
     run_dir: tyro.conf.Positional[pathlib.Path],
-    format: Literal["csv", "json", "parquet"] = "csv",
+    format: Format = "csv",
     out: pathlib.Path | None = None,
     map: MapKind = DEFAULT_MAP_KIND,  # type: ignore[assignment]
 ) -> int:
     """Per-step, per-camera statistics of a CAM run's maps (one row per step, `<camera>/<field>` columns).
 
     Args:
-        run_dir: a CAM run directory (holds run.json and steps/), or a maps dataset (`explain DATASET_DIR`'s output:
-            one row per frame, and the dataset-level views in the JSON summary; `viz.dataset_views`).
-        format: csv, json (rows plus a run summary) or parquet (needs pyarrow; summary in the file metadata).
-        out: output file; defaults to stdout for csv/json and RUN_DIR/stats.parquet for parquet.
+        run_dir: a CAM run directory (holds run.json and steps/), or a maps dataset (`explain-dataset`'s output:
+            one row per frame, and the dataset-level views in the JSON summary; `datasets.views`).
+        format: csv, json (rows plus a summary) or parquet (summary in the file metadata).
+        out: output file; defaults to stdout for csv/json and RUN_DIR/stats.parquet (a maps dataset's
+            stats-<map>.parquet) for parquet.
         map: which kind of map the statistics describe (README, "Which map to trust").
     """
     if is_maps_dataset(run_dir):
-        return dataset_stats_command(run_dir, format, out, map)
+        return _dataset_stats(run_dir, format, out, map)
     try:
         steps = view_steps(load_run(run_dir, load_arrays=False).steps, map)
     except MissingMaps as e:
@@ -51,4 +56,22 @@ def main(
     if out is None and format == "parquet":
         out = pathlib.Path(run_dir) / "stats.parquet"
     emit_table(data, out, f"{len(stats)} steps")
+    return 0
+
+
+def _dataset_stats(root: pathlib.Path, format: Format, out: pathlib.Path | None, kind: str) -> int:
+    """A maps dataset's per-frame rows as CSV or parquet (the views in its metadata), or JSON holding the
+    dataset-level views (`summary`) and the rows (`frames`)."""
+    try:
+        views = compute_views(open_maps_dataset(root), kind)
+    except ValueError as e:
+        print(f"openpi-cam stats: {e}", file=sys.stderr)
+        return 2
+    if format == "json":
+        data = (json.dumps({"summary": views.summary(), "frames": views.rows}, indent=1) + "\n").encode()
+    else:
+        data = write_table(views.rows, format, views.summary())
+    if out is None and format == "parquet":
+        out = pathlib.Path(root) / f"stats-{kind}.parquet"
+    emit_table(data, out, f"{len(views.rows)} frames")
     return 0

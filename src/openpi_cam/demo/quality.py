@@ -31,7 +31,7 @@ import numpy as np
 
 from openpi_cam.cam.batching import explain_traces
 from openpi_cam.cam.faithfulness import box_cells, spearman
-from openpi_cam.cam.runfmt import load_run
+from openpi_cam.cam.run_format import load_run
 from openpi_cam.demo import bundled, task
 from openpi_cam.demo.data import Batches, load_normalize
 from openpi_cam.model.pi0_fast import Pi0FAST, init_params

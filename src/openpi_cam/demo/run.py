@@ -12,7 +12,7 @@ from typing import Any, Literal
 
 from openpi_cam.cam.faithfulness_run import FaithfulnessOptions, evaluate_run
 from openpi_cam.cam.run_evidence import REPORT_FILE
-from openpi_cam.cam.runfmt import dumps, load_run
+from openpi_cam.cam.run_format import dumps, load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.demo import bundled, quality, sim
 from openpi_cam.demo.client import PolicyClient

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from openpi_cam.cam.run_evidence import REPORT_FILE, ig_summary, read_check, read_report
-from openpi_cam.cam.runfmt import CAMRun
+from openpi_cam.cam.run_format import CAMRun
 from openpi_cam.viz.stats import StepStats
 
 # What each kind is, in a reader's words, and what that implies for reading it.

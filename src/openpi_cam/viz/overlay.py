@@ -11,7 +11,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from openpi_cam.cam.runfmt import CameraMeta, StepMeta
+from openpi_cam.cam.run_format import CameraMeta, StepMeta
 from openpi_cam.letterbox import LetterboxGeometry
 from openpi_cam.viz.colormap import colorize
 

@@ -12,7 +12,7 @@ from typing import Any, Literal
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from openpi_cam.cam.runfmt import CAMRun
+from openpi_cam.cam.run_format import CAMRun
 from openpi_cam.viz.colormap import LUT
 from openpi_cam.viz.evidence import MapEvidence, map_evidence, panel_header
 from openpi_cam.viz.overlay import StepView, camera_overlay

@@ -10,7 +10,7 @@ from collections import Counter
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from openpi_cam.cam.runfmt import StepMeta
+from openpi_cam.cam.run_format import StepMeta
 from openpi_cam.viz.evidence import CHECK_COLUMNS, SUMMARY_COLUMNS, MapEvidence, check_rows, summary_rows
 from openpi_cam.viz.stats import StepStats, aggregate, camera_names
 

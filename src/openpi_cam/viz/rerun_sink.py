@@ -20,7 +20,7 @@ import os
 import pathlib
 from typing import Any, Literal
 
-from openpi_cam.cam.runfmt import load_run
+from openpi_cam.cam.run_format import load_run
 from openpi_cam.viz.evidence import (
     CHECK_COLUMNS,
     SUMMARY_COLUMNS,

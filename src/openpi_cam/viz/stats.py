@@ -21,7 +21,7 @@ import numpy as np
 
 from openpi_cam.cam.faithfulness import nuisance_mass_ratio, target_cells
 from openpi_cam.cam.run_evidence import read_check
-from openpi_cam.cam.runfmt import MAP_PREFIXES, CAMStep, StepMeta, client_extra
+from openpi_cam.cam.run_format import MAP_PREFIXES, CAMStep, StepMeta, client_extra
 from openpi_cam.viz.overlay import reduce_tokens
 
 # What render, the report and the demo draw unless told otherwise: the map that measured most faithful on the demo

@@ -1,4 +1,4 @@
-"""`openpi-cam cam-index RUN_DIR`: rebuild a run's manifest.json from its step files."""
+"""`openpi-cam rebuild-manifest RUN_DIR` (earlier `cam-index`): rebuild a run's manifest.json from its step files."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import sys
 
 import tyro
 
-from openpi_cam.cam.runfmt import MANIFEST_JSON, rebuild_manifest
+from openpi_cam.cam.run_format import MANIFEST_JSON, rebuild_manifest
 
 
 def main(run_dir: tyro.conf.Positional[pathlib.Path]) -> int:
@@ -19,7 +19,7 @@ def main(run_dir: tyro.conf.Positional[pathlib.Path]) -> int:
     try:
         manifest = rebuild_manifest(run_dir)
     except OSError as e:
-        print(f"cam-index: {e}", file=sys.stderr)
+        print(f"openpi-cam rebuild-manifest: {e}", file=sys.stderr)
         return 1
     seqs = [e["seq"] for e in manifest["steps"]]
     cameras = sorted({c for e in manifest["steps"] for c in (e.get("summary") or {})})

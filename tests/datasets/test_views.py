@@ -17,15 +17,15 @@ import pytest
 from paths import LEROBOT_DIR
 
 from openpi_cam import cli
-from openpi_cam.cam import maps_dataset as fmt
-from openpi_cam.cam.dataset_explain import DatasetJob, PolicySpec, dataset_keys, run_local
-from openpi_cam.cam.maps_dataset import open_maps_dataset
 from openpi_cam.cam.offline import ExplainOptions
-from openpi_cam.data.lerobot import open_dataset
+from openpi_cam.datasets import maps_dataset as fmt
+from openpi_cam.datasets.explain import DatasetJob, PolicySpec, dataset_keys, run_local
+from openpi_cam.datasets.frames import aligned_frames, episode_rows
+from openpi_cam.datasets.lerobot import open_dataset
+from openpi_cam.datasets.maps_dataset import open_maps_dataset
+from openpi_cam.datasets.render import DatasetRenderOptions, episode_frame
+from openpi_cam.datasets.views import compute_views, flag_hot, hot_rates, in_top_k, top_k
 from openpi_cam.viz.colormap import colorize
-from openpi_cam.viz.dataset_frames import aligned_frames, episode_rows
-from openpi_cam.viz.dataset_render import DatasetRenderOptions, episode_frame
-from openpi_cam.viz.dataset_views import compute_views, flag_hot, hot_rates, in_top_k, top_k
 from openpi_cam.viz.overlay import upsample
 
 SOURCE = LEROBOT_DIR / "demo_reach_v30_video"

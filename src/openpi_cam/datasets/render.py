@@ -3,7 +3,7 @@ dataset's frames, and one HTML report of the dataset-level views.
 
 The frames are decoded again from the LeRobot dataset the maps were computed from (`info["source"]`, read with
 `data.lerobot`), frame by frame as the maps dataset lists them, and each row's `index` is checked against the
-source's (`viz.dataset_frames`), so a video can never pair a map with another frame. Each explained frame becomes one
+source's (`datasets.frames`), so a video can never pair a map with another frame. Each explained frame becomes one
 video frame, the cameras side by side (the map bilinearly stretched over the frame and colour-blended,
 `viz.overlay`), at the source's frame rate divided by the explain job's `every`. Videos are H.264 (libx264, yuv420p)
 written with PyAV.
@@ -11,7 +11,7 @@ written with PyAV.
 The report (OUT/index.html, relative links to the files beside it, no network) opens with the spot checks stored in
 the maps dataset, then the positional prior with its flagged hot patches, the episodes ranked oddest first, the
 per-task table, and a section per rendered episode (its video and a strip of its frames). Figures:
-`viz.dataset_views`.
+`datasets.views`.
 """
 
 from __future__ import annotations
@@ -20,17 +20,13 @@ import dataclasses
 import html
 import math
 import pathlib
-import sys
 from collections.abc import Mapping, Sequence
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from PIL import Image, ImageDraw
 
-from openpi_cam.cam.maps_dataset import MapsDataset, open_maps_dataset
-from openpi_cam.data.lerobot import LeRobotDataset, parse_episodes
-from openpi_cam.viz.colormap import colorize
-from openpi_cam.viz.dataset_frames import (
+from openpi_cam.datasets.frames import (
     EpisodeRows,
     aligned_frames,
     dataset_scale,
@@ -40,17 +36,17 @@ from openpi_cam.viz.dataset_frames import (
     source_dataset,
     video_fps,
 )
-from openpi_cam.viz.dataset_rerun import write_dataset_rrd
-from openpi_cam.viz.dataset_views import DatasetViews, compute_views
+from openpi_cam.datasets.lerobot import LeRobotDataset
+from openpi_cam.datasets.maps_dataset import MapsDataset
+from openpi_cam.datasets.views import DatasetViews, compute_views
+from openpi_cam.viz.colormap import colorize
 from openpi_cam.viz.evidence import KIND_NOTES
 from openpi_cam.viz.overlay import blend, upsample
 from openpi_cam.viz.progress import progress
-from openpi_cam.viz.render import label_font, slug
+from openpi_cam.viz.render import Norm, label_font, slug
 from openpi_cam.viz.report import REPORT_STYLE, write_page
 from openpi_cam.viz.stats import DEFAULT_MAP_KIND, MAP_LABELS
 from openpi_cam.viz.video import Mp4Writer
-
-Norm = Literal["step", "run"]
 
 _BG = (24, 24, 28)
 _FG = (232, 232, 232)
@@ -73,6 +69,7 @@ class DatasetRenderOptions:
     strip_height: int = 96
     prior_height: int = 160
     crf: int = 18  # libx264 quality: visually lossless for these overlays
+    fps: float | None = None  # video frame rate; None: the source's rate divided by the explain job's `every`
 
 
 @dataclasses.dataclass
@@ -156,7 +153,8 @@ def render_episode(
     `out_dir` and the number of frames drawn. `stats`: the frames' rows of `views` by `index`."""
     rows = episode_rows(ds, episode, opts.map)
     name = f"episode_{episode:06d}"
-    video = Mp4Writer(out_dir / "videos" / f"{name}.mp4", video_fps(ds, lr), opts.crf) if opts.videos else None
+    fps = video_fps(ds, lr) if opts.fps is None else opts.fps
+    video = Mp4Writer(out_dir / "videos" / f"{name}.mp4", fps, opts.crf) if opts.videos else None
     n = len(rows)
     picks = set(np.linspace(0, n - 1, min(n, opts.strip_frames)).round().astype(int).tolist()) if n else set()
     strip: list[Image.Image] = []
@@ -446,36 +444,3 @@ def write_dataset_report(ds: MapsDataset, result: DatasetRenderResult, opts: Dat
         f"{_tasks_section(views)}<h2>episodes</h2>{episodes}"
     )
     return write_page(result.out_dir / "index.html", f"maps dataset {ds.root.name}", body, style)
-
-
-def render_dataset_command(
-    root: pathlib.Path,
-    *,
-    out: pathlib.Path | None,
-    opts: DatasetRenderOptions,
-    episodes: str | None = None,
-    rerun: pathlib.Path | None = None,
-) -> int:
-    """`openpi-cam render MAPS_DATASET`: videos and the report, and with `rerun` the Rerun recording."""
-    ds = open_maps_dataset(root)
-    out_dir = pathlib.Path(out) if out is not None else pathlib.Path(root) / f"render-{opts.map}"
-    try:
-        chosen = parse_episodes(episodes)
-        result = render_dataset(ds, out_dir, opts, chosen)
-    except (ValueError, FileNotFoundError) as e:
-        print(f"openpi-cam render: {e}", file=sys.stderr)
-        return 2
-    print(
-        f"rendered {sum(result.frames.values())} frames of {len(result.frames)} episodes to {result.report or out_dir}",
-        file=sys.stderr,
-    )
-    if rerun is not None:
-        try:
-            write_dataset_rrd(
-                ds, rerun, map_kind=opts.map, episodes=chosen, norm=opts.norm, alpha=opts.alpha, views=result.views
-            )
-        except ImportError as e:
-            print(f"openpi-cam render: {e}", file=sys.stderr)
-            return 1
-        print(f"wrote Rerun recording {rerun}", file=sys.stderr)
-    return 0

@@ -17,7 +17,7 @@ import pyarrow.parquet as pq
 import pytest
 from paths import LEROBOT_DIR
 
-from openpi_cam.data.lerobot import DatasetError, LeRobotDataset, open_dataset
+from openpi_cam.datasets.lerobot import DatasetError, LeRobotDataset, open_dataset
 
 DATASETS = ("demo_reach_v30_video", "demo_reach_v30_image", "demo_reach_v21_video")
 V30_VIDEO, V30_IMAGE, V21_VIDEO = DATASETS

@@ -4,7 +4,7 @@ Ray Data holds the episodes still to do (one block each) and runs `map_batches` 
 actors: each actor loads its own copy of the model once (`EpisodeExplainer`), takes one episode at a time, explains it
 and writes its shard itself, and hands back a small summary row. The driver only plans (which episodes, the maps
 dataset's info.json), gathers the rows and writes meta/summary.json. Rows, shards and info.json are the local engine's
-(`cam.dataset_explain.run_local`): the same `EpisodeExplainer` makes them.
+(`datasets.explain.run_local`): the same `EpisodeExplainer` makes them.
 
 Exactly once: an episode's shard has a fixed path and is written atomically (`cam.maps_dataset`), so an episode that
 is done again (a retried task after its actor died, a resumed job) replaces its shard instead of adding rows, and a
@@ -33,8 +33,8 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.cam import maps_dataset as fmt
-from openpi_cam.cam.dataset_explain import (
+from openpi_cam.datasets import maps_dataset as fmt
+from openpi_cam.datasets.explain import (
     DatasetJob,
     EpisodeExplainer,
     EpisodeResult,
@@ -44,7 +44,7 @@ from openpi_cam.cam.dataset_explain import (
     prepare_output,
     selected_episodes,
 )
-from openpi_cam.data.lerobot import DatasetError, LeRobotDataset, open_dataset
+from openpi_cam.datasets.lerobot import DatasetError, LeRobotDataset, open_dataset
 from openpi_cam.model.checkpoint import read_param_shapes
 from openpi_cam.model.config import architecture_from_params, family_of
 from openpi_cam.policies.config import resolve_config

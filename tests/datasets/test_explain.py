@@ -24,11 +24,11 @@ import pytest
 from paths import LEROBOT_DIR, REPO_ROOT
 
 from openpi_cam import cli
-from openpi_cam.cam import maps_dataset as fmt
-from openpi_cam.cam.dataset_explain import DatasetJob, PolicySpec, dataset_keys, run_local
 from openpi_cam.cam.faithfulness import box_cells, pointing_chance, pointing_hit
 from openpi_cam.cam.offline import ExplainOptions
-from openpi_cam.data.lerobot import DatasetError, open_dataset, parse_episodes
+from openpi_cam.datasets import maps_dataset as fmt
+from openpi_cam.datasets.explain import DatasetJob, PolicySpec, dataset_keys, run_local
+from openpi_cam.datasets.lerobot import DatasetError, open_dataset, parse_episodes
 
 DATASETS = ("demo_reach_v30_video", "demo_reach_v30_image", "demo_reach_v21_video")
 KINDS = ("gradcam", "gradnorm")
@@ -293,7 +293,7 @@ def test_faithfulness_of_a_maps_dataset_serves_its_frames_again(explained, tmp_p
 
 
 def test_flow_matching_families_refuse_dataset_actions(tmp_path):
-    from openpi_cam.cam.dataset_explain import EpisodeExplainer
+    from openpi_cam.datasets.explain import EpisodeExplainer
     from openpi_cam.policies import demo_reach
 
     keys, nested = dataset_keys("demo_reach_pi05", {})

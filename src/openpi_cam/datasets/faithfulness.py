@@ -19,11 +19,11 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.cam import maps_dataset as fmt
-from openpi_cam.cam.dataset_explain import DatasetJob, EpisodeExplainer, PolicySpec
 from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.offline import ExplainOptions
 from openpi_cam.cam.records import step_record
+from openpi_cam.datasets import maps_dataset as fmt
+from openpi_cam.datasets.explain import DatasetJob, EpisodeExplainer, PolicySpec
 from openpi_cam.policies.family import Explanation
 from openpi_cam.policies.policy import Policy
 from openpi_cam.vocabulary import MapOptions

@@ -35,17 +35,15 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import pathlib
-import sys
 from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
-from openpi_cam.cam.maps_dataset import CHECK_RANDOM, MapsDataset, check_column, map_column, open_maps_dataset
+from openpi_cam.datasets.maps_dataset import CHECK_RANDOM, MapsDataset, check_column, map_column
 from openpi_cam.viz.overlay import reduce_tokens
-from openpi_cam.viz.stats import camera_stats, emit_table, mean_score, write_table
+from openpi_cam.viz.stats import camera_stats, mean_score
 
 FRAME_COLUMNS = ("index", "episode_index", "frame_index", "timestamp", "task", "target", "score", "malformed")
 
@@ -449,25 +447,3 @@ def check_summary(checks: Mapping[tuple[str, str], Sequence[tuple[float, float, 
             }
         )
     return out
-
-
-def dataset_stats_command(
-    root: pathlib.Path, fmt: Literal["csv", "json", "parquet"], out: pathlib.Path | None, kind: str
-) -> int:
-    """`openpi-cam stats MAPS_DATASET`: the per-frame rows as CSV or parquet (the views in its metadata), or JSON
-    holding the dataset-level views (`summary`) and the rows (`frames`). Parquet defaults to
-    MAPS_DATASET/stats-<kind>.parquet, the others to stdout."""
-    ds = open_maps_dataset(root)
-    try:
-        views = compute_views(ds, kind)
-    except ValueError as e:
-        print(f"openpi-cam stats: {e}", file=sys.stderr)
-        return 2
-    if fmt == "json":
-        data = (json.dumps({"summary": views.summary(), "frames": views.rows}, indent=1) + "\n").encode()
-    else:
-        data = write_table(views.rows, fmt, views.summary())
-    if out is None and fmt == "parquet":
-        out = pathlib.Path(root) / f"stats-{kind}.parquet"
-    emit_table(data, out, f"{len(views.rows)} frames")
-    return 0

@@ -3,13 +3,13 @@ dataset viewer lays out a dataset, so that the frames and their maps open aligne
 
 Entities, per model camera whose dataset feature is `<feature>` (e.g. `observation.images.base`, the name LeRobot
 logs the camera under):
-  <feature>                  the dataset's frame, decoded again from the source dataset (`viz.dataset_frames`)
+  <feature>                  the dataset's frame, decoded again from the source dataset (`datasets.frames`)
   <feature>/<kind>           the map as a layer over it: stretched to the frame, coloured, drawn with opacity `alpha`
                              above the frame (cleared on frames where the model did not see the camera)
   openpi_cam/<kind>/share/<camera>   the camera's share of the frame's map mass (`viz.stats`)
   openpi_cam/score           the explained score (mean over tokens for multi-token targets)
   openpi_cam/about           (static) what the maps are, their spot checks, the flagged hot patches and the oddest
-                             episodes (`viz.dataset_views`)
+                             episodes (`datasets.views`)
 Timelines: `frame_index` (sequence) and `timestamp` (seconds, logged as LeRobot logs it) as in LeRobot's recordings,
 plus `episode_index` and `index` (the dataset-wide frame index, which plays the episodes one after another). One
 recording holds every chosen episode; on `frame_index` and `timestamp` the episodes share the same times, so pick
@@ -27,9 +27,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from openpi_cam.cam.maps_dataset import MapsDataset
-from openpi_cam.viz.colormap import colorize
-from openpi_cam.viz.dataset_frames import (
+from openpi_cam.datasets.frames import (
     aligned_frames,
     dataset_scale,
     episode_rows,
@@ -37,7 +35,9 @@ from openpi_cam.viz.dataset_frames import (
     select_episodes,
     source_dataset,
 )
-from openpi_cam.viz.dataset_views import DatasetViews, compute_views
+from openpi_cam.datasets.maps_dataset import MapsDataset
+from openpi_cam.datasets.views import DatasetViews, compute_views
+from openpi_cam.viz.colormap import colorize
 from openpi_cam.viz.evidence import KIND_NOTES
 from openpi_cam.viz.overlay import upsample
 from openpi_cam.viz.rerun_sink import RERUN_MISSING

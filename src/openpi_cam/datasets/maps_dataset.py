@@ -34,7 +34,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from openpi_cam.cam.runfmt import dumps
+from openpi_cam.cam.run_format import dumps
 
 FORMAT = "openpi-cam maps dataset"
 FORMAT_VERSION = 1
@@ -72,8 +72,8 @@ def is_maps_dataset(path: pathlib.Path) -> bool:
 
 
 def _write_atomic(path: pathlib.Path, write: Any) -> None:
-    # Not runfmt.write_bytes_atomic: the temporary name starts with ".", which pyarrow's dataset discovery skips, so a
-    # reader of OUT/data never opens a shard still being written; and a shard is written by pyarrow, not from bytes.
+    # Not run_format.write_bytes_atomic: the temporary name starts with ".", which pyarrow's dataset discovery
+    # skips, so a reader of OUT/data never opens a shard still being written; and pyarrow writes the shard, not bytes.
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
     try:

@@ -19,12 +19,12 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.cam import maps_dataset as fmt
 from openpi_cam.cam.batching import data_mesh, explain_traces
 from openpi_cam.cam.offline import ExplainOptions
-from openpi_cam.cam.runfmt import dumps
+from openpi_cam.cam.run_format import dumps
 from openpi_cam.cam.spot_check import check_trace
-from openpi_cam.data.lerobot import DatasetError, LeRobotDataset, open_dataset
+from openpi_cam.datasets import maps_dataset as fmt
+from openpi_cam.datasets.lerobot import DatasetError, LeRobotDataset, open_dataset
 from openpi_cam.nested import unflatten_dict
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.config import resolve_config

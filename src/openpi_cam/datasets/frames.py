@@ -1,5 +1,5 @@
-"""A maps dataset's rows beside the frames they explain: what the overlay videos (`viz.dataset_render`) and the Rerun
-recording (`viz.dataset_rerun`) both draw from.
+"""A maps dataset's rows beside the frames they explain: what the overlay videos (`datasets.render`) and the Rerun
+recording (`datasets.rerun`) both draw from.
 
 The frames are decoded again from the LeRobot dataset the maps were computed from (`info["source"]`, read with
 `data.lerobot`), only those the maps dataset lists, and each row's `index` and `frame_index` are checked against
@@ -17,9 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.cam.maps_dataset import MapsDataset, map_column
-from openpi_cam.data.lerobot import LeRobotDataset, open_dataset
-from openpi_cam.viz.dataset_views import displayable
+from openpi_cam.datasets.lerobot import LeRobotDataset, open_dataset
+from openpi_cam.datasets.maps_dataset import MapsDataset, map_column
+from openpi_cam.datasets.views import displayable
 
 
 def select_episodes(ds: MapsDataset, episodes: Sequence[int] | None) -> list[int]:

@@ -25,13 +25,13 @@ import psutil
 import pytest
 from paths import LEROBOT_DIR
 
-from openpi_cam.cam import maps_dataset as fmt
-from openpi_cam.cam.dataset_explain import DatasetJob, PolicySpec, dataset_keys, run_local
 from openpi_cam.cam.offline import ExplainOptions
-from openpi_cam.data.lerobot import DatasetError, open_dataset
+from openpi_cam.datasets import maps_dataset as fmt
+from openpi_cam.datasets.explain import DatasetJob, PolicySpec, dataset_keys, run_local
+from openpi_cam.datasets.lerobot import DatasetError, open_dataset
 
 ray = pytest.importorskip("ray")  # the `ray` extra, in `dev`: under CI=true a skip fails
-from openpi_cam.cam.ray_engine import EPISODE_RECORD, run_ray  # noqa: E402
+from openpi_cam.datasets.ray_engine import EPISODE_RECORD, run_ray  # noqa: E402
 
 SOURCE = LEROBOT_DIR / "demo_reach_v30_video"
 # Five episodes of 4 to 8 frames (27 frames): when the first shard appears, four are still to do, so that there is an
@@ -46,7 +46,7 @@ WORKERS = 2
 # count could change, far below any difference between two frames' maps.
 RTOL = 1e-6
 JOB_TIMEOUT_S = 900
-ENGINE_LOG = "openpi_cam.cam.ray_engine"
+ENGINE_LOG = "openpi_cam.datasets.ray_engine"
 
 
 def _job(out, source=SOURCE, episodes=EPISODES) -> DatasetJob:

@@ -1,1 +1,0 @@
-"""Readers for robot datasets on disk (LeRobot's layouts), with numpy, pyarrow and PyAV only."""
