@@ -48,17 +48,19 @@ PHASES = ("decode", "inference", "explanation", "writing")
 
 
 def _job(spec: dict[str, Any], out: pathlib.Path) -> Any:
-    from openpi_cam.cam.offline import ExplainOptions
-    from openpi_cam.datasets.explain import DatasetJob, PolicySpec, dataset_keys
+    from openpi_cam.datasets.explain import DatasetJob, dataset_keys
+    from openpi_cam.policies.model_spec import ModelSpec
+    from openpi_cam.vocabulary import ExplainOptions
 
     keys, nested = dataset_keys("demo_reach", {})
     options = ExplainOptions(target="action-token", maps=("gradcam", "gradnorm"))
-    return DatasetJob(pathlib.Path(spec["source"]), out, PolicySpec(), options, keys, nested_keys=nested)
+    return DatasetJob(pathlib.Path(spec["source"]), out, ModelSpec(), options, keys, nested_keys=nested)
 
 
 def run_local_job(spec: dict[str, Any]) -> dict[str, Any]:
     from openpi_cam.datasets import maps_dataset as fmt
-    from openpi_cam.datasets.explain import PolicySpec, run_local
+    from openpi_cam.datasets.explain import run_local
+    from openpi_cam.policies.model_spec import ModelSpec
 
     t0 = time.perf_counter()
     ends: list[tuple[int, float]] = []
@@ -73,7 +75,7 @@ def run_local_job(spec: dict[str, Any]) -> dict[str, Any]:
         ends[-1] = (ends[-1][0], time.perf_counter() - t0)
 
     out = pathlib.Path(spec["out"])
-    policy = PolicySpec().create()
+    policy = ModelSpec().create()
     summary = run_local(_job(spec, out / "cold"), policy=policy, progress=timed)
     wall = time.perf_counter() - t0
     maps = fmt.open_maps_dataset(out / "cold")

@@ -23,7 +23,7 @@ import numpy as np
 from openpi_cam.demo import bundled, task
 from openpi_cam.model import pi0_maps
 from openpi_cam.model.pi0 import preprocess, sample_actions
-from openpi_cam.policies import demo_reach
+from openpi_cam.policies import model_spec
 
 
 def temp_bytes(fn, *args) -> int:
@@ -31,7 +31,7 @@ def temp_bytes(fn, *args) -> int:
 
 
 def main() -> None:
-    policy = demo_reach.create_demo_policy(model="pi05")
+    policy = model_spec.create_demo_policy(model="pi05")
     model = policy.explainer.model
     rng = np.random.default_rng(0)
     scene = task.random_scene(rng)

@@ -27,11 +27,11 @@ from pathlib import Path
 
 import numpy as np
 
-from openpi_cam.cam.spot_check import DEFAULT_PATCHES, check_trace
+from openpi_cam.cam.spot_check import check_trace
 from openpi_cam.demo import bundled, task
 from openpi_cam.model import attribution, baseline_maps
-from openpi_cam.policies import demo_reach
-from openpi_cam.policies.family import ExplainRequest
+from openpi_cam.policies import model_spec
+from openpi_cam.vocabulary import DEFAULT_PATCHES, ExplainOptions
 
 KIND_SETS = {
     "gradcam+gradnorm": ("gradcam", "gradnorm"),
@@ -63,7 +63,7 @@ def main() -> None:
     parser.add_argument("--compare-ig-stall", action="store_true")
     args = parser.parse_args()
 
-    policy = demo_reach.create_demo_policy(model=args.model, dtype=args.dtype)
+    policy = model_spec.create_demo_policy(model=args.model, dtype=args.dtype)
     kind_sets = {**KIND_SETS, **({"ig, no stall": ("ig",)} if args.compare_ig_stall else {})}
     explainer = policy.explainer
     rng = np.random.default_rng(args.seed)
@@ -80,7 +80,7 @@ def main() -> None:
         sample_inputs = {k: np.asarray(v)[None] for k, v in trace.sample_inputs.items()}
         row = {"infer": infer_s}
         for name, kinds in kind_sets.items():
-            request = ExplainRequest(args.target, kinds=kinds)
+            request = ExplainOptions(args.target, maps=kinds)
             with ig_stall(np.inf if name == "ig, no stall" else attribution.IG_STALL):
                 t0 = time.perf_counter()
                 [explanation] = explainer.explain(trace.observation, outputs, request, sample_inputs)
@@ -89,7 +89,8 @@ def main() -> None:
                 ig_steps[name].append(explanation.details["ig_completeness"]["steps"])
             if name == "gradcam+gradnorm":
                 t0 = time.perf_counter()
-                check = check_trace(explainer, trace, explanation, request.options, patches=args.check_patches, seed=0)
+                options, patches = request.map_options, args.check_patches
+                check = check_trace(explainer, trace, explanation, options, patches=patches, seed=0)
                 row[check_row] = time.perf_counter() - t0
                 assert "skipped" not in check, check
         if scene_index == 0:

@@ -31,7 +31,7 @@ import numpy as np
 from websockets.sync.client import ClientConnection, connect
 
 from openpi_cam.cam.side_channel import CAMOptions, CAMPolicy, wrap_policy_with_cam
-from openpi_cam.policies import demo_reach
+from openpi_cam.policies import model_spec
 from openpi_cam.serving import msgpack_numpy
 from openpi_cam.serving.server import start_server_in_thread
 
@@ -49,7 +49,7 @@ def demo_setup(n: int, seed: int = 0) -> tuple[Any, list[dict[str, Any]]]:
     for _ in range(n):
         scene = task.random_scene(rng)
         observations.append(bundled.client_observation(task.observe(scene, task.random_start(rng, scene)), scene))
-    return demo_reach.create_demo_policy(), observations
+    return model_spec.create_demo_policy(), observations
 
 
 def open_client(stack: contextlib.ExitStack, port: int) -> ClientConnection:

@@ -17,7 +17,7 @@ very painting `openpi-cam faithfulness` uses:
 The relevancy is computed by its own one-pass replay (the attention probabilities need a probe that the served
 model does not carry); the run stops unless that replay reproduces every logged score.
 
-    openpi-cam demo --out DIR --episodes 100 --max-calls 1 --seed 1000 --no-render --no-faithfulness
+    openpi-cam demo --out DIR --num-episodes 100 --max-calls 1 --seed 1000 --no-render --no-faithfulness
     python benchmarks/relevancy_faithfulness.py DIR/<run> [--max-steps N]
 """
 
@@ -42,7 +42,7 @@ from openpi_cam.model import gemma
 from openpi_cam.model.observation import preprocess_observation
 from openpi_cam.model.paligemma import embed_images, embed_prefix, make_attn_mask
 from openpi_cam.model.pi0_fast import decode_positions, decode_window, left_to_right_align
-from openpi_cam.policies.family import ExplainRequest
+from openpi_cam.vocabulary import ExplainOptions
 
 KS = (1, 2, 4)
 SHIPPED = ("gradnorm", "ig", "occlusion")
@@ -179,7 +179,7 @@ def main() -> None:
         t0 = time.perf_counter()
         score, rel = relevancy_maps(explainer.model, obs, outputs, decode_steps)
         t1 = time.perf_counter()
-        explainer.explain(obs, outputs, ExplainRequest(step.meta["target"], kinds=("gradcam", "gradnorm")))
+        explainer.explain(obs, outputs, ExplainOptions(step.meta["target"], maps=("gradcam", "gradnorm")))
         t2 = time.perf_counter()
         if index:
             times["relevancy"].append(t1 - t0)

@@ -224,9 +224,9 @@ def tiny_droid_policy(tiny_policy_files: TinyPolicyFiles):
 
 @pytest.fixture(scope="session")
 def demo_policy():
-    from openpi_cam.policies import demo_reach
+    from openpi_cam.policies.model_spec import create_demo_policy
 
-    return demo_reach.create_demo_policy()
+    return create_demo_policy()
 
 
 @pytest.fixture(scope="session")

@@ -8,13 +8,16 @@ explanation and the command line validate against them.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
-from typing import Literal, get_args
+from collections.abc import Mapping, Sequence
+from typing import Any, Literal, TypeVar, get_args
 
 BASELINES = ("blur", "mean")
 IG_RULES = ("gauss-legendre", "midpoint", "trapezoid", "right-riemann")
 OCCLUSION_MODES = ("regions", "random")
 IG_SPACES = ("tokens", "pixels")
+# The tuples as the types command lines offer as choices (a Literal subscripted with a tuple spells its members).
+Baseline = Literal[BASELINES]  # type: ignore[valid-type]
+IgSpace = Literal[IG_SPACES]  # type: ignore[valid-type]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,6 +81,49 @@ GRADIENT_KINDS: tuple[MapKind, ...] = ("gradcam", "gradnorm")  # one backward pa
 BASELINE_KINDS: tuple[MapKind, ...] = ("ig", "occlusion")  # compare the frame with a baseline frame
 # What a live side channel computes unless told otherwise: the kinds at the cost of one backward pass.
 DEFAULT_KINDS: tuple[MapKind, ...] = GRADIENT_KINDS
+# What render, the reports and the demo draw unless told otherwise: the map that measured most faithful on the demo
+# models at the cost of one backward pass (docs/MAP_KINDS.md, "Which map to trust").
+DEFAULT_MAP_KIND: MapKind = "gradnorm"
+
+
+@dataclasses.dataclass(frozen=True)
+class KindInfo:
+    """What the rest of the package says about a map kind."""
+
+    prefix: str  # step-file key prefix, followed by the camera name (docs/FORMAT.md)
+    label: str  # display name: what the kind is, in a figure's words
+    note: str  # what the kind is in a reader's words, and what that implies for reading it
+
+
+MAP_KIND_INFO: dict[MapKind, KindInfo] = {
+    "gradcam": KindInfo(
+        "cam/",
+        "Grad-CAM",
+        "Grad-CAM as its founding definition states it: ReLU of each image token times the mean gradient over the "
+        "camera's tokens. On the bundled demo models its top patch removed no more of the explained score than a "
+        "random patch, its peak fell on the named block at chance, and a re-initialised language model left it "
+        "correlated with itself (README, 'Which map to trust'): check this run's figures before trusting it.",
+    ),
+    "gradnorm": KindInfo(
+        "gradnorm/",
+        "gradient norm (unsigned sensitivity)",
+        "Gradient norm per image token: unsigned sensitivity. A hot patch is one the explained score reacts to most; "
+        "the map does not say whether the patch raises or lowers the score.",
+    ),
+    "ig": KindInfo(
+        "ig/",
+        "integrated gradients (vs baseline frame)",
+        "Integrated gradients from the baseline frame's tokens: signed (positive supports the explained score); the "
+        "attributions of a step add up to its score minus the baseline frame's score (completeness, checked per step).",
+    ),
+    "occlusion": KindInfo(
+        "occlusion/",
+        "occlusion (score drop, baseline-painted)",
+        "Occlusion: the drop of the explained score when one region is painted with the baseline frame and the model "
+        "re-run. It is the interventional reference the other kinds are scored against, exact for one region at a "
+        "time.",
+    ),
+}
 
 
 def check_kinds(kinds: Sequence[str]) -> tuple[MapKind, ...]:
@@ -106,3 +152,84 @@ DEFAULT_TARGETS: dict[str, Target] = {"pi0_fast": "action-token", "pi0": "chunk"
 # Which camera frames are stored beside the maps: the client's (raw), the model's input (model), both or none.
 SaveFrames = Literal["none", "raw", "model", "both"]
 SAVE_FRAMES: tuple[str, ...] = ("none", "raw", "model", "both")
+
+# Random single patches of each explained step's spot check (`cam.spot_check`): with each kind's top patch and the
+# unpainted score, 1 + kinds + 4 re-runs per camera in one call.
+DEFAULT_PATCHES = 4
+_O = TypeVar("_O", bound="ExplainOptions")
+# What runs made before an option was recorded used.
+_UNRECORDED = {"ig_space": "tokens", "occlusion_region": 1, "occlusion_masks": 0}
+
+
+@dataclasses.dataclass(frozen=True)
+class ExplainOptions:
+    """What an explained step explains and carries: one set for the side channel, recorded runs and datasets (the
+    side channel's options add its queue to these, `cam.side_channel.CAMOptions`). Families compute `maps` of
+    `target` with `map_options`; the spot check re-runs `check_patches` random patches beside each map's top one."""
+
+    # None: the family's own default (`DEFAULT_TARGETS`), resolved against the loaded model.
+    target: Target | None = None
+    action_index: int = 0  # pi0-FAST: which action token ("action-token"); pi0 / pi0.5: which horizon step ("action")
+    action_dim_index: int = 0  # pi0 / pi0.5: which action dimension ("action")
+    maps: tuple[MapKind, ...] = DEFAULT_KINDS
+    map_options: MapOptions = dataclasses.field(default_factory=MapOptions)  # of the "ig" / "occlusion" kinds
+    check_patches: int = DEFAULT_PATCHES  # 0: no spot check
+
+    def __post_init__(self) -> None:
+        if self.target is not None and self.target not in TARGETS:
+            raise ValueError(f"unknown target {self.target!r}; expected one of {TARGETS}")
+        if self.action_index < 0 or self.action_dim_index < 0:
+            raise ValueError(f"action indices must be >= 0, got {self.action_index}, {self.action_dim_index}")
+        check_kinds(self.maps)
+        if self.check_patches < 0:
+            raise ValueError(f"check_patches must be >= 0, got {self.check_patches}")
+
+    @property
+    def explanation(self) -> ExplainOptions:
+        """These options alone, without what a subclass adds (a hashable key for grouping requests)."""
+        return self.extended(ExplainOptions)
+
+    def extended(self, cls: type[_O], **more: Any) -> _O:
+        """These options as a subclass's (`CAMOptions`, `ReplayOptions`) with its own fields `more`."""
+        return cls(**{f.name: getattr(self, f.name) for f in dataclasses.fields(ExplainOptions)}, **more)
+
+    def to_json(self) -> dict[str, Any]:
+        """The options as runs and maps datasets record them, as the flags name them; every field must match to add
+        to a run or maps dataset (`mismatch`)."""
+        o = self.map_options
+        return {
+            "target": self.target,
+            "action_index": self.action_index,
+            "action_dim_index": self.action_dim_index,
+            "maps": list(self.maps),
+            "baseline": o.baseline,
+            "ig_space": o.ig_space,
+            "occlusion_region": o.occlusion_region,
+            "occlusion_masks": o.random_masks if o.occlusion_mode == "random" else 0,
+            "check_patches": self.check_patches,
+        }
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> ExplainOptions:
+        """The options a run or maps dataset recorded (`to_json`; other keys are ignored)."""
+        data = {**_UNRECORDED, **data}
+        map_options = MapOptions(
+            baseline=data.get("baseline", MapOptions.baseline),
+            ig_space=data["ig_space"],
+            occlusion_region=int(data["occlusion_region"]),
+        )
+        if masks := int(data["occlusion_masks"]):
+            map_options = dataclasses.replace(map_options, occlusion_mode="random", random_masks=masks)
+        return cls(
+            target=data.get("target"),
+            action_index=int(data.get("action_index", 0)),
+            action_dim_index=int(data.get("action_dim_index", 0)),
+            maps=tuple(data.get("maps") or DEFAULT_KINDS),
+            map_options=map_options,
+            check_patches=int(data.get("check_patches", DEFAULT_PATCHES)),
+        )
+
+    def mismatch(self, recorded: Mapping[str, Any]) -> list[str]:
+        """What differs between these options and those a run or maps dataset recorded, one `key: old != new` each."""
+        old, new = {**_UNRECORDED, **recorded}, self.to_json()
+        return [f"{k}: {old.get(k)!r} != {v!r}" for k, v in new.items() if old.get(k) != v]

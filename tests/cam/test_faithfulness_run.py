@@ -19,10 +19,10 @@ from cam_support import assert_pairwise_different, demo_obs, policy_part
 from openpi_cam.cam import faithfulness as fm
 from openpi_cam.cam.faithfulness_run import FaithfulnessOptions, evaluate_run, format_report, step_model_inputs
 from openpi_cam.cam.logger import CAMLogger
-from openpi_cam.cam.offline import ExplainOptions, Replay, explain_replays
+from openpi_cam.cam.offline import Replay, ReplayOptions, explain_replays
 from openpi_cam.cam.run_format import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
-from openpi_cam.policies import demo_reach
+from openpi_cam.policies import demo_reach, model_spec
 from openpi_cam.policies.family import ExplainSkipped
 from openpi_cam.viz.render import RenderOptions, render_run
 from openpi_cam.viz.stats import compute_stats, to_rows, view_steps
@@ -59,7 +59,7 @@ def _logged_run(tmp_path, policy, target, save_frames="model", seeds=SEEDS, maps
 
 @pytest.fixture(scope="module")
 def pi05_policy():
-    return demo_reach.create_demo_policy(model="pi05")
+    return model_spec.create_demo_policy(model="pi05")
 
 
 @pytest.fixture(scope="module")
@@ -243,7 +243,7 @@ def test_offline_explain_render_stats_and_faithfulness_on_a_pi05_run(tmp_path, p
         for i, o in enumerate(observations)
     ]
     # The live pi0.5 test's target, so that the re-scoring below reuses that test's program.
-    options = ExplainOptions(target="action", action_index=3, action_dim_index=1, maps=MAP_KINDS, batch_size=2)
+    options = ReplayOptions(target="action", action_index=3, action_dim_index=1, maps=MAP_KINDS, batch_size=2)
     with CAMLogger(tmp_path / "cam", run_config={"config": "demo_reach_pi05"}, checkpoint="demo", options={}) as log:
         summary = explain_replays(pi05_policy, replays, options, log, mesh=None)
     assert summary["completed"] == 3

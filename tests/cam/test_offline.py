@@ -29,7 +29,7 @@ from openpi_cam.cam.batching import explain_traces
 from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.offline import (
     SOURCE_KEY,
-    ExplainOptions,
+    ReplayOptions,
     explain_replays,
     iter_policy_records,
     iter_run_steps,
@@ -37,10 +37,12 @@ from openpi_cam.cam.offline import (
 )
 from openpi_cam.cam.run_format import StepRecord, load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
-from openpi_cam.cli import explain as explain_cli
+from openpi_cam.cli import explain_run
 from openpi_cam.policies import demo_reach
-from openpi_cam.policies.family import ExplainRequest, ExplainSkipped, Explanation
+from openpi_cam.policies.family import ExplainSkipped, Explanation
+from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.serving import RequestContext
+from openpi_cam.vocabulary import ExplainOptions
 
 REPO = REPO_ROOT
 BATCH = 2
@@ -117,7 +119,7 @@ def test_batched_rows_equal_single_rows(demo_policy):
     traces[1] = dataclasses.replace(traces[1], output=short)
     assert len(explainer.tokenizer.action_token_steps(short)) == 3
     for target, index in (("action-token", 2), ("chunk", 0)):
-        request = ExplainRequest(target, index)
+        request = ExplainOptions(target, index)
         rows = explain_traces(explainer, traces, request)
         alone = [explain_traces(explainer, [t], request)[0] for t in traces]
         for b, (got, one) in enumerate(zip(rows, alone, strict=True)):
@@ -131,7 +133,7 @@ def test_batched_rows_equal_single_rows(demo_policy):
         if target == "chunk":
             assert len(rows[1].details["decode_steps"]) == 3 and len(rows[0].details["decode_steps"]) == 20
     # A row whose generation lacks the requested action token is answered with the reason, not dropped.
-    rows = explain_traces(explainer, traces, ExplainRequest("action-token", 4))
+    rows = explain_traces(explainer, traces, ExplainOptions("action-token", 4))
     assert isinstance(rows[0], Explanation) and rows[0].details["action_indices"] == [4]
     assert isinstance(rows[1], ExplainSkipped) and rows[1].reason == "action_index_out_of_range"
 
@@ -139,7 +141,7 @@ def test_batched_rows_equal_single_rows(demo_policy):
 def test_policy_records_become_a_cam_run_and_replay(demo_policy, tmp_path):
     observations = _records(tmp_path / "records", demo_policy, 3)
     cam_logger = _new_logger(tmp_path / "cam")
-    options = ExplainOptions(save_frames="both", batch_size=BATCH)
+    options = ReplayOptions(save_frames="both", batch_size=BATCH)
     summary = explain_replays(
         demo_policy, iter_policy_records(tmp_path / "records", False), options, cam_logger, mesh=None
     )
@@ -184,7 +186,7 @@ def test_replay_check_counts_records_whose_actions_are_another_requests(demo_pol
     """Records paired with the next observation's response (all actions differ): every one is a mismatch."""
     _records(tmp_path / "records", demo_policy, 3, seed=20, shift=1)
     cam_logger = _new_logger(tmp_path / "cam")
-    options = ExplainOptions(save_frames="none", batch_size=BATCH)
+    options = ReplayOptions(save_frames="none", batch_size=BATCH)
     summary = explain_replays(
         demo_policy, iter_policy_records(tmp_path / "records", False), options, cam_logger, mesh=None
     )
@@ -235,7 +237,7 @@ def test_explained_steps_have_the_side_channel_layout(demo_policy, tmp_path):
     _record(folder, 0, obs, {})
     cam_logger = _new_logger(tmp_path / "offline")
     explain_replays(
-        demo_policy, iter_policy_records(folder, False), ExplainOptions(batch_size=BATCH), cam_logger, mesh=None
+        demo_policy, iter_policy_records(folder, False), ReplayOptions(batch_size=BATCH), cam_logger, mesh=None
     )
     cam_logger.close()
     offline = load_run(cam_logger.run_dir).steps[0]
@@ -261,14 +263,14 @@ def test_resume_explains_only_the_rest(demo_policy, tmp_path):
     records = tmp_path / "records"
     first = _new_logger(tmp_path / "cam")
     s1 = explain_replays(
-        demo_policy, iter_policy_records(records, False), ExplainOptions(batch_size=BATCH, limit=2), first, mesh=None
+        demo_policy, iter_policy_records(records, False), ReplayOptions(batch_size=BATCH, max_steps=2), first, mesh=None
     )
     first.close()
     assert s1["completed"] == 2 and len(load_run(first.run_dir).steps) == 2
 
     resumed = CAMLogger.resume(first.run_dir)
     s2 = explain_replays(
-        demo_policy, iter_policy_records(records, False), ExplainOptions(batch_size=BATCH), resumed, mesh=None
+        demo_policy, iter_policy_records(records, False), ReplayOptions(batch_size=BATCH), resumed, mesh=None
     )
     resumed.close()
     assert s2["completed"] == 3 and s2["already_explained"] == 2 and s2["observations"] == 3
@@ -289,7 +291,7 @@ def test_resume_explains_only_the_rest(demo_policy, tmp_path):
     # Nothing left: a third pass explains nothing and writes nothing.
     again = CAMLogger.resume(first.run_dir)
     s3 = explain_replays(
-        demo_policy, iter_policy_records(records, False), ExplainOptions(batch_size=BATCH), again, mesh=None
+        demo_policy, iter_policy_records(records, False), ReplayOptions(batch_size=BATCH), again, mesh=None
     )
     again.close()
     assert s3["observations"] == 0 and s3["already_explained"] == 5
@@ -307,14 +309,8 @@ def test_explain_command_refuses_to_resume_a_run_with_other_settings(tmp_path, c
         options={"target": "chunk", "action_index": 0},
     )
     cam_logger.close()
-    rc = explain_cli.main(
-        records,
-        checkpoint_dir=demo_reach.CHECKPOINT,
-        config="demo_reach",
-        out=cam_logger.run_dir,
-        dtype="float32",
-        progress=False,
-    )
+    model = ModelSpec(checkpoint_dir=demo_reach.CHECKPOINT, config="demo_reach", dtype="float32")
+    rc = explain_run.main(records, model=model, out=cam_logger.run_dir, progress=False)
     assert rc == 2
     err = capsys.readouterr().err
     assert "cannot resume" in err and "target: 'chunk' != 'action-token'" in err
@@ -378,14 +374,14 @@ _DATA_PARALLEL = textwrap.dedent(
     from openpi_cam.cam.batching import data_mesh, explain_traces, shard_batch
     from openpi_cam.model.observation import stack_observations
     from openpi_cam.policies import demo_reach
-    from openpi_cam.policies.family import ExplainRequest
+    from openpi_cam.policies.family import ExplainOptions
 
-    policy = demo_reach.create_demo_policy()
+    policy = model_spec.create_demo_policy()
     traces = [policy.infer_traced(policy_part(demo_obs(50 + i)))[1] for i in range(3)]  # 3 rows on 2 devices
     mesh = data_mesh()
     sharded, rows = shard_batch(stack_observations([t.observation for t in traces]), mesh)
     out = {"devices": len(jax.devices()), "padded_rows": rows, "state_devices": len(sharded.state.sharding.device_set)}
-    request = ExplainRequest("action-token", 2)
+    request = ExplainOptions("action-token", 2)
     for name, m in (("spmd", mesh), ("single", None)):
         for b, e in enumerate(explain_traces(policy.explainer.on_mesh(m), traces, request, mesh=m)):
             out.update({f"{name}/{b}/{k}/{c}": v for k, maps in e.maps.items() for c, v in maps.items()})

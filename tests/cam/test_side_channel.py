@@ -37,6 +37,7 @@ from openpi_cam.cam.run_format import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.model import pi0_fast_maps
 from openpi_cam.model.config import EOS_TOKEN
+from openpi_cam.policies import model_spec
 from openpi_cam.serving import RequestContext, msgpack_numpy
 from openpi_cam.serving.server import start_server_in_thread
 from openpi_cam.viz.render import RenderOptions, render_run
@@ -478,9 +479,9 @@ import time
 sys.path.insert(0, sys.argv[2])
 from cam_support import demo_obs
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
-from openpi_cam.policies import demo_reach
+from openpi_cam.policies import model_spec
 options = CAMOptions(every_k=1, cam_dir=sys.argv[1], queue_size=64)
-wrapped = wrap_policy_with_cam(demo_reach.create_demo_policy(), options)
+wrapped = wrap_policy_with_cam(model_spec.create_demo_policy(), options)
 print(wrapped.run_dir, flush=True)
 i = 0
 while True:
@@ -568,10 +569,10 @@ jax.monitoring.register_event_duration_secs_listener(
 )
 from demo_inputs import demo_observation
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
-from openpi_cam.policies import demo_reach
+from openpi_cam.policies import model_spec
 from openpi_cam.serving import RequestContext
 
-cam = wrap_policy_with_cam(demo_reach.create_demo_policy(), CAMOptions(every_k=1, cam_dir=tempfile.mkdtemp()))
+cam = wrap_policy_with_cam(model_spec.create_demo_policy(), CAMOptions(every_k=1, cam_dir=tempfile.mkdtemp()))
 warmed = None if sys.argv[1] == "cold" else cam.warm_up((1, 2, 4) if sys.argv[1] == "warm-batched" else (1,))
 before = len(compiles)
 cam.infer(demo_observation(5))
@@ -611,10 +612,9 @@ def test_warm_up_compiles_what_the_first_request_and_its_explanation_need():
 def test_warm_up_leaves_the_served_rng_stream_and_counters_alone():
     """pi0.5 draws its noise from the policy's rng: a warmed-up policy serves the first request exactly as a fresh one
     does (the same observation served twice gives different actions, so a consumed rng split would show)."""
-    from openpi_cam.policies import demo_reach
 
     obs = policy_part(demo_obs(7))
-    warmed, fresh = demo_reach.create_demo_policy(model="pi05"), demo_reach.create_demo_policy(model="pi05")
+    warmed, fresh = model_spec.create_demo_policy(model="pi05"), model_spec.create_demo_policy(model="pi05")
     assert warmed.warm_up() is not None
     first = fresh.infer(obs)["actions"]
     assert not np.array_equal(fresh.infer(obs)["actions"], first)  # the stream moves between calls
@@ -630,8 +630,8 @@ import jax, numpy as np
 from cam_support import WithExplainer, demo_obs, policy_part
 from openpi_cam.cam.batching import explain_traces
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
-from openpi_cam.policies import demo_reach
-from openpi_cam.policies.family import ExplainRequest
+from openpi_cam.policies import model_spec
+from openpi_cam.vocabulary import ExplainOptions
 
 
 class HeldPolicy(WithExplainer):
@@ -646,7 +646,7 @@ class HeldPolicy(WithExplainer):
         return self.inner.infer(obs, context)
 
 
-policy = demo_reach.create_demo_policy()
+policy = model_spec.create_demo_policy()
 results = {}
 for mode in sys.argv[2:]:  # each mode wraps the same policy anew
     held = HeldPolicy(policy)
@@ -667,7 +667,7 @@ for mode in sys.argv[2:]:  # each mode wraps the same policy anew
     cam.close(120)
     param_devices = {d.id for leaf in jax.tree.leaves(cam._explainer.model.params) for d in leaf.devices()}
     _, trace = policy.infer_traced(observation)
-    (reference,) = explain_traces(policy.explainer, [trace], options.request)
+    (reference,) = explain_traces(policy.explainer, [trace], options.explanation)
     from openpi_cam.cam.run_format import load_run
     (step,) = load_run(cam.run_dir).steps
     results[mode] = {

@@ -25,21 +25,24 @@ from paths import LEROBOT_DIR, REPO_ROOT
 
 from openpi_cam import cli
 from openpi_cam.cam.faithfulness import box_cells, pointing_chance, pointing_hit
-from openpi_cam.cam.offline import ExplainOptions
 from openpi_cam.datasets import maps_dataset as fmt
-from openpi_cam.datasets.explain import DatasetJob, PolicySpec, dataset_keys, run_local
+from openpi_cam.datasets.explain import DatasetJob, dataset_keys, run_local
 from openpi_cam.datasets.lerobot import DatasetError, open_dataset, parse_episodes
+from openpi_cam.policies import model_spec
+from openpi_cam.policies.model_spec import ModelSpec
+from openpi_cam.vocabulary import ExplainOptions
 
 DATASETS = ("demo_reach_v30_video", "demo_reach_v30_image", "demo_reach_v21_video")
 KINDS = ("gradcam", "gradnorm")
 # One set of options for every run here, so that all of them share the compiled programs.
-OPTIONS = ExplainOptions(target="action-token", maps=KINDS, batch_size=4, check_patches=2)
+OPTIONS = ExplainOptions(target="action-token", maps=KINDS, check_patches=2)
+BATCH = 4
 BOX = {"observation.target_box": "target_box"}
 
 
 def _job(source, out, **kw) -> DatasetJob:
     keys, nested = dataset_keys("demo_reach", {})
-    return DatasetJob(source, out, PolicySpec(), OPTIONS, keys, extra=BOX, nested_keys=nested, **kw)
+    return DatasetJob(source, out, ModelSpec(), OPTIONS, keys, batch_size=BATCH, extra=BOX, nested_keys=nested, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -75,8 +78,8 @@ def test_every_frame_is_explained_once_and_joins_the_source(explained, name):
     actions = np.asarray(table["actions"])
     assert len({a.tobytes() for a in actions.round(4)}) > len(set(table["episode_index"]))
     info = maps.info
-    assert info["source_version"] == open_dataset(LEROBOT_DIR / name).version
-    assert info["grids"] == {c: list(grid) for c in maps.cameras}
+    assert info.source_version == open_dataset(LEROBOT_DIR / name).version
+    assert info.grids == {c: list(grid) for c in maps.cameras}
     # The spot check ran on every frame and its figures are columns.
     assert all(v is not None for v in table[fmt.check_column("gradnorm", "base_0_rgb")])
     assert all(len(v) == OPTIONS.check_patches for v in table[fmt.check_column(fmt.CHECK_RANDOM, "base_0_rgb")])
@@ -238,17 +241,25 @@ def test_dataset_actions_target_explains_the_recorded_chunk(tmp_path, demo_polic
     training tokenises them (recomputed here from the parquet), and the expert's chunks score a higher
     log-probability than the same chunks negated (the demo model learned the expert)."""
     keys, nested = dataset_keys("demo_reach", {})
-    options = ExplainOptions(target="chunk", maps=KINDS, batch_size=4, check_patches=0)
+    options = ExplainOptions(target="chunk", maps=KINDS, check_patches=0)
 
     def run(source, out):
         job = DatasetJob(
-            source, out, PolicySpec(), options, keys, episodes=(0, 1), nested_keys=nested, recorded_actions="action"
+            source,
+            out,
+            ModelSpec(),
+            options,
+            keys,
+            batch_size=BATCH,
+            episodes=(0, 1),
+            nested_keys=nested,
+            recorded_actions="action",
         )
         run_local(job, policy=demo_policy)
         return fmt.open_maps_dataset(out)
 
     maps = run(LEROBOT_DIR / "demo_reach_v30_image", tmp_path / "expert")
-    assert maps.info["target"] == "dataset-actions"
+    assert maps.info.target == "dataset-actions"
     rows = list(maps.rows())
     assert {r["target"] for r in rows} == {"dataset-actions"}
     dataset = open_dataset(LEROBOT_DIR / "demo_reach_v30_image")
@@ -294,19 +305,18 @@ def test_faithfulness_of_a_maps_dataset_serves_its_frames_again(explained, tmp_p
 
 def test_flow_matching_families_refuse_dataset_actions(tmp_path):
     from openpi_cam.datasets.explain import EpisodeExplainer
-    from openpi_cam.policies import demo_reach
 
     keys, nested = dataset_keys("demo_reach_pi05", {})
     options = ExplainOptions(target="chunk", maps=KINDS)
     job = DatasetJob(
         LEROBOT_DIR / "demo_reach_v30_image",
         tmp_path / "o",
-        PolicySpec(config="demo_reach_pi05"),
+        ModelSpec(config="demo_reach_pi05"),
         options,
         keys,
         nested_keys=nested,
         recorded_actions="action",
     )
     with pytest.raises(ValueError, match="pi05 has no likelihood of a given chunk"):
-        EpisodeExplainer(job, demo_reach.create_demo_policy(model="pi05"))
+        EpisodeExplainer(job, model_spec.create_demo_policy(model="pi05"))
     assert not (tmp_path / "o").exists(), "refused before anything is written"

@@ -25,10 +25,11 @@ import psutil
 import pytest
 from paths import LEROBOT_DIR
 
-from openpi_cam.cam.offline import ExplainOptions
 from openpi_cam.datasets import maps_dataset as fmt
-from openpi_cam.datasets.explain import DatasetJob, PolicySpec, dataset_keys, run_local
+from openpi_cam.datasets.explain import DatasetJob, dataset_keys, run_local
 from openpi_cam.datasets.lerobot import DatasetError, open_dataset
+from openpi_cam.policies.model_spec import ModelSpec
+from openpi_cam.vocabulary import ExplainOptions
 
 ray = pytest.importorskip("ray")  # the `ray` extra, in `dev`: under CI=true a skip fails
 from openpi_cam.datasets.ray_engine import EPISODE_RECORD, run_ray  # noqa: E402
@@ -38,7 +39,7 @@ SOURCE = LEROBOT_DIR / "demo_reach_v30_video"
 # actor in the middle of one to kill.
 EPISODES = (0, 1, 2, 3, 6)
 KINDS = ("gradcam", "gradnorm")
-OPTIONS = ExplainOptions(target="action-token", maps=KINDS, batch_size=4, check_patches=2)
+OPTIONS = ExplainOptions(target="action-token", maps=KINDS, check_patches=2)
 BOX = {"observation.target_box": "target_box"}
 WORKERS = 2
 # The maps, scores and spot checks of a frame come from the same float32 programs on the same CPU in either engine,
@@ -51,7 +52,9 @@ ENGINE_LOG = "openpi_cam.datasets.ray_engine"
 
 def _job(out, source=SOURCE, episodes=EPISODES) -> DatasetJob:
     keys, nested = dataset_keys("demo_reach", {})
-    return DatasetJob(source, out, PolicySpec(), OPTIONS, keys, extra=BOX, episodes=episodes, nested_keys=nested)
+    return DatasetJob(
+        source, out, ModelSpec(), OPTIONS, keys, batch_size=4, extra=BOX, episodes=episodes, nested_keys=nested
+    )
 
 
 @pytest.fixture(scope="module")

@@ -17,16 +17,17 @@ import pytest
 from paths import LEROBOT_DIR
 
 from openpi_cam import cli
-from openpi_cam.cam.offline import ExplainOptions
 from openpi_cam.datasets import maps_dataset as fmt
-from openpi_cam.datasets.explain import DatasetJob, PolicySpec, dataset_keys, run_local
+from openpi_cam.datasets.explain import DatasetJob, dataset_keys, run_local
 from openpi_cam.datasets.frames import aligned_frames, episode_rows
 from openpi_cam.datasets.lerobot import open_dataset
 from openpi_cam.datasets.maps_dataset import open_maps_dataset
 from openpi_cam.datasets.render import DatasetRenderOptions, episode_frame
 from openpi_cam.datasets.views import compute_views, flag_hot, hot_rates, in_top_k, top_k
+from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.viz.colormap import colorize
 from openpi_cam.viz.overlay import upsample
+from openpi_cam.vocabulary import ExplainOptions
 
 SOURCE = LEROBOT_DIR / "demo_reach_v30_video"
 EPISODES = (0, 1)
@@ -40,8 +41,8 @@ def maps_root(tmp_path_factory):
     keys, nested = dataset_keys("demo_reach", {})
     # The options of tests/cam's dataset jobs (batches of 4 included): the same compiled programs, which a process of
     # the test run may then load from JAX's compilation cache instead of compiling.
-    options = ExplainOptions(target="action-token", maps=KINDS, batch_size=4, check_patches=2)
-    job = DatasetJob(SOURCE, out, PolicySpec(), options, keys, episodes=EPISODES, nested_keys=nested)
+    options = ExplainOptions(target="action-token", maps=KINDS, check_patches=2)
+    job = DatasetJob(SOURCE, out, ModelSpec(), options, keys, batch_size=4, episodes=EPISODES, nested_keys=nested)
     summary = run_local(job)
     assert summary.as_json()["episodes_written"] == len(EPISODES)
     return out

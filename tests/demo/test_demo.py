@@ -16,7 +16,7 @@ from openpi_cam.cam.run_format import StepRecord, load_run
 from openpi_cam.demo import bundled, quality, sim, task, train
 from openpi_cam.demo.data import Batches, load_normalize
 from openpi_cam.demo.run import DemoOptions, run_demo
-from openpi_cam.policies import demo_reach
+from openpi_cam.policies import demo_reach, model_spec
 from openpi_cam.vocabulary import MAP_KINDS
 
 
@@ -369,7 +369,7 @@ def test_training_command_writes_a_servable_model(tmp_path):
     assert summary["main_loss"] < 0.25 * math.log(VOCAB_SIZE)
     assert summary["finetune_loss"] < 0.25 * math.log(VOCAB_SIZE)
     assert set(summary) == {"main_loss", "finetune_loss", "train_seconds", "success_rate"}
-    policy = demo_reach.create_demo_policy(assets=tmp_path)
+    policy = model_spec.create_demo_policy(assets=tmp_path)
     rng = np.random.default_rng(0)
     scene = task.random_scene(rng)
     obs = bundled.policy_input(bundled.client_observation(task.observe(scene, task.random_start(rng, scene))))
@@ -414,7 +414,7 @@ def test_short_demo_run_is_readable(tmp_path):
     """`openpi-cam demo` end to end at toy length: a readable run of every map kind with the client's ground truth,
     the episode file, a report per kind listing every step, and the faithfulness report of the run. One call: each
     logged step costs every kind's maps and their faithfulness re-scoring, and a second step proves nothing more."""
-    result = run_demo(DemoOptions(out=tmp_path, episodes=1, max_calls=1, seed=3))
+    result = run_demo(DemoOptions(out=tmp_path, num_episodes=1, max_calls=1, seed=3))
     run = load_run(result.run_dir)
     (episode,) = result.episodes
     assert json.loads((result.run_dir / quality.EPISODES_FILE).read_text()) == result.episodes

@@ -20,8 +20,8 @@ from openpi_cam.policies import (
     GenericOutputs,
     PolicyConfig,
     create_policy,
-    demo_reach,
     droid,
+    model_spec,
     register_config,
 )
 from openpi_cam.policies.config import PI0_FAST_DROID, get_config
@@ -235,7 +235,7 @@ def test_custom_config_takes_resolution_from_the_model(tmp_path, tiny_policy_fil
 def test_stop_at_action_end_keeps_well_formed_actions_and_saves_steps(demo_policy, demo_observations):
     """On the bundled demo model, whose generations are well formed and whose actions differ between these
     observations (asserted by the fixture), stopping at `|` returns each observation's own actions."""
-    stopping = demo_reach.create_demo_policy(stop_at_action_end=True)
+    stopping = model_spec.create_demo_policy(stop_at_action_end=True)
     saved = []
     for obs in demo_observations:
         full, full_trace = demo_policy.infer_traced(obs)

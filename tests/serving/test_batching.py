@@ -20,7 +20,7 @@ from websockets.sync.client import connect
 from openpi_cam.cam.run_format import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.errors import InvalidRequest
-from openpi_cam.policies import demo_reach
+from openpi_cam.policies import model_spec
 from openpi_cam.policies.policy import batch_bucket
 from openpi_cam.serving import RequestContext, msgpack_numpy
 from openpi_cam.serving.server import start_server_in_thread
@@ -80,7 +80,7 @@ def test_flow_matching_batches_keep_each_requests_noise_and_the_rng_stream():
     policy's rng ends where serving the requests one by one leaves it (the next single request gets the same noise).
     Batched matrix products round differently, so actions agree to float32 rounding: measured max |difference| 6.4e-8
     on these requests (actions of size ~0.1); bound 1e-6, far below the ~1e-2 that a wrong noise row produces."""
-    serial, batched = (demo_reach.create_demo_policy(model="pi05") for _ in range(2))
+    serial, batched = (model_spec.create_demo_policy(model="pi05") for _ in range(2))
     observations = [demo_observation(seed) for seed in range(5)]
     one_by_one = [serial.infer_traced(obs) for obs in observations]
     together = batched.infer_batch_traced(observations)

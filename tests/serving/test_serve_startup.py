@@ -23,8 +23,8 @@ from serve_process import serve_cmd, serve_subprocess, stop
 from openpi_cam.cam.run_format import RUN_JSON, load_run, read_json
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.cli import serve
-from openpi_cam.cli.options import MapFlags
-from openpi_cam.policies import demo_reach
+from openpi_cam.cli.options import ExplainFlags
+from openpi_cam.policies import demo_reach, model_spec
 from openpi_cam.vocabulary import MapOptions
 
 PI05_DEMO = demo_reach.ASSETS_PI05
@@ -203,7 +203,7 @@ def test_the_side_channel_explains_the_familys_target_unless_told_and_refuses_on
         assert read_json(wrapped.run_dir / RUN_JSON)["options"]["target"] == "action-token"
     finally:
         wrapped.close(0)
-    pi05 = demo_reach.create_demo_policy(model="pi05")
+    pi05 = model_spec.create_demo_policy(model="pi05")
     assert pi05.explainer.targets == ("action", "chunk") and pi05.explainer.default_target == "chunk"
     with pytest.raises(ValueError, match=r"^action-token: pi0\.5 explains action, chunk$"):
         wrap_policy_with_cam(pi05, CAMOptions(every_k=1, cam_dir=tmp_path / "refused", target="action-token"))
@@ -211,14 +211,14 @@ def test_the_side_channel_explains_the_familys_target_unless_told_and_refuses_on
 
 
 def test_explain_refuses_a_target_the_family_cannot_explain(tmp_path, capsys):
-    from openpi_cam.cli import explain
+    from openpi_cam.cli import explain_run
 
     records = tmp_path / "records"
     records.mkdir()  # an empty PolicyRecorder folder: the refusal comes before any observation is read
-    status = explain.main(records, out=tmp_path / "runs", explanation=MapFlags(target="action"), progress=False)
+    status = explain_run.main(records, out=tmp_path / "runs", explanation=ExplainFlags(target="action"), progress=False)
     assert status == 2
     assert capsys.readouterr().err.strip() == (
-        "openpi-cam explain: --target action: pi0-FAST explains action-token, all-action-tokens, chunk, "
+        "openpi-cam explain-run: --target action: pi0-FAST explains action-token, all-action-tokens, chunk, "
         "generated-tokens"
     )
     assert not (tmp_path / "runs").exists()

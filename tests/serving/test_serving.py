@@ -54,8 +54,8 @@ from openpi_cam.cam.batching import explain_traces
 from openpi_cam.cam.run_format import MANIFEST_JSON, RUN_JSON, load_run, read_json
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.errors import InvalidRequest
-from openpi_cam.policies import demo_reach
-from openpi_cam.policies.family import ExplainRequest
+from openpi_cam.policies import demo_reach, model_spec
+from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.policies.policy import create_policy
 from openpi_cam.serving import RequestContext, msgpack_numpy
 from openpi_cam.serving.server import (
@@ -65,6 +65,7 @@ from openpi_cam.serving.server import (
     RunningServer,
     start_server_in_thread,
 )
+from openpi_cam.vocabulary import ExplainOptions
 
 
 def run_dirs(cam_dir: Path) -> list[Path]:
@@ -157,7 +158,6 @@ def env_policies(tiny_policy_files, tmp_path_factory) -> dict[str, Any]:
     """
     from openpi_cam.normalize import compute_norm_stats, save_norm_stats
     from openpi_cam.policies.config import get_config
-    from openpi_cam.policies.policy import create_policy
 
     policies = {}
     rng = np.random.default_rng(0)
@@ -750,7 +750,7 @@ def test_serve_reports_missing_files_without_traceback(tiny_policy_files, tmp_pa
 def test_serve_without_a_checkpoint_serves_the_bundled_model_in_the_dtype_asked(demo_policy, tmp_path):
     """No --checkpoint-dir: the bundled demo model. `--dtype bfloat16` must reach it: on scenes where bf16 changes
     the actions (about 1 in 12 demo scenes), the served actions are the in-process bf16 policy's, not float32's."""
-    bf16 = demo_reach.create_demo_policy(dtype="bfloat16")
+    bf16 = model_spec.create_demo_policy(dtype="bfloat16")
     observations = []
     for seed in range(100, 400):
         obs = demo_observation(seed)
@@ -788,14 +788,14 @@ def test_serve_with_cam_flags_writes_an_explained_closed_run(demo_observations, 
         assert "warmed up inference and the action-token explanation with its spot check in" in log_path.read_text()
         collect(send_observations(port, tmp_path / "client", observations))
         _stop(proc, log_path)
-    # In process, the policy exactly as `serve` builds it from those flags (the checkpoint's 256-step decoding).
-    policy = create_policy(
-        demo_reach.DEMO_CONFIG,
+    # In process, the policy exactly as `serve` builds it from those flags (one ModelSpec, as every command).
+    policy = ModelSpec(
         demo_reach.CHECKPOINT,
+        demo_reach.DEMO_CONFIG.name,
         paligemma_tokenizer=demo_reach.PALIGEMMA_TOKENIZER,
         fast_tokenizer=demo_reach.FAST_TOKENIZER,
         dtype="float32",
-    )
+    ).create()
     (run_dir,) = run_dirs(cam_dir)
     manifest = read_json(run_dir / MANIFEST_JSON)
     assert manifest is not None and manifest["closed"] is True and manifest["num_steps"] == len(observations)
@@ -803,7 +803,7 @@ def test_serve_with_cam_flags_writes_an_explained_closed_run(demo_observations, 
     assert (options["per_connection"], options["settle_ms"], options["check_patches"]) == (4, 5.0, 2)  # flags arrived
     run = load_run(run_dir)
     assert [(s.meta.connection, s.meta.step) for s in run.steps] == [("conn0000", i) for i in range(3)]
-    request = ExplainRequest("action-token", 2, kinds=("gradcam", "gradnorm"))
+    request = ExplainOptions("action-token", 2, maps=("gradcam", "gradnorm"))
     for step, obs, served in zip(run.steps, observations, responses(tmp_path / "client", 3), strict=True):
         local, trace = policy.infer_traced(obs)
         assert_same_response(served, local)

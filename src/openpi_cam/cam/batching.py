@@ -1,24 +1,29 @@
 """Explaining inferences in batches: one explainer call for many traces, sharded over the local devices.
 
-The live side channel explains one trace at a time (a batch of one); offline explanation stacks `batch_size` traces.
-Both go through `explain_traces`, so there is one code path. Data parallelism is plain SPMD: the stacked batch is
-padded to a multiple of the device count, every batched leaf is placed with `NamedSharding(mesh, P("batch"))`, the
-explainer's params are replicated once (`Explainer.on_mesh`), and the jitted map functions partition themselves
-(rows never interact).
+The live side channel explains one trace at a time (a batch of one); replays and datasets stack `batch_size` traces.
+All three go through `explain_batch` (the maps, then each row's spot check), so there is one code path. Data
+parallelism is plain SPMD: the stacked batch is padded to a multiple of the device count, every batched leaf is placed
+with `NamedSharding(mesh, P("batch"))`, the explainer's params are replicated once (`Explainer.on_mesh`), and the
+jitted map functions partition themselves (rows never interact).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+import dataclasses
+import time
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from openpi_cam.cam.spot_check import check_trace
 from openpi_cam.model.observation import Observation, pad_rows, stack_observations
 from openpi_cam.model.sharding import BATCH_AXIS
-from openpi_cam.policies.family import Explainer, ExplainRequest, ExplainSkipped, Explanation
+from openpi_cam.policies.family import Explainer, ExplainSkipped, Explanation
 from openpi_cam.policies.policy import InferenceTrace
+from openpi_cam.vocabulary import ExplainOptions
 
 
 def data_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh | None:
@@ -42,7 +47,7 @@ def shard_batch(observation: Observation, mesh: Mesh | None, pad_to: int = 0) ->
 def explain_traces(
     explainer: Explainer,
     traces: Sequence[InferenceTrace],
-    request: ExplainRequest,
+    request: ExplainOptions,
     *,
     mesh: Mesh | None = None,
     pad_to: int = 0,
@@ -58,7 +63,7 @@ def explain_traces(
 def explain_rows(
     explainer: Explainer,
     rows: Sequence[tuple[Observation, np.ndarray, Mapping[str, np.ndarray]]],
-    request: ExplainRequest,
+    request: ExplainOptions,
     *,
     mesh: Mesh | None = None,
     pad_to: int = 0,
@@ -71,3 +76,48 @@ def explain_rows(
     outputs = pad_rows(np.stack([np.asarray(out) for _, out, _ in rows]), padded)
     drawn = {k: pad_rows(np.stack([np.asarray(r[2][k]) for r in rows]), padded) for k in rows[0][2]}
     return explainer.explain(observation, outputs, request, drawn)[: len(rows)]
+
+
+@dataclasses.dataclass(frozen=True)
+class Explained:
+    """One trace's explanation (or why it was skipped), its spot check (None: skipped, or no check asked) and the
+    row's share of the wall time the batch's maps and checks took."""
+
+    result: Explanation | ExplainSkipped
+    check: dict[str, Any] | None
+    explain_ms: float
+
+
+def explain_batch(
+    explainer: Explainer,
+    traces: Sequence[InferenceTrace],
+    options: ExplainOptions,
+    seeds: Sequence[int],
+    *,
+    mesh: Mesh | None = None,
+    pad_to: int = 0,
+    before_check: Callable[[], object] | None = None,
+) -> list[Explained]:
+    """The maps of every trace (`explain_traces`), then each explained row's spot check (`cam.spot_check`, seeded by
+    `seeds[i]`) when `options.check_patches` asks for one. `before_check` runs between the two phases (the side
+    channel waits there for inference to pause). An exception of the explainer propagates; a failed check is
+    recorded in the check."""
+    start = time.perf_counter()
+    results = explain_traces(explainer, traces, options.explanation, mesh=mesh, pad_to=pad_to)
+    checks: list[dict[str, Any] | None] = [None] * len(results)
+    if options.check_patches and any(not isinstance(r, ExplainSkipped) for r in results):
+        if before_check is not None:
+            before_check()
+        for i, (trace, result) in enumerate(zip(traces, results, strict=True)):
+            if not isinstance(result, ExplainSkipped):
+                checks[i] = check_trace(
+                    explainer,
+                    trace,
+                    result,
+                    options.map_options,
+                    patches=options.check_patches,
+                    seed=seeds[i],
+                    mesh=mesh,
+                )
+    per_row_ms = (time.perf_counter() - start) * 1000.0 / max(1, len(results))
+    return [Explained(r, c, per_row_ms) for r, c in zip(results, checks, strict=True)]

@@ -38,8 +38,8 @@ from openpi_cam.cam.batching import data_mesh, explain_rows
 from openpi_cam.cam.run_evidence import ig_summary
 from openpi_cam.cam.run_format import CAMRun, CAMStep, StepMeta
 from openpi_cam.model.observation import Observation
-from openpi_cam.policies.family import Explainer, ExplainRequest, ExplainSkipped, Explanation
-from openpi_cam.vocabulary import MAP_KINDS, MapOptions
+from openpi_cam.policies.family import Explainer, ExplainSkipped, Explanation
+from openpi_cam.vocabulary import MAP_KINDS, ExplainOptions, MapOptions
 
 _OBS_INPUTS = ("state", "tokenized_prompt", "tokenized_prompt_mask", "token_ar_mask")
 _SAMPLER_INPUTS = ("noise",)
@@ -126,7 +126,7 @@ class _RandomisationRow:
     step: CAMStep
     kinds: list[str]
     cameras: list[str]
-    request: ExplainRequest
+    request: ExplainOptions
     row: tuple[Observation, np.ndarray, dict[str, np.ndarray]]
 
 
@@ -197,12 +197,12 @@ def _rescore(step: CAMStep, explainer: Explainer, opts: FaithfulnessOptions, mes
 def _randomisation_row(step: CAMStep, rescored: _Rescored, targets: Sequence[str]) -> _RandomisationRow:
     """The randomised model's request for a step: its own target where that model explains it, else the chunk."""
     action_index, action_dim_index = _request_indices(step.meta)
-    request = ExplainRequest(
+    request = ExplainOptions(
         step.meta.target if step.meta.target in targets else "chunk",
         action_index=action_index,
         action_dim_index=action_dim_index,
-        kinds=tuple(rescored.kinds),
-        options=rescored.painting,
+        maps=tuple(rescored.kinds),
+        map_options=rescored.painting,
     )
     row = (rescored.obs, rescored.outputs[0], {k: v[0] for k, v in rescored.sample_inputs.items()})
     return _RandomisationRow(step, rescored.kinds, rescored.cameras, request, row)
@@ -276,7 +276,7 @@ def _explain_randomised(explainer: Explainer, evaluation: _Evaluation, mesh: Mes
     every call reuses one program), and pairs each map with the step's own, in step order; empties the queue."""
     waiting = evaluation.waiting
     results: dict[int, Explanation | ExplainSkipped] = {}
-    by_request: dict[ExplainRequest, list[int]] = {}
+    by_request: dict[ExplainOptions, list[int]] = {}
     for i, w in enumerate(waiting):
         by_request.setdefault(w.request, []).append(i)
     for request, members in by_request.items():

@@ -1,11 +1,11 @@
-"""Offline explanation: maps computed for recorded observations, written as a normal CAM run (`openpi-cam explain`).
+"""Replay: maps computed for recorded observations, written as a normal CAM run (`openpi-cam explain-run`).
 
 Sources:
   * upstream `PolicyRecorder` output: a folder of `step_N.npy` files, each a pickled dict with flattened
     `inputs/...` (the observation as the client sent it) and `outputs/...` (the response) keys;
   * one of our CAM run directories saved with raw frames (`--cam.save-frames raw|both`): each step's client images
-    are replayed at their observation keys, with the prompt and whatever the client sent under `cam_extra/` (send
-    the non-image observation, e.g. `cam_extra/observation/joint_position`, to make a run replayable).
+    are replayed at their observation keys with the client's other numeric values (`client/`), its prompt and its
+    `cam_extra/` values, and a flow-matching policy's noise, so the replay serves the very output the step recorded.
 
 Inference stays per observation, exactly as served (`Policy.infer_traced`); the maps are then computed for a whole
 chunk of `batch_size` inferences in one model call, sharded over all local devices (`cam.batching`). Every step
@@ -28,24 +28,19 @@ from typing import Any, Literal
 import numpy as np
 from jax.sharding import Mesh
 
-from openpi_cam.cam.batching import data_mesh, explain_traces
+from openpi_cam.cam.batching import data_mesh, explain_batch
 from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.records import EXTRA_PREFIX, split_extra, step_record
 from openpi_cam.cam.run_format import RUN_JSON, load_run
-from openpi_cam.cam.spot_check import DEFAULT_PATCHES, check_trace
 from openpi_cam.nested import unflatten_dict
-from openpi_cam.policies.family import ExplainRequest, ExplainSkipped
+from openpi_cam.policies.family import ExplainSkipped
 from openpi_cam.policies.policy import Policy
-from openpi_cam.vocabulary import MapKind, MapOptions, SaveFrames, Target
+from openpi_cam.vocabulary import ExplainOptions, SaveFrames
 
 log = logging.getLogger(__name__)
 
 _RECORD_RE = re.compile(r"^step_(\d+)\.npy$")
 SOURCE_KEY = "source"  # meta["extra"] key holding the id of the record a step explains
-# run.json fields that must match for a resumed run to stay one consistent explanation of one source.
-_RESUME_CONFIG_KEYS = ("config", "checkpoint_dir", "dtype", "source")
-_RESUME_OPTION_KEYS = ("target", "action_index", "action_dim_index", "maps", "baseline", "ig_space")
-_UNRECORDED_OPTIONS = {"ig_space": "tokens"}  # what runs written before an option existed used
 
 # Wraps the replays with a progress display: (replays, how many) -> the same replays.
 Progress = Callable[[Iterator["Replay"], int], Iterator["Replay"]]
@@ -62,28 +57,23 @@ class Replay:
     extra: dict[str, Any]  # the `cam_extra/` values stored with the step (numeric arrays as arrays)
     recorded_actions: np.ndarray | None = None  # actions the original inference returned, if known
     timestamp: float | None = None  # the original request time, if known
+    # the model's raw output of the original inference (a CAM step's `input/output`), if known
+    recorded_output: np.ndarray | None = None
+    noise: np.ndarray | None = None  # a flow-matching policy's noise of the original inference, if known
 
 
 @dataclasses.dataclass(frozen=True)
-class ExplainOptions:
-    target: Target = "action-token"
-    action_index: int = 0
-    action_dim_index: int = 0
-    maps: tuple[MapKind, ...] = ("gradcam", "gradnorm")
+class ReplayOptions(ExplainOptions):
+    """The explanation options of a replay, and how it runs."""
+
     save_frames: SaveFrames = "both"
     batch_size: int = 8  # observations per explainer call (padded to a multiple of the device count)
-    limit: int | None = None  # explain at most this many new observations
-    map_options: MapOptions = dataclasses.field(default_factory=MapOptions)  # of the "ig" / "occlusion" kinds
-    check_patches: int = DEFAULT_PATCHES  # random patches of each step's spot check (`cam.spot_check`); 0: none
+    max_steps: int | None = None  # explain at most this many new observations
 
     def __post_init__(self) -> None:
-        if self.batch_size < 1 or (self.limit is not None and self.limit < 0) or self.check_patches < 0:
-            raise ValueError("batch_size >= 1, limit >= 0 and check_patches >= 0 are required")
-        self.request  # noqa: B018  (validates target, action_index and map kinds at construction)
-
-    @property
-    def request(self) -> ExplainRequest:
-        return ExplainRequest(self.target, self.action_index, self.action_dim_index, tuple(self.maps), self.map_options)
+        super().__post_init__()
+        if self.batch_size < 1 or (self.max_steps is not None and self.max_steps < 0):
+            raise ValueError("batch_size >= 1 and max_steps >= 0 are required")
 
 
 def record_observation(record: Mapping[str, Any], nested: bool) -> dict[str, Any]:
@@ -125,13 +115,24 @@ def iter_run_steps(run_dir: pathlib.Path) -> Iterator[Replay]:
         # stay extras of the new step so that the new run is replayable too. An earlier explain's source id is not
         # an observation.
         extra = {k: v for k, v in step.extra.items() if k != SOURCE_KEY}
-        obs.update({k: np.asarray(v) for k, v in extra.items()})
+        obs.update(step.client_inputs)
+        obs.update({k: np.asarray(v) for k, v in extra.items() if k not in obs})
         if meta.prompt:
             obs["prompt"] = meta.prompt
         source = step.file.relative_to(run.run_dir).as_posix()
         connection = "replay" if meta.connection is None else meta.connection
         index = step.seq if meta.step is None else meta.step
-        yield Replay(source, connection, index, obs, extra, timestamp=meta.timestamp)
+        inputs = step.inputs
+        yield Replay(
+            source,
+            connection,
+            index,
+            obs,
+            extra,
+            timestamp=meta.timestamp,
+            recorded_output=inputs.get("output"),
+            noise=inputs.get("noise"),
+        )
 
 
 def explained_sources(run_dir: pathlib.Path) -> set[str]:
@@ -148,7 +149,7 @@ def _actions_match(ours: Any, recorded: np.ndarray) -> bool:
 def explain_replays(
     policy: Policy,
     replays: Iterable[Replay],
-    options: ExplainOptions,
+    options: ReplayOptions,
     cam_logger: CAMLogger,
     *,
     mesh: Mesh | Literal["auto"] | None = "auto",
@@ -173,54 +174,45 @@ def explain_replays(
             seen.add(r.source)
             yield r
 
-    todo: Iterator[Replay] = pending() if options.limit is None else itertools.islice(pending(), options.limit)
-    left = max(0, total - len(done)) if options.limit is None else min(options.limit, max(0, total - len(done)))
+    todo: Iterator[Replay] = pending() if options.max_steps is None else itertools.islice(pending(), options.max_steps)
+    left = max(0, total - len(done)) if options.max_steps is None else min(options.max_steps, max(0, total - len(done)))
     if progress is not None:
         todo = progress(todo, left)
     for chunk in iter(lambda: list(itertools.islice(todo, options.batch_size)), []):
         traces, stamps = [], []
         for r in chunk:
-            response, trace = policy.infer_traced(r.obs)  # one request at a time, as served
+            response, trace = policy.infer_traced(r.obs, noise=r.noise)  # one request at a time, as served
             stamps.append(time.time() if r.timestamp is None else float(r.timestamp))
             traces.append(trace)
             counts["observations"] += 1
-            if r.recorded_actions is not None:
-                counts["actions_compared"] += 1
-                counts["actions_mismatched"] += not _actions_match(response["actions"], r.recorded_actions)
-        t0 = time.perf_counter()
+            # What the original call returned: its actions (policy records) or the model's raw output (CAM steps).
+            for ours, recorded in ((response["actions"], r.recorded_actions), (trace.output, r.recorded_output)):
+                if recorded is not None:
+                    counts["actions_compared"] += 1
+                    counts["actions_mismatched"] += not _actions_match(ours, recorded)
         # a short last batch is padded to batch_size so that it reuses the compiled program
-        results = explain_traces(explainer, traces, options.request, mesh=mesh, pad_to=options.batch_size)
-        per_row_ms = (time.perf_counter() - t0) * 1000.0 / len(chunk)
-        for r, trace, stamp, explanation in zip(chunk, traces, stamps, results, strict=True):
-            if isinstance(explanation, ExplainSkipped):
-                counts[f"skipped_{explanation.reason}"] += 1
-                if counts[f"skipped_{explanation.reason}"] == 1:
-                    log.warning("explain: %s: %s (further ones are only counted)", r.source, explanation)
+        done_rows = explain_batch(
+            explainer, traces, options, [r.step for r in chunk], mesh=mesh, pad_to=options.batch_size
+        )
+        for r, trace, stamp, explained in zip(chunk, traces, stamps, done_rows, strict=True):
+            if isinstance(explained.result, ExplainSkipped):
+                counts[f"skipped_{explained.result.reason}"] += 1
+                if counts[f"skipped_{explained.result.reason}"] == 1:
+                    log.warning("explain: %s: %s (further ones are only counted)", r.source, explained.result)
                 continue
             counts["explained_malformed"] += trace.malformed_reason is not None
-            check = None
-            if options.check_patches:
-                check = check_trace(
-                    explainer,
-                    trace,
-                    explanation,
-                    options.map_options,
-                    patches=options.check_patches,
-                    seed=r.step,
-                    mesh=mesh,
-                )
-                if "skipped" in check:
-                    counts[f"check_skipped_{check['skipped']}"] += 1
+            if explained.check is not None and "skipped" in explained.check:
+                counts[f"check_skipped_{explained.check['skipped']}"] += 1
             record = step_record(
                 trace,
-                explanation,
+                explained.result,
                 connection=r.connection,
                 step=r.step,
                 timestamp=stamp,
                 save_frames=options.save_frames,
                 extra={**r.extra, SOURCE_KEY: r.source},
-                explain_ms=per_row_ms,
-                check=check,
+                explain_ms=explained.explain_ms,
+                check=explained.check,
             )
             counts["completed" if cam_logger.log_step(record) else "not_logged"] += 1
     summary = {k: counts[k] for k in ("observations", "completed", "actions_compared", "actions_mismatched")}
@@ -228,22 +220,6 @@ def explain_replays(
     summary["devices"] = 1 if mesh is None else int(mesh.devices.size)
     cam_logger.set_external_counters(summary)
     return summary
-
-
-def resume_mismatch(run_info: Mapping[str, Any], run_config: dict[str, Any], options: dict[str, Any]) -> list[str]:
-    """Settings of this invocation that differ from the run being resumed."""
-    old_config, old_options = run_info.get("config") or {}, run_info.get("options") or {}
-    diffs = [
-        f"{k}: {old_config.get(k)!r} != {run_config[k]!r}"
-        for k in _RESUME_CONFIG_KEYS
-        if old_config.get(k) != run_config[k]
-    ]
-    old_options = {**_UNRECORDED_OPTIONS, **old_options}
-    return diffs + [
-        f"{k}: {old_options.get(k)!r} != {options.get(k)!r}"
-        for k in _RESUME_OPTION_KEYS
-        if old_options.get(k) != options.get(k)
-    ]
 
 
 def open_source(source: pathlib.Path, *, nested_keys: bool = False) -> tuple[Iterator[Replay], int]:

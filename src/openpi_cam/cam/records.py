@@ -11,8 +11,9 @@ import numpy as np
 
 from openpi_cam.cam.run_format import CameraMeta, StepMeta, StepRecord
 from openpi_cam.policies.family import Explanation
+from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.policies.policy import InferenceTrace
-from openpi_cam.vocabulary import SaveFrames
+from openpi_cam.vocabulary import ExplainOptions, SaveFrames
 
 # Observation keys with this prefix are not passed to the policy; their values go into the step's `extra` metadata
 # (e.g. the demo's ground-truth target box).
@@ -126,9 +127,10 @@ def step_record(
     `cam_extra/` values (numeric arrays go to the step file, the rest to `StepMeta.extra`); `check`: its spot check
     (`cam.spot_check`), stored as `StepMeta.check` when given."""
     extra_values, extra_arrays = split_extra_values(extra)
-    frames = {}
-    if save_frames in ("raw", "both"):
+    frames, client_inputs = {}, {}
+    if save_frames in ("raw", "both"):  # what replaying the step needs: the client's frames and its other values
         frames = {c: client_frame_uint8(im) for c, im in trace.raw_images.items() if im is not None}
+        client_inputs = {k: v for k, v in trace.client_inputs.items() if is_extra_array(k, v)}
     model_frames = {}
     if save_frames in ("model", "both"):
         model_frames = {c: model_frame_uint8(im) for c, im in trace.observation.images.items()}
@@ -165,4 +167,13 @@ def step_record(
         inputs=model_inputs(trace),
         meta=meta.to_json(),
         extra_arrays=extra_arrays,
+        client_inputs=client_inputs,
     )
+
+
+def resume_mismatch(
+    recorded_model: Mapping[str, Any], recorded_options: Mapping[str, Any], model: ModelSpec, options: ExplainOptions
+) -> list[str]:
+    """What differs between the model and explanation options a run or maps dataset recorded and those of new steps
+    to add to it: the one list of what must match to resume (runs and maps datasets alike)."""
+    return model.mismatch(recorded_model) + options.mismatch(recorded_options)

@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from openpi_cam.vocabulary import MAP_KIND_INFO
+
 log = logging.getLogger(__name__)
 
 # What each version changed, and how older runs read: docs/FORMAT.md, "Schema history".
@@ -32,12 +34,12 @@ RUN_JSON = "run.json"
 INDEX_JSONL = "index.jsonl"
 MANIFEST_JSON = "manifest.json"
 STEPS_DIR = "steps"
-# Step-file key prefix of each map kind, followed by the camera name.
-MAP_PREFIXES: dict[str, str] = {"gradcam": "cam/", "gradnorm": "gradnorm/", "ig": "ig/", "occlusion": "occlusion/"}
 FRAME_PREFIX = "frame/"
 MODEL_FRAME_PREFIX = "frame_model/"
 INPUT_PREFIX = "input/"  # the explained call's non-image model inputs (token ids, masks, generated output)
 EXTRA_ARRAY_PREFIX = "extra/"  # numeric arrays a client sent under `cam_extra/` (other values: meta["extra"])
+# the client's other numeric observation values (e.g. its state), stored with raw frames: what a replay sends again
+CLIENT_PREFIX = "client/"
 META_KEY = "meta"
 
 _STEP_FILE_RE = re.compile(r"^(\d{8,})\.npz$")
@@ -141,6 +143,7 @@ class StepRecord:
     inputs: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
     meta: dict[str, Any] = dataclasses.field(default_factory=dict)
     extra_arrays: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)  # stored as `extra/<key>`
+    client_inputs: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)  # stored as `client/<key>`
 
 
 # Fields of the step JSON that the writer owns; StepRecord.meta must not set them.
@@ -345,8 +348,8 @@ _STEP_FIELDS = frozenset(f.name for f in dataclasses.fields(StepMeta)) - {"detai
 
 
 def _checked_maps(kind: str, maps: Any) -> dict[str, np.ndarray]:
-    if kind not in MAP_PREFIXES:
-        raise ValueError(f"unknown map kind {kind!r}; the format knows {sorted(MAP_PREFIXES)}")
+    if kind not in MAP_KIND_INFO:
+        raise ValueError(f"unknown map kind {kind!r}; the format knows {sorted(MAP_KIND_INFO)}")
     if not isinstance(maps, dict):
         raise TypeError(f"StepRecord.maps[{kind!r}] must be a dict, got {type(maps).__name__}")
     checked = {}
@@ -380,11 +383,12 @@ def record_arrays(record: StepRecord) -> dict[str, np.ndarray]:
         raise ValueError(f"StepRecord.meta must not set {clash}: the logger fills them")
     arrays = {}
     for kind, maps in record.maps.items():
-        arrays |= {MAP_PREFIXES[kind] + c: a for c, a in _checked_maps(kind, maps).items()}
+        arrays |= {MAP_KIND_INFO[kind].prefix + c: a for c, a in _checked_maps(kind, maps).items()}
     arrays |= {FRAME_PREFIX + c: a for c, a in _checked_images(record.frames, "frames").items()}
     arrays |= {MODEL_FRAME_PREFIX + c: a for c, a in _checked_images(record.model_frames, "model_frames").items()}
     arrays |= {INPUT_PREFIX + k: np.asarray(v) for k, v in record.inputs.items()}
     arrays |= {EXTRA_ARRAY_PREFIX + k: np.asarray(v) for k, v in record.extra_arrays.items()}
+    arrays |= {CLIENT_PREFIX + k: np.asarray(v) for k, v in record.client_inputs.items()}
     return arrays
 
 
@@ -406,16 +410,18 @@ class StepArrays:
     model_frames: dict[str, np.ndarray]
     inputs: dict[str, np.ndarray]
     extra: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    client: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
 
 
 def _split_arrays(npz: Any) -> StepArrays:
-    arrays = StepArrays({}, {}, {}, {}, {})
-    prefixes = [(p, arrays.maps.setdefault(k, {})) for k, p in MAP_PREFIXES.items()]
+    arrays = StepArrays({}, {}, {}, {}, {}, {})
+    prefixes = [(p, arrays.maps.setdefault(k, {})) for k, p in ((k, i.prefix) for k, i in MAP_KIND_INFO.items())]
     prefixes += [
         (FRAME_PREFIX, arrays.frames),
         (MODEL_FRAME_PREFIX, arrays.model_frames),
         (INPUT_PREFIX, arrays.inputs),
         (EXTRA_ARRAY_PREFIX, arrays.extra),
+        (CLIENT_PREFIX, arrays.client),
     ]
     for key in npz.files:
         for prefix, target in prefixes:
@@ -478,6 +484,11 @@ class CAMStep:
     @property
     def inputs(self) -> dict[str, np.ndarray]:
         return self.arrays().inputs
+
+    @property
+    def client_inputs(self) -> dict[str, np.ndarray]:
+        """The client's numeric observation values besides its images and prompt (stored with raw frames)."""
+        return self.arrays().client
 
     @property
     def extra(self) -> dict[str, Any]:

@@ -38,15 +38,14 @@ import jax
 import numpy as np
 from jax.sharding import Mesh
 
-from openpi_cam.cam.batching import explain_traces
+from openpi_cam.cam.batching import explain_batch
 from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.records import bounded_extra, split_extra, step_record
-from openpi_cam.cam.spot_check import DEFAULT_PATCHES, check_trace
 from openpi_cam.counters import WarnOnceCounter
 from openpi_cam.model.sharding import BATCH_AXIS
-from openpi_cam.policies.family import Explainer, ExplainRequest, ExplainSkipped, resolve_target
+from openpi_cam.policies.family import Explainer, ExplainSkipped, resolve_target
 from openpi_cam.policies.policy import InferenceTrace
-from openpi_cam.vocabulary import DEFAULT_KINDS, SAVE_FRAMES, MapKind, MapOptions, SaveFrames, Target
+from openpi_cam.vocabulary import SAVE_FRAMES, ExplainOptions, SaveFrames
 
 logger = logging.getLogger(__name__)
 
@@ -75,28 +74,21 @@ class TracedPolicy(Protocol):
     def close(self, timeout: float | None = None) -> None: ...
 
 
+_EXPLAIN_FIELDS = frozenset(f.name for f in dataclasses.fields(ExplainOptions))
 # How long `close` waits past the drain deadline for the final manifest, which the drain writes after it stops waiting
 # for the worker (a few milliseconds of disk I/O; the bound only guards against a stalled disk).
 MANIFEST_WRITE_S = 5.0
 
 
 @dataclasses.dataclass(frozen=True)
-class CAMOptions:
-    """The side channel's settings; `openpi-cam serve` builds them from its `--cam.*` flags (`cli.serve`)."""
+class CAMOptions(ExplainOptions):
+    """The side channel's settings: the explanation options of every explained step, plus when to explain, where the
+    run goes and how the queue makes room; `openpi-cam serve` builds them from its `--cam.*` flags (`cli.serve`). A
+    `target` of None is the wrapped policy's family's default, resolved when the side channel wraps it."""
 
     every_k: int = 1  # explain every k-th inference of each connection (0 = off)
     cam_dir: str | pathlib.Path = pathlib.Path("cam_runs")  # a new run directory per wrapped policy goes under it
     save_frames: SaveFrames = "model"
-    # What the maps explain. None: the wrapped policy's family's default (`Explainer.default_target`), resolved when
-    # the side channel wraps it; a target the family cannot explain is refused there.
-    target: Target | None = None
-    action_index: int = 0  # pi0-FAST: which action token ("action-token"); pi0 / pi0.5: horizon step ("action")
-    action_dim_index: int = 0  # pi0 / pi0.5: which action dimension ("action")
-    maps: tuple[MapKind, ...] = DEFAULT_KINDS  # which map kinds each explained step carries
-    map_options: MapOptions = dataclasses.field(default_factory=MapOptions)  # of the "ig" / "occlusion" kinds
-    # Random single patches of each explained step's spot check (`cam.spot_check`: each kind's top patch painted
-    # against these, a few re-runs per camera in one call); 0: no check.
-    check_patches: int = DEFAULT_PATCHES
     queue_size: int = 8  # pending jobs in all (module docstring: which one a full queue drops)
     # Pending jobs per connection: a newer job supersedes that connection's oldest (e.g. 1: only the newest waits).
     # None: no limit of its own, the fair drop at `queue_size` applies (every request is explained when there is room).
@@ -119,23 +111,22 @@ class CAMOptions:
     max_extra_bytes: int = 64 * 1024
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         if self.every_k < 0 or self.queue_size < 1 or self.stats_window < 1 or self.settle_ms < 0:
             raise ValueError("every_k >= 0, queue_size >= 1, stats_window >= 1 and settle_ms >= 0 are required")
         if self.drain_timeout < 0:
             raise ValueError(f"drain_timeout must be >= 0, got {self.drain_timeout}")
-        if self.check_patches < 0:
-            raise ValueError(f"check_patches must be >= 0, got {self.check_patches}")
         if self.device is not None and self.device < 0:
             raise ValueError(f"device must be an index into jax.devices() (>= 0), got {self.device}")
         if self.per_connection is not None and self.per_connection < 1:
             raise ValueError(f"per_connection must be >= 1 or None, got {self.per_connection}")
         if self.save_frames not in SAVE_FRAMES:
             raise ValueError(f"save_frames must be one of {SAVE_FRAMES}, got {self.save_frames!r}")
-        self.request  # noqa: B018  (validates target, action_index and map kinds at construction)
 
-    @property
-    def request(self) -> ExplainRequest:
-        return ExplainRequest(self.target, self.action_index, self.action_dim_index, tuple(self.maps), self.map_options)
+    def to_json(self) -> dict[str, Any]:
+        """The explanation options as every run records them, then the side channel's own settings."""
+        own = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in _EXPLAIN_FIELDS}
+        return {**super().to_json(), **own, "cam_dir": str(self.cam_dir)}
 
 
 @dataclasses.dataclass
@@ -385,33 +376,26 @@ class CAMPolicy:
 
     def _process(self, job: _Job, started: float) -> None:
         try:
-            (explanation,) = explain_traces(self._explainer, [job.trace], self._options.request)
+            # the spot check re-runs the model: a phase of its own, like the write
+            (explained,) = explain_batch(
+                self._explainer, [job.trace], self._options, [job.step], before_check=self._wait_for_no_inference
+            )
         except Exception as e:
             self._record(JobTiming(job.connection, job.step, job.ended, started, time.monotonic()))
             self.count(f"failed_{type(e).__name__}", f"explaining raised {type(e).__name__}: {e}")
             return
+        explanation, check = explained.result, explained.check
         if isinstance(explanation, ExplainSkipped):
             self._record(JobTiming(job.connection, job.step, job.ended, started, time.monotonic()))
             self.count(f"skipped_{explanation.reason}", str(explanation))
             return
         if job.trace.malformed_reason is not None:
             self.count("explained_malformed")
-        check = None
-        if self._options.check_patches:
-            self._wait_for_no_inference()  # the check re-runs the model: a phase of its own, like the write
-            check = check_trace(
-                self._explainer,
-                job.trace,
-                explanation,
-                self._options.map_options,
-                patches=self._options.check_patches,
-                seed=job.step,
-            )
-            if "skipped" in check:
-                self.count(f"check_skipped_{check['skipped']}", check.get("error"))
-        explained = time.monotonic()  # the explanation and its spot check
-        timing = JobTiming(job.connection, job.step, job.ended, started, explained)
-        explain_ms = (explained - started) * 1000.0
+        if check is not None and "skipped" in check:
+            self.count(f"check_skipped_{check['skipped']}", check.get("error"))
+        explained_at = time.monotonic()  # the explanation and its spot check
+        timing = JobTiming(job.connection, job.step, job.ended, started, explained_at)
+        explain_ms = (explained_at - started) * 1000.0
         # Building the record and writing it hold the GIL and the disk for milliseconds: a second phase, started
         # only while no inference is in flight either.
         writing = self._wait_for_no_inference()
@@ -513,15 +497,12 @@ class CAMPolicy:
             return "nothing (the robot transform offers no example observation)"
         if self._logger is None or self._options.every_k == 0:
             return "inference"
-        (explanation,) = explain_traces(self._explainer, [trace], self._options.request)
+        (explained,) = explain_batch(self._explainer, [trace], self._options, [0])
+        explanation, check = explained.result, explained.check
         if isinstance(explanation, ExplainSkipped):
             return f"inference (the example's explanation was skipped: {explanation})"
         what = f"inference and the {explanation.target} explanation"
-        if self._options.check_patches:
-            opts = self._options
-            check = check_trace(
-                self._explainer, trace, explanation, opts.map_options, patches=opts.check_patches, seed=0
-            )
+        if check is not None:
             what += f" (spot check skipped: {check['skipped']})" if "skipped" in check else " with its spot check"
         if trace.malformed_reason is not None:
             # The example's generation holds no action tokens: the fallback target was compiled, not the configured
@@ -560,7 +541,7 @@ def wrap_policy_with_cam(
             options.cam_dir,
             run_config=run_config or {},
             checkpoint=str(checkpoint),
-            options={k: str(v) if isinstance(v, pathlib.Path) else v for k, v in dataclasses.asdict(options).items()},
+            options=options.to_json(),
             max_steps=options.max_steps,
             max_bytes=options.max_bytes,
         )

@@ -26,10 +26,6 @@ from openpi_cam.policies.family import Explainer, ExplainSkipped, Explanation
 from openpi_cam.policies.policy import InferenceTrace
 from openpi_cam.vocabulary import MapOptions
 
-# Random single patches per camera and step (`--cam.check-patches`): with each kind's top patch and the unpainted
-# score, 1 + kinds + 4 re-runs per camera in one call.
-DEFAULT_PATCHES = 4
-
 
 def spot_check_masks(
     maps: Mapping[str, np.ndarray], grid: tuple[int, int], patches: int, seed: int

@@ -1,4 +1,5 @@
-"""`openpi-cam` command line: one subcommand per module of this package, each a tyro-parsed function.
+"""`openpi-cam` command line: one subcommand per module of this package, each a tyro-parsed function (a module with
+a `route` instead names several commands and picks one from the arguments).
 
 Subcommand modules are imported only when chosen, so that `openpi-cam --help` stays fast.
 """
@@ -15,7 +16,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "serve": ("openpi_cam.cli.serve", "serve an OpenPI checkpoint (pi0-FAST, pi0, pi0.5) over websockets"),
     "demo": ("openpi_cam.cli.demo", "run the bundled tiny model end to end with the side channel on"),
     "golden": ("openpi_cam.cli.golden", "check the model against an upstream golden folder"),
-    "explain": ("openpi_cam.cli.explain", "compute maps offline for recorded observations"),
+    "explain": ("openpi_cam.cli.explain", "explain-dataset or explain-run, whichever SOURCE is"),
+    "explain-run": ("openpi_cam.cli.explain_run", "maps for a recorded run (CAM run, PolicyRecorder records)"),
+    "explain-dataset": ("openpi_cam.cli.explain_dataset", "a LeRobot dataset into a maps dataset (local or Ray)"),
     "faithfulness": ("openpi_cam.cli.faithfulness", "how faithful a run's maps are, re-scored by the model"),
     "render": ("openpi_cam.cli.render", "overlays, videos and an HTML report for a CAM run"),
     "stats": ("openpi_cam.cli.stats", "per-step, per-camera map statistics of a CAM run"),
@@ -40,7 +43,13 @@ def main(argv: list[str] | None = None) -> None:
     if name not in COMMANDS:
         print(f"openpi-cam: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
         raise SystemExit(2)
-    command = importlib.import_module(COMMANDS[name][0]).main
-    result = tyro.cli(command, args=rest, prog=f"openpi-cam {name}")
+    module = importlib.import_module(COMMANDS[name][0])
+    if hasattr(module, "route"):  # a name for several commands: the arguments say which one takes them
+        routed = module.route(rest)
+        if routed is None or rest[:1] in (["-h"], ["--help"]):
+            print(module.USAGE)
+            raise SystemExit(0 if rest[:1] in (["-h"], ["--help"]) else 2)
+        name, module = routed, importlib.import_module(COMMANDS[routed][0])
+    result = tyro.cli(module.main, args=rest, prog=f"openpi-cam {name}")
     if isinstance(result, int) and result != 0:
         raise SystemExit(result)

@@ -2,71 +2,46 @@
 
 from __future__ import annotations
 
+import dataclasses
 import pathlib
 import sys
-from collections.abc import Callable
-from typing import Literal
+from collections.abc import Mapping
+from typing import Annotated, Any, Literal
 
 import tyro
 
 from openpi_cam.cam.faithfulness_run import FaithfulnessOptions, evaluate_run, format_report
 from openpi_cam.cam.run_evidence import REPORT_FILE
 from openpi_cam.cam.run_format import dumps, load_run
-from openpi_cam.cli.options import DeletionBaseline
-from openpi_cam.datasets.explain import PolicySpec
-from openpi_cam.datasets.faithfulness import REPORT_FILE as DATASET_REPORT_FILE
+from openpi_cam.cli.options import BUNDLED_MODEL, DeletionBaseline
+from openpi_cam.datasets.faithfulness import REPORT_PATH as DATASET_REPORT_PATH
 from openpi_cam.datasets.faithfulness import build_run
 from openpi_cam.datasets.maps_dataset import is_maps_dataset, open_maps_dataset
 from openpi_cam.errors import InvalidRequest
-from openpi_cam.policies import demo_reach
-from openpi_cam.policies.policy import Policy, create_policy
+from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.viz.progress import progress as progress_bar
 
 # Frames of a maps dataset evaluated unless --max-steps says otherwise: each is served again and re-scored.
 DEFAULT_DATASET_STEPS = 64
 
 
-def load_policy(
-    run_config: dict,
-    *,
-    config: str | None,
-    checkpoint_dir: pathlib.Path | None,
-    paligemma_tokenizer: pathlib.Path | None,
-    fast_tokenizer: pathlib.Path | None,
-    dtype: str | None,
-) -> Policy:
-    """The policy that served (or explained) a run: the bundled demo model when the run names a demo config and no
-    checkpoint is given, else `create_policy` with the run's recorded settings, each overridable."""
-    config = config or run_config.get("config")
-    if config is None:
+def run_model(recorded: Mapping[str, Any], flags: ModelSpec) -> ModelSpec:
+    """The model that served (or explained) a run or maps dataset, as it records it, with each field the command line
+    gives replacing the recorded one."""
+    if not recorded.get("config") and flags.config is None:
         raise ValueError("the run does not record its policy config; pass --config")
-    checkpoint = checkpoint_dir or run_config.get("checkpoint_dir")
-    if config in demo_reach.DEMO_MODELS and checkpoint is None:
-        return demo_reach.create_demo_policy(model=demo_reach.DEMO_MODELS[config])
-    if checkpoint is None:
-        raise ValueError("the run does not record its checkpoint; pass --checkpoint-dir")
-    return create_policy(
-        config,
-        checkpoint,
-        paligemma_tokenizer=paligemma_tokenizer or run_config.get("paligemma_tokenizer"),
-        fast_tokenizer=fast_tokenizer or run_config.get("fast_tokenizer"),
-        dtype=dtype or run_config.get("dtype") or "bfloat16",
-    )
+    return ModelSpec.from_json(recorded).overridden_by(flags)
 
 
 def main(
     run_dir: tyro.conf.Positional[pathlib.Path],
-    checkpoint_dir: pathlib.Path | None = None,
-    config: str | None = None,
-    paligemma_tokenizer: pathlib.Path | None = None,
-    fast_tokenizer: pathlib.Path | None = None,
-    dtype: Literal["bfloat16", "float32"] | None = None,
+    model: tyro.conf.OmitArgPrefixes[ModelSpec] = BUNDLED_MODEL,
     randomize: Literal["none", "llm", "all"] = "llm",
     baseline: DeletionBaseline = "run",
     max_steps: int | None = None,
     random_orders: int = 8,
     batch_size: int = 8,
-    json_out: pathlib.Path | None = None,
+    out: Annotated[pathlib.Path | None, tyro.conf.arg(aliases=("--json-out",))] = None,
     progress: bool = True,
 ) -> int:
     """Re-score every logged step of RUN_DIR under interventions and report, per map kind and camera, how faithful
@@ -75,133 +50,61 @@ def main(
     client sent ground-truth boxes. Needs steps logged with model frames (`serve --cam.save-frames model|both`).
 
     Args:
-        run_dir: a CAM run directory.
-        checkpoint_dir: the checkpoint that served the run; default: the one the run records (or the bundled demo).
-        config: policy config; default: the one the run records.
-        paligemma_tokenizer: PaliGemma SentencePiece model; default: the run's, else the standard location.
-        fast_tokenizer: FAST tokenizer folder; default: the run's, else the standard location.
-        dtype: parameter dtype; default: the run's.
+        run_dir: a CAM run directory, or a maps dataset (`max_steps` of its frames, default 64, served again).
+        model: the model that made the run; default: the one the run records (each flag given replaces its field).
         randomize: which weights the randomisation test re-initialises (`llm`: the language model and action
             expert, SigLIP kept; `all`; `none` skips the test).
         baseline: what deletion paints with: the baseline the run's ig / occlusion maps used (`run`), or one named.
-        max_steps: evaluate at most this many steps, evenly spread over the run.
+        max_steps: evaluate at most this many steps, evenly spread over the run (a maps dataset: default 64).
         random_orders: random patch orders averaged for the random reference.
         batch_size: steps per call of the randomised model (sharded over all local devices, like `explain`).
-        json_out: where to write the full report (every figure with its 95% bootstrap interval, and each step's
+        out: where to write the full report (every figure with its 95% bootstrap interval, and each step's
             own figures) as JSON; default RUN_DIR/faithfulness.json, where `render` finds it and shows each map's
             figures beside it.
         progress: show progress on stderr.
     """
-    if is_maps_dataset(run_dir):
-        return _maps_dataset_main(
-            run_dir,
-            checkpoint_dir=checkpoint_dir,
-            config=config,
-            paligemma_tokenizer=paligemma_tokenizer,
-            fast_tokenizer=fast_tokenizer,
-            dtype=dtype,
-            opts_of=lambda: FaithfulnessOptions(
-                randomize=randomize,
-                baseline=baseline,
-                max_steps=None,
-                random_orders=random_orders,
-                batch_size=batch_size,
-            ),
-            max_steps=max_steps,
-            json_out=json_out,
-            progress=progress,
-        )
+    opts = FaithfulnessOptions(
+        randomize=randomize, baseline=baseline, max_steps=None, random_orders=random_orders, batch_size=batch_size
+    )
+
+    def show(items, n):
+        return progress_bar(items, n, "faithfulness", progress)
+
+    mismatched = 0
     try:
-        run = load_run(run_dir)
-        policy = load_policy(
-            run.run_info.get("config") or {},
-            config=config,
-            checkpoint_dir=checkpoint_dir,
-            paligemma_tokenizer=paligemma_tokenizer,
-            fast_tokenizer=fast_tokenizer,
-            dtype=dtype,
-        )
-        opts = FaithfulnessOptions(
-            randomize=randomize,
-            baseline=baseline,
-            max_steps=max_steps,
-            random_orders=random_orders,
-            batch_size=batch_size,
-        )
-
-        def show(items, n):
-            return progress_bar(items, n, "faithfulness", progress)
-
-        report = evaluate_run(run, policy.explainer, opts, progress=show)
+        if is_maps_dataset(run_dir):  # frames served again and logged as a run inside the maps dataset
+            maps = open_maps_dataset(run_dir)
+            spec = run_model(maps.info.model, model)
+            policy = spec.create()
+            steps = DEFAULT_DATASET_STEPS if max_steps is None else max_steps
+            evaluated_dir, counts = build_run(maps, policy, spec, max_steps=steps)
+            report = evaluate_run(load_run(evaluated_dir), policy.explainer, opts, progress=show)
+            report["maps_dataset"] = {"root": str(run_dir), "rows_served_again": counts["rows"], **dict(counts)}
+            default_out, mismatched = pathlib.Path(run_dir) / DATASET_REPORT_PATH, counts["actions_mismatched"]
+        else:
+            run = load_run(run_dir)
+            policy = run_model(run.run_info.get("config") or {}, model).create()
+            opts = dataclasses.replace(opts, max_steps=max_steps)
+            report = evaluate_run(run, policy.explainer, opts, progress=show)
+            default_out = pathlib.Path(run_dir) / REPORT_FILE
     except (FileNotFoundError, KeyError, ValueError, InvalidRequest, OSError) as e:
         print(f"openpi-cam faithfulness: {e}", file=sys.stderr)
         return 1
     print(format_report(report))
-    out = pathlib.Path(run_dir) / REPORT_FILE if json_out is None else json_out
+    out = default_out if out is None else out
     try:
         out.write_text(dumps(report, indent=2))
     except OSError as e:
         print(f"openpi-cam faithfulness: could not save the report to {out}: {e}", file=sys.stderr)
         return 1
     print(f"saved the report to {out}", file=sys.stderr)
+    if mismatched:
+        print(
+            f"openpi-cam faithfulness: {mismatched} frames served other actions than when they were explained and "
+            "were left out (another checkpoint or dtype?)",
+            file=sys.stderr,
+        )
     if report["steps_evaluated"] == 0:
         print("openpi-cam faithfulness: no step could be re-scored", file=sys.stderr)
         return 1
     return 0
-
-
-__all__ = ["main"]
-
-
-def _maps_dataset_main(
-    root: pathlib.Path,
-    *,
-    checkpoint_dir: pathlib.Path | None,
-    config: str | None,
-    paligemma_tokenizer: pathlib.Path | None,
-    fast_tokenizer: pathlib.Path | None,
-    dtype: str | None,
-    opts_of: Callable[[], FaithfulnessOptions],
-    max_steps: int | None,
-    json_out: pathlib.Path | None,
-    progress: bool,
-) -> int:
-    """Faithfulness of a maps dataset: `max_steps` frames (default 64) spread over it, served again and re-scored."""
-    try:
-        maps = open_maps_dataset(root)
-        info = maps.info
-        bundled_checkpoints = {
-            str(assets / demo_reach.CHECKPOINT.name) for assets in demo_reach.DEFAULT_ASSETS.values()
-        }
-        bundled = checkpoint_dir is None and info["checkpoint"] in bundled_checkpoints
-        spec = PolicySpec(
-            config=config or info["config"],
-            checkpoint_dir=None if bundled else str(checkpoint_dir or info["checkpoint"]),
-            paligemma_tokenizer=None if paligemma_tokenizer is None else str(paligemma_tokenizer),
-            fast_tokenizer=None if fast_tokenizer is None else str(fast_tokenizer),
-            dtype=dtype or info["dtype"],
-        )
-        policy = spec.create()
-        run_dir, counts = build_run(
-            maps, policy, spec, max_steps=DEFAULT_DATASET_STEPS if max_steps is None else max_steps
-        )
-
-        def show(items, n):
-            return progress_bar(items, n, "faithfulness", progress)
-
-        report = evaluate_run(load_run(run_dir), policy.explainer, opts_of(), progress=show)
-        report["maps_dataset"] = {"root": str(root), "rows_served_again": counts["rows"], **dict(counts)}
-    except (FileNotFoundError, KeyError, ValueError, InvalidRequest, OSError) as e:
-        print(f"openpi-cam faithfulness: {e}", file=sys.stderr)
-        return 1
-    print(format_report(report))
-    out = root / DATASET_REPORT_FILE if json_out is None else json_out
-    out.write_text(dumps(report, indent=2))
-    print(f"saved the report to {out}", file=sys.stderr)
-    if counts["actions_mismatched"]:
-        print(
-            f"openpi-cam faithfulness: {counts['actions_mismatched']} frames served other actions than when they were "
-            "explained and were left out (another checkpoint or dtype?)",
-            file=sys.stderr,
-        )
-    return 0 if report["steps_evaluated"] else 1

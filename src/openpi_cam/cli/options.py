@@ -1,27 +1,25 @@
-"""Flags shared by several subcommands, each declared once: what an explanation explains and carries (`MapFlags`),
-and the baselines a command may name. Allowed values come from `openpi_cam.vocabulary`."""
+"""Flags shared by several subcommands, each declared once: which model to load (`policies.model_spec.ModelSpec`,
+taken as it is) and what an explanation explains and carries (`ExplainFlags`, building `vocabulary.ExplainOptions`).
+Allowed values come from `openpi_cam.vocabulary`."""
 
 from __future__ import annotations
 
 import dataclasses
 from typing import Literal
 
-from openpi_cam.cam.offline import ExplainOptions
-from openpi_cam.cam.spot_check import DEFAULT_PATCHES
+from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.vocabulary import (
     BASELINES,
     DEFAULT_KINDS,
-    IG_SPACES,
+    DEFAULT_PATCHES,
+    Baseline,
+    ExplainOptions,
+    IgSpace,
     MapKind,
     MapOptions,
-    SaveFrames,
     Target,
-    check_kinds,
 )
 
-# The vocabulary's tuples as the types tyro offers as choices (a Literal subscripted with a tuple spells its members).
-Baseline = Literal[BASELINES]  # type: ignore[valid-type]
-IgSpace = Literal[IG_SPACES]  # type: ignore[valid-type]
 # What `faithfulness` paints deletions with: the baseline the run's own maps used, or one named.
 DeletionBaseline = Literal[("run", *BASELINES)]  # type: ignore[valid-type]
 
@@ -36,9 +34,9 @@ def parse_action_index(text: str) -> tuple[int, int]:
 
 
 @dataclasses.dataclass(frozen=True)
-class MapFlags:
-    """What each explained step explains and which maps it carries. `serve` nests these under `--cam.`, `explain`
-    takes them unprefixed; they are checked here, as the command line is parsed."""
+class ExplainFlags:
+    """What each explained step explains and which maps it carries (`ExplainOptions`). `serve` nests these under
+    `--cam.`, the explain commands take them unprefixed; they are checked as the command line is parsed."""
 
     # which score the maps explain; default: the model family's own (pi0-FAST `action-token`, pi0 / pi0.5 `chunk`).
     # A pi0-FAST generation without action tokens is explained with `generated-tokens` whatever this says.
@@ -63,53 +61,25 @@ class MapFlags:
     check_patches: int = DEFAULT_PATCHES
 
     def __post_init__(self) -> None:
-        # What the options the flags build would refuse later is refused as the command line is parsed: an empty or
-        # unknown selection of kinds, an unreadable action index, options MapOptions refuses. The spot check's count
-        # is checked by the options each command builds (CAMOptions, ExplainOptions).
-        check_kinds(self.maps)
-        self.action_indices  # noqa: B018
-        self.map_options  # noqa: B018
+        self.options()  # what the options would refuse later is refused as the command line is parsed
 
-    @property
-    def action_indices(self) -> tuple[int, int]:
-        """(action token or horizon step, action dimension)."""
-        return parse_action_index(self.action_index)
-
-    @property
-    def map_options(self) -> MapOptions:
+    def options(self, target: Target | None = None) -> ExplainOptions:
+        """The options these flags name; `target`, when given, stands for the flag's (a family's resolved one)."""
         if self.occlusion_masks < 0:
             raise ValueError(f"occlusion_masks must be >= 0 (0: every region once), got {self.occlusion_masks}")
-        options = MapOptions(baseline=self.baseline, occlusion_region=self.occlusion_region, ig_space=self.ig_space)
+        map_options = MapOptions(baseline=self.baseline, occlusion_region=self.occlusion_region, ig_space=self.ig_space)
         if self.occlusion_masks:
-            return dataclasses.replace(options, occlusion_mode="random", random_masks=self.occlusion_masks)
-        return options
-
-    def explain_options(self, save_frames: SaveFrames, batch_size: int, limit: int | None) -> ExplainOptions:
-        """The options of offline explanation (`openpi-cam explain`) with these flags."""
-        index, dim_index = self.action_indices
+            map_options = dataclasses.replace(map_options, occlusion_mode="random", random_masks=self.occlusion_masks)
+        index, dim_index = parse_action_index(self.action_index)
         return ExplainOptions(
-            target=self.target,
+            target=target or self.target,
             action_index=index,
             action_dim_index=dim_index,
             maps=self.maps,
-            save_frames=save_frames,
-            batch_size=batch_size,
-            limit=limit,
-            map_options=self.map_options,
+            map_options=map_options,
             check_patches=self.check_patches,
         )
 
-    def recorded(self) -> dict[str, object]:
-        """The flags as a run records them (`run.json` options; `explain --resume` compares them)."""
-        index, dim_index = self.action_indices
-        return {
-            "target": self.target,
-            "action_index": index,
-            "action_dim_index": dim_index,
-            "maps": list(self.maps),
-            "baseline": self.baseline,
-            "occlusion_region": self.occlusion_region,
-            "occlusion_masks": self.occlusion_masks,
-            "ig_space": self.ig_space,
-            "check_patches": self.check_patches,
-        }
+
+# No model flags: the bundled demo model (`ModelSpec`'s defaults).
+BUNDLED_MODEL = ModelSpec()

@@ -14,8 +14,8 @@ from openpi_cam.datasets.render import DatasetRenderOptions, render_dataset
 from openpi_cam.datasets.rerun import write_dataset_rrd
 from openpi_cam.viz.render import Norm, RenderOptions, default_render_dir, render_run
 from openpi_cam.viz.rerun_sink import write_rrd
-from openpi_cam.viz.stats import DEFAULT_MAP_KIND, MissingMaps
-from openpi_cam.vocabulary import MapKind
+from openpi_cam.viz.stats import MissingMaps
+from openpi_cam.vocabulary import DEFAULT_MAP_KIND, MapKind
 
 
 def main(

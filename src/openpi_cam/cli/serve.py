@@ -13,16 +13,15 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any
 
 import tyro
 
 from openpi_cam.cam.side_channel import CAMOptions, CAMPolicy, wrap_policy_with_cam
-from openpi_cam.cli.options import MapFlags
-from openpi_cam.model.config import MAX_DECODING_STEPS
-from openpi_cam.policies import demo_reach
+from openpi_cam.cli.options import BUNDLED_MODEL, ExplainFlags
 from openpi_cam.policies.family import resolve_target
-from openpi_cam.policies.policy import Policy, create_policy
+from openpi_cam.policies.model_spec import ModelSpec
+from openpi_cam.policies.policy import Policy
 from openpi_cam.serving.server import PolicyServer
 from openpi_cam.vocabulary import SaveFrames, Target
 
@@ -30,7 +29,7 @@ logger = logging.getLogger(__name__)
 
 
 @dataclasses.dataclass(frozen=True)
-class SideChannelFlags(MapFlags):
+class SideChannelFlags(ExplainFlags):
     """The explanation side channel: which requests are explained, what each explained step carries, where the run is
     written and how the worker makes room for inference. Defaults are `CAMOptions`' unless the command line's differ.
     """
@@ -73,26 +72,24 @@ class SideChannelFlags(MapFlags):
     def options(self, target: Target | None = None) -> CAMOptions:
         """The side channel's options; `target`, when given, stands for the flag's (the served family's resolved
         target)."""
-        index, dim_index = self.action_indices
-        return CAMOptions(
-            every_k=self.every_k,
-            cam_dir=self.dir,
-            save_frames=self.save_frames,
-            target=target or self.target,
-            action_index=index,
-            action_dim_index=dim_index,
-            maps=self.maps,
-            map_options=self.map_options,
-            check_patches=self.check_patches,
-            queue_size=self.queue_size,
-            per_connection=self.per_connection,
-            settle_ms=self.settle_ms,
-            device=self.device,
-            max_steps=self.max_steps,
-            max_bytes=None if self.max_mb is None else int(self.max_mb * 1024 * 1024),
-            drain_timeout=self.drain_timeout,
-            max_extra_value_bytes=int(self.max_extra_value_kb * 1024),
-            max_extra_bytes=int(self.max_extra_kb * 1024),
+        return (
+            super()
+            .options(target)
+            .extended(
+                CAMOptions,
+                every_k=self.every_k,
+                cam_dir=self.dir,
+                save_frames=self.save_frames,
+                queue_size=self.queue_size,
+                per_connection=self.per_connection,
+                settle_ms=self.settle_ms,
+                device=self.device,
+                max_steps=self.max_steps,
+                max_bytes=None if self.max_mb is None else int(self.max_mb * 1024 * 1024),
+                drain_timeout=self.drain_timeout,
+                max_extra_value_bytes=int(self.max_extra_value_kb * 1024),
+                max_extra_bytes=int(self.max_extra_kb * 1024),
+            )
         )
 
 
@@ -108,67 +105,11 @@ class StartupError(Exception):
         self.status = status
 
 
-@dataclasses.dataclass(frozen=True)
-class Checkpoint:
-    """What `serve` loads: the flags, with the bundled demo model's settings where no checkpoint is named."""
-
-    config: str
-    checkpoint_dir: Path
-    paligemma_tokenizer: Path | None
-    fast_tokenizer: Path | None
-    dtype: str
-    max_decoding_steps: int
-
-    @classmethod
-    def of_flags(
-        cls,
-        checkpoint_dir: Path | None,
-        config: str | None,
-        paligemma_tokenizer: Path | None,
-        fast_tokenizer: Path | None,
-        dtype: str | None,
-    ) -> Checkpoint:
-        if checkpoint_dir is None:  # the bundled default: a tiny pi0-FAST trained on the demo task
-            return cls(
-                config or demo_reach.DEMO_CONFIG.name,
-                demo_reach.CHECKPOINT,
-                paligemma_tokenizer or demo_reach.PALIGEMMA_TOKENIZER,
-                fast_tokenizer or demo_reach.FAST_TOKENIZER,
-                dtype or "float32",
-                demo_reach.MAX_DECODING_STEPS,
-            )
-        return cls(
-            config or "pi0_fast_droid",
-            checkpoint_dir,
-            paligemma_tokenizer,
-            fast_tokenizer,
-            dtype or "bfloat16",  # as upstream serves
-            MAX_DECODING_STEPS,
-        )
-
-    def run_config(self, default_prompt: str | None, stop_at_action_end: bool) -> dict[str, Any]:
-        """How the served policy was built, as the side channel's run records it."""
-        return {
-            "config": self.config,
-            "checkpoint_dir": str(self.checkpoint_dir),
-            "paligemma_tokenizer": None if self.paligemma_tokenizer is None else str(self.paligemma_tokenizer),
-            "fast_tokenizer": None if self.fast_tokenizer is None else str(self.fast_tokenizer),
-            "dtype": self.dtype,
-            "default_prompt": default_prompt,
-            "stop_at_action_end": stop_at_action_end,
-        }
-
-
 def main(
-    checkpoint_dir: Path | None = None,
-    config: str | None = None,
-    paligemma_tokenizer: Path | None = None,
-    fast_tokenizer: Path | None = None,
+    model: tyro.conf.OmitArgPrefixes[ModelSpec] = BUNDLED_MODEL,
     port: int = 8000,
     host: str = "0.0.0.0",
-    default_prompt: str | None = None,
     api_key: str | None = None,
-    dtype: Literal["bfloat16", "float32"] | None = None,
     max_message_mb: float = 64.0,
     max_connections: int = 64,
     max_buffered_mb: float = 256.0,
@@ -183,17 +124,10 @@ def main(
     explaining every k-th request of each connection in the background (`--cam.every-k`).
 
     Args:
-        checkpoint_dir: checkpoint folder with `params/` and `assets/<asset_id>/norm_stats.json`; default: the
-            bundled demo model (config `demo_reach`, its own tokenizers, float32).
-        config: named policy config (e.g. pi0_fast_droid, pi05_droid, pi0_libero); default pi0_fast_droid for a
-            checkpoint. It must be of the checkpoint's family.
-        paligemma_tokenizer: PaliGemma SentencePiece model; default: the policy factory's standard location.
-        fast_tokenizer: FAST action tokenizer folder (pi0-FAST); default: the policy factory's standard location.
+        model: which model to serve (the same flags as every command's; default: the bundled demo model).
         port: TCP port.
         host: interface to listen on (0.0.0.0 = all, like upstream).
-        default_prompt: prompt used when a request has none.
         api_key: if set, clients must send `Authorization: Api-Key <key>` (openpi-client's `api_key=`).
-        dtype: parameter and compute dtype; default bfloat16 for a checkpoint, as upstream serves.
         max_message_mb: largest accepted request frame; larger ones close the connection (code 1009).
         max_connections: open connections at most; further ones are closed at once (code 1013, try again later).
         max_buffered_mb: request bytes being handled at once over all connections (decoding, waiting for the model,
@@ -212,9 +146,9 @@ def main(
     _configure_logging()
     try:
         _check_batching(batch_window_ms, max_batch)
-        checkpoint = Checkpoint.of_flags(checkpoint_dir, config, paligemma_tokenizer, fast_tokenizer, dtype)
-        policy = _create_policy(checkpoint, default_prompt, stop_at_action_end)
-        served = _with_side_channel(policy, cam, checkpoint, checkpoint.run_config(default_prompt, stop_at_action_end))
+        policy = _create_policy(model, stop_at_action_end)
+        run_config = {**model.resolved().to_json(), "stop_at_action_end": stop_at_action_end}
+        served = _with_side_channel(policy, cam, model, run_config)
         server = _server(
             served,
             policy.metadata,
@@ -253,18 +187,9 @@ def _check_batching(batch_window_ms: float | None, max_batch: int) -> None:
         )
 
 
-def _create_policy(checkpoint: Checkpoint, default_prompt: str | None, stop_at_action_end: bool) -> Policy:
+def _create_policy(model: ModelSpec, stop_at_action_end: bool) -> Policy:
     try:
-        return create_policy(
-            checkpoint.config,
-            checkpoint.checkpoint_dir,
-            paligemma_tokenizer=checkpoint.paligemma_tokenizer,
-            fast_tokenizer=checkpoint.fast_tokenizer,
-            dtype=checkpoint.dtype,
-            default_prompt=default_prompt,
-            stop_at_action_end=stop_at_action_end,
-            max_decoding_steps=checkpoint.max_decoding_steps,
-        )
+        return model.create(stop_at_action_end=stop_at_action_end)
     except KeyError as e:  # an unknown config name: its message lists the known ones
         raise StartupError(str(e.args[0]) if e.args else repr(e), 1) from None
     except (FileNotFoundError, ValueError, OSError) as e:
@@ -274,7 +199,7 @@ def _create_policy(checkpoint: Checkpoint, default_prompt: str | None, stop_at_a
 
 
 def _with_side_channel(
-    policy: Policy, flags: SideChannelFlags, checkpoint: Checkpoint, run_config: dict[str, Any]
+    policy: Policy, flags: SideChannelFlags, model: ModelSpec, run_config: dict[str, Any]
 ) -> Policy | CAMPolicy:
     """The policy as served: itself, or wrapped in the side channel explaining the target the flags name (by default
     the family's own); a target the family cannot explain is refused, naming those it can."""
@@ -286,7 +211,7 @@ def _with_side_channel(
         raise StartupError(f"--cam.target {e}", 2) from None
     try:
         served = wrap_policy_with_cam(
-            policy, flags.options(target), run_config=run_config, checkpoint=str(checkpoint.checkpoint_dir)
+            policy, flags.options(target), run_config=run_config, checkpoint=str(model.checkpoint)
         )
     except ValueError as e:  # e.g. --cam.device names a device this machine does not have
         raise StartupError(str(e), 2) from None

@@ -19,18 +19,17 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.cam.batching import data_mesh, explain_traces
-from openpi_cam.cam.offline import ExplainOptions
+from openpi_cam.cam.batching import data_mesh, explain_batch
+from openpi_cam.cam.records import resume_mismatch
 from openpi_cam.cam.run_format import dumps
-from openpi_cam.cam.spot_check import check_trace
 from openpi_cam.datasets import maps_dataset as fmt
 from openpi_cam.datasets.lerobot import DatasetError, LeRobotDataset, open_dataset
 from openpi_cam.nested import unflatten_dict
-from openpi_cam.policies import demo_reach
 from openpi_cam.policies.config import resolve_config
 from openpi_cam.policies.family import ExplainSkipped, Explanation, resolve_target
-from openpi_cam.policies.policy import InferenceTrace, Policy, create_policy
-from openpi_cam.vocabulary import DATASET_ACTIONS
+from openpi_cam.policies.model_spec import ModelSpec
+from openpi_cam.policies.policy import InferenceTrace, Policy
+from openpi_cam.vocabulary import DATASET_ACTIONS, ExplainOptions
 
 log = logging.getLogger(__name__)
 
@@ -40,53 +39,15 @@ NOISE_SEED = 0  # with the frame's index, seeds a flow-matching policy's noise f
 
 
 @dataclasses.dataclass(frozen=True)
-class PolicySpec:
-    """How to build the policy: what an actor on another machine needs to load its own copy."""
-
-    config: str = demo_reach.DEMO_CONFIG.name
-    checkpoint_dir: str | None = None  # None: the bundled demo model
-    paligemma_tokenizer: str | None = None
-    fast_tokenizer: str | None = None
-    dtype: str = "float32"
-    default_prompt: str | None = None
-
-    def create(self) -> Policy:
-        if self.checkpoint_dir is None:
-            return demo_reach.create_demo_policy(model=self._demo_model, dtype=self.dtype)
-        return create_policy(
-            self.config,
-            self.checkpoint_dir,
-            paligemma_tokenizer=self.paligemma_tokenizer,
-            fast_tokenizer=self.fast_tokenizer,
-            dtype=self.dtype,
-            default_prompt=self.default_prompt,
-        )
-
-    @property
-    def _demo_model(self) -> str:
-        if self.config not in demo_reach.DEMO_MODELS:
-            raise ValueError(
-                f"config {self.config!r} needs --checkpoint-dir (the bundled models serve "
-                f"{sorted(demo_reach.DEMO_MODELS)})"
-            )
-        return demo_reach.DEMO_MODELS[self.config]
-
-    @property
-    def checkpoint(self) -> str:
-        if self.checkpoint_dir is None:
-            return str(demo_reach.DEFAULT_ASSETS[self._demo_model] / demo_reach.CHECKPOINT.name)
-        return str(self.checkpoint_dir)
-
-
-@dataclasses.dataclass(frozen=True)
 class DatasetJob:
     """One explanation of a LeRobot dataset into a maps dataset."""
 
     source: pathlib.Path
     out: pathlib.Path
-    policy: PolicySpec
+    model: ModelSpec
     options: ExplainOptions
     keys: Mapping[str, str]  # observation key -> dataset feature
+    batch_size: int = 8  # frames explained per model call (padded to a multiple of the device count)
     extra: Mapping[str, str] = dataclasses.field(default_factory=dict)  # dataset feature -> `extra/<name>` column
     episodes: tuple[int, ...] | None = None  # None: every episode
     every: int = 1  # explain every N-th frame of an episode (frame_index % every == 0)
@@ -98,7 +59,9 @@ class DatasetJob:
 
     def __post_init__(self) -> None:
         if self.every < 1:
-            raise ValueError(f"--every must be >= 1, got {self.every}")
+            raise ValueError(f"--every-k must be >= 1, got {self.every}")
+        if self.batch_size < 1:
+            raise ValueError(f"--batch-size must be >= 1, got {self.batch_size}")
         if not self.keys:
             raise ValueError("no observation keys mapped to dataset features (--keys OBS_KEY=FEATURE ...)")
         if ACTIONS_KEY in self.keys:
@@ -161,45 +124,31 @@ def job_info(
     family: str,
     grid: Sequence[int],
     camera_sources: Mapping[str, str | None],
-) -> dict[str, Any]:
+) -> fmt.MapsInfo:
     """The maps dataset's meta/info.json for this job: the model's family, patch grid and cameras (model camera ->
-    observation key) are all it needs of the model, so a driver can make it without loading one."""
-    grid = [int(g) for g in grid]
-    cameras = list(camera_sources)
+    observation key) are all it needs of the model, so a driver can make it without loading one. The job's target
+    must be resolved (the family's default filled in)."""
+    if job.options.target is None:
+        raise ValueError("job_info needs the job's target resolved against the model's family")
     options = job.options
-    return {
-        "format": fmt.FORMAT,
-        "format_version": fmt.FORMAT_VERSION,
-        "source": str(pathlib.Path(job.source).resolve()),
-        "source_version": ds.version,
-        "source_fps": ds.fps,
-        "checkpoint": job.policy.checkpoint,
-        "config": job.policy.config,
-        "family": family,
-        "dtype": job.policy.dtype,
-        "target": DATASET_ACTIONS if job.recorded_actions is not None else options.target,
-        "recorded_actions": job.recorded_actions,
-        "kinds": list(options.maps),
-        "grids": {c: grid for c in cameras},
-        "camera_sources": {c: (None if k is None else job.keys.get(k, k)) for c, k in camera_sources.items()},
-        "keys": dict(job.keys),
-        "extra": dict(job.extra),
-        "every": job.every,
-        "nested_keys": job.nested_keys,
-        "scores_per_row": 0 if options.target == "all-action-tokens" else 1,
-        "options": {
-            "action_index": options.action_index,
-            "action_dim_index": options.action_dim_index,
-            "baseline": options.map_options.baseline,
-            "ig_space": options.map_options.ig_space,
-            "occlusion_region": options.map_options.occlusion_region,
-            "occlusion_masks": options.map_options.random_masks
-            if options.map_options.occlusion_mode == "random"
-            else 0,
-            "check_patches": options.check_patches,
-            "batch_size": options.batch_size,
-        },
-    }
+    return fmt.MapsInfo(
+        source=str(pathlib.Path(job.source).resolve()),
+        source_version=ds.version,
+        source_fps=ds.fps,
+        model=job.model.resolved().to_json(),
+        family=family,
+        target=DATASET_ACTIONS if job.recorded_actions is not None else options.target,
+        recorded_actions=job.recorded_actions,
+        kinds=list(options.maps),
+        grids={c: [int(g) for g in grid] for c in camera_sources},
+        camera_sources={c: (None if k is None else job.keys.get(k, k)) for c, k in camera_sources.items()},
+        keys=dict(job.keys),
+        extra=dict(job.extra),
+        every=job.every,
+        nested_keys=job.nested_keys,
+        scores_per_row=0 if options.target == "all-action-tokens" else 1,
+        options={**options.to_json(), "batch_size": job.batch_size},
+    )
 
 
 def _observation(frame: Mapping[str, Any], job: DatasetJob) -> dict[str, Any]:
@@ -221,7 +170,7 @@ def frame_row(
     response: Mapping[str, Any],
     check: Mapping[str, Any] | None,
     *,
-    info: Mapping[str, Any],
+    info: fmt.MapsInfo,
     job: DatasetJob,
     explain_ms: float,
 ) -> dict[str, Any]:
@@ -250,14 +199,14 @@ def frame_row(
         "details": dumps(explanation.details),
         "check": None if check is None else dumps(check),
     }
-    for kind in info["kinds"]:
-        for camera in info["grids"]:
+    for kind in info.kinds:
+        for camera in info.cameras:
             m = explanation.maps.get(kind, {}).get(camera)
             row[fmt.map_column(kind, camera)] = None if m is None else _flat(m)
     check_cameras = (check or {}).get("cameras", {})
-    for camera in info["grids"]:
+    for camera in info.cameras:
         figures = check_cameras.get(camera, {})
-        for kind in info["kinds"]:
+        for kind in info.kinds:
             row[fmt.check_column(kind, camera)] = figures.get("top_patch_drop", {}).get(kind)
         row[fmt.check_column(fmt.CHECK_RANDOM, camera)] = figures.get("random_patch_drops")
     for feature, name in job.extra.items():
@@ -281,7 +230,7 @@ class EpisodeExplainer:
         self.dataset = open_dataset(job.source)
         check_features(self.dataset, job)
         self.episodes = selected_episodes(self.dataset, job)  # checked before a model is loaded
-        self.policy = job.policy.create() if policy is None else policy
+        self.policy = job.model.create() if policy is None else policy
         # The info and rows record the target actually explained: the family's default when none was named.
         self.job = job = dataclasses.replace(
             job,
@@ -301,7 +250,7 @@ class EpisodeExplainer:
                 f"--target {DATASET_ACTIONS}: {self.policy.model.family} has no likelihood of a given chunk to explain "
                 "(README, 'Explaining a LeRobot dataset'); pi0-FAST explains the recorded chunk's FAST tokens"
             )
-        self.horizon = resolve_config(job.policy.config).action_horizon
+        self.horizon = self.policy.model.config.action_horizon
 
     def explain(self, episode: int) -> EpisodeResult:
         """The rows of one episode (raises `DatasetError` for bad data: nothing of the episode is written)."""
@@ -316,35 +265,32 @@ class EpisodeExplainer:
         def flush() -> None:
             t0 = time.perf_counter()
             traces = [trace for _, trace, _ in pending]
-            results = explain_traces(self.explainer, traces, options.request, mesh=self.mesh, pad_to=options.batch_size)
-            per_row_ms = (time.perf_counter() - t0) * 1000.0 / len(pending)
-            for (frame, trace, response), result in zip(pending, results, strict=True):
-                if isinstance(result, ExplainSkipped):
-                    counts[f"skipped_{result.reason}"] += 1
+            seeds = [int(frame["index"]) for frame, _, _ in pending]
+            done = explain_batch(self.explainer, traces, options, seeds, mesh=self.mesh, pad_to=job.batch_size)
+            for (frame, trace, response), explained in zip(pending, done, strict=True):
+                if isinstance(explained.result, ExplainSkipped):
+                    counts[f"skipped_{explained.result.reason}"] += 1
                     continue
-                check = None
-                if options.check_patches:
-                    check = check_trace(
-                        self.explainer,
-                        trace,
-                        result,
-                        options.map_options,
-                        patches=options.check_patches,
-                        seed=int(frame["index"]),
-                        mesh=self.mesh,
-                    )
                 counts["explained_malformed"] += trace.malformed_reason is not None
                 counts["explained"] += 1
-                rows.append(
-                    frame_row(frame, trace, result, response, check, info=self.info, job=job, explain_ms=per_row_ms)
+                row = frame_row(
+                    frame,
+                    trace,
+                    explained.result,
+                    response,
+                    explained.check,
+                    info=self.info,
+                    job=job,
+                    explain_ms=explained.explain_ms,
                 )
+                rows.append(row)
             seconds["explanation"] += time.perf_counter() - t0
             pending.clear()
 
         for frame, response, trace in self.served(episode, wanted, seconds):
             counts["frames"] += 1
             pending.append((frame, trace, response))
-            if len(pending) == options.batch_size:
+            if len(pending) == job.batch_size:
                 flush()
         if pending:
             flush()
@@ -410,18 +356,19 @@ class EpisodeExplainer:
         return path
 
 
-def prepare_output(job: DatasetJob, info: Mapping[str, Any]) -> set[int]:
+def prepare_output(job: DatasetJob, info: fmt.MapsInfo) -> set[int]:
     """Creates the maps dataset (or checks that the one at `job.out` was made with the same settings) and returns
     the episodes it already holds."""
     info_path = job.out / fmt.INFO_JSON
     if info_path.is_file():
         old = fmt.open_maps_dataset(job.out).info
-        if diffs := fmt.resume_mismatch(old, info):
+        diffs = old.mismatch(info) + resume_mismatch(old.model, old.options, job.model, job.options)
+        if diffs:
             raise ValueError(f"cannot add to {job.out}, it was made with other settings: {'; '.join(diffs)}")
     else:
         if job.out.exists() and any(job.out.iterdir()):
             raise ValueError(f"{job.out} exists and is not a maps dataset: choose an empty or new folder")
-        fmt.write_json(info_path, info)
+        fmt.write_json(info_path, info.to_json())
     return fmt.written_episodes(job.out)
 
 
@@ -472,7 +419,7 @@ def run_local(
 ) -> JobSummary:
     """Explains the job's episodes one after another on this machine's devices, writing each episode's shard."""
     worker = EpisodeExplainer(job, policy)
-    done = prepare_output(job, worker.info)
+    done = prepare_output(worker.job, worker.info)  # the job with its target resolved, as the info records it
     summary = JobSummary()
     todo = [e for e in worker.episodes if e not in done]
     summary.episodes_already_written = len(worker.episodes) - len(todo)

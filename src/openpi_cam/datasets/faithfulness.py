@@ -20,16 +20,17 @@ from typing import Any
 import numpy as np
 
 from openpi_cam.cam.logger import CAMLogger
-from openpi_cam.cam.offline import ExplainOptions
 from openpi_cam.cam.records import step_record
+from openpi_cam.cam.run_evidence import REPORT_FILE
 from openpi_cam.datasets import maps_dataset as fmt
-from openpi_cam.datasets.explain import DatasetJob, EpisodeExplainer, PolicySpec
+from openpi_cam.datasets.explain import DatasetJob, EpisodeExplainer
 from openpi_cam.policies.family import Explanation
+from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.policies.policy import Policy
-from openpi_cam.vocabulary import MapOptions
+from openpi_cam.vocabulary import ExplainOptions
 
 RUN_DIR = "meta/faithfulness_run"  # the CAM run of the evaluated frames, inside the maps dataset
-REPORT_FILE = "meta/faithfulness.json"
+REPORT_PATH = f"meta/{REPORT_FILE}"  # a maps dataset's report, beside its info.json
 # The re-served chunk must be the explained one: float32 replays of the same program agree to rounding.
 ACTIONS_ATOL = 1e-4
 
@@ -42,27 +43,20 @@ def evenly(indices: list[int], limit: int | None) -> list[int]:
     return [indices[i] for i in dict.fromkeys(picks.tolist())]
 
 
-def job_of(maps: fmt.MapsDataset, spec: PolicySpec) -> DatasetJob:
-    """The job that made a maps dataset, as far as serving its frames again needs it."""
+def job_of(maps: fmt.MapsDataset, model: ModelSpec) -> DatasetJob:
+    """The job that made a maps dataset, as far as serving its frames again needs it (no spot checks: the rows hold
+    theirs)."""
     info = maps.info
-    options = info.get("options", {})
-    explain = ExplainOptions(
-        target=info["target"],
-        action_index=int(options.get("action_index", 0)),
-        action_dim_index=int(options.get("action_dim_index", 0)),
-        maps=tuple(info["kinds"]),
-        check_patches=0,
-        map_options=MapOptions(baseline=options.get("baseline", "mean"), ig_space=options.get("ig_space", "tokens")),
-    )
+    options = dataclasses.replace(ExplainOptions.from_json(info.options), target=info.target, check_patches=0)
     return DatasetJob(
-        source=pathlib.Path(info["source"]),
+        source=pathlib.Path(info.source),
         out=maps.root,
-        policy=spec,
-        options=explain,
-        keys=info["keys"],
-        extra=info.get("extra", {}),
-        every=int(info.get("every", 1)),
-        nested_keys=bool(info.get("nested_keys", False)),
+        model=model,
+        options=options,
+        keys=info.keys,
+        extra=info.extra,
+        every=info.every,
+        nested_keys=info.nested_keys,
     )
 
 
@@ -86,11 +80,11 @@ def _explanation(row: dict[str, Any], maps: fmt.MapsDataset) -> Explanation:
 
 
 def build_run(
-    maps: fmt.MapsDataset, policy: Policy, spec: PolicySpec, *, max_steps: int | None
+    maps: fmt.MapsDataset, policy: Policy, model: ModelSpec, *, max_steps: int | None
 ) -> tuple[pathlib.Path, collections.Counter[str]]:
     """Serves `max_steps` rows of the maps dataset again and logs them with their maps as a CAM run (replacing an
     earlier one). Returns the run directory and counts (rows evaluated, actions that did not match)."""
-    job = job_of(maps, spec)
+    job = job_of(maps, model)
     worker = EpisodeExplainer(dataclasses.replace(job, episodes=tuple(maps.episodes)), policy, mesh=None)
     table = maps.table(columns=["index", "episode_index", "frame_index"]).to_pydict()
     chosen = set(evenly(table["index"], max_steps))
@@ -100,13 +94,8 @@ def build_run(
             by_episode[episode].add(frame)
     parent = maps.root / RUN_DIR
     shutil.rmtree(parent, ignore_errors=True)  # an earlier evaluation's run is replaced
-    run_config = {
-        "config": spec.config,
-        "checkpoint_dir": spec.checkpoint_dir,
-        "dtype": spec.dtype,
-        "source": str(maps.root),
-    }
-    logger = CAMLogger(parent, run_config=run_config, checkpoint=spec.checkpoint, options={"maps": maps.kinds})
+    run_config = {**model.resolved().to_json(), "source": str(maps.root)}
+    logger = CAMLogger(parent, run_config=run_config, checkpoint=str(model.checkpoint), options=job.options.to_json())
     counts: collections.Counter[str] = collections.Counter()
     try:
         for episode, frames in sorted(by_episode.items()):

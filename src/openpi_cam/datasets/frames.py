@@ -1,7 +1,7 @@
 """A maps dataset's rows beside the frames they explain: what the overlay videos (`datasets.render`) and the Rerun
 recording (`datasets.rerun`) both draw from.
 
-The frames are decoded again from the LeRobot dataset the maps were computed from (`info["source"]`, read with
+The frames are decoded again from the LeRobot dataset the maps were computed from (`MapsInfo.source`, read with
 `data.lerobot`), only those the maps dataset lists, and each row's `index` and `frame_index` are checked against
 the source's, so a map is never drawn over another frame.
 """
@@ -34,7 +34,7 @@ def select_episodes(ds: MapsDataset, episodes: Sequence[int] | None) -> list[int
 
 def source_dataset(ds: MapsDataset, source: pathlib.Path | None = None) -> LeRobotDataset:
     """The LeRobot dataset the maps were computed from (`source` overrides the path info.json names)."""
-    path = pathlib.Path(source if source is not None else ds.info.get("source", ""))
+    path = pathlib.Path(source if source is not None else ds.info.source)
     if not path.is_dir():
         raise FileNotFoundError(f"{ds.root / 'meta/info.json'}: its source LeRobot dataset {str(path)!r} is not there")
     return open_dataset(path)
@@ -42,8 +42,8 @@ def source_dataset(ds: MapsDataset, source: pathlib.Path | None = None) -> LeRob
 
 def video_fps(ds: MapsDataset, lr: LeRobotDataset) -> fractions.Fraction:
     """One video frame per explained frame: the source's rate divided by the explain job's `every`."""
-    every = max(1, int(ds.info.get("every") or 1))
-    return fractions.Fraction(ds.info.get("source_fps") or lr.fps).limit_denominator(1001) / every
+    every = max(1, ds.info.every)
+    return fractions.Fraction(ds.info.source_fps or lr.fps).limit_denominator(1001) / every
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,7 +96,7 @@ def episode_rows(ds: MapsDataset, episode: int, kind: str) -> EpisodeRows:
 def aligned_frames(ds: MapsDataset, lr: LeRobotDataset, rows: EpisodeRows) -> Iterator[dict[str, np.ndarray]]:
     """Per row of the episode, in order: model camera -> the source's frame, uint8 [H, W, 3]. A model camera with no
     dataset feature is left out. Raises when the source does not hold exactly the rows' frames."""
-    sources = {c: f for c, f in ds.info.get("camera_sources", {}).items() if f in lr.features}
+    sources = {c: f for c, f in ds.info.camera_sources.items() if f in lr.features}
     wanted = set(rows.frame_index)
     frames = lr.frames(rows.episode, features=list(dict.fromkeys(sources.values())), frame_indices=wanted)
     count = 0

@@ -13,7 +13,7 @@ at most once. Rows join the source dataset on `index`.
 
 Columns: `index`, `episode_index`, `frame_index`, `timestamp`, `task`, `target`, `score`, `malformed`, `actions`
 (the model's action chunk, row-major), `explain_ms`; per map kind and camera `<kind>/<camera>`, the raw map as
-float32 in row-major order over the camera's patch grid (`info["grids"]`); the spot check as `check/<kind>/<camera>`
+float32 in row-major order over the camera's patch grid (`MapsInfo.grids`); the spot check as `check/<kind>/<camera>`
 (the score's drop with the kind's top patch painted) and `check/random/<camera>` (the drops of the random patches),
 with the whole check as JSON in `check`; `cameras` and `details` as JSON; `extra/<name>` for carried features.
 
@@ -37,15 +37,71 @@ import pyarrow.parquet as pq
 from openpi_cam.cam.run_format import dumps
 
 FORMAT = "openpi-cam maps dataset"
-FORMAT_VERSION = 1
+# 2: the model as the command line names it (`model`), the explanation options in one encoding (`options`).
+FORMAT_VERSION = 2
 INFO_JSON = "meta/info.json"
 SUMMARY_JSON = "meta/summary.json"
 DATA_DIR = "data"
 EPISODES_PER_CHUNK = 1000
 CHECK_RANDOM = "random"  # `check/random/<camera>`: the random patches' drops
-# info.json fields that must match for a resumed job to stay one explanation of one source.
-RESUME_KEYS = ("source", "source_version", "checkpoint", "config", "dtype", "target", "kinds", "keys", "every")
-RESUME_OPTION_KEYS = ("baseline", "ig_space", "occlusion_region", "occlusion_masks", "action_index", "check_patches")
+# info.json fields, besides the model and the explanation options, that must match to add episodes to a maps dataset.
+SOURCE_KEYS = ("source", "source_version", "recorded_actions", "keys", "every", "nested_keys")
+
+
+@dataclasses.dataclass(frozen=True)
+class MapsInfo:
+    """A maps dataset's meta/info.json: what was explained and how. JSON-only (the viewers read it without JAX):
+    `model` is a `policies.model_spec.ModelSpec` and `options` a `vocabulary.ExplainOptions` as they encode
+    themselves, with the job's `batch_size` beside the options."""
+
+    source: str  # the LeRobot dataset's folder
+    source_version: str  # its codebase_version
+    source_fps: float
+    model: dict[str, Any]
+    family: str  # pi0_fast, pi0, pi05
+    target: str  # the explained target (`dataset-actions` when the recorded chunk was explained)
+    kinds: list[str]
+    grids: dict[str, list[int]]  # model camera -> patch grid (Hp, Wp)
+    camera_sources: dict[str, str | None]  # model camera -> dataset feature (None: a synthesised camera)
+    keys: dict[str, str]  # observation key -> dataset feature
+    options: dict[str, Any]
+    recorded_actions: str | None = None  # `--target dataset-actions`: the feature of the recorded actions
+    extra: dict[str, str] = dataclasses.field(default_factory=dict)  # dataset feature -> `extra/<name>` column
+    every: int = 1
+    nested_keys: bool = False
+    scores_per_row: int = 1  # 0: one score per explained token (a list)
+
+    @property
+    def cameras(self) -> list[str]:
+        return list(self.grids)
+
+    def grid(self, camera: str) -> tuple[int, int]:
+        hp, wp = self.grids[camera]
+        return int(hp), int(wp)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"format": FORMAT, "format_version": FORMAT_VERSION, **dataclasses.asdict(self)}
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> MapsInfo:
+        """info.json as written by this or an earlier format version (version 1 named the model by `checkpoint`,
+        `config` and `dtype`, and kept some options beside the others)."""
+        data = dict(data)
+        if int(data.get("format_version", 1)) < 2:
+            data["model"] = {
+                "checkpoint_dir": data.get("checkpoint"),
+                "config": data.get("config"),
+                "dtype": data.get("dtype"),
+            }
+            data["options"] = {"target": data.get("target"), "maps": data.get("kinds"), **(data.get("options") or {})}
+        fields = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in data.items() if k in fields})
+
+    def mismatch(self, other: MapsInfo) -> list[str]:
+        """`key: old != new` for each source setting that differs (the model's and the options':
+        `cam.records.resume_mismatch`)."""
+        old, new = dataclasses.asdict(self), dataclasses.asdict(other)
+        return [f"{k}: {old[k]!r} != {new[k]!r}" for k in SOURCE_KEYS if old[k] != new[k]]
 
 
 def shard_path(episode: int) -> str:
@@ -88,10 +144,10 @@ def write_json(path: pathlib.Path, obj: Any) -> None:
     _write_atomic(path, lambda tmp: tmp.write_text(text))
 
 
-def schema(info: Mapping[str, Any]) -> pa.Schema:
+def schema(info: MapsInfo) -> pa.Schema:
     """The shards' schema, fixed by info.json: one column per map kind and camera, per spot-check figure, per extra."""
-    cameras, kinds = list(info["grids"]), list(info["kinds"])
-    score = pa.list_(pa.float64()) if info.get("scores_per_row", 1) != 1 else pa.float64()
+    cameras, kinds = info.cameras, info.kinds
+    score = pa.list_(pa.float64()) if info.scores_per_row != 1 else pa.float64()
     fields = [
         pa.field("index", pa.int64()),
         pa.field("episode_index", pa.int64()),
@@ -110,11 +166,11 @@ def schema(info: Mapping[str, Any]) -> pa.Schema:
     fields += [pa.field(map_column(k, c), pa.list_(pa.float32())) for k in kinds for c in cameras]
     fields += [pa.field(check_column(k, c), pa.float64()) for k in kinds for c in cameras]
     fields += [pa.field(check_column(CHECK_RANDOM, c), pa.list_(pa.float64())) for c in cameras]
-    fields += [pa.field(f"extra/{name}", pa.list_(pa.float64())) for name in info.get("extra", {}).values()]
+    fields += [pa.field(f"extra/{name}", pa.list_(pa.float64())) for name in info.extra.values()]
     return pa.schema(fields)
 
 
-def write_shard(root: pathlib.Path, info: Mapping[str, Any], episode: int, rows: Sequence[Mapping[str, Any]]) -> str:
+def write_shard(root: pathlib.Path, info: MapsInfo, episode: int, rows: Sequence[Mapping[str, Any]]) -> str:
     """Writes one episode's rows as its shard (atomically; an existing shard is replaced). Returns its path."""
     table = pa.Table.from_pylist([dict(r) for r in rows], schema=schema(info))
     rel = shard_path(episode)
@@ -128,36 +184,23 @@ def written_episodes(root: pathlib.Path) -> set[int]:
     return {int(p.stem.split("_")[1]) for p in data.glob("chunk-*/episode_*.parquet")} if data.is_dir() else set()
 
 
-def resume_mismatch(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
-    """The settings of this job that differ from those of the maps dataset it would add to."""
-    diffs = [f"{k}: {old.get(k)!r} != {new.get(k)!r}" for k in RESUME_KEYS if old.get(k) != new.get(k)]
-    old_options, new_options = old.get("options") or {}, new.get("options") or {}
-    diffs += [
-        f"{k}: {old_options.get(k)!r} != {new_options.get(k)!r}"
-        for k in RESUME_OPTION_KEYS
-        if old_options.get(k) != new_options.get(k)
-    ]
-    return diffs
-
-
 @dataclasses.dataclass(frozen=True)
 class MapsDataset:
     """A maps dataset opened for reading."""
 
     root: pathlib.Path
-    info: dict[str, Any]
+    info: MapsInfo
 
     @property
     def kinds(self) -> list[str]:
-        return list(self.info["kinds"])
+        return list(self.info.kinds)
 
     @property
     def cameras(self) -> list[str]:
-        return list(self.info["grids"])
+        return self.info.cameras
 
     def grid(self, camera: str) -> tuple[int, int]:
-        hp, wp = self.info["grids"][camera]
-        return int(hp), int(wp)
+        return self.info.grid(camera)
 
     @property
     def episodes(self) -> list[int]:
@@ -196,4 +239,4 @@ def open_maps_dataset(root: str | pathlib.Path) -> MapsDataset:
     root = pathlib.Path(root)
     if not is_maps_dataset(root):
         raise FileNotFoundError(f"{root} is not a maps dataset (no {INFO_JSON} with format {FORMAT!r})")
-    return MapsDataset(root, json.loads((root / INFO_JSON).read_text()))
+    return MapsDataset(root, MapsInfo.from_json(json.loads((root / INFO_JSON).read_text())))

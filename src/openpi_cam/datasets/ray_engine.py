@@ -1,4 +1,4 @@
-"""`openpi-cam explain DATASET_DIR --engine ray --workers N`: the dataset explanation on a Ray cluster.
+"""`openpi-cam explain-dataset DATASET_DIR --engine ray --workers N`: the dataset explanation on a Ray cluster.
 
 Ray Data holds the episodes still to do (one block each) and runs `map_batches` over them with a fixed pool of
 actors: each actor loads its own copy of the model once (`EpisodeExplainer`), takes one episode at a time, explains it
@@ -22,10 +22,10 @@ the same path (shared storage), since the actors read and write them directly.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import json
 import logging
 import os
-import pathlib
 import socket
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping
@@ -48,6 +48,7 @@ from openpi_cam.datasets.lerobot import DatasetError, LeRobotDataset, open_datas
 from openpi_cam.model.checkpoint import read_param_shapes
 from openpi_cam.model.config import architecture_from_params, family_of
 from openpi_cam.policies.config import resolve_config
+from openpi_cam.vocabulary import DEFAULT_TARGETS
 
 log = logging.getLogger(__name__)
 
@@ -56,26 +57,34 @@ EPISODE_RECORD = "episode_record"  # the attribute of the per-episode debug log 
 _ROW_DTYPES = {EPISODE: np.int64, "finished_at": np.float64}  # the rest of a summary row: strings
 
 
-def planned_info(dataset: LeRobotDataset, job: DatasetJob) -> dict[str, Any]:
-    """The maps dataset's info.json, made on the driver without loading the model.
+def planned(dataset: LeRobotDataset, job: DatasetJob) -> tuple[DatasetJob, fmt.MapsInfo]:
+    """The job with its target resolved, and the maps dataset's info.json, made on the driver without loading the
+    model.
 
     `job_info` needs the model's patch grid, family and cameras; the first two follow from the checkpoint's parameter
     shapes (read from its metadata, no array data) and the cameras from the config, so the driver, which may be a
-    small head node without an accelerator, never holds the weights. Every actor checks that the info its loaded model
-    gives is this one before it writes a shard (`_ExplainEpisodes`)."""
-    config = resolve_config(job.policy.config)
-    shapes = read_param_shapes(pathlib.Path(job.policy.checkpoint) / "params")
+    small head node without an accelerator, never holds the weights. A target left to the family's default is
+    resolved here, as the loaded policy resolves it. Every actor checks that the info its loaded model gives is this
+    one before it writes a shard (`_ExplainEpisodes`)."""
+    model = job.model.resolved()
+    config = resolve_config(model.config)  # type: ignore[arg-type]  (resolved() names one)
+    shapes = read_param_shapes(model.checkpoint / "params")
+    family = family_of(shapes)
     _, siglip = architecture_from_params(shapes)
-    return job_info(dataset, job, family=family_of(shapes), grid=siglip.grid, camera_sources=config.camera_sources)
+    job = dataclasses.replace(
+        job, options=dataclasses.replace(job.options, target=job.options.target or DEFAULT_TARGETS[family])
+    )
+    return job, job_info(dataset, job, family=family, grid=siglip.grid, camera_sources=config.camera_sources)
 
 
 class _ExplainEpisodes:
     """The actor of the pool: one loaded model, episodes in, one summary row per episode out (shards on disk)."""
 
-    def __init__(self, job: DatasetJob, info: Mapping[str, Any]) -> None:
+    def __init__(self, job: DatasetJob, info: fmt.MapsInfo) -> None:
         self.worker = EpisodeExplainer(job)
         if self.worker.info != info:
-            diffs = sorted(k for k in set(info) | set(self.worker.info) if info.get(k) != self.worker.info.get(k))
+            mine, planned = dataclasses.asdict(self.worker.info), dataclasses.asdict(info)
+            diffs = sorted(k for k in planned if planned[k] != mine[k])
             raise RuntimeError(
                 f"the loaded model gives another maps-dataset info than the planned one (differs in {diffs})"
             )
@@ -137,7 +146,7 @@ def run_ray(
     dataset = open_dataset(job.source)
     check_features(dataset, job)
     selected = selected_episodes(dataset, job)
-    info = planned_info(dataset, job)
+    job, info = planned(dataset, job)
     done = prepare_output(job, info)
     todo = [e for e in selected if e not in done]
     summary = JobSummary(engine="ray", workers=workers, episodes_already_written=len(selected) - len(todo))
@@ -161,13 +170,13 @@ def run_ray(
     return summary
 
 
-def _run_pool(ray: Any, job: DatasetJob, info: Mapping[str, Any], todo: list[int], workers: int) -> Iterator[dict]:
+def _run_pool(ray: Any, job: DatasetJob, info: fmt.MapsInfo, todo: list[int], workers: int) -> Iterator[dict]:
     # One block per episode and one episode per call: an episode is the unit of work and of retry, and a free actor
     # takes the next episode instead of one queued behind another actor's long episode.
     episodes = ray.data.from_items([{EPISODE: e} for e in todo], override_num_blocks=len(todo))
     results = episodes.map_batches(
         _ExplainEpisodes,
-        fn_constructor_args=(job, dict(info)),
+        fn_constructor_args=(job, info),
         batch_size=1,
         batch_format="numpy",
         compute=ray.data.ActorPoolStrategy(size=workers, max_tasks_in_flight_per_actor=1),

@@ -1,7 +1,7 @@
 """Rendering a maps dataset (`openpi-cam render MAPS_DATASET`): per episode an overlay video aligned with the
 dataset's frames, and one HTML report of the dataset-level views.
 
-The frames are decoded again from the LeRobot dataset the maps were computed from (`info["source"]`, read with
+The frames are decoded again from the LeRobot dataset the maps were computed from (`MapsInfo.source`, read with
 `data.lerobot`), frame by frame as the maps dataset lists them, and each row's `index` is checked against the
 source's (`datasets.frames`), so a video can never pair a map with another frame. Each explained frame becomes one
 video frame, the cameras side by side (the map bilinearly stretched over the frame and colour-blended,
@@ -40,13 +40,12 @@ from openpi_cam.datasets.lerobot import LeRobotDataset
 from openpi_cam.datasets.maps_dataset import MapsDataset
 from openpi_cam.datasets.views import DatasetViews, compute_views
 from openpi_cam.viz.colormap import colorize
-from openpi_cam.viz.evidence import KIND_NOTES
 from openpi_cam.viz.overlay import blend, upsample
 from openpi_cam.viz.progress import progress
 from openpi_cam.viz.render import Norm, label_font, slug
 from openpi_cam.viz.report import REPORT_STYLE, write_page
-from openpi_cam.viz.stats import DEFAULT_MAP_KIND, MAP_LABELS
 from openpi_cam.viz.video import Mp4Writer
+from openpi_cam.vocabulary import DEFAULT_MAP_KIND, MAP_KIND_INFO
 
 _BG = (24, 24, 28)
 _FG = (232, 232, 232)
@@ -293,7 +292,7 @@ def _checks_section(views: DatasetViews) -> str:
     )
     return (
         "<section id='evidence'><h2>how faithful are these maps? (spot checks stored with the frames)</h2>"
-        f"<p>{_e(KIND_NOTES.get(views.kind, ''))}</p>"
+        f"<p>{_e(MAP_KIND_INFO[views.kind].note)}</p>"
         "<p class='dim'>each frame's map was checked when it was computed: the explained score's drop with the map's "
         "top patch painted by the baseline, next to the drops of a few random patches painted alone</p>"
         f"{table}</section>"
@@ -425,9 +424,9 @@ def write_dataset_report(ds: MapsDataset, result: DatasetRenderResult, opts: Dat
     views = result.views
     info = ds.info
     facts = {
-        "source": f"{info.get('source')} (LeRobot {info.get('source_version')})",
-        "model": f"{info.get('config')} ({info.get('family')}), {info.get('checkpoint')}",
-        "target": info.get("target"),
+        "source": f"{info.source} (LeRobot {info.source_version})",
+        "model": f"{info.model.get('config')} ({info.family}), {info.model.get('checkpoint_dir') or 'bundled'}",
+        "target": info.target,
         "frames": f"{len(views.rows)} in {len(views.episodes)} episodes; {len(result.frames)} episodes rendered",
         "normalisation": "per frame (the largest value over its cameras)"
         if opts.norm == "step"
@@ -439,7 +438,7 @@ def write_dataset_report(ds: MapsDataset, result: DatasetRenderResult, opts: Dat
         REPORT_STYLE + ".prior figure{display:inline-block;margin:4px 12px 4px 0}img.strip{display:block;margin:4px 0}"
     )
     body = (
-        f"<h1>maps dataset {_e(ds.root.name)}: {_e(MAP_LABELS.get(views.kind, views.kind))} maps</h1><dl>{dl}</dl>"
+        f"<h1>maps dataset {_e(ds.root.name)}: {_e(MAP_KIND_INFO[views.kind].label)} maps</h1><dl>{dl}</dl>"
         f"{_checks_section(views)}{_prior_section(views, result.out_dir, opts)}{_ranking_section(views, result)}"
         f"{_tasks_section(views)}<h2>episodes</h2>{episodes}"
     )

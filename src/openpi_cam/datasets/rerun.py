@@ -38,10 +38,10 @@ from openpi_cam.datasets.frames import (
 from openpi_cam.datasets.maps_dataset import MapsDataset
 from openpi_cam.datasets.views import DatasetViews, compute_views
 from openpi_cam.viz.colormap import colorize
-from openpi_cam.viz.evidence import KIND_NOTES
 from openpi_cam.viz.overlay import upsample
 from openpi_cam.viz.rerun_sink import RERUN_MISSING
-from openpi_cam.viz.stats import DEFAULT_MAP_KIND, MAP_LABELS, mean_score
+from openpi_cam.viz.stats import mean_score
+from openpi_cam.vocabulary import DEFAULT_MAP_KIND, MAP_KIND_INFO
 
 FRAME_DRAW_ORDER = 0.0
 LAYER_DRAW_ORDER = 1.0  # the map is drawn above the frame
@@ -63,9 +63,9 @@ def layer_image(frame_hw: tuple[int, int], m: np.ndarray, scale: float) -> np.nd
 
 def _about(views: DatasetViews, norm: str) -> str:
     lines = [
-        f"# {MAP_LABELS.get(views.kind, views.kind)} maps of {views.info.get('source')}",
+        f"# {MAP_KIND_INFO[views.kind].label} maps of {views.info.source}",
         "",
-        KIND_NOTES.get(views.kind, ""),
+        MAP_KIND_INFO[views.kind].note,
         "",
         f"Each frame's map is drawn over it as the layer `<feature>/{views.kind}`, normalised per "
         + ("frame (its largest value over the cameras)." if norm == "step" else "recording (its largest value)."),
@@ -107,7 +107,7 @@ def write_dataset_rrd(
     chosen = select_episodes(ds, episodes)
     views = views if views is not None and views.kind == map_kind else compute_views(ds, map_kind)
     lr = source_dataset(ds, source)
-    features = {c: f for c, f in ds.info.get("camera_sources", {}).items() if f in lr.features}
+    features = {c: f for c, f in ds.info.camera_sources.items() if f in lr.features}
     dataset_max = dataset_scale(ds, map_kind, chosen) if norm == "run" else 0.0
     out_path = pathlib.Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)

@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.datasets.maps_dataset import CHECK_RANDOM, MapsDataset, check_column, map_column
+from openpi_cam.datasets.maps_dataset import CHECK_RANDOM, MapsDataset, MapsInfo, check_column, map_column
 from openpi_cam.viz.overlay import reduce_tokens
 from openpi_cam.viz.stats import camera_stats, mean_score
 
@@ -161,13 +161,18 @@ class DatasetViews:
     episodes: list[dict[str, Any]]  # ranked, oddest first
     tasks: list[dict[str, Any]]
     checks: list[dict[str, Any]]  # per kind and camera: the spot checks' summary
-    info: dict[str, Any]
+    info: MapsInfo
 
     def summary(self) -> dict[str, Any]:
         """The dataset-level views as plain JSON data."""
         k = {c: top_k(int(np.prod(self.prior[c].shape)), self.options.top_fraction) for c in self.cameras}
         return {
-            "maps_dataset": {key: self.info.get(key) for key in ("source", "source_version", "config", "target")},
+            "maps_dataset": {
+                "source": self.info.source,
+                "source_version": self.info.source_version,
+                "config": self.info.model.get("config"),
+                "target": self.info.target,
+            },
             "kind": self.kind,
             "frames": len(self.rows),
             "episodes": len(self.episodes),
@@ -379,7 +384,7 @@ def compute_views(
     return DatasetViews(
         kind=kind,
         cameras=cameras,
-        camera_sources=dict(ds.info.get("camera_sources", {})),
+        camera_sources=dict(ds.info.camera_sources),
         options=options,
         rows=rows,
         prior=prior,
@@ -389,7 +394,7 @@ def compute_views(
         episodes=ranked,
         tasks=task_rows,
         checks=check_summary(check_acc),
-        info=dict(ds.info),
+        info=ds.info,
     )
 
 

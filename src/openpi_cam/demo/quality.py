@@ -35,11 +35,11 @@ from openpi_cam.cam.run_format import load_run
 from openpi_cam.demo import bundled, task
 from openpi_cam.demo.data import Batches, load_normalize
 from openpi_cam.model.pi0_fast import Pi0FAST, init_params
-from openpi_cam.policies import demo_reach
-from openpi_cam.policies.family import Explainer, ExplainRequest, Explanation
+from openpi_cam.policies import demo_reach, model_spec
+from openpi_cam.policies.family import Explainer, Explanation
 from openpi_cam.policies.pi0_fast_family import FastExplainer
 from openpi_cam.policies.policy import InferenceTrace, Policy
-from openpi_cam.vocabulary import DEFAULT_KINDS, MAP_KINDS
+from openpi_cam.vocabulary import DEFAULT_KINDS, MAP_KINDS, ExplainOptions
 
 BASE_CAMERA = "base_0_rgb"
 EPISODES_FILE = "demo_episodes.json"  # the demo's episode outcomes, written beside the run's steps
@@ -188,7 +188,7 @@ def occlusion_figures(policy: Policy, samples: int = 40, seed: int = 4321) -> di
 
 
 def _explain(explainer: Explainer, trace: InferenceTrace, target: str) -> Explanation | None:
-    (explanation,) = explain_traces(explainer, [trace], ExplainRequest(target))  # type: ignore[arg-type]
+    (explanation,) = explain_traces(explainer, [trace], ExplainOptions(target))  # type: ignore[arg-type]
     return explanation if isinstance(explanation, Explanation) and explanation.target == target else None
 
 
@@ -209,7 +209,7 @@ def map_figures(
     rng = np.random.default_rng(seed)
     size = task.TaskConfig().image_size
     fields = ("rho", "kept", "chance", "moved", "on_block", "block_chance")
-    figures = {k: {field: [] for field in fields} for k in DEFAULT_KINDS}  # the kinds `ExplainRequest` computes
+    figures = {k: {field: [] for field in fields} for k in DEFAULT_KINDS}  # the kinds `ExplainOptions` computes
     scenes = 0
     while scenes < samples:
         scene = task.random_scene(rng)
@@ -253,7 +253,7 @@ def offline_figures(
     samples: int = 30, seed: int = 1234, target: str = "chunk", assets: Path = demo_reach.ASSETS
 ) -> dict[str, Any]:
     """The map figures, the binding probe and camera occlusion, on fresh scenes."""
-    policy = demo_reach.create_demo_policy(assets=assets)
+    policy = model_spec.create_demo_policy(assets=assets)
     batches = Batches(assets, load_normalize(assets), 1, seed)
 
     def loss(pairs: list[task.Sample]) -> np.ndarray:  # at the positions the decoder serves the action tokens at

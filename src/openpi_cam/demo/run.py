@@ -16,10 +16,10 @@ from openpi_cam.cam.run_format import dumps, load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.demo import bundled, quality, sim
 from openpi_cam.demo.client import PolicyClient
-from openpi_cam.policies import demo_reach
+from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.serving.server import start_server_in_thread
 from openpi_cam.viz.render import RenderOptions, default_render_dir, render_run
-from openpi_cam.vocabulary import MAP_KINDS, MapKind, MapOptions, Target
+from openpi_cam.vocabulary import MAP_KINDS, Baseline, IgSpace, MapKind, MapOptions, Target
 
 
 def run_episodes(url: str, episodes: int, *, seed: int, max_calls: int, execute: int) -> list[dict[str, Any]]:
@@ -50,20 +50,37 @@ DRAIN_S = 3600.0  # how long the end of a demo run may spend explaining requests
 
 @dataclasses.dataclass(frozen=True)
 class DemoOptions:
+    """What `openpi-cam demo` runs (its flags)."""
+
+    # the folder in which the CAM run directory is created.
     out: pathlib.Path = pathlib.Path("demo_runs")
-    episodes: int = 3
+    # simulated reaching episodes to drive.
+    num_episodes: int = 3
+    # inference calls per episode at most.
     max_calls: int = 6
+    # actions of each returned chunk the robot executes before asking again.
     execute: int = 5
+    # the first episode's seed (episode i uses seed + i).
     seed: int = 0
+    # what the maps explain for each inference.
     target: Target = "chunk"
+    # write overlays and the HTML report of each map kind after the run.
     render: bool = True
-    videos: bool = False
+    # with `render`, also write an MP4 and a GIF per episode.
+    videos: bool = True
+    # which bundled model serves: the tiny pi0-FAST or the tiny pi0.5 trained on the same task.
     model: Literal["pi0_fast", "pi05"] = "pi0_fast"
-    assets: pathlib.Path | None = None  # None: the bundled model of `model`
-    maps: tuple[MapKind, ...] = MAP_KINDS  # every kind, so the faithfulness table compares them all
-    faithfulness: bool = True  # re-score every step and report how faithful each map kind is
-    baseline: Literal["mean", "blur"] = "mean"  # the baseline frame of the ig / occlusion maps
-    ig_space: Literal["tokens", "pixels"] = "tokens"  # where the IG path runs (MapOptions.ig_space)
+    # the folder holding the model (checkpoint/) and its tokenizers; default: the bundled ones of `model`.
+    assets: pathlib.Path | None = None
+    # which map kinds the side channel computes (all four, so that the faithfulness table compares them).
+    maps: tuple[MapKind, ...] = MAP_KINDS
+    # re-score every step afterwards and report how faithful each map kind is.
+    faithfulness: bool = True
+    # the frame `ig` starts from and `occlusion` (and the faithfulness deletion) paints with.
+    baseline: Baseline = MapOptions.baseline
+    # where the `ig` path runs: between the SigLIP tokens of the baseline frame and the frame, or between the frames'
+    # pixels (through SigLIP).
+    ig_space: IgSpace = MapOptions.ig_space
 
 
 @dataclasses.dataclass
@@ -79,8 +96,8 @@ class DemoResult:
 def run_demo(opts: DemoOptions) -> DemoResult:
     """Serves, drives, renders and scores; raises OSError when the side channel cannot create its run directory."""
     t0 = time.time()
-    assets = demo_reach.DEFAULT_ASSETS[opts.model] if opts.assets is None else opts.assets
-    policy = demo_reach.create_demo_policy(model=opts.model, assets=assets)
+    model = ModelSpec.demo(opts.model, opts.assets)
+    policy = model.create()
     options = CAMOptions(
         every_k=1,
         cam_dir=opts.out,
@@ -88,17 +105,16 @@ def run_demo(opts: DemoOptions) -> DemoResult:
         target=opts.target,
         maps=opts.maps,
         map_options=MapOptions(baseline=opts.baseline, ig_space=opts.ig_space),
-        queue_size=max(64, opts.episodes * opts.max_calls),  # room for every request: the demo logs each one
+        queue_size=max(64, opts.num_episodes * opts.max_calls),  # room for every request: the demo logs each one
     )
-    config = demo_reach.DEMO_CONFIGS[opts.model].name
-    run_config = {"config": config, "demo": {"episodes": opts.episodes, "seed": opts.seed, "model": opts.model}}
-    checkpoint = str(assets / demo_reach.CHECKPOINT.name)
-    cam = wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=checkpoint)
+    demo = {"episodes": opts.num_episodes, "seed": opts.seed, "model": opts.model}
+    run_config = {**model.resolved().to_json(), "demo": demo}
+    cam = wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=str(model.checkpoint))
     # The demo explains every request: the drain at the end is the rest of the run's work, not a shutdown grace.
     server = start_server_in_thread(cam, metadata=policy.metadata, close_timeout=DRAIN_S)
     try:
         episodes = run_episodes(
-            server.url, opts.episodes, seed=opts.seed, max_calls=opts.max_calls, execute=opts.execute
+            server.url, opts.num_episodes, seed=opts.seed, max_calls=opts.max_calls, execute=opts.execute
         )
     finally:
         server.stop(timeout=DRAIN_S + 60)  # closes the side channel too, which drains its queue

@@ -31,7 +31,7 @@ from openpi_cam.model import pi0
 from openpi_cam.model.checkpoint import load_params, save_params
 from openpi_cam.model.config import Pi0Config, Pi0FASTConfig
 from openpi_cam.model.pi0_fast import compute_loss, init_params
-from openpi_cam.policies import demo_reach
+from openpi_cam.policies import demo_reach, model_spec
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,7 +89,7 @@ def run_episode(policy, seed: int, *, max_calls: int = 8, execute: int = 5) -> t
 
 
 def evaluate(out: Path, episodes: int, model: str, seed: int = 10_000) -> float:
-    policy = demo_reach.create_demo_policy(model=model, assets=out)
+    policy = model_spec.create_demo_policy(model=model, assets=out)
     return float(np.mean([run_episode(policy, seed + e)[0] for e in range(episodes)]))
 
 

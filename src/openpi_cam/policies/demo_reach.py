@@ -8,10 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import jax
-
 from openpi_cam.policies.config import PolicyConfig, register_config
-from openpi_cam.policies.policy import Policy, create_policy
 from openpi_cam.policies.robot import GenericInputs, GenericOutputs
 
 ASSETS = Path(__file__).resolve().parents[1] / "assets" / "demo"
@@ -80,26 +77,3 @@ DEMO_PI05_CONFIG = register_config(
 DEMO_CONFIGS = {"pi0_fast": DEMO_CONFIG, "pi05": DEMO_PI05_CONFIG}
 DEFAULT_ASSETS = {"pi0_fast": ASSETS, "pi05": ASSETS_PI05}
 DEMO_MODELS = {config.name: model for model, config in DEMO_CONFIGS.items()}  # config name -> bundled model
-
-
-def create_demo_policy(
-    *,
-    model: str = "pi0_fast",
-    assets: Path | None = None,
-    dtype: str = "float32",
-    stop_at_action_end: bool = False,
-    rng: jax.Array | None = None,
-) -> Policy:
-    """The bundled model of a family ("pi0_fast" or "pi05"; or one trained into `assets` by `python -m
-    openpi_cam.demo.train`) served through the same `create_policy` as any OpenPI checkpoint."""
-    assets = DEFAULT_ASSETS[model] if assets is None else assets
-    return create_policy(
-        DEMO_CONFIGS[model],
-        assets / CHECKPOINT.name,
-        paligemma_tokenizer=assets / PALIGEMMA_TOKENIZER.name,
-        fast_tokenizer=assets / FAST_TOKENIZER.name,
-        dtype=dtype,
-        max_decoding_steps=MAX_DECODING_STEPS,
-        stop_at_action_end=stop_at_action_end,
-        rng=rng,
-    )

@@ -20,25 +20,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from openpi_cam.model.attribution import IgCompleteness
 from openpi_cam.model.init import randomized
 from openpi_cam.model.observation import Observation
-from openpi_cam.vocabulary import DEFAULT_KINDS, MAP_KINDS, TARGETS, MapKind, MapOptions, Target
-
-
-@dataclasses.dataclass(frozen=True)
-class ExplainRequest:
-    target: Target | None = None  # None: the family's own default (`Explainer.default_target`)
-    action_index: int = 0  # pi0-FAST: which action token ("action-token"); pi0 / pi0.5: which horizon step ("action")
-    action_dim_index: int = 0  # pi0 / pi0.5: which action dimension ("action")
-    kinds: tuple[MapKind, ...] = DEFAULT_KINDS
-    # The baseline frame, IG steps and occlusion regions of the "ig" / "occlusion" kinds.
-    options: MapOptions = dataclasses.field(default_factory=MapOptions)
-
-    def __post_init__(self) -> None:
-        if self.target is not None and self.target not in TARGETS:
-            raise ValueError(f"unknown target {self.target!r}; expected one of {TARGETS}")
-        if self.action_index < 0 or self.action_dim_index < 0:
-            raise ValueError(f"action indices must be >= 0, got {self.action_index}, {self.action_dim_index}")
-        if unknown := [k for k in self.kinds if k not in MAP_KINDS]:
-            raise ValueError(f"unknown map kinds {unknown}; expected some of {MAP_KINDS}")
+from openpi_cam.vocabulary import ExplainOptions, MapOptions, Target
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,7 +67,7 @@ class Explainer(Protocol):
         self,
         observation: Observation,
         outputs: np.ndarray,
-        request: ExplainRequest,
+        request: ExplainOptions,
         sample_inputs: Mapping[str, np.ndarray],
     ) -> list[Explanation | ExplainSkipped]:
         """`observation` [B, ...], `outputs` [B, ...] (the model's raw outputs: generated token ids, or actions) and

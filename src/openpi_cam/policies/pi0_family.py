@@ -25,7 +25,6 @@ from openpi_cam.model.pi0 import Pi0
 from openpi_cam.model.pi0_maps import CHUNK, maps_for_actions, rescore_masks
 from openpi_cam.policies.config import PolicyConfig
 from openpi_cam.policies.family import (
-    ExplainRequest,
     ExplainSkipped,
     Explanation,
     ModelExplainer,
@@ -36,7 +35,7 @@ from openpi_cam.policies.family import (
 from openpi_cam.tokenizers.paligemma import load_paligemma_tokenizer
 from openpi_cam.tokenizers.pi0 import Pi0PromptTokenizer
 from openpi_cam.transforms import PadStatesAndActions, PassActions, TokenizePrompt
-from openpi_cam.vocabulary import DEFAULT_TARGETS, MapOptions
+from openpi_cam.vocabulary import DEFAULT_TARGETS, ExplainOptions, MapOptions
 
 
 class FlowExplainer(ModelExplainer):
@@ -55,7 +54,7 @@ class FlowExplainer(ModelExplainer):
         self,
         observation: Observation,
         outputs: np.ndarray,
-        request: ExplainRequest,
+        request: ExplainOptions,
         sample_inputs: Mapping[str, np.ndarray] | None = None,
     ) -> list[Explanation | ExplainSkipped]:
         request = dataclasses.replace(request, target=resolve_target(self, request.target))
@@ -69,16 +68,14 @@ class FlowExplainer(ModelExplainer):
                 reason = f"action {target} requested, the chunk is [{cfg.action_horizon}, {cfg.action_dim}]"
                 return [ExplainSkipped("action_index_out_of_range", reason)] * len(outputs)
         res = maps_for_actions(
-            self.model, observation, sample_inputs["noise"], [target], kinds=request.kinds, options=request.options
+            self.model, observation, sample_inputs["noise"], [target], kinds=request.maps, options=request.map_options
         )
         replay_diff = np.abs(res.actions - np.asarray(outputs, np.float32)).max(axis=(1, 2))
         grid = list(self.camera_grid)
         return [
             Explanation(
                 target=request.target,
-                maps={
-                    k: {c: np.asarray(m[b, 0], np.float32) for c, m in res.by_kind[k].items()} for k in request.kinds
-                },
+                maps={k: {c: np.asarray(m[b, 0], np.float32) for c, m in res.by_kind[k].items()} for k in request.maps},
                 score=float(res.score[b, 0]),
                 cameras={
                     c: {"valid": bool(res.valid[c][b]), "grid": grid, "span": list(res.spans[c])} for c in res.cameras

@@ -25,7 +25,6 @@ from openpi_cam.model.pi0_fast import Pi0FAST
 from openpi_cam.model.pi0_fast_maps import MapResult
 from openpi_cam.policies.config import PolicyConfig
 from openpi_cam.policies.family import (
-    ExplainRequest,
     ExplainSkipped,
     Explanation,
     ModelExplainer,
@@ -37,7 +36,7 @@ from openpi_cam.tokenizers.fast import FastActionTokenizer, resolve_fast_tokeniz
 from openpi_cam.tokenizers.paligemma import load_paligemma_tokenizer
 from openpi_cam.tokenizers.pi0_fast import Pi0FastTokenizer
 from openpi_cam.transforms import ExtractFASTActions, TokenizeFASTInputs
-from openpi_cam.vocabulary import DEFAULT_TARGETS, FALLBACK_TARGET, MapOptions
+from openpi_cam.vocabulary import DEFAULT_TARGETS, FALLBACK_TARGET, ExplainOptions, MapOptions
 
 TOKEN_TARGETS = ("action-token", "all-action-tokens")  # one score per explained token
 SEQUENCE_TARGETS = ("chunk", FALLBACK_TARGET)  # one score: a sum of log-probabilities
@@ -57,7 +56,7 @@ class _RowPlan:
     action_indices: list[int] | None  # which action tokens, when the target is made of them
 
 
-def _plan(tokenizer: Pi0FastTokenizer, tokens: np.ndarray, request: ExplainRequest) -> _RowPlan | ExplainSkipped:
+def _plan(tokenizer: Pi0FastTokenizer, tokens: np.ndarray, request: ExplainOptions) -> _RowPlan | ExplainSkipped:
     """What one row's request explains, or why it cannot."""
     if request.target == FALLBACK_TARGET:
         return _RowPlan(FALLBACK_TARGET, generated_steps(tokens), None)
@@ -91,7 +90,7 @@ class FastExplainer(ModelExplainer):
         self,
         observation: Observation,
         outputs: np.ndarray,
-        request: ExplainRequest,
+        request: ExplainOptions,
         sample_inputs: Mapping[str, np.ndarray] | None = None,
     ) -> list[Explanation | ExplainSkipped]:
         request = dataclasses.replace(request, target=resolve_target(self, request.target))
@@ -103,7 +102,7 @@ class FastExplainer(ModelExplainer):
         results: list[Explanation | ExplainSkipped | None] = [
             p if isinstance(p, ExplainSkipped) else None for p in plans
         ]
-        maps_args = {"kinds": request.kinds, "options": request.options}
+        maps_args = {"kinds": request.maps, "options": request.map_options}
         token_rows = [b for b, p in enumerate(plans) if isinstance(p, _RowPlan) and p.target in TOKEN_TARGETS]
         sequence_rows = [b for b, p in enumerate(plans) if isinstance(p, _RowPlan) and p.target in SEQUENCE_TARGETS]
         # Each group is one model call over the whole batch (rows outside it ride along on a harmless step), so that
@@ -121,7 +120,7 @@ class FastExplainer(ModelExplainer):
                 results[b] = self._row(res, b, plans[b], request)  # type: ignore[arg-type]
         return [r for r in results if r is not None]
 
-    def _row(self, res: MapResult, b: int, plan: _RowPlan, request: ExplainRequest) -> Explanation:
+    def _row(self, res: MapResult, b: int, plan: _RowPlan, request: ExplainOptions) -> Explanation:
         t = plan.steps.size
         if plan.target in SEQUENCE_TARGETS:
             index: Any = b
@@ -141,7 +140,7 @@ class FastExplainer(ModelExplainer):
         }
         return Explanation(
             target=plan.target,
-            maps={k: {c: np.asarray(m[index], np.float32) for c, m in res.by_kind[k].items()} for k in request.kinds},
+            maps={k: {c: np.asarray(m[index], np.float32) for c, m in res.by_kind[k].items()} for k in request.maps},
             score=score,
             cameras={
                 c: {"valid": bool(res.valid[c][b]), "grid": grid, "span": list(res.spans[c])} for c in res.cameras

@@ -21,6 +21,7 @@ from openpi_cam.letterbox import LetterboxGeometry, letterbox_geometry
 from openpi_cam.model.checkpoint import read_param_shapes
 from openpi_cam.model.config import MAX_DECODING_STEPS, family_of
 from openpi_cam.model.observation import Observation, pad_rows, stack_observations
+from openpi_cam.nested import flatten_dict
 from openpi_cam.normalize import load_checkpoint_norm_stats
 from openpi_cam.policies.config import PolicyConfig, resolve_config
 from openpi_cam.policies.family import Explainer, OutputDecoder, Sampler
@@ -56,6 +57,9 @@ class InferenceTrace:
     geometry: dict[str, LetterboxGeometry]  # where each client image sits inside the model image
     prompt: str  # the prompt before tokenisation (after default-prompt injection)
     malformed_reason: str | None  # why the generation decoded to zero actions; None if well formed
+    # the client's numeric observation values other than its images and prompt, at their `a/b` keys (e.g. the state):
+    # with the raw images and the prompt, what the client sent
+    client_inputs: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
 
     @property
     def camera_names(self) -> tuple[str, ...]:
@@ -79,6 +83,7 @@ class _Prepared:
     pre_resize_images: dict[str, np.ndarray]
     prompt: str
     camera_sources: Mapping[str, str | None]
+    client_inputs: dict[str, np.ndarray]
 
     @property
     def signature(self) -> tuple:
@@ -94,6 +99,18 @@ def _copy_containers(tree: Any) -> Any:
     if isinstance(tree, list):
         return [_copy_containers(v) for v in tree]
     return tree
+
+
+def _client_inputs(obs: Mapping[str, Any], camera_keys: set[str | None]) -> dict[str, np.ndarray]:
+    """The numeric values of a client observation other than its cameras and prompt, at `a/b` keys."""
+    out = {}
+    for key, value in flatten_dict(obs).items():
+        if key in camera_keys or key == "prompt" or isinstance(value, str | bytes):
+            continue
+        array = np.asarray(value)
+        if array.dtype.kind in "biuf":
+            out[key] = array
+    return out
 
 
 class Policy:
@@ -249,7 +266,10 @@ class Policy:
         # A leading batch axis on every leaf (jax pytree order, i.e. cameras sorted by name), as upstream.
         batched = jax.tree.map(lambda x: jnp.asarray(x)[np.newaxis, ...], inputs)
         observation = Observation.from_dict(batched)
-        return _Prepared(observation, np.asarray(batched["state"][0]), pre_resize_images, prompt, camera_sources)
+        client = _client_inputs(obs, set(camera_sources.values()))
+        return _Prepared(
+            observation, np.asarray(batched["state"][0]), pre_resize_images, prompt, camera_sources, client
+        )
 
     def _serve(
         self,
@@ -304,6 +324,7 @@ class Policy:
             geometry={c: letterbox_geometry(*images[c].shape[-3:-1], *self._resolution) for c in cameras},
             prompt=request.prompt,
             malformed_reason=reason,
+            client_inputs=request.client_inputs,
         )
         return outputs, trace
 

@@ -23,22 +23,7 @@ import numpy as np
 from openpi_cam.cam.run_evidence import REPORT_FILE, ig_summary, read_check, read_report
 from openpi_cam.cam.run_format import CAMRun
 from openpi_cam.viz.stats import StepStats
-
-# What each kind is, in a reader's words, and what that implies for reading it.
-KIND_NOTES: dict[str, str] = {
-    "gradcam": "Grad-CAM as its founding definition states it: ReLU of each image token times the mean gradient over "
-    "the camera's tokens. On the bundled demo models its top patch removed no more of the explained score than a "
-    "random patch, its peak fell on the named block at chance, and a re-initialised language model left it "
-    "correlated with itself (README, 'Which map to trust'): check this run's figures before trusting it.",
-    "gradnorm": "Gradient norm per image token: unsigned sensitivity. A hot patch is one the explained score reacts "
-    "to most; the map does not say whether the patch raises or lowers the score.",
-    "ig": "Integrated gradients from the baseline frame's tokens: signed (positive supports the explained score); "
-    "the attributions of a step add up to its score minus the baseline frame's score (completeness, checked per "
-    "step).",
-    "occlusion": "Occlusion: the drop of the explained score when one region is painted with the baseline frame and "
-    "the model re-run. It is the interventional reference the other kinds are scored against, exact for one region "
-    "at a time.",
-}
+from openpi_cam.vocabulary import MAP_KIND_INFO
 
 
 @dataclasses.dataclass(frozen=True)
@@ -223,7 +208,7 @@ def map_evidence(run: CAMRun, kind: str, stats: Sequence[StepStats]) -> MapEvide
         line += f" of the {drawn} drawn." if evaluated < drawn else "."
     return MapEvidence(
         kind=kind,
-        note=KIND_NOTES.get(kind, ""),
+        note=MAP_KIND_INFO[kind].note if kind in MAP_KIND_INFO else "",
         status=status,
         status_line=line,
         cameras=cameras,

@@ -18,8 +18,9 @@ from openpi_cam.viz.evidence import MapEvidence, map_evidence, panel_header
 from openpi_cam.viz.overlay import StepView, camera_overlay
 from openpi_cam.viz.progress import progress
 from openpi_cam.viz.report import RenderResult, StepAssets, write_report
-from openpi_cam.viz.stats import DEFAULT_MAP_KIND, MAP_LABELS, StepStats, compute_stats, step_scale, view_steps
+from openpi_cam.viz.stats import StepStats, compute_stats, step_scale, view_steps
 from openpi_cam.viz.video import Mp4Writer
+from openpi_cam.vocabulary import DEFAULT_MAP_KIND, MAP_KIND_INFO
 
 Norm = Literal["step", "run"]
 
@@ -186,7 +187,7 @@ def render_run(run: CAMRun, out_dir: pathlib.Path, opts: RenderOptions) -> Rende
     for view, st in progress(zip(steps, stats, strict=True), len(steps), "render", opts.progress):
         step = view.loaded()
         scale = run_max if opts.norm == "run" else step_scale(st)
-        norm_label = f"{MAP_LABELS[opts.map]}, normalised per {opts.norm} (max {scale:.3g})"
+        norm_label = f"{MAP_KIND_INFO[opts.map].label}, normalised per {opts.norm} (max {scale:.3g})"
         cameras = list(step.meta.cameras) or list(step.maps)
         overlays = {c: camera_overlay(step, c, scale, opts.alpha) for c in cameras}
         name = f"{st.seq:08d}"
@@ -224,7 +225,7 @@ def render_run(run: CAMRun, out_dir: pathlib.Path, opts: RenderOptions) -> Rende
         result.report = write_report(
             result,
             dict(run.manifest),
-            map_label=MAP_LABELS[opts.map],
+            map_label=MAP_KIND_INFO[opts.map].label,
             norm=opts.norm,
             step_meta=metas,
             evidence=evidence,

@@ -30,7 +30,8 @@ from openpi_cam.viz.evidence import (
     summary_rows,
 )
 from openpi_cam.viz.overlay import camera_image, camera_overlay
-from openpi_cam.viz.stats import DEFAULT_MAP_KIND, compute_stats, step_scale, view_steps
+from openpi_cam.viz.stats import compute_stats, step_scale, view_steps
+from openpi_cam.vocabulary import DEFAULT_MAP_KIND
 
 RERUN_MISSING = 'writing a Rerun recording needs rerun-sdk: pip install "openpi-cam[rerun]"'
 

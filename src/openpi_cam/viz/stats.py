@@ -21,19 +21,9 @@ import numpy as np
 
 from openpi_cam.cam.faithfulness import nuisance_mass_ratio, target_cells
 from openpi_cam.cam.run_evidence import read_check
-from openpi_cam.cam.run_format import MAP_PREFIXES, CAMStep, StepMeta, client_extra
+from openpi_cam.cam.run_format import CAMStep, StepMeta, client_extra
 from openpi_cam.viz.overlay import reduce_tokens
-
-# What render, the report and the demo draw unless told otherwise: the map that measured most faithful on the demo
-# model at the cost of one backward pass (docs/MAP_KINDS.md, "Which map to trust").
-DEFAULT_MAP_KIND = "gradnorm"
-# Display names of the map kinds (what each one is, in a figure's words).
-MAP_LABELS: dict[str, str] = {
-    "gradcam": "Grad-CAM",
-    "gradnorm": "gradient norm (unsigned sensitivity)",
-    "ig": "integrated gradients (vs baseline frame)",
-    "occlusion": "occlusion (score drop, baseline-painted)",
-}
+from openpi_cam.vocabulary import MAP_KIND_INFO
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,11 +83,11 @@ class MissingMaps(ValueError):
 
 def view_steps(steps: Iterable[CAMStep], kind: str) -> list[MapView]:
     """The steps in logging order, seen through `kind`; a run without any map of that kind is refused up front."""
-    if kind not in MAP_LABELS:
-        raise ValueError(f"unknown map kind {kind!r}; expected one of {sorted(MAP_LABELS)}")
+    if kind not in MAP_KIND_INFO:
+        raise ValueError(f"unknown map kind {kind!r}; expected one of {sorted(MAP_KIND_INFO)}")
     steps = sorted(steps, key=lambda s: s.seq)
     if steps and not any(kind in step_kinds(s) for s in steps):
-        raise MissingMaps(f"this run has no {MAP_LABELS[kind]} maps ({MAP_PREFIXES[kind]}<camera>)")
+        raise MissingMaps(f"this run has no {MAP_KIND_INFO[kind].label} maps ({MAP_KIND_INFO[kind].prefix}<camera>)")
     return [MapView(s, kind) for s in steps]
 
 

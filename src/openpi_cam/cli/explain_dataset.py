@@ -1,0 +1,118 @@
+"""`openpi-cam explain-dataset DATASET`: a LeRobot dataset (v2.1 or v3.0) into a maps dataset, on this machine or a
+Ray cluster (README, "Explaining a LeRobot dataset")."""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+import sys
+from typing import Annotated, Literal
+
+import tyro
+
+from openpi_cam.cli.explain_run import EVERY_KIND
+from openpi_cam.cli.options import BUNDLED_MODEL, ExplainFlags
+from openpi_cam.datasets.explain import (
+    DatasetJob,
+    JobSummary,
+    dataset_keys,
+    parse_pairs,
+    recorded_actions_feature,
+    run_local,
+)
+from openpi_cam.datasets.lerobot import DatasetError, parse_episodes
+from openpi_cam.datasets.ray_engine import run_ray
+from openpi_cam.errors import InvalidRequest
+from openpi_cam.policies.model_spec import ModelSpec
+from openpi_cam.viz.progress import progress as progress_bar
+from openpi_cam.vocabulary import DATASET_ACTIONS
+
+COMMAND = "explain-dataset"
+
+
+def main(
+    source: tyro.conf.Positional[pathlib.Path],
+    model: tyro.conf.OmitArgPrefixes[ModelSpec] = BUNDLED_MODEL,
+    out: pathlib.Path | None = None,
+    explanation: tyro.conf.OmitArgPrefixes[ExplainFlags] = EVERY_KIND,
+    batch_size: int = 8,
+    keys: tuple[str, ...] = (),
+    extra: tuple[str, ...] = (),
+    episodes: str | None = None,
+    every_k: Annotated[int, tyro.conf.arg(aliases=("--every",))] = 1,
+    engine: Literal["local", "ray"] = "local",
+    workers: int = 1,
+    ray_address: str | None = None,
+    keep_going: bool = False,
+    progress: bool = True,
+) -> int:
+    """Serve every selected frame of a LeRobot dataset to the policy as a robot would send it, explain it, and write
+    one parquet shard of maps per episode (a maps dataset: docs/FORMAT.md). Exit status 1 with one line on bad input
+    or bad data.
+
+    Args:
+        source: a LeRobot dataset folder (holds meta/info.json; layouts v2.1 and v3.0).
+        model: the model to explain with (default: the bundled demo model).
+        out: the maps dataset to write or add to (default: `SOURCE_NAME.maps` in the current folder).
+        explanation: what the maps explain and which kinds each frame carries (all four by default); `--target
+            dataset-actions` (pi0-FAST) explains the recorded chunk instead of the model's own.
+        batch_size: frames explained per model call, split over all local devices.
+        keys: `OBS_KEY=FEATURE` pairs feeding the policy's observation key from a dataset feature, overriding the
+            config's declared mapping key by key.
+        extra: `FEATURE=NAME` pairs carrying a dataset feature into each row as `extra/NAME`
+            (`observation.target_box=target_box` gives the pointing figures).
+        episodes: which episodes, e.g. `0,3,7-9` (default: all).
+        every_k: explain every k-th frame of each episode.
+        engine: `local` (this machine's devices) or `ray` (a Ray Data actor pool; the `ray` extra).
+        workers: Ray actors, each with its own model (one GPU each where the cluster has GPUs).
+        ray_address: an existing Ray cluster's address (default: start a local Ray instance).
+        keep_going: skip an episode with bad data (counted and named in the summary) instead of stopping.
+        progress: show progress on stderr.
+    """
+    try:
+        if workers < 1:
+            raise ValueError(f"--workers must be >= 1, got {workers}")
+        if engine == "local" and (workers != 1 or ray_address is not None):
+            raise ValueError("--workers and --ray-address run the Ray engine: add --engine ray")
+        spec = model.resolved()
+        overrides = parse_pairs(keys, "--keys")
+        mapping, nested = dataset_keys(spec.config, overrides)  # type: ignore[arg-type]  (resolved() names one)
+        options, recorded = explanation.options(), None
+        if options.target == DATASET_ACTIONS:
+            recorded = recorded_actions_feature(spec.config, overrides)  # type: ignore[arg-type]
+            if recorded is None:
+                raise ValueError(
+                    f"--target {DATASET_ACTIONS}: config {spec.config!r} declares no recorded actions; name the "
+                    "feature with --keys actions=FEATURE"
+                )
+            options = dataclasses.replace(options, target="chunk")
+        job = DatasetJob(
+            source=source,
+            out=out if out is not None else pathlib.Path(f"{source.resolve().name}.maps"),
+            model=spec,
+            options=options,
+            batch_size=batch_size,
+            recorded_actions=recorded,
+            keys=mapping,
+            extra=parse_pairs(extra, "--extra"),
+            episodes=parse_episodes(episodes),
+            every=every_k,
+            nested_keys=nested,
+            keep_going=keep_going,
+        )
+
+        def show(items: object, n: int) -> object:
+            return progress_bar(items, n, "episodes", progress)  # type: ignore[arg-type]
+
+        summary: JobSummary
+        if engine == "ray":
+            summary = run_ray(job, workers=workers, address=ray_address, progress=show)  # type: ignore[arg-type]
+        else:
+            summary = run_local(job, progress=show)  # type: ignore[arg-type]
+    except (DatasetError, FileNotFoundError, KeyError, ValueError, InvalidRequest, OSError, ImportError) as e:
+        print(f"openpi-cam {COMMAND}: {e}", file=sys.stderr)
+        return 1
+    print(f"openpi-cam {COMMAND}: wrote {job.out}: {summary.line()}", file=sys.stderr)
+    for episode, why in sorted(summary.episodes_skipped.items()):
+        print(f"openpi-cam {COMMAND}: skipped episode {episode}: {why}", file=sys.stderr)
+    return 0

@@ -1,0 +1,163 @@
+"""Which model to load: one `ModelSpec` that every command takes as the same flags, that creates the policy, and
+that runs and maps datasets record as JSON, so a run is explained or measured again with the very model that made it.
+
+No checkpoint folder names the bundled demo model of the config (`demo_reach`, the tiny pi0-FAST, by default; or
+`demo_reach_pi05`), with its own tokenizers, in float32. A checkpoint folder is loaded by `create_policy`, which
+recognises its format; without `--dtype` it computes as upstream serves (bfloat16).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+from collections.abc import Mapping
+from typing import Any, Literal
+
+import jax
+
+from openpi_cam.model.config import MAX_DECODING_STEPS
+from openpi_cam.policies import demo_reach
+from openpi_cam.policies.policy import Policy, create_policy
+
+Dtype = Literal["bfloat16", "float32"]
+# The named config a checkpoint is served with when none is given (README, "Serving your checkpoint").
+DEFAULT_CHECKPOINT_CONFIG = "pi0_fast_droid"
+DEMO_DTYPE: Dtype = "float32"  # the bundled models were trained and are measured in float32
+CHECKPOINT_DTYPE: Dtype = "bfloat16"  # upstream's `create_trained_policy`
+# What must be the same for new steps to join a run or maps dataset (tokenizer files may move between machines).
+_OUTPUT_FIELDS = ("checkpoint_dir", "config", "dtype")
+
+
+def _path(value: str | pathlib.Path | None) -> pathlib.Path | None:
+    return None if value is None else pathlib.Path(value).expanduser()
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelSpec:
+    """The model a command loads. Commands take these fields as flags (`--checkpoint-dir`, `--config`, ...)."""
+
+    # checkpoint folder: OpenPI's `params/` + `assets/<asset_id>/norm_stats.json`; default: the bundled demo model.
+    checkpoint_dir: pathlib.Path | None = None
+    # named policy config (pi0_fast_droid, pi05_droid, pi0_libero, ...); default: `demo_reach` for the bundled model,
+    # pi0_fast_droid for a checkpoint.
+    config: str | None = None
+    # PaliGemma SentencePiece model; default: the bundled model's own, else $OPENPI_DATA_HOME's (README).
+    paligemma_tokenizer: pathlib.Path | None = None
+    # FAST action tokenizer folder (pi0-FAST); default: the bundled model's own, else the Hugging Face cache's.
+    fast_tokenizer: pathlib.Path | None = None
+    # parameter and compute dtype; default: float32 for the bundled model, bfloat16 (as upstream serves) otherwise.
+    dtype: Dtype | None = None
+    # prompt used when a request has none.
+    default_prompt: str | None = None
+
+    @classmethod
+    def demo(cls, model: str = "pi0_fast", assets: pathlib.Path | None = None, dtype: Dtype | None = None) -> ModelSpec:
+        """A demo model: the bundled one of a family ("pi0_fast" or "pi05"), or one `python -m openpi_cam.demo.train`
+        wrote into `assets` (its checkpoint/ and tokenizers)."""
+        config = demo_reach.DEMO_CONFIGS[model].name
+        return cls(None if assets is None else assets / demo_reach.CHECKPOINT.name, config, dtype=dtype)
+
+    @property
+    def bundled(self) -> str | None:
+        """The bundled model this names ("pi0_fast" or "pi05"), or None for a checkpoint folder."""
+        if self.checkpoint_dir is not None:
+            return None
+        config = self.config or demo_reach.DEMO_CONFIG.name
+        if config not in demo_reach.DEMO_MODELS:
+            raise ValueError(
+                f"config {config!r} needs --checkpoint-dir (the bundled models serve {sorted(demo_reach.DEMO_MODELS)})"
+            )
+        return demo_reach.DEMO_MODELS[config]
+
+    def resolved(self) -> ModelSpec:
+        """The same model with the config and dtype defaults filled in and paths made absolute: what a run records.
+        The bundled model is `checkpoint_dir` None (its files are found wherever the package is installed), also where
+        it was named by its path (as runs made before specs were recorded name it)."""
+        demo = self.bundled is not None or self.config in demo_reach.DEMO_MODELS
+        checkpoint = None if self.checkpoint_dir is None else self.checkpoint
+        if self.config in demo_reach.DEMO_MODELS:
+            bundled_checkpoint = (
+                demo_reach.DEFAULT_ASSETS[demo_reach.DEMO_MODELS[self.config]] / demo_reach.CHECKPOINT.name
+            )
+            checkpoint = None if checkpoint == bundled_checkpoint else checkpoint
+        return ModelSpec(
+            checkpoint_dir=checkpoint,
+            config=self.config or (demo_reach.DEMO_CONFIG.name if self.bundled else DEFAULT_CHECKPOINT_CONFIG),
+            paligemma_tokenizer=None if self.paligemma_tokenizer is None else self.paligemma_tokenizer.resolve(),
+            fast_tokenizer=None if self.fast_tokenizer is None else self.fast_tokenizer.resolve(),
+            dtype=self.dtype or (DEMO_DTYPE if demo else CHECKPOINT_DTYPE),
+            default_prompt=self.default_prompt,
+        )
+
+    @property
+    def checkpoint(self) -> pathlib.Path:
+        """The folder the weights are read from (the bundled model's own for no `checkpoint_dir`)."""
+        if (model := self.bundled) is not None:
+            return demo_reach.DEFAULT_ASSETS[model] / demo_reach.CHECKPOINT.name
+        return pathlib.Path(self.checkpoint_dir).expanduser().resolve()  # type: ignore[arg-type]
+
+    def create(self, *, stop_at_action_end: bool = False, rng: jax.Array | None = None) -> Policy:
+        spec = self.resolved()
+        checkpoint, paligemma, fast = spec.checkpoint, spec.paligemma_tokenizer, spec.fast_tokenizer
+        demo = spec.config in demo_reach.DEMO_MODELS
+        if demo:  # a demo model's tokenizers ship beside its checkpoint (`demo.train` writes them there too)
+            paligemma = paligemma or checkpoint.parent / demo_reach.PALIGEMMA_TOKENIZER.name
+            fast = fast or checkpoint.parent / demo_reach.FAST_TOKENIZER.name
+        return create_policy(
+            spec.config,  # type: ignore[arg-type]  (resolved() always names one)
+            checkpoint,
+            paligemma_tokenizer=paligemma,
+            fast_tokenizer=fast,
+            dtype=spec.dtype,  # type: ignore[arg-type]
+            default_prompt=spec.default_prompt,
+            stop_at_action_end=stop_at_action_end,
+            max_decoding_steps=demo_reach.MAX_DECODING_STEPS if demo else MAX_DECODING_STEPS,
+            rng=rng,
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        return {f.name: _jsonable(getattr(self, f.name)) for f in dataclasses.fields(self)}
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> ModelSpec:
+        """The spec a run or maps dataset recorded (other keys of `data` are ignored)."""
+        return cls(
+            checkpoint_dir=_path(data.get("checkpoint_dir")),
+            config=data.get("config"),
+            paligemma_tokenizer=_path(data.get("paligemma_tokenizer")),
+            fast_tokenizer=_path(data.get("fast_tokenizer")),
+            dtype=data.get("dtype"),
+            default_prompt=data.get("default_prompt"),
+        )
+
+    def mismatch(self, recorded: Mapping[str, Any]) -> list[str]:
+        """What differs, of what determines the outputs (weights, pipeline, dtype), between this model and one a run or
+        maps dataset recorded: one `key: old != new` each."""
+        old, new = ModelSpec.from_json(recorded).resolved().to_json(), self.resolved().to_json()
+        return [f"{k}: {old[k]!r} != {new[k]!r}" for k in _OUTPUT_FIELDS if old[k] != new[k]]
+
+    def overridden_by(self, flags: ModelSpec) -> ModelSpec:
+        """This (recorded) spec with every field the command line set replacing it; a new checkpoint folder also
+        drops the recorded config and tokenizers unless they are given again."""
+        if flags.checkpoint_dir is not None and flags.checkpoint_dir != self.checkpoint_dir:
+            return flags
+        values = {
+            f.name: getattr(flags, f.name) for f in dataclasses.fields(flags) if getattr(flags, f.name) is not None
+        }
+        return dataclasses.replace(self, **values)
+
+
+def _jsonable(value: Any) -> Any:
+    return str(value) if isinstance(value, pathlib.Path) else value
+
+
+def create_demo_policy(
+    model: str = "pi0_fast",
+    *,
+    assets: pathlib.Path | None = None,
+    dtype: Dtype | None = None,
+    stop_at_action_end: bool = False,
+    rng: jax.Array | None = None,
+) -> Policy:
+    """The policy of a demo model (`ModelSpec.demo`)."""
+    return ModelSpec.demo(model, assets, dtype).create(stop_at_action_end=stop_at_action_end, rng=rng)
