@@ -64,14 +64,17 @@ def test_every_import_points_down_the_layers():
 
 
 def test_the_dataset_readers_import_nothing_of_the_package_but_its_errors():
-    """`data` sits in the lowest layer and stays usable on its own: only `openpi_cam.errors` may come in."""
+    """`data` sits in the lowest layer and stays usable on its own: only `openpi_cam.errors` may come in (its
+    modules may use each other: the writer reports errors as the reader does)."""
     paths = sorted((SRC / "openpi_cam" / "data").rglob("*.py"))
     assert paths, "no openpi_cam/data package"
     found = [
         f"{_module(path)} imports {target}"
         for path in paths
         for target, _ in _imports(path)
-        if target.startswith("openpi_cam") and target != "openpi_cam.errors"
+        if target.startswith("openpi_cam")
+        and target != "openpi_cam.errors"
+        and not target.startswith("openpi_cam.data.")
     ]
     assert not found, "\n".join(found)
 
