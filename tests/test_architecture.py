@@ -63,11 +63,15 @@ def test_every_import_points_down_the_layers():
     assert not local, "function-local imports of the package:\n" + "\n".join(local)
 
 
-def test_the_lerobot_reader_imports_nothing_of_the_package_but_its_errors():
-    """The LeRobot format reader stays usable on its own: only `openpi_cam.errors` may come in."""
-    path = SRC / "openpi_cam" / "datasets" / "lerobot.py"
+def test_the_lerobot_format_modules_import_nothing_of_the_package_but_its_errors():
+    """The LeRobot reader and writer stay usable on their own: only `openpi_cam.errors` may come in (the writer
+    reports errors as the reader does)."""
+    own = {"openpi_cam.errors", "openpi_cam.datasets.lerobot", "openpi_cam.datasets.lerobot_writer"}
     found = [
-        target for target, _ in _imports(path) if target.startswith("openpi_cam") and target != "openpi_cam.errors"
+        f"{name} imports {target}"
+        for name in ("lerobot", "lerobot_writer")
+        for target, _ in _imports(SRC / "openpi_cam" / "datasets" / f"{name}.py")
+        if target.startswith("openpi_cam") and target not in own
     ]
     assert not found, found
 

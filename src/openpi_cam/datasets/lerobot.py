@@ -51,7 +51,10 @@ class DatasetError(ValueError):
     """A dataset that cannot be read as asked. The message is one line naming the file, episode and feature."""
 
 
-def _error(problem: str, *, file: Path | str | None = None, episode: int | None = None, feature: str | None = None):
+def dataset_error(
+    problem: str, *, file: Path | str | None = None, episode: int | None = None, feature: str | None = None
+):
+    """A `DatasetError` naming where the problem is: file, episode, feature (whichever are known)."""
     where = []
     if file is not None:
         where.append(str(file))
@@ -113,7 +116,7 @@ class LeRobotDataset:
         try:
             return self.episode_info[episode]
         except KeyError:
-            raise _error("no such episode in the dataset", file=self.info_path, episode=episode) from None
+            raise dataset_error("no such episode in the dataset", file=self.info_path, episode=episode) from None
 
     def frames(
         self,
@@ -137,7 +140,9 @@ class LeRobotDataset:
                 features = [features]
             for name in features:
                 if name not in self.features and name not in ALWAYS and name != "task":
-                    raise _error("not a feature of this dataset", file=self.info_path, episode=episode, feature=name)
+                    raise dataset_error(
+                        "not a feature of this dataset", file=self.info_path, episode=episode, feature=name
+                    )
             wanted = set(features)
         wanted.update(ALWAYS)
         ordered = [name for name in self.features if name in wanted]
@@ -168,7 +173,7 @@ class LeRobotDataset:
         task_index = table.column("task_index").to_numpy()
         unknown = sorted(set(task_index.tolist()) - set(self.task_names))
         if unknown:
-            raise _error(
+            raise dataset_error(
                 f"task_index {unknown[0]} has no task string",
                 file=info.data_path,
                 episode=episode,
@@ -177,7 +182,7 @@ class LeRobotDataset:
 
         timestamps = table.column("timestamp").to_numpy().astype(np.float64)
         if np.any(np.diff(timestamps) < 0):
-            raise _error(
+            raise dataset_error(
                 "timestamps decrease with frame_index", file=info.data_path, episode=episode, feature="timestamp"
             )
         readers: dict[str, Generator[np.ndarray, None, None]] = {}
@@ -186,7 +191,7 @@ class LeRobotDataset:
                 continue
             video = info.videos.get(name)
             if video is None:
-                raise _error(
+                raise dataset_error(
                     "no video file recorded for this camera", file=self.info_path, episode=episode, feature=name
                 )
             readers[name] = self._decode_video(video, timestamps + video.from_timestamp, episode, name)
@@ -211,15 +216,15 @@ class LeRobotDataset:
         """The episode's rows of its data file, sorted by frame_index, with the columns `names` need."""
         path = info.data_path
         if not path.is_file():
-            raise _error("data file missing", file=path, episode=episode)
+            raise dataset_error("data file missing", file=path, episode=episode)
         try:
             schema = pq.read_schema(path)
         except (pa.ArrowException, OSError) as e:
-            raise _error(f"unreadable parquet ({e})", file=path, episode=episode) from e
+            raise dataset_error(f"unreadable parquet ({e})", file=path, episode=episode) from e
         wanted = [name for name in names if self.features.get(name, {}).get("dtype") != "video"]
         for name in wanted:
             if schema.get_field_index(name) < 0:
-                raise _error("column missing from the data file", file=path, episode=episode, feature=name)
+                raise dataset_error("column missing from the data file", file=path, episode=episode, feature=name)
         try:
             if self.version in V3_VERSIONS:
                 # Several episodes share a v3.0 file; row groups whose statistics rule the episode out are skipped.
@@ -227,12 +232,14 @@ class LeRobotDataset:
             else:
                 table = pq.read_table(path, columns=wanted)
         except (pa.ArrowException, OSError) as e:
-            raise _error(f"unreadable parquet ({e})", file=path, episode=episode) from e
+            raise dataset_error(f"unreadable parquet ({e})", file=path, episode=episode) from e
         frame_index = table.column("frame_index").to_numpy()
         if np.any(np.diff(frame_index) < 0):
             table = table.take(pa.array(np.argsort(frame_index, kind="stable")))
         if table.num_rows != info.length:
-            raise _error(f"{table.num_rows} rows, the episode metadata says {info.length}", file=path, episode=episode)
+            raise dataset_error(
+                f"{table.num_rows} rows, the episode metadata says {info.length}", file=path, episode=episode
+            )
         return table
 
     def _decode_image(self, column: pa.StructArray, row: int, path: Path, episode: int, name: str) -> np.ndarray:
@@ -242,7 +249,7 @@ class LeRobotDataset:
             if data is None:
                 image_path = item.get("path") if isinstance(item, dict) else None
                 if not image_path:
-                    raise _error(
+                    raise dataset_error(
                         f"frame row {row} holds neither image bytes nor a path",
                         file=path,
                         episode=episode,
@@ -256,7 +263,9 @@ class LeRobotDataset:
         except (OSError, ValueError) as e:
             if isinstance(e, DatasetError):
                 raise
-            raise _error(f"undecodable image in frame row {row} ({e})", file=path, episode=episode, feature=name) from e
+            raise dataset_error(
+                f"undecodable image in frame row {row} ({e})", file=path, episode=episode, feature=name
+            ) from e
 
     def _decode_video(
         self, video: _Video, queries: np.ndarray, episode: int, name: str
@@ -264,7 +273,7 @@ class LeRobotDataset:
         """The frame nearest to each query timestamp (seconds in the file, non-decreasing), decoding forward."""
         where: dict[str, Any] = {"file": video.path, "episode": episode, "feature": name}
         if not video.path.is_file():
-            raise _error("video file missing", **where)
+            raise dataset_error("video file missing", **where)
         # A matched frame must lie in the episode's own segment of the file: frames sit one period apart, so half a
         # period inside each end keeps the neighbouring episodes' first and last frames out, whatever rounding the
         # stored timestamps carry.
@@ -277,20 +286,20 @@ class LeRobotDataset:
         try:
             container = av.open(str(video.path))
         except (av.FFmpegError, OSError) as e:
-            raise _error(f"cannot open video ({e})", **where) from e
+            raise dataset_error(f"cannot open video ({e})", **where) from e
         self.video_opens += 1
         try:
             if not container.streams.video:
-                raise _error("no video stream in the file", **where)
+                raise dataset_error("no video stream in the file", **where)
             stream = container.streams.video[0]
             time_base = stream.time_base
             if time_base is None:
-                raise _error("video stream has no time base", **where)
+                raise dataset_error("video stream has no time base", **where)
             start = max(float(queries[0]) - self.tolerance_s, 0.0)
             try:
                 container.seek(math.floor(start / time_base), stream=stream, backward=True, any_frame=False)
             except av.FFmpegError as e:
-                raise _error(f"cannot seek to {start:.6f}s ({e})", **where) from e
+                raise dataset_error(f"cannot seek to {start:.6f}s ({e})", **where) from e
             self.video_seeks += 1
             decoded = _decoded(container, stream, where)
             before: tuple[float, Any] | None = None
@@ -300,15 +309,15 @@ class LeRobotDataset:
                     before, after = after, next(decoded, None)
                 candidates = [c for c in (before, after) if c is not None]
                 if not candidates:
-                    raise _error(f"no frame decoded for timestamp {query:.6f}s", **where)
+                    raise dataset_error(f"no frame decoded for timestamp {query:.6f}s", **where)
                 pts, frame = min(candidates, key=lambda c: abs(c[0] - query))
                 if abs(pts - query) >= self.tolerance_s:
-                    raise _error(
+                    raise dataset_error(
                         f"no frame within {self.tolerance_s:.6g}s of timestamp {query:.6f}s (nearest at {pts:.6f}s)",
                         **where,
                     )
                 if not lowest <= pts < highest:
-                    raise _error(
+                    raise dataset_error(
                         f"timestamp {query:.6f}s falls outside the episode's segment of the video {segment}",
                         **where,
                     )
@@ -326,9 +335,9 @@ def _decoded(container: Any, stream: Any, where: dict[str, Any]) -> Iterator[tup
         except StopIteration:
             return
         except av.FFmpegError as e:
-            raise _error(f"video decoding failed ({e})", **where) from e
+            raise dataset_error(f"video decoding failed ({e})", **where) from e
         if frame.pts is None:
-            raise _error("decoded a frame without a timestamp", **where)
+            raise dataset_error("decoded a frame without a timestamp", **where)
         yield float(frame.pts * stream.time_base), frame
 
 
@@ -342,13 +351,13 @@ def _values(column: pa.ChunkedArray, spec: dict | None, path: Path, episode: int
     while pa.types.is_list(flat.type) or pa.types.is_large_list(flat.type) or pa.types.is_fixed_size_list(flat.type):
         flat = flat.flatten()
     if flat.null_count:
-        raise _error("column holds nulls", file=path, episode=episode, feature=name)
+        raise dataset_error("column holds nulls", file=path, episode=episode, feature=name)
     values = flat.to_numpy(zero_copy_only=False)
     shape = tuple(int(s) for s in spec["shape"]) if spec and spec.get("shape") else None
     if shape is None:
         shape = (values.size // rows,) if rows else (1,)
     if values.size != rows * math.prod(shape):
-        raise _error(
+        raise dataset_error(
             f"{values.size} values for {rows} frames, info.json gives shape {list(shape)}",
             file=path,
             episode=episode,
@@ -398,24 +407,24 @@ def open_dataset(root: str | Path, *, tolerance_s: float | None = None) -> LeRob
     root = Path(root)
     info_path = root / "meta" / "info.json"
     if not info_path.is_file():
-        raise _error("missing meta/info.json: not a LeRobot dataset root", file=info_path)
+        raise dataset_error("missing meta/info.json: not a LeRobot dataset root", file=info_path)
     try:
         info = json.loads(info_path.read_text())
     except (OSError, ValueError) as e:
-        raise _error(f"unreadable info.json ({e})", file=info_path) from e
+        raise dataset_error(f"unreadable info.json ({e})", file=info_path) from e
     version = info.get("codebase_version")
     if version not in V2_VERSIONS + V3_VERSIONS:
-        raise _error(
+        raise dataset_error(
             f"unsupported codebase_version {version!r} (known: {', '.join(V2_VERSIONS + V3_VERSIONS)})", file=info_path
         )
     for key in ("fps", "features", "data_path"):
         if key not in info:
-            raise _error(f"no {key!r} entry", file=info_path)
+            raise dataset_error(f"no {key!r} entry", file=info_path)
     fps = int(info["fps"])
     features: dict[str, dict] = info["features"]
     videos = [name for name, spec in features.items() if spec.get("dtype") == "video"]
     if videos and not info.get("video_path"):
-        raise _error("video features but no 'video_path' template", file=info_path, feature=videos[0])
+        raise dataset_error("video features but no 'video_path' template", file=info_path, feature=videos[0])
     if version in V3_VERSIONS:
         episode_info = _v3_episodes(root, info, videos)
         task_names = _v3_tasks(root / "meta" / "tasks.parquet")
@@ -438,18 +447,18 @@ def _template(info: dict, key: str, root: Path, feature: str | None = None, **fi
     try:
         return root / info[key].format(**fields)
     except (KeyError, IndexError, ValueError, AttributeError) as e:
-        raise _error(
+        raise dataset_error(
             f"cannot fill the {key!r} template ({e!r})", file=root / "meta" / "info.json", feature=feature
         ) from e
 
 
 def _jsonl(path: Path) -> list[dict]:
     if not path.is_file():
-        raise _error("metadata file missing", file=path)
+        raise dataset_error("metadata file missing", file=path)
     try:
         return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
     except (OSError, ValueError) as e:
-        raise _error(f"unreadable JSON lines ({e})", file=path) from e
+        raise dataset_error(f"unreadable JSON lines ({e})", file=path) from e
 
 
 def _v2_episodes(root: Path, info: dict, videos: list[str]) -> dict[int, _Episode]:
@@ -458,7 +467,7 @@ def _v2_episodes(root: Path, info: dict, videos: list[str]) -> dict[int, _Episod
     episodes = {}
     for record in _jsonl(path):
         if "episode_index" not in record or "length" not in record:
-            raise _error("a line lacks episode_index or length", file=path)
+            raise dataset_error("a line lacks episode_index or length", file=path)
         index = int(record["episode_index"])
         chunk = index // chunks_size
         episodes[index] = _Episode(
@@ -480,13 +489,13 @@ def _v2_tasks(path: Path) -> dict[int, str]:
     try:
         return {int(record["task_index"]): str(record["task"]) for record in _jsonl(path)}
     except KeyError as e:
-        raise _error(f"a line lacks {e}", file=path) from e
+        raise dataset_error(f"a line lacks {e}", file=path) from e
 
 
 def _v3_episodes(root: Path, info: dict, videos: list[str]) -> dict[int, _Episode]:
     files = sorted((root / "meta" / "episodes").glob("chunk-*/file-*.parquet"))
     if not files:
-        raise _error("no episode metadata files (meta/episodes/chunk-*/file-*.parquet)", file=root / "meta")
+        raise dataset_error("no episode metadata files (meta/episodes/chunk-*/file-*.parquet)", file=root / "meta")
     required: list[tuple[str, str | None]] = [
         ("episode_index", None),
         ("length", None),
@@ -502,11 +511,11 @@ def _v3_episodes(root: Path, info: dict, videos: list[str]) -> dict[int, _Episod
             schema = pq.read_schema(path)
             for column, feature in required:
                 if schema.get_field_index(column) < 0:
-                    raise _error(f"column {column!r} missing", file=path, feature=feature)
+                    raise dataset_error(f"column {column!r} missing", file=path, feature=feature)
             present = [column for column in optional if schema.get_field_index(column) >= 0]
             table = pq.read_table(path, columns=[column for column, _ in required] + present).to_pydict()
         except (pa.ArrowException, OSError) as e:
-            raise _error(f"unreadable parquet ({e})", file=path) from e
+            raise dataset_error(f"unreadable parquet ({e})", file=path) from e
         for row, index in enumerate(table["episode_index"]):
             video_files = {}
             for key in videos:
@@ -541,11 +550,11 @@ def _v3_episodes(root: Path, info: dict, videos: list[str]) -> dict[int, _Episod
 
 def _v3_tasks(path: Path) -> dict[int, str]:
     if not path.is_file():
-        raise _error("metadata file missing", file=path)
+        raise dataset_error("metadata file missing", file=path)
     try:
         table = pq.read_table(path)
     except (pa.ArrowException, OSError) as e:
-        raise _error(f"unreadable parquet ({e})", file=path) from e
+        raise dataset_error(f"unreadable parquet ({e})", file=path) from e
     names = table.column_names
     # pandas stores its index as a column: named `task` when LeRobot names the index, `__index_level_0__` if not.
     text = next((c for c in ("task", "__index_level_0__") if c in names), None)
@@ -553,7 +562,7 @@ def _v3_tasks(path: Path) -> dict[int, str]:
         pandas_meta = json.loads((table.schema.metadata or {}).get(b"pandas", b"{}"))
         text = next((c for c in pandas_meta.get("index_columns", []) if isinstance(c, str) and c in names), None)
     if text is None or "task_index" not in names:
-        raise _error("needs a task_index column and the task strings (column or pandas index)", file=path)
+        raise dataset_error("needs a task_index column and the task strings (column or pandas index)", file=path)
     return {
         int(i): str(t)
         for i, t in zip(table.column("task_index").to_pylist(), table.column(text).to_pylist(), strict=True)
