@@ -12,12 +12,12 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any
 
 import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from openpi_cam.cam.run_format import SpotCheck
 from openpi_cam.cam.spot_check import check_trace
 from openpi_cam.model.observation import Observation, pad_rows, stack_observations
 from openpi_cam.model.sharding import BATCH_AXIS
@@ -84,7 +84,7 @@ class Explained:
     row's share of the wall time the batch's maps and checks took."""
 
     result: Explanation | ExplainSkipped
-    check: dict[str, Any] | None
+    check: SpotCheck | None
     explain_ms: float
 
 
@@ -104,7 +104,7 @@ def explain_batch(
     recorded in the check."""
     start = time.perf_counter()
     results = explain_traces(explainer, traces, options.explanation, mesh=mesh, pad_to=pad_to)
-    checks: list[dict[str, Any] | None] = [None] * len(results)
+    checks: list[SpotCheck | None] = [None] * len(results)
     if options.check_patches and any(not isinstance(r, ExplainSkipped) for r in results):
         if before_check is not None:
             before_check()

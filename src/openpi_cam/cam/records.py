@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.cam.run_format import CameraMeta, StepMeta, StepRecord
+from openpi_cam.cam.run_format import CameraMeta, SpotCheck, StepMeta, StepRecord
 from openpi_cam.policies.family import Explanation
 from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.policies.policy import InferenceTrace
@@ -121,7 +121,7 @@ def step_record(
     save_frames: SaveFrames,
     extra: Mapping[str, Any],
     explain_ms: float,
-    check: Mapping[str, Any] | None = None,
+    check: SpotCheck | None = None,
 ) -> StepRecord:
     """The logger record of one explained inference, in the layout docs/FORMAT.md describes; `extra`: the client's
     `cam_extra/` values (numeric arrays go to the step file, the rest to `StepMeta.extra`); `check`: its spot check
@@ -154,7 +154,7 @@ def step_record(
         explain_ms=round(explain_ms, 3),
         extra=extra_values,
         extra_arrays=tuple(sorted(extra_arrays)),  # stored as `extra/<key>` in the step file
-        check=None if check is None else dict(check),
+        check=check,
         details=dict(explanation.details),
     )
     return StepRecord(

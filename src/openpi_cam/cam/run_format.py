@@ -194,6 +194,80 @@ def _list(value: tuple[Any, ...] | None) -> list[Any] | None:
 
 
 @dataclasses.dataclass(frozen=True)
+class CameraCheck:
+    """One camera's spot check (`meta.check.cameras.<camera>`, `cam.spot_check`)."""
+
+    score: float  # the explained score, nothing painted
+    top_patch: dict[str, int]  # kind -> row-major index of the map's highest cell
+    top_patch_drop: dict[str, float]  # kind -> score minus the score with that patch alone painted
+    random_patches: tuple[int, ...]
+    random_patch_drops: tuple[float, ...]
+
+    @classmethod
+    def from_json(cls, value: Any) -> CameraCheck:
+        d = dict(value) if isinstance(value, Mapping) else {}
+        top, drop = d.get("top_patch") or {}, d.get("top_patch_drop") or {}
+        return cls(
+            score=float(d.get("score", math.nan)),
+            top_patch={str(k): int(v) for k, v in top.items() if _number(v)},
+            top_patch_drop={str(k): float(v) for k, v in drop.items() if _number(v)},
+            random_patches=tuple(int(i) for i in d.get("random_patches") or ()),
+            random_patch_drops=tuple(float(x) for x in d.get("random_patch_drops") or ()),
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "score": self.score,
+            "top_patch": dict(self.top_patch),
+            "top_patch_drop": dict(self.top_patch_drop),
+            "random_patches": list(self.random_patches),
+            "random_patch_drops": list(self.random_patch_drops),
+        }
+
+    def drops(self, kind: str) -> tuple[float, tuple[float, ...]] | None:
+        """(the kind's top patch's drop, the random patches' drops), or None when the kind was not checked. A random
+        draw of the kind's own top patch is left out: it is no competitor, and without it a top patch no better than
+        a random one beats the R' others with probability 1 / (R' + 1)."""
+        if kind not in self.top_patch_drop:
+            return None
+        own = self.top_patch.get(kind)
+        pairs = zip(self.random_patches, self.random_patch_drops, strict=False)
+        return self.top_patch_drop[kind], tuple(d for i, d in pairs if i != own)
+
+
+@dataclasses.dataclass(frozen=True)
+class SpotCheck:
+    """A step's spot check (`meta.check`): per valid camera its figures, or why it was skipped."""
+
+    patches: int = 0  # random patches per camera
+    seed: int = 0
+    cameras: dict[str, CameraCheck] = dataclasses.field(default_factory=dict)
+    skipped: str | None = None  # why there are no figures (e.g. "multi_score_target", "failed_<Error>")
+    error: str | None = None  # the first 200 characters of a failure's message
+
+    @classmethod
+    def from_json(cls, value: Any) -> SpotCheck:
+        d = dict(value) if isinstance(value, Mapping) else {}
+        cameras = d.get("cameras") if isinstance(d.get("cameras"), Mapping) else {}
+        return cls(
+            patches=int(d.get("patches", 0)),
+            seed=int(d.get("seed", 0)),
+            cameras={str(c): CameraCheck.from_json(v) for c, v in cameras.items()},
+            skipped=_str_or_none(d.get("skipped")),
+            error=_str_or_none(d.get("error")),
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        if self.skipped is not None:
+            return {"skipped": self.skipped, **({} if self.error is None else {"error": self.error})}
+        return {
+            "patches": self.patches,
+            "seed": self.seed,
+            "cameras": {c: v.to_json() for c, v in self.cameras.items()},
+        }
+
+
+@dataclasses.dataclass(frozen=True)
 class CameraMeta:
     """One camera of a logged step (`meta.cameras.<camera>`, docs/FORMAT.md)."""
 
@@ -255,7 +329,7 @@ class StepMeta:
     explain_ms: float | None = None
     extra: dict[str, Any] = dataclasses.field(default_factory=dict)  # `cam_extra/` values other than numeric arrays
     extra_arrays: tuple[str, ...] = ()  # the `cam_extra/` keys stored as `extra/<key>` arrays
-    check: dict[str, Any] | None = None  # the spot check (`cam.spot_check`); None when it was off
+    check: SpotCheck | None = None  # the spot check (`cam.spot_check`); None when it was off
     details: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     @classmethod
@@ -280,7 +354,7 @@ class StepMeta:
             explain_ms=_float_or_none(d.get("explain_ms")),
             extra=dict(extra) if isinstance(extra, Mapping) else {},
             extra_arrays=_strs(d.get("extra_arrays")) or (),
-            check=dict(check) if isinstance(check, Mapping) else None,
+            check=SpotCheck.from_json(check) if isinstance(check, Mapping) else None,
             details={k: v for k, v in d.items() if k not in _STEP_FIELDS},
         )
 
@@ -300,7 +374,7 @@ class StepMeta:
             "extra": self.extra,
             "extra_arrays": list(self.extra_arrays),
         }
-        return written | body | ({} if self.check is None else {"check": self.check})
+        return written | body | ({} if self.check is None else {"check": self.check.to_json()})
 
     def explained(self) -> dict[str, Any]:
         """What the model family wrote about its explanation, with the target: what `Explainer.rescore` reads."""

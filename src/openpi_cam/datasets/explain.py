@@ -21,7 +21,7 @@ import numpy as np
 
 from openpi_cam.cam.batching import data_mesh, explain_batch
 from openpi_cam.cam.records import resume_mismatch
-from openpi_cam.cam.run_format import dumps
+from openpi_cam.cam.run_format import SpotCheck, dumps
 from openpi_cam.datasets import maps_dataset as fmt
 from openpi_cam.datasets.lerobot import DatasetError, LeRobotDataset, open_dataset
 from openpi_cam.nested import unflatten_dict
@@ -168,7 +168,7 @@ def frame_row(
     trace: InferenceTrace,
     explanation: Explanation,
     response: Mapping[str, Any],
-    check: Mapping[str, Any] | None,
+    check: SpotCheck | None,
     *,
     info: fmt.MapsInfo,
     job: DatasetJob,
@@ -197,18 +197,18 @@ def frame_row(
             }
         ),
         "details": dumps(explanation.details),
-        "check": None if check is None else dumps(check),
+        "check": None if check is None else dumps(check.to_json()),
     }
     for kind in info.kinds:
         for camera in info.cameras:
             m = explanation.maps.get(kind, {}).get(camera)
             row[fmt.map_column(kind, camera)] = None if m is None else _flat(m)
-    check_cameras = (check or {}).get("cameras", {})
+    check_cameras = {} if check is None else check.cameras
     for camera in info.cameras:
-        figures = check_cameras.get(camera, {})
+        figures = check_cameras.get(camera)
         for kind in info.kinds:
-            row[fmt.check_column(kind, camera)] = figures.get("top_patch_drop", {}).get(kind)
-        row[fmt.check_column(fmt.CHECK_RANDOM, camera)] = figures.get("random_patch_drops")
+            row[fmt.check_column(kind, camera)] = None if figures is None else figures.top_patch_drop.get(kind)
+        row[fmt.check_column(fmt.CHECK_RANDOM, camera)] = None if figures is None else list(figures.random_patch_drops)
     for feature, name in job.extra.items():
         row[f"extra/{name}"] = _flat(frame[feature], np.float64)
     return row

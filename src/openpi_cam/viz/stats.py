@@ -23,6 +23,7 @@ from openpi_cam.cam.faithfulness import nuisance_mass_ratio, target_cells
 from openpi_cam.cam.run_evidence import read_check
 from openpi_cam.cam.run_format import CAMStep, StepMeta, client_extra
 from openpi_cam.viz.overlay import reduce_tokens
+from openpi_cam.viz.text import finite_mean
 from openpi_cam.vocabulary import MAP_KIND_INFO
 
 
@@ -273,11 +274,6 @@ def to_rows(stats: Sequence[StepStats]) -> list[dict[str, Any]]:
     return rows
 
 
-def _mean(values: Iterable[float]) -> float | None:
-    v = [x for x in values if x is not None and not math.isnan(x)]
-    return float(np.mean(v)) if v else None
-
-
 def aggregate(stats: Sequence[StepStats]) -> dict[str, Any]:
     """Run-level summary: per camera mean share/entropy, peak-stay rate, mean shift, and dominance counts."""
     cams = camera_names(stats)
@@ -288,17 +284,17 @@ def aggregate(stats: Sequence[StepStats]) -> dict[str, Any]:
         stayed = [x.peak_stayed for x in cs if x.peak_stayed is not None]
         per_camera[c] = {
             "valid_steps": sum(x.valid for x in cs),
-            "mean_share": _mean(x.share for x in cs if x.valid),
-            "mean_entropy": _mean(x.entropy for x in cs),
-            "mean_entropy_norm": _mean(x.entropy_norm for x in cs),
-            "mean_peak_shift": _mean(x.peak_shift for x in cs),
+            "mean_share": finite_mean(x.share for x in cs if x.valid),
+            "mean_entropy": finite_mean(x.entropy for x in cs),
+            "mean_entropy_norm": finite_mean(x.entropy_norm for x in cs),
+            "mean_peak_shift": finite_mean(x.peak_shift for x in cs),
             "peak_stay_rate": float(np.mean(stayed)) if stayed else None,
             "dominant_steps": dominant.count(c),
         }
     return {
         "steps": len(stats),
         "connections": len({st.connection for st in stats}),
-        "mean_score": _mean(st.score for st in stats),
+        "mean_score": finite_mean(st.score for st in stats),
         "cameras": per_camera,
     }
 
