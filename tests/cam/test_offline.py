@@ -38,8 +38,10 @@ from openpi_cam.cam.offline import (
 from openpi_cam.cam.run_format import StepRecord, load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.cli import explain_run
+from openpi_cam.cli.options import ExplainFlags
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import ExplainSkipped, Explanation
+from openpi_cam.policies.libero import make_libero_example
 from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.serving import RequestContext
 from openpi_cam.vocabulary import ExplainOptions
@@ -373,7 +375,9 @@ _DATA_PARALLEL = textwrap.dedent(
     from cam_support import demo_obs, policy_part
     from openpi_cam.cam.batching import data_mesh, explain_traces, shard_batch
     from openpi_cam.model.observation import stack_observations
-    from openpi_cam.policies import demo_reach
+    from openpi_cam.cli.options import ExplainFlags
+from openpi_cam.policies import demo_reach
+from openpi_cam.policies.libero import make_libero_example
     from openpi_cam.policies.family import ExplainOptions
 
     policy = model_spec.create_demo_policy()
@@ -429,3 +433,49 @@ def test_data_parallel_over_two_host_devices_matches_one_device(tmp_path):
             _assert_maps_close(spmd, single, f"row {b} {kind}")
     rows = [out[f"single/{b}/gradnorm/base_0_rgb"] for b in range(3)]
     assert not np.allclose(rows[0], rows[1]) and not np.allclose(rows[1], rows[2])  # rows cannot be swapped unseen
+
+
+def _served_run(policy: Any, observations: list[dict], cam_dir: pathlib.Path, run_config: dict) -> pathlib.Path:
+    """A run the side channel wrote while serving `observations` (raw frames kept), with their responses."""
+    cam = wrap_policy_with_cam(policy, CAMOptions(every_k=1, cam_dir=cam_dir, save_frames="both", maps=("gradnorm",),
+                                                  check_patches=0), run_config=run_config)  # fmt: skip
+    actions = [cam.infer(obs, RequestContext("robot", i))["actions"] for i, obs in enumerate(observations)]
+    cam.close(timeout=None)
+    assert_pairwise_different(actions)  # identity below means the replay served each request's own actions
+    return cam.run_dir
+
+
+REPLAYED_FAMILIES = [
+    pytest.param("pi0_fast", id="pi0_fast"),
+    pytest.param("pi05", id="pi05"),
+    pytest.param("pi0", id="pi0", marks=pytest.mark.slow),
+]
+
+
+@pytest.mark.parametrize("family", REPLAYED_FAMILIES)
+def test_a_served_run_replays_through_explain_run_with_its_own_actions(family, demo_policy, golden_dir, tmp_path):
+    """`explain-run RUN_DIR` of a run `serve` wrote with raw frames: every step is served again with the model the run
+    records, the client's other inputs (the state) and the step's noise, and returns the very output it recorded
+    (exit 0, every step compared). pi0.5 and pi0 draw their noise at random: a replay that drew its own would
+    mismatch."""
+    if family == "pi0":  # upstream's tiny pi0 LIBERO policy
+        root = golden_dir / "tiny_policy_pi0_libero"
+        model = ModelSpec(root / "checkpoint", "pi0_libero", root / "paligemma_tokenizer_tiny.model", dtype="float32")
+        policy = model.create()
+        observations = [make_libero_example(seed=seed) for seed in (3, 4, 5)]
+    else:
+        model = ModelSpec.demo(family)
+        policy = demo_policy if family == "pi0_fast" else model.create()
+        observations = [policy_part(demo_obs(seed)) for seed in (3, 4, 5)]
+    run_dir = _served_run(policy, observations, tmp_path / "served", model.resolved().to_json())
+    assert set(load_run(run_dir).steps[0].client_inputs) == set(_numeric_keys(observations[0]))
+    rc = explain_run.main(run_dir, out=tmp_path / "replayed", explanation=ExplainFlags(maps=("gradnorm",)),
+                          progress=False)  # fmt: skip
+    assert rc == 0
+    (replayed,) = (tmp_path / "replayed").iterdir()
+    counters = load_run(replayed).manifest["counters"]["external"]
+    assert counters["actions_compared"] == len(observations) and counters["actions_mismatched"] == 0
+
+
+def _numeric_keys(obs: dict) -> list[str]:
+    return [k for k, v in obs.items() if k != "prompt" and np.asarray(v).dtype.kind in "biuf" and np.ndim(v) < 3]
