@@ -29,6 +29,8 @@ from paths import GOLDEN_DIR, REPO_ROOT, SHARED_DIR
 from real_clients import http_get
 from serve_process import START_TIMEOUT_S, free_port, stop
 
+from openpi_cam.datasets.lerobot import open_dataset
+
 README = REPO_ROOT / "README.md"
 BIN = Path(sys.prefix) / "bin"
 DROID = GOLDEN_DIR / "tiny_policy_droid"
@@ -122,7 +124,7 @@ def _first_command(ctx: Context, command: str) -> None:
     shell(ctx, run)
     (run_dir,) = (ctx.workdir / "demo_out").iterdir()
     assert (run_dir / "faithfulness.json").is_file() and list(run_dir.glob("render-*/index.html"))
-    assert list(run_dir.glob("render-*/*.mp4")), "the demo writes its videos by default"
+    assert list(run_dir.glob("render-*/**/*.mp4")), "the demo writes its videos by default"
 
 
 def _test_command(ctx: Context, command: str) -> None:
@@ -136,7 +138,10 @@ def _test_command(ctx: Context, command: str) -> None:
 def _serving(ctx: Context, command: str, requests: int = 1) -> None:
     """A serve command until /healthz answers, the README's client snippet against it, then SIGTERM (exit 0)."""
     port = free_port()
-    args = shlex.split(substituted(ctx, command, port).replace("--port", "--host 127.0.0.1 --port", 1))
+    args = shlex.split(substituted(ctx, command, port))
+    if "--port" not in args:  # the README's default port, 8000
+        args += ["--port", str(port)]
+    args += ["--host", "127.0.0.1"]
     log_path = ctx.workdir / f"serve-{port}.log"
     with log_path.open("w") as log:
         proc = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT, cwd=ctx.workdir)
@@ -230,7 +235,8 @@ def _explain_dataset(ctx: Context, command: str) -> None:
 def _dataset_views(ctx: Context, command: str) -> None:
     shell(ctx, command)
     views = json.loads((ctx.workdir / "views.json").read_text())
-    assert views["summary"]["frames"] == 4 * 55
+    dataset = open_dataset(SHARED_DIR / "lerobot" / "demo_reach_v30_video")
+    assert views["summary"]["frames"] == sum(dataset.episode_length(e) for e in range(4))
 
 
 def _dataset_render(ctx: Context, command: str) -> None:
