@@ -57,7 +57,7 @@ def preprocess_observation(
     obs: Observation, image_resolution: tuple[int, int], image_keys: Sequence[str] | None = None
 ) -> Observation:
     """Inference-time preprocessing as upstream: resize-with-pad images that are not at the model resolution and
-    default missing image masks to True. `image_keys` (upstream's pi0 / pi0.5 pass `IMAGE_KEYS`) fixes which cameras
+    default missing image masks to True. `image_keys` (pi0 / pi0.5 pass their config's cameras) fixes which cameras
     the model sees and in which order; None keeps the observation's own (pi0-FAST passes its dict order)."""
     batch_shape = obs.state.shape[:-1]
     if image_keys is not None and (missing := [k for k in image_keys if k not in obs.images]):
