@@ -448,15 +448,28 @@ def save_safetensors_params(
     *,
     prefix: str = LEROBOT_PREFIX,
     dtype: str = "float32",
+    lm_heads: bool = False,
     metadata: Mapping[str, str] | None = None,
 ) -> pathlib.Path:
     """Writes an OpenPI pi0 / pi0.5 tree as the PyTorch checkpoint `load_safetensors_params` reads back (keys under
-    `prefix`: LeRobot's `model.`, or "" for OpenPI's export; the embedding as `embed_tokens` only)."""
+    `prefix`: LeRobot's `model.`, or "" for OpenPI's export; the embedding as `embed_tokens`). `lm_heads` adds the
+    two LM heads LeRobot's module holds and its strict loader requires: PaliGemma's (the embedding table again) and
+    the expert's (unused by the policy: zeros)."""
     flat = {k: np.asarray(v) for k, v in flatten_dict(dict(params)).items()}
     entries = {prefix + e.key: e for e in _layout(cfg, LM + "embed_tokens.weight")}
+    shapes = {k: e.shape for k, e in entries.items()}
+    vocab = cfg.gemma.vocab_size
+    heads = {
+        prefix + PG + "lm_head.weight": (vocab, cfg.gemma.width),
+        prefix + EX + "lm_head.weight": (vocab, cfg.expert.width),
+    }
+    if lm_heads:
+        shapes |= heads
 
     def tensor(key: str) -> np.ndarray:
-        entry = entries[key]
+        if key == prefix + EX + "lm_head.weight":
+            return np.zeros(heads[key], np.float32)
+        entry = entries[key if key not in heads else prefix + LM + "embed_tokens.weight"]
         return entry.conv.save(flat[entry.target][entry.index])
 
-    return write_safetensors(path, {k: e.shape for k, e in entries.items()}, dtype, tensor, metadata=metadata)
+    return write_safetensors(path, shapes, dtype, tensor, metadata=metadata)
