@@ -33,7 +33,7 @@ from openpi_cam.image_tools import resize_with_pad_torch_bilinear
 from openpi_cam.letterbox import letterbox_geometry
 from openpi_cam.model.config import Pi0Config
 from openpi_cam.model.pi0 import MAX_PERIOD, MIN_PERIOD, Pi0
-from openpi_cam.model.safetensors_weights import HeadCounts
+from openpi_cam.model.safetensors_weights import LEROBOT_HEADS, HeadCounts
 from openpi_cam.policies.checkpoint_format import CONFIG_FILE, POSTPROCESSOR_FILE, PREPROCESSOR_FILE, WEIGHTS_FILE
 from openpi_cam.policies.family import Sampler
 from openpi_cam.policies.pi0_family import FlowExplainer, flow_sampler
@@ -216,7 +216,7 @@ def read_head_counts(folder: Path) -> HeadCounts:
     LeRobot's defaults."""
     path = folder / SIZES_RECORD
     if not path.is_file():
-        return HeadCounts()
+        return LEROBOT_HEADS
     try:
         tiny = json.loads(path.read_text())["tiny"]
         gemma = {int(tiny[stack]["num_heads"]) for stack in ("vlm", "expert")}
