@@ -239,3 +239,15 @@ def demo_observations(demo_policy) -> list[dict[str, Any]]:
         for j in range(i):
             assert not np.array_equal(actions[i], actions[j]), f"demo observations {i} and {j} give the same actions"
     return observations
+
+
+@pytest.fixture(scope="session")
+def demo_pi05_lerobot(tmp_path_factory) -> Path:
+    """The bundled pi0.5 exported as a LeRobot policy folder (`openpi-cam export --to lerobot --config
+    demo_reach_pi05`): a LeRobot checkpoint that has learned the demo task, with the demo datasets' feature names."""
+    from openpi_cam.cli import export
+    from openpi_cam.policies.model_spec import ModelSpec
+
+    out = tmp_path_factory.mktemp("lerobot") / "demo_pi05"
+    assert export.main(out, ModelSpec(config="demo_reach_pi05")) == 0
+    return out

@@ -39,7 +39,9 @@ PI05_DROID = GOLDEN_DIR / "tiny_policy_pi05_droid"
 CHECKPOINTS = {"~/ckpt/pi0_fast_droid": DROID, "~/ckpt/pi05_droid": PI05_DROID}
 PALIGEMMA = "~/.cache/openpi/big_vision/paligemma_tokenizer.model"
 FAST = "~/hf/fast"
-CLIENT_MARK = "websocket_client_policy"  # the README's robot-side snippet
+# The README's robot-side snippets: a DROID robot's (OpenPI checkpoints) and a LeRobot policy's (its feature names).
+CLIENT_MARKS = {"droid": "observation/exterior_image_1_left", "lerobot": "observation.images.base"}
+LEROBOT_FOLDER = "demo_pi05_lerobot"  # what the README's export command writes
 COMMAND_TIMEOUT_S = 900
 
 
@@ -68,7 +70,7 @@ class Context:
     """What the steps share: the working folder and what earlier commands made."""
 
     workdir: Path
-    client: str  # the README's robot-side snippet
+    clients: dict[str, str]  # the README's robot-side snippets, by `CLIENT_MARKS`' names
     run: Path | None = None  # the side channel's run (`cam_runs/<run>`)
 
 
@@ -147,11 +149,13 @@ def _serving(ctx: Context, command: str, requests: int = 1) -> None:
         proc = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT, cwd=ctx.workdir)
         try:
             _wait_healthy(proc, port, log_path)
-            script = substituted(ctx, ctx.client, port) + "\nimport json; print(json.dumps(list(actions.shape)))\n"
+            lerobot = LEROBOT_FOLDER in command
+            client = ctx.clients["lerobot" if lerobot else "droid"]
+            script = substituted(ctx, client, port) + "\nimport json; print(json.dumps(list(actions.shape)))\n"
             for _ in range(requests):
                 shape = run_client(script)
-            horizon = 15 if "pi05_droid" in command else 10
-            assert shape == [horizon, 8], shape
+            expected = [10, 2] if lerobot else [15 if "pi05_droid" in command else 10, 8]
+            assert shape == expected, shape
             stop(proc, log_path)
         finally:
             if proc.poll() is None:
@@ -172,7 +176,7 @@ def _wait_healthy(proc: subprocess.Popen, port: int, log_path: Path) -> None:
 
 
 def _client_snippet(ctx: Context, source: str) -> None:
-    assert source == ctx.client  # run against each serve command, above and below it
+    assert source in ctx.clients.values()  # run against each serve command, above and below it
 
 
 def _side_channel(ctx: Context, command: str) -> None:
@@ -221,6 +225,11 @@ def _explain_run(ctx: Context, command: str) -> None:
 
 def _explain_dataset(ctx: Context, command: str) -> None:
     shell(ctx, command)
+    if LEROBOT_FOLDER in command:  # every episode, with the LeRobot folder's own feature names
+        info = json.loads((ctx.workdir / "lerobot_pi05.maps" / "meta" / "info.json").read_text())
+        assert info["model"]["config"] is None and info["keys"]["observation.state"] == "observation.state"
+        assert len(list((ctx.workdir / "lerobot_pi05.maps").glob("data/*/*.parquet"))) == 8
+        return
     out = ctx.workdir / ("ray.maps" if "--engine ray" in command else "demo_reach_v30_video.maps")
     shards = sorted(out.glob("data/*/*.parquet"))
     assert [p.name for p in shards] == [f"episode_{e:06d}.parquet" for e in range(4)]
@@ -234,9 +243,21 @@ def _explain_dataset(ctx: Context, command: str) -> None:
 
 def _dataset_views(ctx: Context, command: str) -> None:
     shell(ctx, command)
-    views = json.loads((ctx.workdir / "views.json").read_text())
+    lerobot = "lerobot_views" in command
+    views = json.loads((ctx.workdir / ("lerobot_views.json" if lerobot else "views.json")).read_text())
     dataset = open_dataset(SHARED_DIR / "lerobot" / "demo_reach_v30_video")
-    assert views["summary"]["frames"] == sum(dataset.episode_length(e) for e in range(4))
+    episodes = dataset.episodes if lerobot else range(4)
+    assert views["summary"]["frames"] == sum(dataset.episode_length(e) for e in episodes)
+
+
+def _golden(ctx: Context, command: str) -> None:
+    done = shell(ctx, command)
+    assert " 0 failed" in done.stdout + done.stderr
+
+
+def _export(ctx: Context, command: str) -> None:
+    shell(ctx, command)
+    assert json.loads((ctx.workdir / LEROBOT_FOLDER / "config.json").read_text())["type"] == "pi05"
 
 
 def _dataset_render(ctx: Context, command: str) -> None:
@@ -255,7 +276,7 @@ STEPS = (
     Step(r"python3 -m venv \.venv && \.venv/bin/pip install -e \. && \.venv/bin/openpi-cam demo .*", _first_command),
     Step(r'python3 -m venv \.venv && \.venv/bin/pip install -e "\.\[dev\]" && .* -m pytest -q', _test_command),
     Step(r"\.venv/bin/openpi-cam serve --config \w+ --checkpoint-dir .* --port 8000", _serving),
-    Step(CLIENT_MARK, _client_snippet, "python"),
+    Step("|".join(CLIENT_MARKS.values()), _client_snippet, "python"),
     Step(r"\.venv/bin/openpi-cam serve .* --cam\.every-k 1 .*", _side_channel),
     Step(r"np\.load\(\"cam_runs/<run>/steps", _numpy_snippet, "python"),
     Step(r"\.venv/bin/openpi-cam faithfulness cam_runs/<run>", _faithfulness),
@@ -263,7 +284,10 @@ STEPS = (
     Step(r"\.venv/bin/openpi-cam stats cam_runs/<run> --map gradnorm --format csv > stats\.csv", _stats),
     Step(r"\.venv/bin/openpi-cam explain-run cam_runs/<run> .*", _explain_run),
     Step(r"\.venv/bin/openpi-cam explain-dataset \.\./shared/lerobot/demo_reach_v30_video .*", _explain_dataset),
-    Step(r"\.venv/bin/openpi-cam stats demo_reach_v30_video\.maps --format json > views\.json", _dataset_views),
+    Step(r"\.venv/bin/openpi-cam stats \w+\.maps --format json > \w+\.json", _dataset_views),
+    Step(r"\.venv/bin/openpi-cam golden \.\./shared/golden/lerobot_pi05_tiny", _golden),
+    Step(r"\.venv/bin/openpi-cam export --to lerobot --config demo_reach_pi05 --out demo_pi05_lerobot", _export),
+    Step(r"\.venv/bin/openpi-cam serve --checkpoint-dir demo_pi05_lerobot --port 8000", _serving),
     Step(r"\.venv/bin/openpi-cam render demo_reach_v30_video\.maps --map gradnorm", _dataset_render),
     Step(r"\.venv/bin/openpi-cam faithfulness demo_reach_v30_video\.maps --max-steps 16", _dataset_faithfulness),
 )  # fmt: skip
@@ -288,8 +312,11 @@ def test_readme_commands_run_as_written(tmp_path):
     workdir = tmp_path / "work"
     workdir.mkdir()
     items = readme_items()
-    (client,) = [text for kind, text in items if kind == "python" and CLIENT_MARK in text]
-    ctx = Context(workdir, client=client)
+    clients = {
+        name: [text for kind, text in items if kind == "python" and mark in text] for name, mark in CLIENT_MARKS.items()
+    }
+    assert all(len(found) == 1 for found in clients.values()), clients
+    ctx = Context(workdir, clients={name: found[0] for name, found in clients.items()})
     for kind, text in items:
         _step_of(kind, text).run(ctx, text)
     shutil.rmtree(workdir / "demo_out", ignore_errors=True)

@@ -26,6 +26,7 @@ from paths import REPO_ROOT
 
 from openpi_cam import cli
 from openpi_cam.cam.batching import explain_traces
+from openpi_cam.cam.faithfulness_run import step_model_inputs
 from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.offline import (
     SOURCE_KEY,
@@ -449,6 +450,7 @@ REPLAYED_FAMILIES = [
     pytest.param("pi0_fast", id="pi0_fast"),
     pytest.param("pi05", id="pi05"),
     pytest.param("pi0", id="pi0", marks=pytest.mark.slow),
+    pytest.param("lerobot", id="lerobot_pi05"),
 ]
 
 
@@ -463,12 +465,22 @@ def test_a_served_run_replays_through_explain_run_with_its_own_actions(family, d
         model = ModelSpec(root / "checkpoint", "pi0_libero", root / "paligemma_tokenizer_tiny.model", dtype="float32")
         policy = model.create()
         observations = [make_libero_example(seed=seed) for seed in (3, 4, 5)]
+    elif family == "lerobot":  # LeRobot's own tiny pi0.5 folder, its cases' 120 x 160 and 96 x 96 frames resized
+        model = ModelSpec(golden_dir / "lerobot_pi05_tiny")
+        policy = model.create()
+        observations = _lerobot_cases(golden_dir / "lerobot_pi05_tiny" / "cases.npz")
     else:
         model = ModelSpec.demo(family)
         policy = demo_policy if family == "pi0_fast" else model.create()
         observations = [policy_part(demo_obs(seed)) for seed in (3, 4, 5)]
     run_dir = _served_run(policy, observations, tmp_path / "served", model.resolved().to_json())
-    assert set(load_run(run_dir).steps[0].client_inputs) == set(_numeric_keys(observations[0]))
+    steps = load_run(run_dir).steps
+    assert set(steps[0].client_inputs) == set(_numeric_keys(observations[0]))
+    for step, obs in zip(steps, observations, strict=True):  # the model's images, rebuilt from the step exactly
+        trace = policy.infer_traced(obs, noise=step.inputs.get("noise"))[1]
+        rebuilt = step_model_inputs(step)[0].images
+        for camera, image in trace.observation.images.items():
+            np.testing.assert_array_equal(rebuilt[camera], np.asarray(image), err_msg=camera)
     rc = explain_run.main(run_dir, out=tmp_path / "replayed", explanation=ExplainFlags(maps=("gradnorm",)),
                           progress=False)  # fmt: skip
     assert rc == 0
@@ -477,5 +489,23 @@ def test_a_served_run_replays_through_explain_run_with_its_own_actions(family, d
     assert counters["actions_compared"] == len(observations) and counters["actions_mismatched"] == 0
 
 
+def _lerobot_cases(path: pathlib.Path) -> list[dict]:
+    """The golden's three single frames as a LeRobot client sends them (uint8 [H, W, 3] frames, its feature names)."""
+    with np.load(path) as z:
+        return [
+            {
+                "observation.images.base": z[f"{case}/input_uint8_hwc/observation.images.base"],
+                "observation.images.wrist": z[f"{case}/input_uint8_hwc/observation.images.wrist"],
+                "observation.state": z[f"{case}/input/observation.state"],
+                "task": str(z[f"{case}/input/task"]),
+            }
+            for case in ("case0", "case1", "case2")
+        ]
+
+
 def _numeric_keys(obs: dict) -> list[str]:
-    return [k for k, v in obs.items() if k != "prompt" and np.asarray(v).dtype.kind in "biuf" and np.ndim(v) < 3]
+    return [
+        k
+        for k, v in obs.items()
+        if k not in ("prompt", "task") and np.asarray(v).dtype.kind in "biuf" and np.ndim(v) < 3
+    ]

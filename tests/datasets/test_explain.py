@@ -41,7 +41,7 @@ BOX = {"observation.target_box": "target_box"}
 
 
 def _job(source, out, **kw) -> DatasetJob:
-    keys, nested = dataset_keys("demo_reach", {})
+    keys, nested = dataset_keys(ModelSpec(), {})
     return DatasetJob(source, out, ModelSpec(), OPTIONS, keys, batch_size=BATCH, extra=BOX, nested_keys=nested, **kw)
 
 
@@ -243,7 +243,7 @@ def test_dataset_actions_target_explains_the_recorded_chunk(tmp_path, demo_polic
     """`--target dataset-actions` (pi0-FAST): the explained tokens are the recorded chunk's FAST action tokens as
     training tokenises them (recomputed here from the parquet), and the expert's chunks score a higher
     log-probability than the same chunks negated (the demo model learned the expert)."""
-    keys, nested = dataset_keys("demo_reach", {})
+    keys, nested = dataset_keys(ModelSpec(), {})
     options = ExplainOptions(target="chunk", maps=KINDS, check_patches=0)
 
     def run(source, out):
@@ -309,7 +309,7 @@ def test_faithfulness_of_a_maps_dataset_serves_its_frames_again(explained, tmp_p
 def test_flow_matching_families_refuse_dataset_actions(tmp_path):
     from openpi_cam.datasets.explain import EpisodeExplainer
 
-    keys, nested = dataset_keys("demo_reach_pi05", {})
+    keys, nested = dataset_keys(ModelSpec(config="demo_reach_pi05"), {})
     options = ExplainOptions(target="chunk", maps=KINDS)
     job = DatasetJob(
         LEROBOT_DIR / "demo_reach_v30_image",

@@ -53,7 +53,7 @@ ENGINE_LOG = "openpi_cam.datasets.ray_engine"
 
 
 def _job(out, source=SOURCE, episodes=EPISODES) -> DatasetJob:
-    keys, nested = dataset_keys("demo_reach", {})
+    keys, nested = dataset_keys(ModelSpec(), {})
     return DatasetJob(
         source, out, ModelSpec(), OPTIONS, keys, batch_size=4, extra=BOX, episodes=episodes, nested_keys=nested
     )

@@ -9,7 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.cam.run_format import CameraMeta, SpotCheck, StepMeta, StepRecord
+from openpi_cam.cam.run_format import IMAGE_INPUT, CameraMeta, SpotCheck, StepMeta, StepRecord
+from openpi_cam.model.observation import uint8_to_model
 from openpi_cam.policies.family import Explanation
 from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.policies.policy import InferenceTrace
@@ -108,6 +109,11 @@ def model_inputs(trace: InferenceTrace) -> dict[str, np.ndarray]:
         value = getattr(obs, name)
         if value is not None:
             inputs[name] = np.asarray(value)[0]
+    for camera, image in obs.images.items():
+        # A model image the uint8 model frame does not hold exactly (LeRobot resizes in float) is kept as it is.
+        x = np.asarray(image, np.float32)[0]
+        if not np.array_equal(uint8_to_model(model_frame_uint8(x)), x):
+            inputs[IMAGE_INPUT + camera] = x
     return inputs
 
 

@@ -37,6 +37,8 @@ STEPS_DIR = "steps"
 FRAME_PREFIX = "frame/"
 MODEL_FRAME_PREFIX = "frame_model/"
 INPUT_PREFIX = "input/"  # the explained call's non-image model inputs (token ids, masks, generated output)
+# under `input/`: a model image its uint8 `frame_model/` does not hold exactly (float32 [H, W, 3] in [-1, 1])
+IMAGE_INPUT = "image/"
 EXTRA_ARRAY_PREFIX = "extra/"  # numeric arrays a client sent under `cam_extra/` (other values: meta["extra"])
 # the client's other numeric observation values (e.g. its state), stored with raw frames: what a replay sends again
 CLIENT_PREFIX = "client/"

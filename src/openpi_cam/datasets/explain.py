@@ -25,7 +25,6 @@ from openpi_cam.cam.run_format import SpotCheck, dumps
 from openpi_cam.datasets import maps_dataset as fmt
 from openpi_cam.datasets.lerobot import DatasetError, LeRobotDataset, open_dataset
 from openpi_cam.nested import unflatten_dict
-from openpi_cam.policies.config import resolve_config
 from openpi_cam.policies.family import ExplainSkipped, Explanation, resolve_target
 from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.policies.policy import InferenceTrace, Policy
@@ -81,18 +80,19 @@ def parse_pairs(pairs: Sequence[str], flag: str) -> dict[str, str]:
     return out
 
 
-def dataset_keys(config: str, overrides: Mapping[str, str]) -> tuple[dict[str, str], bool]:
-    """(observation key -> dataset feature, whether keys `a/b` nest): the config's declared LeRobot mapping,
-    overridden key by key, without its `actions` entry (`recorded_actions_feature`)."""
-    cfg = resolve_config(config)
-    keys = {**(cfg.lerobot_keys or {}), **overrides}
+def dataset_keys(model: ModelSpec, overrides: Mapping[str, str]) -> tuple[dict[str, str], bool]:
+    """(observation key -> dataset feature, whether keys `a/b` nest): the model's LeRobot mapping (a named config's
+    declared one, a LeRobot policy's own feature names), overridden key by key, without its `actions` entry
+    (`recorded_actions_feature`)."""
+    declared, nested = model.dataset_keys()
+    keys = {**declared, **overrides}
     keys.pop(ACTIONS_KEY, None)
-    return keys, cfg.lerobot_nested
+    return keys, nested
 
 
-def recorded_actions_feature(config: str, overrides: Mapping[str, str]) -> str | None:
+def recorded_actions_feature(model: ModelSpec, overrides: Mapping[str, str]) -> str | None:
     """The feature holding the recorded actions: the mapping's `actions` entry (`--keys actions=FEATURE`)."""
-    return {**(resolve_config(config).lerobot_keys or {}), **overrides}.get(ACTIONS_KEY)
+    return {**model.dataset_keys()[0], **overrides}.get(ACTIONS_KEY)
 
 
 def check_features(ds: LeRobotDataset, job: DatasetJob) -> None:

@@ -21,15 +21,19 @@ from openpi_cam.letterbox import LetterboxGeometry, letterbox_geometry
 from openpi_cam.model.checkpoint import read_param_shapes
 from openpi_cam.model.config import MAX_DECODING_STEPS, family_of
 from openpi_cam.model.observation import Observation, pad_rows, stack_observations
+from openpi_cam.model.safetensors_weights import read_tensor_infos, torch_family
 from openpi_cam.nested import flatten_dict
 from openpi_cam.normalize import load_checkpoint_norm_stats
+from openpi_cam.policies.checkpoint_format import PARAMS_DIR, WEIGHTS_FILE, checkpoint_format
 from openpi_cam.policies.config import PolicyConfig, resolve_config
 from openpi_cam.policies.family import Explainer, OutputDecoder, Sampler
+from openpi_cam.policies.lerobot import LeRobotParts, build_lerobot, read_head_counts
 from openpi_cam.policies.pi0_family import FlowParts, build_pi0
 from openpi_cam.policies.pi0_fast_family import FastParts, build_pi0_fast
 from openpi_cam.policies.robot import RobotInputs, example_observation
 from openpi_cam.tokenizers.fast import FastActionTokenizer
 from openpi_cam.transforms import (
+    OUTPUT_CONTEXT,
     DataDict,
     InjectDefaultPrompt,
     Normalize,
@@ -80,10 +84,11 @@ class _Prepared:
 
     observation: Observation
     state: np.ndarray  # the state the output transforms see
-    pre_resize_images: dict[str, np.ndarray]
+    pre_resize_images: dict[str, np.ndarray]  # uint8 [H, W, 3] client frames
     prompt: str
     camera_sources: Mapping[str, str | None]
     client_inputs: dict[str, np.ndarray]
+    context: Mapping[str, Any]  # what the input transforms left for the output transforms (`OUTPUT_CONTEXT`)
 
     @property
     def signature(self) -> tuple:
@@ -263,13 +268,13 @@ class Policy:
             raise InvalidRequest("'actions' must not be sent with an observation")
         camera_sources = self._robot_inputs.camera_sources_for(obs)
         inputs, pre_resize_images, prompt = self._apply_inputs(_copy_containers(obs))
+        context = inputs.pop(OUTPUT_CONTEXT, {})
         # A leading batch axis on every leaf (jax pytree order, i.e. cameras sorted by name), as upstream.
         batched = jax.tree.map(lambda x: jnp.asarray(x)[np.newaxis, ...], inputs)
         observation = Observation.from_dict(batched)
         client = _client_inputs(obs, set(camera_sources.values()))
-        return _Prepared(
-            observation, np.asarray(batched["state"][0]), pre_resize_images, prompt, camera_sources, client
-        )
+        state = np.asarray(batched["state"][0])
+        return _Prepared(observation, state, pre_resize_images, prompt, camera_sources, client, context)
 
     def _serve(
         self,
@@ -311,7 +316,7 @@ class Policy:
     ) -> tuple[dict[str, Any], InferenceTrace]:
         output = np.asarray(raw)
         actions, reason = self._decoder.extract(output)
-        outputs = self._output_transform({"state": request.state, "actions": actions})
+        outputs = self._output_transform({**request.context, "state": request.state, "actions": actions})
         outputs["policy_timing"] = {"infer_ms": model_time * 1000}
         cameras = request.observation.camera_names
         images, sources = request.pre_resize_images, request.camera_sources
@@ -339,13 +344,13 @@ class Policy:
         return self._apply_inputs(data)[0]
 
     def _apply_inputs(self, data: DataDict) -> tuple[DataDict, dict[str, np.ndarray], str]:
-        """Run the input transforms, keeping the images just before resizing and the prompt just before it is
-        tokenised (the last value it has before a transform consumes it)."""
+        """Run the input transforms, keeping the images just before resizing (as the uint8 frames a trace records)
+        and the prompt just before it is tokenised (the last value it has before a transform consumes it)."""
         images: dict[str, np.ndarray] = {}
         prompt = ""
         for transform in self._transforms:
             if isinstance(transform, ResizeImages):
-                images = dict(data["image"])
+                images = {name: transform.client_frame(image) for name, image in data["image"].items()}
             if data.get("prompt") is not None:
                 prompt = parse_prompt(data["prompt"])
             data = transform(data)
@@ -377,8 +382,22 @@ def build_transforms(
     return inputs, outputs
 
 
+def lerobot_policy(parts: LeRobotParts, *, rng: jax.Array | None = None) -> Policy:
+    """The served policy of a LeRobot folder's parts (`lerobot.build_lerobot`)."""
+    return Policy(
+        parts.model,
+        transforms=parts.transforms,
+        sample=parts.sample,
+        decoder=parts.decoder,
+        explainer=parts.explainer,
+        output_transforms=parts.output_transforms,
+        rng=rng,
+        metadata=parts.metadata,
+    )
+
+
 def create_policy(
-    config: str | PolicyConfig,
+    config: str | PolicyConfig | None,
     checkpoint_dir: str | Path,
     *,
     paligemma_tokenizer: str | Path | sentencepiece.SentencePieceProcessor | None = None,
@@ -389,29 +408,46 @@ def create_policy(
     max_decoding_steps: int = MAX_DECODING_STEPS,
     rng: jax.Array | None = None,
 ) -> Policy:
-    """A served policy from ``<checkpoint_dir>/params`` and ``<checkpoint_dir>/assets/<asset_id>/norm_stats.json``.
+    """A served policy from a checkpoint folder, whose format `checkpoint_format` recognises: OpenPI's orbax
+    checkpoint (``params/`` and ``assets/<asset_id>/norm_stats.json``) or OpenPI's PyTorch export
+    (``model.safetensors`` and the same ``assets/``), both served with a named `config`; or a LeRobot pi0 / pi0.5
+    policy folder, served by its own files (its ``config.json`` says what it is, so `config` is None).
 
-    ``paligemma_tokenizer``: a SentencePiece model path or a loaded processor (None: upstream's cache location);
+    ``paligemma_tokenizer``: a SentencePiece model path or a loaded processor (None: upstream's cache location; for a
+    LeRobot folder the tokenizer its preprocessor names, then the Hugging Face cache);
     ``fast_tokenizer``: a FAST tokenizer directory or a loaded `FastActionTokenizer` (None: the HF cache).
     ``stop_at_action_end`` ends decoding at the first token containing "|" (upstream decodes to EOS; what follows
     "|" is ignored by action extraction, so actions are unchanged, only the generation is shorter).
     """
-    cfg = resolve_config(config)
     checkpoint_dir = Path(checkpoint_dir)
-    params_dir = checkpoint_dir / "params"
-    if not params_dir.is_dir():
-        raise FileNotFoundError(f"model params not found: expected an orbax checkpoint directory at {params_dir}")
-    checkpoint_family = family_of(read_param_shapes(params_dir))
-    if checkpoint_family != cfg.family:
-        raise ValueError(
-            f"config {cfg.name!r} serves {cfg.family}, the checkpoint at {params_dir} is {checkpoint_family}"
+    kind = checkpoint_format(checkpoint_dir)
+    if kind == "lerobot":
+        if config is not None:
+            name = config if isinstance(config, str) else config.name
+            raise ValueError(
+                f"{checkpoint_dir} is a LeRobot policy folder, served by its own config.json, not {name!r}"
+            )
+        lerobot = build_lerobot(
+            checkpoint_dir, paligemma_tokenizer=paligemma_tokenizer, dtype=dtype, default_prompt=default_prompt
         )
+        return lerobot_policy(lerobot, rng=rng)
+    if config is None:
+        raise ValueError(f"{checkpoint_dir} is an OpenPI checkpoint ({kind}): name the config that serves it")
+    cfg = resolve_config(config)
+    if kind == "orbax":
+        weights = checkpoint_dir / PARAMS_DIR
+        checkpoint_family = family_of(read_param_shapes(weights))
+    else:
+        weights = checkpoint_dir / WEIGHTS_FILE
+        checkpoint_family = torch_family(read_tensor_infos(weights), where=str(weights))
+    if checkpoint_family != cfg.family:
+        raise ValueError(f"config {cfg.name!r} serves {cfg.family}, the checkpoint at {weights} is {checkpoint_family}")
     norm_stats = load_checkpoint_norm_stats(checkpoint_dir, cfg.asset_id)
     parts: FastParts | FlowParts
     if cfg.family == "pi0_fast":
         parts = build_pi0_fast(
             cfg,
-            params_dir,
+            weights,
             paligemma_tokenizer=paligemma_tokenizer,
             fast_tokenizer=fast_tokenizer,
             dtype=dtype,
@@ -419,7 +455,8 @@ def create_policy(
             stop_at_action_end=stop_at_action_end,
         )
     else:
-        parts = build_pi0(cfg, params_dir, paligemma_tokenizer=paligemma_tokenizer, dtype=dtype)
+        heads = read_head_counts(checkpoint_dir)
+        parts = build_pi0(cfg, weights, paligemma_tokenizer=paligemma_tokenizer, dtype=dtype, heads=heads)
     inputs, outputs = build_transforms(
         cfg, norm_stats, parts.tokenize, parts.model.config.image_resolution, default_prompt=default_prompt
     )
