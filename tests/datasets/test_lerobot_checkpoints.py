@@ -79,3 +79,13 @@ def test_a_dataset_that_does_not_fit_the_policy_is_refused_naming_the_feature(de
     assert explain_dataset.main(wrong, model=model, out=tmp_path / "o", explanation=FLAGS, progress=False) == 1
     line = capsys.readouterr().err.strip()
     assert "\n" not in line and "'observation.images.wrist'" in line and "is not in the dataset" in line
+
+
+def test_what_a_ray_driver_plans_with_is_what_the_loaded_policy_says(demo_pi05_lerobot):
+    """`ModelSpec.facts` reads family, patch grid and cameras without weights (a Ray driver's info.json); every actor
+    checks the info its loaded model gives against it, so they must agree for every format."""
+    for model in (ModelSpec(demo_pi05_lerobot), ModelSpec(), ModelSpec(config="demo_reach_pi05")):
+        policy, facts = model.create(), model.facts()
+        assert facts.family == policy.model.family, model
+        assert facts.grid == policy.model.config.siglip.grid, model
+        assert facts.camera_sources == dict(policy.camera_sources), model
