@@ -89,3 +89,14 @@ def test_what_a_ray_driver_plans_with_is_what_the_loaded_policy_says(demo_pi05_l
         assert facts.family == policy.model.family, model
         assert facts.grid == policy.model.config.siglip.grid, model
         assert facts.camera_sources == dict(policy.camera_sources), model
+
+
+def test_views_of_a_policy_with_a_blank_camera(explained):
+    """A LeRobot folder's `empty_cameras` are masked: no frame of theirs has a map, and the views still hold."""
+    from openpi_cam.datasets.views import compute_views
+
+    summary = compute_views(explained["lerobot"], "gradnorm").summary()
+    cameras = summary["cameras"]
+    assert cameras["observation.images.empty_camera_0"]["prior_fit"]["frames"] == 0
+    assert cameras["observation.images.empty_camera_0"]["hot_patches"] == []
+    assert cameras["observation.images.base"]["prior_fit"]["frames"] == summary["frames"]

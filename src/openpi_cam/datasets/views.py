@@ -88,7 +88,7 @@ def normalised(maps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def in_top_k(maps: np.ndarray, k: int) -> np.ndarray:
     """bool [N, Hp, Wp]: the patches of each map that are positive and at least its k-th largest value."""
     maps = np.asarray(maps, np.float64)
-    flat = maps.reshape(len(maps), -1)
+    flat = maps.reshape(len(maps), int(np.prod(maps.shape[1:])))  # -1 cannot be inferred with no frame
     k = min(k, flat.shape[1])
     kth = -np.partition(-flat, k - 1, axis=1)[:, k - 1 : k] if len(flat) else np.zeros((0, 1))
     return ((flat >= kth) & (flat > 0)).reshape(maps.shape)
