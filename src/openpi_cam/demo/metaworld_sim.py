@@ -36,6 +36,8 @@ STATE_DIM = 4  # hand x, y, z and the gripper's opening: Meta-World's observatio
 ACTION_DIM = 4  # hand displacement (x, y, z) and grip effort, each in [-1, 1]
 MAX_STEPS = 150  # the expert needs 61-73 steps (docs/DEMO_NOTES.md)
 PERTURBATION_KINDS = ("clean", "colour", "light", "shift", "distractors", "prompt")
+# MuJoCo picks its GL backend when it is first imported, by whoever imports it (metaworld does): set it first.
+os.environ.setdefault("MUJOCO_GL", "egl")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,7 +98,6 @@ class Frame:
 
 
 def _mujoco() -> Any:
-    os.environ.setdefault("MUJOCO_GL", "egl")
     import mujoco  # an optional dependency: `pip install -e ".[metaworld]"`
 
     return mujoco
