@@ -282,15 +282,15 @@ STEPS = (
     Step(r"\.venv/bin/openpi-cam serve .* --cam\.every-k 1 .*", _side_channel),
     Step(r"np\.load\(\"cam_runs/<run>/steps", _numpy_snippet, "python"),
     Step(r"\.venv/bin/openpi-cam faithfulness cam_runs/<run>", _faithfulness),
-    Step(r"\.venv/bin/openpi-cam render cam_runs/<run> --map gradnorm", _render),
-    Step(r"\.venv/bin/openpi-cam stats cam_runs/<run> --map gradnorm --format csv > stats\.csv", _stats),
+    Step(r"\.venv/bin/openpi-cam render cam_runs/<run> --kind gradnorm", _render),
+    Step(r"\.venv/bin/openpi-cam stats cam_runs/<run> --kind gradnorm --format csv > stats\.csv", _stats),
     Step(r"\.venv/bin/openpi-cam explain-run cam_runs/<run> .*", _explain_run),
     Step(r"\.venv/bin/openpi-cam explain-dataset \.\./shared/lerobot/demo_reach_v30_video .*", _explain_dataset),
     Step(r"\.venv/bin/openpi-cam stats \w+\.maps --format json > \w+\.json", _dataset_views),
     Step(r"\.venv/bin/openpi-cam golden \.\./shared/golden/lerobot_pi05_tiny", _golden),
     Step(r"\.venv/bin/openpi-cam export --to lerobot --config demo_reach_pi05 --out demo_pi05_lerobot", _export),
     Step(r"\.venv/bin/openpi-cam serve --checkpoint-dir demo_pi05_lerobot --port 8000", _serving),
-    Step(r"\.venv/bin/openpi-cam render demo_reach_v30_video\.maps --map gradnorm", _dataset_render),
+    Step(r"\.venv/bin/openpi-cam render demo_reach_v30_video\.maps --kind gradnorm", _dataset_render),
     Step(r"\.venv/bin/openpi-cam faithfulness demo_reach_v30_video\.maps --max-steps 16", _dataset_faithfulness),
 )  # fmt: skip
 

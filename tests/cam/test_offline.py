@@ -36,7 +36,7 @@ from openpi_cam.cam.offline import (
     iter_run_steps,
     record_observation,
 )
-from openpi_cam.cam.run_format import StepRecord, load_run
+from openpi_cam.cam.run_format import IMAGE_INPUT, StepRecord, load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.cli import explain_run
 from openpi_cam.cli.options import ExplainFlags
@@ -476,6 +476,9 @@ def test_a_served_run_replays_through_explain_run_with_its_own_actions(family, d
     run_dir = _served_run(policy, observations, tmp_path / "served", model.resolved().to_json())
     steps = load_run(run_dir).steps
     assert set(steps[0].client_inputs) == set(_numeric_keys(observations[0]))
+    # Only a LeRobot policy's float-resized images need their own copy: an OpenPI image is its uint8 frame exactly.
+    stored = {k for step in steps for k in step.inputs if k.startswith(IMAGE_INPUT)}
+    assert bool(stored) == (family == "lerobot"), stored
     for step, obs in zip(steps, observations, strict=True):  # the model's images, rebuilt from the step exactly
         trace = policy.infer_traced(obs, noise=step.inputs.get("noise"))[1]
         rebuilt = step_model_inputs(step)[0].images

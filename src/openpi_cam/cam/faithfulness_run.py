@@ -75,7 +75,7 @@ def step_model_inputs(step: CAMStep) -> tuple[Observation, np.ndarray, dict[str,
     if not cameras or missing:
         raise ExplainSkipped("not_replayable", f"step {step.seq} lacks {missing or 'its cameras'} (save model frames)")
     images = {
-        c: (np.asarray(inputs[IMAGE_INPUT + c]) if IMAGE_INPUT + c in inputs else uint8_to_model(frames[c]))[None]
+        c: np.asarray(inputs[IMAGE_INPUT + c] if IMAGE_INPUT + c in inputs else uint8_to_model(frames[c]))[None]
         for c in cameras
     }
     masks = {c: np.asarray([info.valid]) for c, info in cameras.items()}

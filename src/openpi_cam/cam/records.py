@@ -112,7 +112,7 @@ def model_inputs(trace: InferenceTrace) -> dict[str, np.ndarray]:
     for camera, image in obs.images.items():
         # A model image the uint8 model frame does not hold exactly (LeRobot resizes in float) is kept as it is.
         x = np.asarray(image, np.float32)[0]
-        if not np.array_equal(uint8_to_model(model_frame_uint8(x)), x):
+        if not np.array_equal(np.asarray(uint8_to_model(model_frame_uint8(x))), x):
             inputs[IMAGE_INPUT + camera] = x
     return inputs
 

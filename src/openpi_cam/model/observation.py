@@ -16,9 +16,10 @@ from openpi_cam.image_tools import resize_with_pad
 logger = logging.getLogger(__name__)
 
 
-def uint8_to_model(image: np.ndarray) -> np.ndarray:
-    """A uint8 image as the model's float32 input in [-1, 1] (upstream's `x / 255 * 2 - 1`)."""
-    return np.asarray(image).astype(np.float32) / 255.0 * 2.0 - 1.0
+def uint8_to_model(image: Any) -> jax.Array:
+    """A uint8 image as the model's float32 input in [-1, 1]: upstream's `x / 255 * 2 - 1`, computed by JAX as upstream
+    computes it (NumPy rounds some values one ulp apart)."""
+    return jnp.asarray(image).astype(jnp.float32) / 255.0 * 2.0 - 1.0
 
 
 @jax.tree_util.register_dataclass

@@ -31,6 +31,7 @@ Dtype = Literal["bfloat16", "float32"]
 DEFAULT_CHECKPOINT_CONFIG = "pi0_fast_droid"
 DEMO_DTYPE: Dtype = "float32"  # the bundled models were trained and are measured in float32
 CHECKPOINT_DTYPE: Dtype = "bfloat16"  # upstream's `create_trained_policy`
+LEROBOT_DTYPE: Dtype = "float32"  # a LeRobot config's default `dtype`
 DTYPES: tuple[Dtype, ...] = ("bfloat16", "float32")
 # The bundled models by name (`openpi-cam demo --model`), their configs and where they ship.
 BUNDLED_CONFIGS = {**demo_reach.DEMO_CONFIGS, "metaworld": demo_metaworld.DEMO_METAWORLD_CONFIG}
@@ -38,6 +39,12 @@ BUNDLED_ASSETS = {**demo_reach.DEFAULT_ASSETS, "metaworld": demo_metaworld.ASSET
 BUNDLED_MODELS = {config.name: model for model, config in BUNDLED_CONFIGS.items()}  # config name -> bundled model
 # What must be the same for new steps to join a run or maps dataset (tokenizer files may move between machines).
 _OUTPUT_FIELDS = ("checkpoint_dir", "config", "dtype")
+
+
+def _is_demo(config: str | None) -> bool:
+    """Whether a config is a demo model's: its tokenizers ship beside its checkpoint, it decodes few steps and was
+    trained in float32, wherever its checkpoint lies."""
+    return config in BUNDLED_MODELS
 
 
 def _path(value: str | pathlib.Path | None) -> pathlib.Path | None:
@@ -103,15 +110,14 @@ class ModelSpec:
         """The same model with the config and dtype defaults filled in and paths made absolute: what a run records.
         The bundled model is `checkpoint_dir` None (its files are found wherever the package is installed), also where
         it was named by its path (as runs made before specs were recorded name it)."""
-        demo = self.bundled is not None or self.config in BUNDLED_MODELS
+        demo = self.bundled is not None or _is_demo(self.config)
         checkpoint = None if self.checkpoint_dir is None else self.checkpoint
-        if self.config in BUNDLED_MODELS:
-            bundled_checkpoint = BUNDLED_ASSETS[BUNDLED_MODELS[self.config]] / demo_reach.CHECKPOINT.name
-            checkpoint = None if checkpoint == bundled_checkpoint else checkpoint
-        lerobot = checkpoint is not None and not demo and self.format == "lerobot"
-        if lerobot:
-            saved = RequestLayout.read(checkpoint).config.dtype  # type: ignore[arg-type]
-            config, dtype = self.config, self.dtype or (saved if saved in DTYPES else DEMO_DTYPE)
+        if _is_demo(self.config):
+            assets = BUNDLED_ASSETS[BUNDLED_MODELS[self.config]]  # type: ignore[index]
+            checkpoint = None if checkpoint == assets / demo_reach.CHECKPOINT.name else checkpoint
+        if checkpoint is not None and not demo and self.format == "lerobot":
+            saved = RequestLayout.read(checkpoint).config.dtype
+            config, dtype = self.config, self.dtype or (saved if saved in DTYPES else LEROBOT_DTYPE)
         else:
             config = self.config or (demo_reach.DEMO_CONFIG.name if self.bundled else DEFAULT_CHECKPOINT_CONFIG)
             dtype = self.dtype or (DEMO_DTYPE if demo else CHECKPOINT_DTYPE)
@@ -136,7 +142,7 @@ class ModelSpec:
         (`demo.train` writes them there too); None leaves the choice to the loader (upstream's cache locations)."""
         spec = self.resolved()
         paligemma, fast = spec.paligemma_tokenizer, spec.fast_tokenizer
-        if spec.config in BUNDLED_MODELS:
+        if _is_demo(spec.config):
             paligemma = paligemma or spec.checkpoint.parent / demo_reach.PALIGEMMA_TOKENIZER.name
             fast = fast or spec.checkpoint.parent / demo_reach.FAST_TOKENIZER.name
         return paligemma, fast
@@ -152,7 +158,7 @@ class ModelSpec:
             dtype=spec.dtype,  # type: ignore[arg-type]
             default_prompt=spec.default_prompt,
             stop_at_action_end=stop_at_action_end,
-            max_decoding_steps=demo_reach.MAX_DECODING_STEPS if spec.config in BUNDLED_MODELS else MAX_DECODING_STEPS,
+            max_decoding_steps=demo_reach.MAX_DECODING_STEPS if _is_demo(spec.config) else MAX_DECODING_STEPS,
             rng=rng,
         )
 
