@@ -10,11 +10,16 @@ import numpy as np
 import pytest
 
 from openpi_cam import cli
+from openpi_cam.datasets.explain import DatasetJob, dataset_keys, run_local
 from openpi_cam.datasets.lerobot import DatasetError, open_dataset
+from openpi_cam.datasets.maps_dataset import open_maps_dataset
 from openpi_cam.datasets.rollouts import RolloutRecorder
+from openpi_cam.datasets.views import TARGET_BOX, compute_views
 from openpi_cam.demo import perturb, quality
 from openpi_cam.demo.run import ROLLOUT_FPS, DemoOptions, run_demo
 from openpi_cam.policies import demo_reach
+from openpi_cam.policies.model_spec import ModelSpec
+from openpi_cam.vocabulary import ExplainOptions
 
 PERTURB = ("clean", "absent")
 # AV1 at LeRobot's crf 30 on these 64 px frames: a mean error of 1.5 to 6 of 255 per frame (check_lerobot_reads.py)
@@ -89,3 +94,119 @@ def test_steps_with_and_without_an_outcome_do_not_mix(tmp_path):
             recorder.step(frame, task="t", reward=1.0)
         assert recorder.end_episode() == 0
     assert open_dataset(tmp_path / "ds").episode_length(0) == 1
+
+
+@pytest.fixture(scope="module")
+def explained(recorded, tmp_path_factory):
+    """The recorded rollouts explained into a maps dataset, carrying the named block's box (every 5th frame: where
+    the robot asked the server). The options of tests/datasets' other jobs, so compiled programs are shared."""
+    root, _ = recorded
+    out = tmp_path_factory.mktemp("maps") / "rollouts.maps"
+    keys, nested = dataset_keys("demo_reach", {})
+    options = ExplainOptions(target="action-token", maps=("gradcam", "gradnorm"), check_patches=2)
+    extra = {demo_reach.LEROBOT_TARGET_BOX: TARGET_BOX}
+    job = DatasetJob(root, out, ModelSpec(), options, keys, batch_size=4, every=5, extra=extra, nested_keys=nested)
+    run_local(job)
+    return out
+
+
+def _counted_outcomes(root) -> dict[int, tuple[int, bool, float]]:
+    """(length, success, return) of every episode, counted from the LeRobot dataset's frames."""
+    ds = open_dataset(root)
+    out = {}
+    for e in ds.episodes:
+        frames = list(ds.frames(e, features=["next.success", "next.reward"]))
+        out[e] = (
+            len(frames),
+            any(bool(f["next.success"]) for f in frames),
+            sum(float(f["next.reward"]) for f in frames),
+        )
+    return out
+
+
+def test_rows_carry_their_episodes_outcome_read_from_next_success(recorded, explained):
+    root, result = recorded
+    maps = open_maps_dataset(explained)
+    assert maps.info.outcome == "next.success" and maps.info.reward == "next.reward"
+    counted = _counted_outcomes(root)
+    assert [counted[e][1] for e in sorted(counted)] == [r["success"] for r in result.episodes]
+    table = maps.table().to_pylist()
+    assert {r["episode_index"] for r in table} == set(counted)
+    for row in table:
+        assert (row["episode_length"], row["episode_success"], row["episode_return"]) == counted[row["episode_index"]]
+
+
+def test_stats_show_failures_beside_successes_and_how_well_each_figure_finds_them(recorded, explained, tmp_path):
+    out = tmp_path / "stats.json"
+    cli.main(["stats", str(explained), "--format", "json", "--out", str(out), "--map", "gradnorm"])
+    data = json.loads(out.read_text())
+    outcomes, frames = data["summary"]["outcomes"], data["frames"]
+    ranked = {e["episode_index"]: e for e in data["summary"]["episode_ranking"]}
+    failed = {e: not ranked[e]["success"] for e in ranked}
+    assert 0 < outcomes["failures"] == sum(failed.values()) < outcomes["episodes"] == len(ranked)
+    # per outcome: the frames of that outcome's episodes, and the mean of their per-frame figures
+    for name, group in outcomes["by_outcome"].items():
+        rows = [r for r in frames if failed[r["episode_index"]] == (name == "failure")]
+        assert group["frames"] == len(rows) and group["episodes"] == sum(
+            f == (name == "failure") for f in failed.values()
+        )
+        shares = [r["base_0_rgb/share"] for r in rows]
+        assert group["cameras"]["base_0_rgb"]["mean_share"] == pytest.approx(np.mean(shares), rel=1e-12)
+        nuisance = [r["base_0_rgb/nuisance_mass"] for r in rows]
+        assert group["cameras"]["base_0_rgb"]["mean_nuisance_mass"] == pytest.approx(np.mean(nuisance), rel=1e-12)
+    # AUROC by hand over the episode ranking's own figures
+    for figure in ("distance", "length"):
+        auc = _pair_auc(failed, {e: ranked[e][figure] for e in ranked})
+        assert outcomes["failure_finding"][figure]["auroc"] == pytest.approx(auc)
+    # early warning: the same from each episode's first three explained frames (length is no figure there)
+    early = outcomes["early_warning"]
+    assert early["frames"] == 3 and "length" not in early["figures"]
+    firsts = {
+        e: sorted((r for r in frames if r["episode_index"] == e), key=lambda r: r["frame_index"])[:3] for e in ranked
+    }
+    nuisance = {e: np.mean([r["base_0_rgb/nuisance_mass"] for r in rows]) for e, rows in firsts.items()}
+    auc = _pair_auc(failed, nuisance)
+    assert early["figures"]["base_0_rgb/mean_nuisance_mass"]["auroc"] == pytest.approx(auc)
+
+
+def _pair_auc(failed: dict[int, bool], values: dict[int, float]) -> float:
+    """Over every failed-successful pair of episodes: 1 when the failure's value is larger, 1/2 when tied."""
+    pairs = [
+        (values[f] > values[s]) + 0.5 * (values[f] == values[s])
+        for f in values
+        if failed[f]
+        for s in values
+        if not failed[s]
+    ]
+    return float(np.mean(pairs))
+
+
+def test_an_outcome_feature_the_dataset_lacks_is_refused_in_one_line(recorded, tmp_path, capsys):
+    root, _ = recorded
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["explain-dataset", str(root), "--out", str(tmp_path / "m"), "--outcome", "next.win", "--no-progress"])
+    err = capsys.readouterr().err.strip()
+    assert exit_info.value.code == 1 and len(err.splitlines()) == 1
+    assert "feature 'next.win' (--outcome) is not in the dataset" in err
+
+
+def test_the_report_and_recording_show_each_episodes_outcome(explained, tmp_path):
+    from rerun.chunk import RrdReader
+
+    out, rrd = tmp_path / "render", tmp_path / "maps.rrd"
+    cli.main(["render", str(explained), "--out", str(out), "--no-progress", "--no-videos", "--rerun", str(rrd)])
+    views = compute_views(open_maps_dataset(explained), "gradnorm")
+    html = (out / "index.html").read_text()
+    assert "failed and successful episodes" in html and "which figure finds the failures?" in html
+    for e in views.episodes:  # every episode's section names its outcome
+        section = html[html.index(f"id='episode-{e['episode_index']}'") :].split("</h3>")[0]
+        assert ("success" if e["success"] else "failure") in section
+    logged = {}
+    for chunk in RrdReader(str(rrd)).store().stream():
+        if chunk.entity_path == "/openpi_cam/success":
+            batch = chunk.to_record_batch()
+            for episode, value in zip(
+                batch.column("episode_index").to_pylist(), batch.column("Scalars:scalars").to_pylist(), strict=True
+            ):
+                logged.setdefault(episode, set()).add(value[0])
+    assert logged == {e["episode_index"]: {float(e["success"])} for e in views.episodes}

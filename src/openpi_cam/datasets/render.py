@@ -336,6 +336,7 @@ def _prior_section(views: DatasetViews, out_dir: pathlib.Path, opts: DatasetRend
 
 def _ranking_section(views: DatasetViews, result: DatasetRenderResult) -> str:
     head = ["rank", "episode", "task", "frames", "distance to the prior", "z", "malformed", "mean score"]
+    head += ["outcome"] if views.outcomes is not None else []
     head += [f"{c} share" for c in views.cameras]
     rows = []
     for e in views.episodes:
@@ -351,6 +352,7 @@ def _ranking_section(views: DatasetViews, result: DatasetRenderResult) -> str:
                 _f(e["z"], 2),
                 str(e["malformed"]),
                 _f(e["mean_score"]),
+                *([_outcome(e)] if views.outcomes is not None else []),
                 *(_pct(e["cameras"][c]["mean_share"]) for c in views.cameras),
             )
         )
@@ -358,6 +360,67 @@ def _ranking_section(views: DatasetViews, result: DatasetRenderResult) -> str:
         "<section id='ranking'><h2>episodes, oddest first</h2><p class='dim'>distance: the mean over the episode's "
         "frames of the total-variation distance between each camera's map and the camera's prior; z over the "
         f"dataset's episodes</p>{_table(head, rows, raw=True)}</section>"
+    )
+
+
+def _outcome(e: Mapping[str, Any]) -> str:
+    return "-" if e.get("success") is None else ("success" if e["success"] else "<b class='warn'>failure</b>")
+
+
+def _auroc(f: Mapping[str, Any]) -> str:
+    low, high = f["auroc_ci95"]
+    return "-" if f["auroc"] is None else f"{f['auroc']:.2f} ({_f(low, 2)}-{_f(high, 2)})"
+
+
+def _outcomes_section(views: DatasetViews) -> str:
+    """Failed and successful episodes side by side, and how well each episode figure finds the failures."""
+    o = views.outcomes
+    if o is None:
+        return ""
+    groups = o["by_outcome"]
+    head = ["outcome", "episodes", "frames", "mean score"]
+    head += [f"{c} {what}" for c in views.cameras for what in ("share", "entropy (norm.)", "distance", "nuisance")]
+    rows = [
+        (
+            name,
+            str(g["episodes"]),
+            str(g["frames"]),
+            _f(g["mean_score"]),
+            *(
+                v
+                for c in views.cameras
+                for v in (
+                    _pct(g["cameras"][c]["mean_share"]),
+                    _f(g["cameras"][c]["mean_entropy_norm"]),
+                    _f(g["cameras"][c]["mean_prior_distance"]),
+                    _f(g["cameras"][c]["mean_nuisance_mass"]),
+                )
+            ),
+        )
+        for name, g in groups.items()
+    ]
+    early = o["early_warning"]["figures"]
+    found = [
+        (
+            name,
+            _auroc(f),
+            _f(f["precision_at_failures"], 2),
+            _auroc(early[name]) if name in early else "-",
+        )
+        for name, f in o["failure_finding"].items()
+        if f["auroc"] is not None
+    ]
+    chance = o["failures"] / o["episodes"] if o["episodes"] else None
+    return (
+        f"<section id='outcomes'><h2>failed and successful episodes</h2><p>{o['failures']} of {o['episodes']} "
+        "episodes failed (an episode succeeds when any frame's outcome is true, as lerobot-eval counts it)</p>"
+        f"{_table(head, rows)}<h3>which figure finds the failures?</h3><p class='dim'>ROC AUC of each episode figure "
+        "as a failure score (larger = failure; 0.5 is chance, below 0.5 the figure finds successes), with its 95% "
+        f"bootstrap interval; precision among the {o['failures']} highest-scoring episodes (chance "
+        f"{_f(chance, 2)}); early warning: the same figure from each episode's first "
+        f"{o['early_warning']['frames']} explained frames only. Failed episodes run to the step limit, so length "
+        "alone finds them: a figure is worth reading where it beats length, or early.</p>"
+        f"{_table(['figure', 'AUROC (95%)', 'precision at #failures', 'early warning AUROC'], found)}</section>"
     )
 
 
@@ -414,6 +477,7 @@ def _episode_section(views: DatasetViews, result: DatasetRenderResult, episode: 
                 )
             )
     title = f"episode {episode}" + (f" · {_e(e['task'])} · rank {e['rank']} · z {_f(e['z'], 2)}" if e else "")
+    title += f" · {_outcome(e)}" if e is not None and e.get("success") is not None else ""
     return (
         f"<section class='episode' id='episode-{episode}' data-episode='{episode}' "
         f"data-frames='{result.frames.get(episode, 0)}'><h3>{title}</h3>{media}{_table(head, rows)}</section>"
@@ -439,7 +503,8 @@ def write_dataset_report(ds: MapsDataset, result: DatasetRenderResult, opts: Dat
     )
     body = (
         f"<h1>maps dataset {_e(ds.root.name)}: {_e(MAP_KIND_INFO[views.kind].label)} maps</h1><dl>{dl}</dl>"
-        f"{_checks_section(views)}{_prior_section(views, result.out_dir, opts)}{_ranking_section(views, result)}"
+        f"{_checks_section(views)}{_prior_section(views, result.out_dir, opts)}{_outcomes_section(views)}"
+        f"{_ranking_section(views, result)}"
         f"{_tasks_section(views)}<h2>episodes</h2>{episodes}"
     )
     return write_page(result.out_dir / "index.html", f"maps dataset {ds.root.name}", body, style)

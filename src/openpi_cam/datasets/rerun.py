@@ -8,6 +8,7 @@ logs the camera under):
                              above the frame (cleared on frames where the model did not see the camera)
   openpi_cam/<kind>/share/<camera>   the camera's share of the frame's map mass (`viz.stats`)
   openpi_cam/score           the explained score (mean over tokens for multi-token targets)
+  openpi_cam/success         the episode's outcome (1: it succeeded), when the source records outcomes
   openpi_cam/about           (static) what the maps are, their spot checks, the flagged hot patches and the oddest
                              episodes (`datasets.views`)
 Timelines: `frame_index` (sequence) and `timestamp` (seconds, logged as LeRobot logs it) as in LeRobot's recordings,
@@ -83,6 +84,18 @@ def _about(views: DatasetViews, norm: str) -> str:
     lines += ["", "## hot patches (in the top-k of most frames whatever they show)", ""]
     hot = [h for c in views.cameras for h in views.hot[c]]
     lines += [f"- {h.camera}: row {h.row}, col {h.col}, hot in {h.rate:.0%} of frames" for h in hot] or ["- none"]
+    if views.outcomes is not None:
+        o = views.outcomes
+        lines += ["", f"## outcomes: {o['failures']} of {o['episodes']} episodes failed", ""]
+        lines += ["| figure | failure-finding AUROC (larger = failure) | early warning AUROC |", "| --- | --- | --- |"]
+        early = o["early_warning"]["figures"]
+        lines += [
+            f"| {name} | {f['auroc']:.2f} | "
+            + (f"{early[name]['auroc']:.2f}" if early.get(name, {}).get("auroc") is not None else "-")
+            + " |"
+            for name, f in o["failure_finding"].items()
+            if f["auroc"] is not None
+        ]
     lines += ["", "## oddest episodes (distance of their maps to the dataset's mean map)", ""]
     lines += [
         f"- episode {e['episode_index']} ({e['task']}): z {e['z']:.2f}" if e["z"] is not None else ""
@@ -109,6 +122,7 @@ def write_dataset_rrd(
     lr = source_dataset(ds, source)
     features = {c: f for c, f in ds.info.camera_sources.items() if f in lr.features}
     dataset_max = dataset_scale(ds, map_kind, chosen) if norm == "run" else 0.0
+    outcome = {e["episode_index"]: e.get("success") for e in views.episodes}
     out_path = pathlib.Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     rec = rr.RecordingStream("openpi-cam", recording_id=f"openpi-cam maps {ds.root.name} {map_kind}")
@@ -128,6 +142,8 @@ def write_dataset_rrd(
                 score = mean_score(rows.score[i])
                 if math.isfinite(score):
                     rec.log("openpi_cam/score", rr.Scalars(score))
+                if outcome.get(episode) is not None:
+                    rec.log("openpi_cam/success", rr.Scalars(float(outcome[episode])))
                 for camera, m in maps.items():
                     share = float(m.sum()) / total if total > 0 and valid.get(camera, True) else 0.0
                     rec.log(f"openpi_cam/{map_kind}/share/{rr.escape_entity_path_part(camera)}", rr.Scalars(share))

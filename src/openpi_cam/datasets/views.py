@@ -41,17 +41,32 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.datasets.maps_dataset import CHECK_RANDOM, MapsDataset, MapsInfo, check_column, map_column
+from openpi_cam.cam.faithfulness import client_box_cells, nuisance_mass_ratio
+from openpi_cam.cam.outcomes import finding
+from openpi_cam.datasets.maps_dataset import (
+    CHECK_RANDOM,
+    EPISODE_LENGTH,
+    EPISODE_SUCCESS,
+    OUTCOME_COLUMNS,
+    MapsDataset,
+    MapsInfo,
+    check_column,
+    map_column,
+)
 from openpi_cam.viz.overlay import reduce_tokens
 from openpi_cam.viz.stats import camera_stats, mean_score
 
 FRAME_COLUMNS = ("index", "episode_index", "frame_index", "timestamp", "task", "target", "score", "malformed")
+# The carried feature (`--extra FEATURE=target_box`) holding the task region: a box (x0, y0, x1, y1) in the client
+# image of the dataset's first camera, as the demo records `observation.target_box`.
+TARGET_BOX = "target_box"
 
 
 @dataclasses.dataclass(frozen=True)
 class ViewOptions:
     top_fraction: float = 0.05  # k = ceil(top_fraction * patches), at least 1: a frame's hottest patches
     hot_threshold: float = 0.5  # a patch in the top-k of more than this share of frames is flagged
+    early_frames: int = 3  # the early-warning figures read each episode's first this many explained frames
 
 
 @dataclasses.dataclass(frozen=True)
@@ -162,6 +177,7 @@ class DatasetViews:
     tasks: list[dict[str, Any]]
     checks: list[dict[str, Any]]  # per kind and camera: the spot checks' summary
     info: MapsInfo
+    outcomes: dict[str, Any] | None = None  # `outcome_views`, when the source records outcomes
 
     def summary(self) -> dict[str, Any]:
         """The dataset-level views as plain JSON data."""
@@ -195,6 +211,7 @@ class DatasetViews:
             "episode_ranking": self.episodes,
             "tasks": self.tasks,
             "spot_checks": self.checks,
+            **({} if self.outcomes is None else {"outcomes": self.outcomes}),
         }
 
 
@@ -239,13 +256,15 @@ def _frame_row(
     valid: Mapping[str, bool],
     checks: Mapping[str, Any],
     kind: str,
+    nuisance: Mapping[str, float | None],
 ) -> dict[str, Any]:
-    """One frame's row: its dataset columns and, per camera, the run statistics' figures of its map and its spot
-    check (the prior's columns stay None until pass two fills them)."""
+    """One frame's row: its dataset columns and, per camera, the run statistics' figures of its map, its nuisance
+    mass (None without a task region) and its spot check (the prior's columns stay None until pass two fills
+    them)."""
     total = sum(float(m.sum()) for c, m in maps.items() if valid[c])
     per_camera = {c: camera_stats(m, valid[c], total) for c, m in maps.items()}
     best = max(per_camera.items(), key=lambda kv: kv[1].share, default=None)
-    row: dict[str, Any] = {key: meta[key] for key in FRAME_COLUMNS}
+    row: dict[str, Any] = dict(meta)
     row["dominant"] = best[0] if best is not None and best[1].share > 0 else None
     for c, cs in per_camera.items():
         top, rand_median, rand_max = _check_figures(
@@ -262,6 +281,7 @@ def _frame_row(
             f"{c}/check_top_drop": _finite_or_none(top),
             f"{c}/check_random_median": _finite_or_none(rand_median),
             f"{c}/check_random_max": _finite_or_none(rand_max),
+            f"{c}/nuisance_mass": _finite_or_none(nuisance.get(c)),
             f"{c}/prior_cosine": None,
             f"{c}/prior_r2": None,
             f"{c}/prior_distance": None,
@@ -283,16 +303,21 @@ def compute_views(
     k = {c: top_k(grids[c][0] * grids[c][1], options.top_fraction) for c in cameras}
     check_cols = [check_column(kd, c) for kd in ds.kinds for c in cameras]
     check_cols += [check_column(CHECK_RANDOM, c) for c in cameras]
-    columns = [*FRAME_COLUMNS, "cameras", *(map_column(kind, c) for c in cameras), *check_cols]
+    row_columns = [*FRAME_COLUMNS, *(OUTCOME_COLUMNS if ds.info.outcome is not None else ())]
+    box_column = f"extra/{TARGET_BOX}" if TARGET_BOX in ds.info.extra.values() else None
+    columns = [*row_columns, "cameras", *(map_column(kind, c) for c in cameras), *check_cols]
+    columns += [box_column] if box_column else []
     rows: list[dict[str, Any]] = []
     check_acc: dict[tuple[str, str], list[tuple[float, float, float, int]]] = {}
     # Pass one: the run statistics' per-map figures per frame, the prior's sums and the top-k counts.
     for episode in episodes:
         table = ds.table(episode, columns)
         maps = _frame_maps(table, kind, cameras, grids)
-        valid = _validity(table.column("cameras").to_pylist(), cameras)
-        meta = table.select(list(FRAME_COLUMNS)).to_pylist()
+        cameras_json = table.column("cameras").to_pylist()
+        valid = _validity(cameras_json, cameras)
+        meta = table.select(row_columns).to_pylist()
         checks = {col: table.column(col).to_pylist() for col in check_cols}
+        boxes = table.column(box_column).to_pylist() if box_column else [None] * table.num_rows
         for c in cameras:
             p, has_mass = normalised(maps[c])
             use = valid[c] & has_mass
@@ -307,6 +332,7 @@ def compute_views(
                     {c: bool(valid[c][i]) for c in cameras},
                     {col: values[i] for col, values in checks.items()},
                     kind,
+                    _nuisance(boxes[i], cameras_json[i], cameras[0], maps[cameras[0]][i], grids[cameras[0]]),
                 )
             )
             for kd in ds.kinds:
@@ -322,13 +348,11 @@ def compute_views(
     hot_cells = {c: {(h.row, h.col) for h in hot[c]} for c in cameras}
     # Pass two: each frame against the prior.
     sums = {c: {"sse": 0.0, "sst": 0.0} for c in cameras}
-    distances: dict[int, float] = {}
     first = 0
     for episode in episodes:
         table = ds.table(episode, ["cameras", *(map_column(kind, c) for c in cameras)])
         maps = _frame_maps(table, kind, cameras, grids)
         valid = _validity(table.column("cameras").to_pylist(), cameras)
-        frame_distances: list[list[float]] = [[] for _ in range(table.num_rows)]
         for c in cameras:
             p, has_mass = normalised(maps[c])
             use = valid[c] & has_mass
@@ -341,9 +365,6 @@ def compute_views(
                 row[f"{c}/prior_r2"] = _finite_or_none(float(r2[i]))
                 row[f"{c}/prior_distance"] = float(distance[i])
                 row[f"{c}/peak_on_hot"] = (row[f"{c}/peak_row"], row[f"{c}/peak_col"]) in hot_cells[c]
-                frame_distances[i].append(float(distance[i]))
-        per_frame = [float(np.mean(d)) for d in frame_distances if d]
-        distances[episode] = float(np.mean(per_frame)) if per_frame else math.nan
         first += table.num_rows
     fit = {}
     for c in cameras:
@@ -363,6 +384,7 @@ def compute_views(
     for row in rows:
         by_episode.setdefault(int(row["episode_index"]), []).append(row)
         by_task.setdefault(str(row["task"]), []).append(row)
+    distances = {e: episode_distance(by_episode.get(e, []), cameras) for e in episodes}
     ranked = []
     for rank, (episode, d, z) in enumerate(episode_ranking(distances), start=1):
         group = by_episode.get(episode, [])
@@ -374,6 +396,7 @@ def compute_views(
                 "task": tasks.most_common(1)[0][0] if tasks else None,
                 "distance": _finite_or_none(d),
                 "z": _finite_or_none(z),
+                **episode_outcome(group),
                 **group_summary(group, cameras),
             }
         )
@@ -395,7 +418,89 @@ def compute_views(
         tasks=task_rows,
         checks=check_summary(check_acc),
         info=ds.info,
+        outcomes=outcome_views(by_episode, cameras, options) if ds.info.outcome is not None else None,
     )
+
+
+def _nuisance(
+    box: Sequence[float] | None, cameras_json: str | None, camera: str, m: np.ndarray, grid: tuple[int, int]
+) -> dict[str, float | None]:
+    """{camera: the nuisance mass ratio of its map} for the camera the task region's box is given in."""
+    if box is None:
+        return {}
+    geometry = (json.loads(cameras_json) if cameras_json else {}).get(camera, {}).get("geometry")
+    cells = client_box_cells(box, geometry, grid, None)
+    return {} if cells is None else {camera: nuisance_mass_ratio(m, cells)}
+
+
+def episode_distance(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str]) -> float:
+    """How far an episode's maps lie from the prior: the mean over its frames of the mean `prior_distance` over the
+    frame's cameras (valid, with mass); NaN when no frame has one. What the odd-episode ranking sorts by."""
+    per_frame = []
+    for row in rows:
+        values = [row[f"{c}/prior_distance"] for c in cameras if row.get(f"{c}/prior_distance") is not None]
+        if values:
+            per_frame.append(float(np.mean(values)))
+    return float(np.mean(per_frame)) if per_frame else math.nan
+
+
+def episode_outcome(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """An episode's length and success from its rows (the `episode_*` columns; nothing without outcomes)."""
+    if not rows or EPISODE_SUCCESS not in rows[0]:
+        return {}
+    return {"success": rows[0][EPISODE_SUCCESS], "length": rows[0][EPISODE_LENGTH]}
+
+
+# The per-camera means of `group_summary` that `outcome_views` tries as failure detectors.
+CAMERA_FIGURES = ("mean_share", "mean_entropy_norm", "mean_prior_distance", "mean_nuisance_mass")
+
+
+def episode_figures(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str]) -> dict[str, float]:
+    """The single figures of an episode (or of its first frames) that `outcome_views` tries as failure detectors:
+    the ranking's distance, the mean explained score and, per camera, `CAMERA_FIGURES`. NaN: not measured."""
+    summary = group_summary(rows, cameras)
+    figures = {"distance": episode_distance(rows, cameras), "mean_score": summary["mean_score"]}
+    figures |= {f"{c}/{key}": summary["cameras"][c][key] for c in cameras for key in CAMERA_FIGURES}
+    return {k: math.nan if v is None else float(v) for k, v in figures.items()}
+
+
+def _findings(failed: np.ndarray, figures: Sequence[Mapping[str, float]]) -> dict[str, dict[str, Any]]:
+    """`cam.outcomes.finding` of each figure some episode has."""
+    names = [n for n in (figures[0] if figures else {}) if any(math.isfinite(f[n]) for f in figures)]
+    return {name: finding(failed, [f[name] for f in figures]) for name in names}
+
+
+def outcome_views(
+    by_episode: Mapping[int, Sequence[Mapping[str, Any]]], cameras: Sequence[str], options: ViewOptions
+) -> dict[str, Any]:
+    """Failed and successful episodes side by side (the group summary of each outcome's frames), and how well each
+    episode figure finds the failures (`cam.outcomes.finding`: ROC AUC, larger = failure, with its interval, and
+    precision at the number of failures, next to chance): over whole episodes, with the episode's length as the
+    baseline every figure must beat (failures run to the step limit, successes stop early), and from each episode's
+    first `early_frames` explained frames only (what a user watching a live robot has; length cannot help there)."""
+    episodes = sorted(by_episode)
+    failed = np.array([not by_episode[e][0][EPISODE_SUCCESS] for e in episodes], bool)
+    groups = {
+        name: [row for e, f in zip(episodes, failed, strict=True) if f == (name == "failure") for row in by_episode[e]]
+        for name in ("success", "failure")
+    }
+    whole = [
+        episode_figures(by_episode[e], cameras) | {"length": float(by_episode[e][0][EPISODE_LENGTH])} for e in episodes
+    ]
+    early = [
+        episode_figures(sorted(by_episode[e], key=lambda r: r["frame_index"])[: options.early_frames], cameras)
+        for e in episodes
+    ]
+    return {
+        "episodes": len(episodes),
+        "failures": int(failed.sum()),
+        "by_outcome": {
+            name: {"episodes": int((failed == (name == "failure")).sum()), **group_summary(group, cameras)}
+            for name, group in groups.items()
+        },
+        "failure_finding": _findings(failed, whole),
+        "early_warning": {"frames": options.early_frames, "figures": _findings(failed, early)},
+    }
 
 
 def group_summary(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str]) -> dict[str, Any]:
@@ -425,6 +530,7 @@ def group_summary(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str]) -> 
             "mean_peak": [_mean(row[f"{c}/peak_row"] for row in valid), _mean(row[f"{c}/peak_col"] for row in valid)],
             "mean_prior_cosine": _mean(row.get(f"{c}/prior_cosine") for row in valid),
             "mean_prior_distance": _mean(row.get(f"{c}/prior_distance") for row in valid),
+            "mean_nuisance_mass": _mean(row.get(f"{c}/nuisance_mass") for row in valid),
         }
     out["cameras"] = per_camera
     return out
