@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 
 from openpi_cam import cli
+from openpi_cam.cam.run_format import reliance_figures
+from openpi_cam.datasets import maps_dataset as fmt
 from openpi_cam.datasets.explain import DatasetJob, dataset_keys, run_local
 from openpi_cam.datasets.lerobot import DatasetError, open_dataset
 from openpi_cam.datasets.maps_dataset import open_maps_dataset
@@ -158,12 +160,10 @@ def test_stats_show_failures_beside_successes_and_how_well_each_figure_finds_the
     for figure in ("distance", "length"):
         auc = _pair_auc(failed, {e: ranked[e][figure] for e in ranked})
         assert outcomes["failure_finding"][figure]["auroc"] == pytest.approx(auc)
-    # early warning: the same from each episode's first three explained frames (length is no figure there)
+    # early warning: the same from each episode's first explained frame (length is no figure there)
     early = outcomes["early_warning"]
-    assert early["frames"] == 3 and "length" not in early["figures"]
-    firsts = {
-        e: sorted((r for r in frames if r["episode_index"] == e), key=lambda r: r["frame_index"])[:3] for e in ranked
-    }
+    assert early["frames"] == 1 and "length" not in early["figures"]
+    firsts = {e: [r for r in frames if r["episode_index"] == e and r["frame_index"] == 0] for e in ranked}
     nuisance = {e: np.mean([r["base_0_rgb/nuisance_mass"] for r in rows]) for e, rows in firsts.items()}
     auc = _pair_auc(failed, nuisance)
     assert early["figures"]["base_0_rgb/mean_nuisance_mass"]["auroc"] == pytest.approx(auc)
@@ -210,3 +210,26 @@ def test_the_report_and_recording_show_each_episodes_outcome(explained, tmp_path
             ):
                 logged.setdefault(episode, set()).add(value[0])
     assert logged == {e["episode_index"]: {float(e["success"])} for e in views.episodes}
+
+
+def test_reliance_columns_hold_each_frames_reliance_and_the_views_average_them(recorded, tmp_path, capsys):
+    root, _ = recorded
+    out = tmp_path / "relied.maps"
+    argv = ["explain-dataset", str(root), "--out", str(out), "--maps", "gradnorm", "--check-patches", "0"]
+    cli.main([*argv, "--every-k", "5", "--episodes", "0,1", "--reliance", "--no-progress"])
+    maps = open_maps_dataset(out)
+    assert maps.info.reliance and fmt.reliance_columns(maps.info) == [
+        f"{name}/reliance_{what}" for name in ("base_0_rgb", "wrist_0_rgb", "prompt") for what in ("score", "actions")
+    ]
+    rows = maps.table().to_pylist()
+    for row in rows:
+        assert {k: row[k] for k in fmt.reliance_columns(maps.info)} == reliance_figures(json.loads(row["reliance"]))
+    views = compute_views(maps, "gradnorm")
+    for name, group in views.outcomes["by_outcome"].items():
+        chosen = [r for r in rows if r["episode_success"] == (name == "success")]
+        for column, summary in (
+            ("base_0_rgb/reliance_score", group["cameras"]["base_0_rgb"]["mean_reliance_score"]),
+            ("prompt/reliance_actions", group["prompt"]["mean_reliance_actions"]),
+        ):
+            assert summary == pytest.approx(np.mean([r[column] for r in chosen]), rel=1e-12)
+    assert "prompt/mean_reliance_score" in views.outcomes["failure_finding"]

@@ -122,10 +122,11 @@ def step_record(
     extra: Mapping[str, Any],
     explain_ms: float,
     check: Mapping[str, Any] | None = None,
+    reliance: Mapping[str, Any] | None = None,
 ) -> StepRecord:
     """The logger record of one explained inference, in the layout docs/FORMAT.md describes; `extra`: the client's
     `cam_extra/` values (numeric arrays go to the step file, the rest to `StepMeta.extra`); `check`: its spot check
-    (`cam.spot_check`), stored as `StepMeta.check` when given."""
+    (`cam.spot_check`), stored as `StepMeta.check` when given; `reliance` (`cam.reliance`) as `StepMeta.reliance`."""
     extra_values, extra_arrays = split_extra_values(extra)
     frames, client_inputs = {}, {}
     if save_frames in ("raw", "both"):  # what replaying the step needs: the client's frames and its other values
@@ -155,6 +156,7 @@ def step_record(
         extra=extra_values,
         extra_arrays=tuple(sorted(extra_arrays)),  # stored as `extra/<key>` in the step file
         check=None if check is None else dict(check),
+        reliance=None if reliance is None else dict(reliance),
         details=dict(explanation.details),
     )
     return StepRecord(

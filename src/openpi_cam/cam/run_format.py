@@ -231,6 +231,23 @@ class CameraMeta:
 _CAMERA_FIELDS = frozenset(f.name for f in dataclasses.fields(CameraMeta)) - {"details"}
 
 
+RELIANCE_PROMPT = "prompt"  # a step's reliance on its prompt, beside its cameras' (`cam.reliance`)
+
+
+def reliance_figures(reliance: Mapping[str, Any] | None) -> dict[str, float | None]:
+    """A step's reliance (`StepMeta.reliance`) as flat figures: `<camera>/reliance_score` (the explained score's
+    drop), `<camera>/reliance_actions` (the action chunk's change) and the same under `prompt/`; {} when it was not
+    measured or was skipped."""
+    if not reliance or "skipped" in reliance:
+        return {}
+    entries = {**reliance.get("cameras", {}), RELIANCE_PROMPT: reliance.get(RELIANCE_PROMPT, {})}
+    return {
+        f"{name}/reliance_{what}": entry.get(key)
+        for name, entry in entries.items()
+        for what, key in (("score", "score_drop"), ("actions", "action_change"))
+    }
+
+
 @dataclasses.dataclass(frozen=True)
 class StepMeta:
     """A step's metadata (the step file's `meta` JSON, docs/FORMAT.md), read once into typed fields.
@@ -256,13 +273,14 @@ class StepMeta:
     extra: dict[str, Any] = dataclasses.field(default_factory=dict)  # `cam_extra/` values other than numeric arrays
     extra_arrays: tuple[str, ...] = ()  # the `cam_extra/` keys stored as `extra/<key>` arrays
     check: dict[str, Any] | None = None  # the spot check (`cam.spot_check`); None when it was off
+    reliance: dict[str, Any] | None = None  # camera and prompt reliance (`cam.reliance`); None when not measured
     details: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     @classmethod
     def from_json(cls, value: Mapping[str, Any]) -> StepMeta:
         """The metadata of a step JSON object (or of an index line, whose extra fields land in `details`)."""
         d = dict(value)
-        cameras, extra, check = d.get("cameras"), d.get("extra"), d.get("check")
+        cameras, extra, check, reliance = d.get("cameras"), d.get("extra"), d.get("check"), d.get("reliance")
         return cls(
             schema_version=_int_or_none(d.get("schema_version")),
             run_id=_str_or_none(d.get("run_id")),
@@ -281,12 +299,13 @@ class StepMeta:
             extra=dict(extra) if isinstance(extra, Mapping) else {},
             extra_arrays=_strs(d.get("extra_arrays")) or (),
             check=dict(check) if isinstance(check, Mapping) else None,
+            reliance=dict(reliance) if isinstance(reliance, Mapping) else None,
             details={k: v for k, v in d.items() if k not in _STEP_FIELDS},
         )
 
     def to_json(self) -> dict[str, Any]:
-        """The step JSON object: what the writer stores (the logger-filled fields only where set; `check` only
-        when there is one)."""
+        """The step JSON object: what the writer stores (the logger-filled fields only where set; `check` and
+        `reliance` only when there is one)."""
         written = {name: getattr(self, name) for name in RESERVED_META if getattr(self, name) is not None}
         body = {
             "target": self.target,
@@ -300,7 +319,8 @@ class StepMeta:
             "extra": self.extra,
             "extra_arrays": list(self.extra_arrays),
         }
-        return written | body | ({} if self.check is None else {"check": self.check})
+        measured = {k: v for k, v in (("check", self.check), ("reliance", self.reliance)) if v is not None}
+        return written | body | measured
 
     def explained(self) -> dict[str, Any]:
         """What the model family wrote about its explanation, with the target: what `Explainer.rescore` reads."""

@@ -21,7 +21,7 @@ import numpy as np
 
 from openpi_cam.cam.batching import data_mesh, explain_batch
 from openpi_cam.cam.records import resume_mismatch
-from openpi_cam.cam.run_format import dumps
+from openpi_cam.cam.run_format import dumps, reliance_figures
 from openpi_cam.datasets import maps_dataset as fmt
 from openpi_cam.datasets.lerobot import DatasetError, LeRobotDataset, open_dataset
 from openpi_cam.datasets.lerobot_writer import REWARD, SUCCESS
@@ -196,6 +196,7 @@ def frame_row(
     explanation: Explanation,
     response: Mapping[str, Any],
     check: Mapping[str, Any] | None,
+    reliance: Mapping[str, Any] | None,
     *,
     info: fmt.MapsInfo,
     job: DatasetJob,
@@ -238,6 +239,10 @@ def frame_row(
         row[fmt.check_column(fmt.CHECK_RANDOM, camera)] = figures.get("random_patch_drops")
     for feature, name in job.extra.items():
         row[f"extra/{name}"] = _flat(frame[feature], np.float64)
+    if info.reliance:
+        figures = reliance_figures(reliance)
+        row["reliance"] = None if reliance is None else dumps(reliance)
+        row |= {column: figures.get(column) for column in fmt.reliance_columns(info)}
     return row
 
 
@@ -296,7 +301,9 @@ class EpisodeExplainer:
             t0 = time.perf_counter()
             traces = [trace for _, trace, _ in pending]
             seeds = [int(frame["index"]) for frame, _, _ in pending]
-            done = explain_batch(self.explainer, traces, options, seeds, mesh=self.mesh, pad_to=job.batch_size)
+            done = explain_batch(
+                self.explainer, traces, options, seeds, mesh=self.mesh, pad_to=job.batch_size, policy=self.policy
+            )
             for (frame, trace, response), explained in zip(pending, done, strict=True):
                 if isinstance(explained.result, ExplainSkipped):
                     counts[f"skipped_{explained.result.reason}"] += 1
@@ -309,6 +316,7 @@ class EpisodeExplainer:
                     explained.result,
                     response,
                     explained.check,
+                    explained.reliance,
                     info=self.info,
                     job=job,
                     explain_ms=explained.explain_ms,

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 from PIL import Image, ImageDraw
 
+from openpi_cam.cam.run_format import RELIANCE_PROMPT
 from openpi_cam.datasets.frames import (
     EpisodeRows,
     aligned_frames,
@@ -378,27 +379,23 @@ def _outcomes_section(views: DatasetViews) -> str:
     if o is None:
         return ""
     groups = o["by_outcome"]
-    head = ["outcome", "episodes", "frames", "mean score"]
-    head += [f"{c} {what}" for c in views.cameras for what in ("share", "entropy (norm.)", "distance", "nuisance")]
-    rows = [
-        (
-            name,
-            str(g["episodes"]),
-            str(g["frames"]),
-            _f(g["mean_score"]),
-            *(
-                v
-                for c in views.cameras
-                for v in (
-                    _pct(g["cameras"][c]["mean_share"]),
-                    _f(g["cameras"][c]["mean_entropy_norm"]),
-                    _f(g["cameras"][c]["mean_prior_distance"]),
-                    _f(g["cameras"][c]["mean_nuisance_mass"]),
-                )
-            ),
-        )
-        for name, g in groups.items()
-    ]
+    relied = views.info.reliance
+    what = ("share", "entropy (norm.)", "distance", "nuisance") + (("reliance: score", "actions") if relied else ())
+    keys = ("mean_share", "mean_entropy_norm", "mean_prior_distance", "mean_nuisance_mass")
+    keys += ("mean_reliance_score", "mean_reliance_actions") if relied else ()
+    head = ["outcome", "episodes", "frames", "mean score", *(f"{c} {w}" for c in views.cameras for w in what)]
+    head += ["prompt reliance: score", "actions"] if relied else []
+    rows = []
+    for name, g in groups.items():
+        cells = [name, str(g["episodes"]), str(g["frames"]), _f(g["mean_score"])]
+        cells += [
+            _pct(g["cameras"][c][k]) if k == "mean_share" else _f(g["cameras"][c][k])
+            for c in views.cameras
+            for k in keys
+        ]
+        if relied:
+            cells += [_f(g[RELIANCE_PROMPT]["mean_reliance_score"]), _f(g[RELIANCE_PROMPT]["mean_reliance_actions"])]
+        rows.append(cells)
     early = o["early_warning"]["figures"]
     found = [
         (

@@ -9,6 +9,8 @@ logs the camera under):
   openpi_cam/<kind>/share/<camera>   the camera's share of the frame's map mass (`viz.stats`)
   openpi_cam/score           the explained score (mean over tokens for multi-token targets)
   openpi_cam/success         the episode's outcome (1: it succeeded), when the source records outcomes
+  openpi_cam/reliance_score/<camera or prompt>, openpi_cam/reliance_actions/<camera or prompt>
+                             the frame's reliance (`--reliance`): the score's drop and the chunk's change without it
   openpi_cam/about           (static) what the maps are, their spot checks, the flagged hot patches and the oddest
                              episodes (`datasets.views`)
 Timelines: `frame_index` (sequence) and `timestamp` (seconds, logged as LeRobot logs it) as in LeRobot's recordings,
@@ -36,7 +38,7 @@ from openpi_cam.datasets.frames import (
     select_episodes,
     source_dataset,
 )
-from openpi_cam.datasets.maps_dataset import MapsDataset
+from openpi_cam.datasets.maps_dataset import MapsDataset, reliance_columns
 from openpi_cam.datasets.views import DatasetViews, compute_views
 from openpi_cam.viz.colormap import colorize
 from openpi_cam.viz.overlay import upsample
@@ -123,6 +125,8 @@ def write_dataset_rrd(
     features = {c: f for c, f in ds.info.camera_sources.items() if f in lr.features}
     dataset_max = dataset_scale(ds, map_kind, chosen) if norm == "run" else 0.0
     outcome = {e["episode_index"]: e.get("success") for e in views.episodes}
+    reliance = reliance_columns(ds.info) if ds.info.reliance else []
+    relied = {row["index"]: row for row in views.rows} if reliance else {}
     out_path = pathlib.Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     rec = rr.RecordingStream("openpi-cam", recording_id=f"openpi-cam maps {ds.root.name} {map_kind}")
@@ -144,6 +148,11 @@ def write_dataset_rrd(
                     rec.log("openpi_cam/score", rr.Scalars(score))
                 if outcome.get(episode) is not None:
                     rec.log("openpi_cam/success", rr.Scalars(float(outcome[episode])))
+                for name in reliance:  # `<camera or prompt>/reliance_<score or actions>`
+                    value = relied[rows.index[i]].get(name)
+                    if value is not None:
+                        what, figure = name.rsplit("/", 1)
+                        rec.log(f"openpi_cam/{figure}/{rr.escape_entity_path_part(what)}", rr.Scalars(value))
                 for camera, m in maps.items():
                     share = float(m.sum()) / total if total > 0 and valid.get(camera, True) else 0.0
                     rec.log(f"openpi_cam/{map_kind}/share/{rr.escape_entity_path_part(camera)}", rr.Scalars(share))

@@ -43,6 +43,7 @@ import numpy as np
 
 from openpi_cam.cam.faithfulness import client_box_cells, nuisance_mass_ratio
 from openpi_cam.cam.outcomes import finding
+from openpi_cam.cam.run_format import RELIANCE_PROMPT
 from openpi_cam.datasets.maps_dataset import (
     CHECK_RANDOM,
     EPISODE_LENGTH,
@@ -52,6 +53,7 @@ from openpi_cam.datasets.maps_dataset import (
     MapsInfo,
     check_column,
     map_column,
+    reliance_columns,
 )
 from openpi_cam.viz.overlay import reduce_tokens
 from openpi_cam.viz.stats import camera_stats, mean_score
@@ -66,7 +68,9 @@ TARGET_BOX = "target_box"
 class ViewOptions:
     top_fraction: float = 0.05  # k = ceil(top_fraction * patches), at least 1: a frame's hottest patches
     hot_threshold: float = 0.5  # a patch in the top-k of more than this share of frames is flagged
-    early_frames: int = 3  # the early-warning figures read each episode's first this many explained frames
+    # The early-warning figures read each episode's first this many explained frames. 1: the first request alone,
+    # which every episode has, so the figures cannot tell a short episode from a long one.
+    early_frames: int = 1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -304,6 +308,7 @@ def compute_views(
     check_cols = [check_column(kd, c) for kd in ds.kinds for c in cameras]
     check_cols += [check_column(CHECK_RANDOM, c) for c in cameras]
     row_columns = [*FRAME_COLUMNS, *(OUTCOME_COLUMNS if ds.info.outcome is not None else ())]
+    row_columns += reliance_columns(ds.info) if ds.info.reliance else []
     box_column = f"extra/{TARGET_BOX}" if TARGET_BOX in ds.info.extra.values() else None
     columns = [*row_columns, "cameras", *(map_column(kind, c) for c in cameras), *check_cols]
     columns += [box_column] if box_column else []
@@ -452,15 +457,25 @@ def episode_outcome(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
 
 
 # The per-camera means of `group_summary` that `outcome_views` tries as failure detectors.
-CAMERA_FIGURES = ("mean_share", "mean_entropy_norm", "mean_prior_distance", "mean_nuisance_mass")
+CAMERA_FIGURES = (
+    "mean_share",
+    "mean_entropy_norm",
+    "mean_prior_distance",
+    "mean_nuisance_mass",
+    "mean_reliance_score",
+    "mean_reliance_actions",
+)
+PROMPT_FIGURES = ("mean_reliance_score", "mean_reliance_actions")
 
 
 def episode_figures(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str]) -> dict[str, float]:
     """The single figures of an episode (or of its first frames) that `outcome_views` tries as failure detectors:
-    the ranking's distance, the mean explained score and, per camera, `CAMERA_FIGURES`. NaN: not measured."""
+    the ranking's distance, the mean explained score, per camera `CAMERA_FIGURES` and the prompt's
+    `PROMPT_FIGURES`. NaN: not measured."""
     summary = group_summary(rows, cameras)
     figures = {"distance": episode_distance(rows, cameras), "mean_score": summary["mean_score"]}
     figures |= {f"{c}/{key}": summary["cameras"][c][key] for c in cameras for key in CAMERA_FIGURES}
+    figures |= {f"{RELIANCE_PROMPT}/{key}": summary[RELIANCE_PROMPT][key] for key in PROMPT_FIGURES}
     return {k: math.nan if v is None else float(v) for k, v in figures.items()}
 
 
@@ -531,8 +546,14 @@ def group_summary(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str]) -> 
             "mean_prior_cosine": _mean(row.get(f"{c}/prior_cosine") for row in valid),
             "mean_prior_distance": _mean(row.get(f"{c}/prior_distance") for row in valid),
             "mean_nuisance_mass": _mean(row.get(f"{c}/nuisance_mass") for row in valid),
+            "mean_reliance_score": _mean(row.get(f"{c}/reliance_score") for row in valid),
+            "mean_reliance_actions": _mean(row.get(f"{c}/reliance_actions") for row in valid),
         }
     out["cameras"] = per_camera
+    out[RELIANCE_PROMPT] = {
+        "mean_reliance_score": _mean(row.get(f"{RELIANCE_PROMPT}/reliance_score") for row in rows),
+        "mean_reliance_actions": _mean(row.get(f"{RELIANCE_PROMPT}/reliance_actions") for row in rows),
+    }
     return out
 
 

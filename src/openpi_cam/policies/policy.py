@@ -42,6 +42,8 @@ from openpi_cam.transforms import (
 
 logger = logging.getLogger(__name__)
 _REQUESTS = "requests"  # counted beside the malformed reasons
+# The model inputs a prompt's tokenize steps make (`Observation`'s fields of the same names), and the state they pad.
+_TOKEN_FIELDS = ("state", "tokenized_prompt", "tokenized_prompt_mask", "token_ar_mask", "token_loss_mask")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,6 +62,9 @@ class InferenceTrace:
     # the client's numeric observation values other than its images and prompt, at their `a/b` keys (e.g. the state):
     # with the raw images and the prompt, what the client sent
     client_inputs: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    # the normalised state as the prompt tokenizer read it (before pi0's padding): with another prompt, what
+    # `Policy.with_prompt` tokenises again
+    tokenizer_state: np.ndarray | None = None
 
     @property
     def camera_names(self) -> tuple[str, ...]:
@@ -84,6 +89,7 @@ class _Prepared:
     prompt: str
     camera_sources: Mapping[str, str | None]
     client_inputs: dict[str, np.ndarray]
+    tokenizer_state: np.ndarray | None
 
     @property
     def signature(self) -> tuple:
@@ -148,6 +154,10 @@ class Policy:
             raise ValueError("Policy transforms need exactly one robot input transform and one ResizeImages")
         self._robot_inputs: RobotInputs = robot[0]
         self._resolution = (resize[0].height, resize[0].width)
+        # the family's tokenize steps: every transform after the resize (`build_transforms`)
+        self._tokenize = self._transforms[self._transforms.index(resize[0]) + 1 :]
+        if not self._tokenize:
+            raise ValueError("Policy transforms need the family's tokenize steps after ResizeImages")
         self._lock = threading.Lock()
         self._malformed = WarnOnceCounter(logger, "Malformed generation, upstream's zero-action fallback returned")
 
@@ -262,14 +272,13 @@ class Policy:
             # Upstream would tokenise them into the prompt as a training target; at inference that is never meant.
             raise InvalidRequest("'actions' must not be sent with an observation")
         camera_sources = self._robot_inputs.camera_sources_for(obs)
-        inputs, pre_resize_images, prompt = self._apply_inputs(_copy_containers(obs))
+        inputs, pre_resize_images, prompt, tokenizer_state = self._apply_inputs(_copy_containers(obs))
         # A leading batch axis on every leaf (jax pytree order, i.e. cameras sorted by name), as upstream.
         batched = jax.tree.map(lambda x: jnp.asarray(x)[np.newaxis, ...], inputs)
         observation = Observation.from_dict(batched)
         client = _client_inputs(obs, set(camera_sources.values()))
-        return _Prepared(
-            observation, np.asarray(batched["state"][0]), pre_resize_images, prompt, camera_sources, client
-        )
+        state = np.asarray(batched["state"][0])
+        return _Prepared(observation, state, pre_resize_images, prompt, camera_sources, client, tokenizer_state)
 
     def _serve(
         self,
@@ -325,8 +334,41 @@ class Policy:
             prompt=request.prompt,
             malformed_reason=reason,
             client_inputs=request.client_inputs,
+            tokenizer_state=request.tokenizer_state,
         )
         return outputs, trace
+
+    def resample(self, trace: InferenceTrace, observation: Observation) -> np.ndarray:
+        """The actions `infer` returns when the model sees `observation` (B = 1; e.g. the traced input with a camera
+        replaced, or `with_prompt`'s) in place of the traced call's input: the traced call's noise (pi0 / pi0.5)
+        and state through the same sampler, decoder and output transforms. The policy's rng and counters are
+        untouched. -> actions [horizon, action dim] in the robot's units."""
+        noise = trace.sample_inputs.get("noise")
+        with self._lock:
+            _, rng = jax.random.split(self._rng)  # unused by the families' samplers given the noise (pi0-FAST greedy)
+        raw, _ = self._sample([rng], observation, None if noise is None else np.asarray(noise))
+        return self._robot_actions(trace, raw[0])
+
+    def served_actions(self, trace: InferenceTrace) -> np.ndarray:
+        """The actions `infer` returned for the traced call, from its raw output (decoder and output transforms)."""
+        return self._robot_actions(trace, trace.output)
+
+    def _robot_actions(self, trace: InferenceTrace, raw: np.ndarray) -> np.ndarray:
+        actions, _ = self._decoder.extract(np.asarray(raw))
+        state = np.asarray(trace.observation.state)[0]
+        return np.asarray(self._output_transform({"state": state, "actions": actions})["actions"])
+
+    def with_prompt(self, trace: InferenceTrace, prompt: str) -> Observation:
+        """The traced call's model input with `prompt` in place of its prompt: the family's tokenize steps run again
+        on the state they read, the images and everything else kept."""
+        if trace.tokenizer_state is None:
+            raise ValueError("the trace does not hold the state its prompt was tokenised with")
+        data: DataDict = {"state": np.asarray(trace.tokenizer_state), "prompt": prompt, "image": {}, "image_mask": {}}
+        for transform in self._tokenize:
+            data = transform(data)
+        # as `_prepare` batches them: through JAX's dtypes (a float64 state becomes float32)
+        batched = {k: jnp.asarray(data[k])[np.newaxis, ...] for k in _TOKEN_FIELDS if data.get(k) is not None}
+        return dataclasses.replace(trace.observation, **batched)
 
     def training_inputs(self, obs: Mapping[str, Any], actions: np.ndarray) -> DataDict:
         """The model inputs training builds from an observation and a recorded action chunk [horizon, action dim]:
@@ -338,18 +380,20 @@ class Policy:
         data["actions"] = np.asarray(actions)
         return self._apply_inputs(data)[0]
 
-    def _apply_inputs(self, data: DataDict) -> tuple[DataDict, dict[str, np.ndarray], str]:
-        """Run the input transforms, keeping the images just before resizing and the prompt just before it is
-        tokenised (the last value it has before a transform consumes it)."""
+    def _apply_inputs(self, data: DataDict) -> tuple[DataDict, dict[str, np.ndarray], str, np.ndarray | None]:
+        """Run the input transforms, keeping the images just before resizing, the prompt just before it is
+        tokenised (the last value it has before a transform consumes it) and the state the tokenize steps read."""
         images: dict[str, np.ndarray] = {}
-        prompt = ""
+        prompt, state = "", None
         for transform in self._transforms:
             if isinstance(transform, ResizeImages):
                 images = dict(data["image"])
             if data.get("prompt") is not None:
                 prompt = parse_prompt(data["prompt"])
+            if transform is self._tokenize[0]:
+                state = np.asarray(data["state"]) if "state" in data else None
             data = transform(data)
-        return data, images, prompt
+        return data, images, prompt, state
 
 
 def build_transforms(
