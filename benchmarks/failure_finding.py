@@ -32,7 +32,7 @@ import numpy as np
 from bench_serving import machine_line
 
 from openpi_cam import cli
-from openpi_cam.cam.outcomes import wilson_interval
+from openpi_cam.cam.outcomes import roc_auc, wilson_interval
 from openpi_cam.datasets.maps_dataset import is_maps_dataset, open_maps_dataset
 from openpi_cam.datasets.views import DatasetViews, compute_views
 from openpi_cam.demo.quality import EPISODES_FILE
@@ -95,6 +95,40 @@ def finding_table(views: dict[str, DatasetViews]) -> list[str]:
             cells.append(f"{_f(f['auroc'])} ({_f(low)}-{_f(high)}), P@F {_f(f['precision_at_failures'])}{early}")
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return lines
+
+
+WITHIN = ("length", "entropy", "distance", "base_0_rgb/mean_nuisance_mass", "prompt/mean_reliance_score")
+
+
+def within_table(views: dict[str, DatasetViews], perturbation_of: dict[str, dict[int, int]]) -> list[str]:
+    """The same AUROCs inside each perturbation that both succeeds and fails at least 5 times: whether a figure
+    finds the failures, rather than the perturbations that cause most of them."""
+    lines = ["| model | map | perturbation | failures | " + " | ".join(WITHIN) + " |", "|---" * (len(WITHIN) + 4) + "|"]
+    for (model, kind), v in views.items():
+        figures = {e["episode_index"]: e for e in v.episodes}
+        for p, name in enumerate(PERTURB):
+            chosen = [e for e, q in perturbation_of[model].items() if q == p and e in figures]
+            failed = np.array([not figures[e]["success"] for e in chosen])
+            if failed.sum() < 5 or (~failed).sum() < 5:
+                continue
+            values = {name: [_figure(figures[e], name) for e in chosen] for name in WITHIN}
+            cells = [_f(roc_auc(failed, values[name])) for name in WITHIN]
+            lines.append(
+                f"| {LABELS[model]} | {kind} | {name} | {failed.sum()}/{len(chosen)} | " + " | ".join(cells) + " |"
+            )
+    return lines
+
+
+def _figure(episode: dict, name: str) -> float:
+    """An episode figure of `outcome_views` from the ranking's entry of the episode."""
+    if name in ("length", "entropy", "distance"):
+        value = episode[name]
+    elif name.startswith("prompt/"):
+        value = episode["prompt"][name.split("/", 1)[1]]
+    else:
+        camera, key = name.split("/", 1)
+        value = episode["cameras"][camera][key]
+    return math.nan if value is None else float(value)
 
 
 def reliance_table(views: dict[str, DatasetViews]) -> list[str]:
@@ -160,6 +194,7 @@ def main() -> None:
     for lines in (
         success_table(rollouts),
         finding_table(views),
+        within_table(views, perturbation_of),
         reliance_table(views),
         nuisance_lines(views, perturbation_of),
     ):

@@ -9,9 +9,9 @@ video frame, the cameras side by side (the map bilinearly stretched over the fra
 written with PyAV.
 
 The report (OUT/index.html, relative links to the files beside it, no network) opens with the spot checks stored in
-the maps dataset, then the positional prior with its flagged hot patches, the episodes ranked oddest first, the
-per-task table, and a section per rendered episode (its video and a strip of its frames). Figures:
-`datasets.views`.
+the maps dataset, then the positional prior with its flagged hot patches, failed and successful episodes side by side
+(when the source records outcomes), the episodes ranked with the most diffuse maps first, the per-task table, and a
+section per rendered episode (its video and a strip of its frames). Figures: `datasets.views`.
 """
 
 from __future__ import annotations
@@ -336,7 +336,8 @@ def _prior_section(views: DatasetViews, out_dir: pathlib.Path, opts: DatasetRend
 
 
 def _ranking_section(views: DatasetViews, result: DatasetRenderResult) -> str:
-    head = ["rank", "episode", "task", "frames", "distance to the prior", "z", "malformed", "mean score"]
+    head = ["rank", "episode", "task", "frames", "entropy (norm.)", "z", "distance to the prior", "malformed"]
+    head += ["mean score"]
     head += ["outcome"] if views.outcomes is not None else []
     head += [f"{c} share" for c in views.cameras]
     rows = []
@@ -349,8 +350,9 @@ def _ranking_section(views: DatasetViews, result: DatasetRenderResult) -> str:
                 link,
                 _e(e["task"]),
                 str(e["frames"]),
-                _f(e["distance"]),
+                _f(e["entropy"]),
                 _f(e["z"], 2),
+                _f(e["distance"]),
                 str(e["malformed"]),
                 _f(e["mean_score"]),
                 *([_outcome(e)] if views.outcomes is not None else []),
@@ -358,9 +360,11 @@ def _ranking_section(views: DatasetViews, result: DatasetRenderResult) -> str:
             )
         )
     return (
-        "<section id='ranking'><h2>episodes, oddest first</h2><p class='dim'>distance: the mean over the episode's "
-        "frames of the total-variation distance between each camera's map and the camera's prior; z over the "
-        f"dataset's episodes</p>{_table(head, rows, raw=True)}</section>"
+        "<section id='ranking'><h2>episodes, most diffuse maps first</h2><p class='dim'>entropy: the mean over the "
+        "episode's frames of each camera's normalised map entropy (1: spread evenly), z over the dataset's episodes; "
+        "on the demo's failing rollouts failed episodes come first this way (docs/MAP_KINDS.md). Distance: the mean "
+        "total-variation distance between each camera's map and the camera's prior</p>"
+        f"{_table(head, rows, raw=True)}</section>"
     )
 
 

@@ -11,8 +11,8 @@ logs the camera under):
   openpi_cam/success         the episode's outcome (1: it succeeded), when the source records outcomes
   openpi_cam/reliance_score/<camera or prompt>, openpi_cam/reliance_actions/<camera or prompt>
                              the frame's reliance (`--reliance`): the score's drop and the chunk's change without it
-  openpi_cam/about           (static) what the maps are, their spot checks, the flagged hot patches and the oddest
-                             episodes (`datasets.views`)
+  openpi_cam/about           (static) what the maps are, their spot checks, the flagged hot patches, how well each
+                             figure finds failures (with outcomes) and the top-ranked episodes (`datasets.views`)
 Timelines: `frame_index` (sequence) and `timestamp` (seconds, logged as LeRobot logs it) as in LeRobot's recordings,
 plus `episode_index` and `index` (the dataset-wide frame index, which plays the episodes one after another). One
 recording holds every chosen episode; on `frame_index` and `timestamp` the episodes share the same times, so pick
@@ -98,7 +98,7 @@ def _about(views: DatasetViews, norm: str) -> str:
             for name, f in o["failure_finding"].items()
             if f["auroc"] is not None
         ]
-    lines += ["", "## oddest episodes (distance of their maps to the dataset's mean map)", ""]
+    lines += ["", "## episodes with the most diffuse maps (mean normalised entropy)", ""]
     lines += [
         f"- episode {e['episode_index']} ({e['task']}): z {e['z']:.2f}" if e["z"] is not None else ""
         for e in views.episodes[:10]

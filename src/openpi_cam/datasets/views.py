@@ -19,12 +19,23 @@ Definitions (the frame's map of a camera normalised to sum 1 is `p`; the camera'
   flagged: a map unrelated to position puts a patch in its top-k in about k / P of the frames, so a patch in the
   top-k of most frames, whatever they show, points at the model's position embeddings more than at the image (the
   artefact of OpenPI issue #947). `peak_on_hot`, per frame: whether the frame's peak sits on a flagged patch.
-* **Odd episodes**: an episode's distance is the mean over its frames of the mean `prior_distance` over the frame's
-  cameras; episodes are ranked by it, largest first, with its z-score over the dataset's episodes (0 when they all
-  lie at one distance), so the episodes whose maps look least like the dataset's usual ones come first.
+* **Episode ranking**: an episode's entropy is the mean over its frames of the mean `entropy_norm` over the frame's
+  cameras; episodes are ranked by it, largest first (the most diffuse maps first), with its z-score over the
+  dataset's episodes (0 when they all lie at one value). Chosen by evidence (docs/MAP_KINDS.md, "Do the maps find
+  the failures?"): on the demo's failing rollouts it ranks failed episodes first (ROC AUC 0.76 and 0.73 for
+  pi0-FAST and pi0.5, gradient norm), where the earlier ranking by distance to the prior (still each episode's
+  `distance`: the mean over its frames of the mean `prior_distance` over the frame's cameras) ranked them last
+  (0.25, 0.27): failed episodes' maps are diffuse, and diffuse maps lie near the mean map.
 * **Spot checks** (`check/<kind>/<camera>`, `check/random/<camera>`): per kind and camera, the share of frames whose
   top patch lowers the score more than the median random patch does (about 50% for a top patch no better than a
   random one) and more than every random patch (chance 1 / (R + 1) for R random patches).
+* **Nuisance mass** of a frame's map, where the rows carry the task region (`extra/target_box`, a box in the first
+  camera's client image): the share of the first camera's map mass outside the region's patches (Zhang et al.).
+* **Reliance** (rows of a `--reliance` job): per camera and for the prompt, the explained score's drop and the action
+  chunk's change without it (`cam.reliance`), averaged like the other figures.
+* **Outcomes** (rows of a source with outcomes, `episode_success`): failed and successful episodes side by side
+  (the group summary of each outcome's frames), and how well each episode figure finds the failures
+  (`outcome_views`).
 
 Reading needs pyarrow and numpy only (no JAX): the maps are read an episode at a time, twice (once for the prior,
 once for each frame's distance to it), so memory holds the rows but never every map.
@@ -93,10 +104,15 @@ def displayable(maps: np.ndarray) -> np.ndarray:
     return np.stack([reduce_tokens(m) for m in maps])
 
 
+def _rows(maps: np.ndarray) -> np.ndarray:
+    """[N, Hp, Wp] -> [N, Hp * Wp], also for N = 0 (a camera the model masked in every frame)."""
+    return maps.reshape(len(maps), int(np.prod(maps.shape[1:])))
+
+
 def normalised(maps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """[N, Hp, Wp] non-negative maps -> (each divided by its sum, [N] whether it has positive mass; zeros if not)."""
     maps = np.asarray(maps, np.float64)
-    total = maps.reshape(len(maps), -1).sum(axis=1)
+    total = _rows(maps).sum(axis=1)
     has_mass = total > 0
     p = np.zeros_like(maps)
     p[has_mass] = maps[has_mass] / total[has_mass, None, None]
@@ -106,7 +122,7 @@ def normalised(maps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def in_top_k(maps: np.ndarray, k: int) -> np.ndarray:
     """bool [N, Hp, Wp]: the patches of each map that are positive and at least its k-th largest value."""
     maps = np.asarray(maps, np.float64)
-    flat = maps.reshape(len(maps), -1)
+    flat = _rows(maps)
     k = min(k, flat.shape[1])
     kth = -np.partition(-flat, k - 1, axis=1)[:, k - 1 : k] if len(flat) else np.zeros((0, 1))
     return ((flat >= kth) & (flat > 0)).reshape(maps.shape)
@@ -131,7 +147,7 @@ def flag_hot(camera: str, rates: np.ndarray, threshold: float) -> list[HotPatch]
 def prior_fit(p: np.ndarray, prior: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """For normalised maps p [N, Hp, Wp] against the prior [Hp, Wp]: (cosine, R^2, total-variation distance, residual
     sum of squares, variation sum of squares), each [N]."""
-    flat = np.asarray(p, np.float64).reshape(len(p), -1)
+    flat = _rows(np.asarray(p, np.float64))
     ref = np.asarray(prior, np.float64).reshape(-1)
     norms = np.linalg.norm(flat, axis=1) * np.linalg.norm(ref)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -143,13 +159,13 @@ def prior_fit(p: np.ndarray, prior: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     return cosine, r2, distance, sse, sst
 
 
-def episode_ranking(distances: Mapping[int, float]) -> list[tuple[int, float, float]]:
-    """(episode, distance, z-score) ranked by distance, largest first; NaN distances (no map with mass) last."""
-    finite = np.array([d for d in distances.values() if math.isfinite(d)])
+def episode_ranking(values: Mapping[int, float]) -> list[tuple[int, float, float]]:
+    """(episode, value, z-score) ranked by value, largest first; NaN values (no map with mass) last."""
+    finite = np.array([d for d in values.values() if math.isfinite(d)])
     mean = float(finite.mean()) if finite.size else math.nan
     std = float(finite.std()) if finite.size else math.nan
     ranked = []
-    for episode, d in distances.items():
+    for episode, d in values.items():
         z = (d - mean) / std if math.isfinite(d) and std > 0 else (0.0 if math.isfinite(d) else math.nan)
         ranked.append((episode, d, z))
     return sorted(ranked, key=lambda t: (not math.isfinite(t[1]), -t[1] if math.isfinite(t[1]) else 0.0, t[0]))
@@ -177,7 +193,7 @@ class DatasetViews:
     hot_rate: dict[str, np.ndarray]  # camera -> [Hp, Wp] share of frames whose top-k holds the patch
     hot: dict[str, list[HotPatch]]
     fit: dict[str, dict[str, Any]]  # camera -> dataset-level prior fit
-    episodes: list[dict[str, Any]]  # ranked, oddest first
+    episodes: list[dict[str, Any]]  # ranked, most diffuse maps first
     tasks: list[dict[str, Any]]
     checks: list[dict[str, Any]]  # per kind and camera: the spot checks' summary
     info: MapsInfo
@@ -389,9 +405,9 @@ def compute_views(
     for row in rows:
         by_episode.setdefault(int(row["episode_index"]), []).append(row)
         by_task.setdefault(str(row["task"]), []).append(row)
-    distances = {e: episode_distance(by_episode.get(e, []), cameras) for e in episodes}
+    entropies = {e: episode_entropy(by_episode.get(e, []), cameras) for e in episodes}
     ranked = []
-    for rank, (episode, d, z) in enumerate(episode_ranking(distances), start=1):
+    for rank, (episode, entropy, z) in enumerate(episode_ranking(entropies), start=1):
         group = by_episode.get(episode, [])
         tasks = Counter(str(row["task"]) for row in group)
         ranked.append(
@@ -399,8 +415,9 @@ def compute_views(
                 "rank": rank,
                 "episode_index": episode,
                 "task": tasks.most_common(1)[0][0] if tasks else None,
-                "distance": _finite_or_none(d),
+                "entropy": _finite_or_none(entropy),
                 "z": _finite_or_none(z),
+                "distance": _finite_or_none(episode_distance(group, cameras)),
                 **episode_outcome(group),
                 **group_summary(group, cameras),
             }
@@ -438,15 +455,27 @@ def _nuisance(
     return {} if cells is None else {camera: nuisance_mass_ratio(m, cells)}
 
 
-def episode_distance(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str]) -> float:
-    """How far an episode's maps lie from the prior: the mean over its frames of the mean `prior_distance` over the
-    frame's cameras (valid, with mass); NaN when no frame has one. What the odd-episode ranking sorts by."""
+def _frames_mean(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str], field: str) -> float:
+    """The mean over frames of the mean of a per-camera field over the frame's cameras that have it (valid, with
+    mass); NaN when no frame has it."""
     per_frame = []
     for row in rows:
-        values = [row[f"{c}/prior_distance"] for c in cameras if row.get(f"{c}/prior_distance") is not None]
+        values = [row[f"{c}/{field}"] for c in cameras if row.get(f"{c}/{field}") is not None]
         if values:
             per_frame.append(float(np.mean(values)))
     return float(np.mean(per_frame)) if per_frame else math.nan
+
+
+def episode_entropy(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str]) -> float:
+    """How diffuse an episode's maps are: the mean over its frames of the mean normalised entropy over the frame's
+    cameras. What the episode ranking sorts by."""
+    return _frames_mean(rows, cameras, "entropy_norm")
+
+
+def episode_distance(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str]) -> float:
+    """How far an episode's maps lie from the prior: the mean over its frames of the mean `prior_distance` over the
+    frame's cameras."""
+    return _frames_mean(rows, cameras, "prior_distance")
 
 
 def episode_outcome(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
@@ -470,10 +499,15 @@ PROMPT_FIGURES = ("mean_reliance_score", "mean_reliance_actions")
 
 def episode_figures(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str]) -> dict[str, float]:
     """The single figures of an episode (or of its first frames) that `outcome_views` tries as failure detectors:
-    the ranking's distance, the mean explained score, per camera `CAMERA_FIGURES` and the prompt's
+    the ranking's entropy, the distance to the prior, the mean explained score, per camera `CAMERA_FIGURES` and the
+    prompt's
     `PROMPT_FIGURES`. NaN: not measured."""
     summary = group_summary(rows, cameras)
-    figures = {"distance": episode_distance(rows, cameras), "mean_score": summary["mean_score"]}
+    figures = {
+        "entropy": episode_entropy(rows, cameras),
+        "distance": episode_distance(rows, cameras),
+        "mean_score": summary["mean_score"],
+    }
     figures |= {f"{c}/{key}": summary["cameras"][c][key] for c in cameras for key in CAMERA_FIGURES}
     figures |= {f"{RELIANCE_PROMPT}/{key}": summary[RELIANCE_PROMPT][key] for key in PROMPT_FIGURES}
     return {k: math.nan if v is None else float(v) for k, v in figures.items()}
@@ -519,9 +553,9 @@ def outcome_views(
 
 
 def group_summary(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str]) -> dict[str, Any]:
-    """A group of frames (an episode, a task): frames, mean score, malformed generations, and per camera the mean
-    share, normalised entropy, the most frequent peak cell (with its rate), the mean peak cell and the fit to the
-    prior."""
+    """A group of frames (an episode, a task, an outcome): frames, mean score, malformed generations, per camera the
+    mean share, normalised entropy, the most frequent peak cell (with its rate), the mean peak cell, the fit to the
+    prior, the mean nuisance mass and reliance, and the prompt's mean reliance (None where not measured)."""
     out: dict[str, Any] = {
         "frames": len(rows),
         "mean_score": _mean(mean_score(row["score"]) for row in rows),
