@@ -56,7 +56,7 @@ def _job(spec: dict[str, Any], out: pathlib.Path) -> Any:
     from openpi_cam.policies.model_spec import ModelSpec
     from openpi_cam.vocabulary import ExplainOptions
 
-    keys, nested = dataset_keys("demo_reach", {})
+    keys, nested = dataset_keys(ModelSpec(), {})
     options = ExplainOptions(target="action-token", maps=("gradcam", "gradnorm"))
     batch = spec.get("batch_size", 8)
     return DatasetJob(pathlib.Path(spec["source"]), out, ModelSpec(), options, keys, batch, nested_keys=nested)

@@ -65,9 +65,10 @@ def pytest_make_collect_report(collector: pytest.Collector) -> Any:
 # The fast tier checks every behaviour once. The slow tier holds what repeats a computation the fast tier already
 # checks, under another configuration or along another path (a second layout, remat, bfloat16, a second device,
 # batched rows, larger occlusion regions, re-scoring, other side-channel targets, pi0 beside pi0.5, the batch-of-two
-# golden case), and the long runs of extra processes (hostile clients, stalled peers at SIGTERM, the training script,
-# `explain` in a fresh process, Ray's retries) or of compilation counting. The fast tier leaves it out unless tests
-# are named by node id, `-m` selects, or `--full` asks for everything.
+# golden case, the golden pi0's replay), and the long runs of extra processes (hostile clients, stalled peers at
+# SIGTERM, the training script, `explain` in a fresh process, Ray's retries, every README command as written) or of
+# compilation counting. The fast tier leaves it out unless tests are named by node id, `-m` selects, or `--full` asks
+# for everything.
 SLOW = "slow"
 
 
@@ -239,3 +240,15 @@ def demo_observations(demo_policy) -> list[dict[str, Any]]:
         for j in range(i):
             assert not np.array_equal(actions[i], actions[j]), f"demo observations {i} and {j} give the same actions"
     return observations
+
+
+@pytest.fixture(scope="session")
+def demo_pi05_lerobot(tmp_path_factory) -> Path:
+    """The bundled pi0.5 exported as a LeRobot policy folder (`openpi-cam export --to lerobot --config
+    demo_reach_pi05`): a LeRobot checkpoint that has learned the demo task, with the demo datasets' feature names."""
+    from openpi_cam.cli import export
+    from openpi_cam.policies.model_spec import ModelSpec
+
+    out = tmp_path_factory.mktemp("lerobot") / "demo_pi05"
+    assert export.main(out, ModelSpec(config="demo_reach_pi05")) == 0
+    return out

@@ -222,6 +222,37 @@ FLOW_GRAD_REL = 1e-4
 FLOW_TARGETS = {"gc_h0_d0": (0, 0), "gc_h0_d6": (0, 6), "gc_h9_d3": (9, 3), "gc_chunk": pi0_maps.CHUNK}
 
 
+# LeRobot's goldens (lerobot_pi0_tiny, lerobot_pi05_tiny: LeRobot 0.6.1's PyTorch port, float32 on CPU), served with
+# LeRobot's time grid (`Pi0Config.flow_time`). Each golden states its own float32 variation: a row of its batch of two
+# against the same frame run alone (`meta/batch2_row_vs_single_maxdiff`), relative to max |chunk| (`lerobot_variation`).
+# Chunks, normalised and post-processed, and the explained objective may differ SAFETY times that, since our XLA build
+# orders the float32 sums differently again; the gradient GRADIENT_AMPLIFICATION times more, as pi0-FAST's gradients
+# vary that much more than their logits. Model-space images are one bilinear blend of four float32 values that torch
+# rounds in another order: LEROBOT_IMAGE_REL (4 float32 epsilons) of their range. Tokens, masks, the prompt text and
+# the normalised state (elementwise float32 arithmetic in LeRobot's order) compare exactly.
+LEROBOT_IMAGE_REL = 4 * float(np.finfo(np.float32).eps)
+
+
+def lerobot_variation(row_vs_single_maxdiff: np.ndarray, batch_chunk: np.ndarray) -> float:
+    """A LeRobot golden's own float32 variation relative to its chunk's scale."""
+    return float(np.max(row_vs_single_maxdiff)) / float(np.abs(batch_chunk).max())
+
+
+def flow_image_gradient(
+    model: Pi0, obs: Observation, noise: np.ndarray, weights: np.ndarray, camera: str
+) -> tuple[float, np.ndarray]:
+    """(sum(weights * x_0[..., :A]), its gradient w.r.t. `camera`'s model-space image [B, H, W, 3]) through all the
+    Euler steps from `noise`, the other inputs fixed; A is the weights' last dim."""
+
+    def objective(image: jax.Array) -> jax.Array:
+        moved = dataclasses.replace(obs, images={**obs.images, camera: image})
+        x_0 = pi0.sample_actions(model.params, moved, jnp.asarray(noise, jnp.float32), cfg=model.config)
+        return jnp.sum(jnp.asarray(weights) * x_0[..., : weights.shape[-1]])
+
+    value, grad = jax.jit(jax.value_and_grad(objective))(jnp.asarray(obs.images[camera]))
+    return float(value), np.asarray(grad)
+
+
 # One compiled program per model config for every case (a fresh `jax.jit` per case would retrace each time).
 _denoise_recorded = jax.jit(functools.partial(pi0.denoise, record=True), static_argnames="cfg")
 

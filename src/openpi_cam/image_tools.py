@@ -9,7 +9,8 @@ Upstream has two implementations with the same geometry:
   this one to reproduce upstream's model inputs bit for bit.
 
 Both place the image with `letterbox.letterbox_geometry`, which the side channel stores with each step so that a map
-over the model image can be drawn on the image the client sent.
+over the model image can be drawn on the image the client sent. LeRobot's PyTorch port of pi0 / pi0.5 letterboxes
+float images with the same placement but torch's bilinear interpolation (`resize_with_pad_torch_bilinear`).
 """
 
 from __future__ import annotations
@@ -78,3 +79,44 @@ def resize_with_pad_pil(images: np.ndarray, height: int, width: int) -> np.ndarr
             resized.reshape(geo.resized_h, geo.resized_w, -1)
         )
     return out.reshape(*images.shape[:-3], height, width, images.shape[-1])
+
+
+def _torch_linear_taps(in_size: int, out_size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(low index, high index, low weight, high weight) per output index, as torch's CPU bilinear kernel computes
+    them for `align_corners=False` without antialiasing: the float32 source coordinate scale * (i + 0.5) - 0.5,
+    rounded once (torch's build fuses the multiply-add; exact in float64 here), clamped at 0; the low tap its floor
+    (at most the last index), the high tap the next one unless the low one is the last."""
+    scale = np.float32(in_size) / np.float32(out_size)
+    centres = np.arange(out_size, dtype=np.float64) + 0.5
+    src = np.maximum((np.float64(scale) * centres - 0.5).astype(np.float32), np.float32(0))
+    low = np.minimum(np.floor(src).astype(np.int64), in_size - 1)
+    high_weight = np.clip(src - low.astype(np.float32), 0, 1).astype(np.float32)
+    high = np.where(low < in_size - 1, low + 1, low)
+    return low, high, (np.float32(1) - high_weight).astype(np.float32), high_weight
+
+
+def resize_with_pad_torch_bilinear(images: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Letterbox float32 ``[..., H, W, C]`` images in ``[0, 1]`` as LeRobot's `resize_with_pad_torch` does: torch's
+    `interpolate(bilinear, align_corners=False)` (no antialiasing) to the letterbox size, clamped to ``[0, 1]``, then
+    zero-padded with the centred placement of `letterbox_geometry`. Images already at the target size are returned
+    unchanged (LeRobot skips the resize for them)."""
+    images = np.asarray(images, np.float32)
+    if images.ndim < 3:
+        raise ValueError(f"expected images shaped [..., H, W, C], got shape {images.shape}")
+    if images.shape[-3:-1] == (height, width):
+        return images
+    geo = letterbox_geometry(images.shape[-3], images.shape[-2], height, width)
+    y0, y1, wy0, wy1 = _torch_linear_taps(geo.orig_h, geo.resized_h)
+    x0, x1, wx0, wx1 = _torch_linear_taps(geo.orig_w, geo.resized_w)
+    wx0, wx1 = wx0[:, None], wx1[:, None]
+    # torch blends along the width first, then weighs the two rows: (a * wx0 + b * wx1) * wy0 + (...) * wy1.
+    top = images[..., y0, :, :]
+    bottom = images[..., y1, :, :]
+    top = top[..., x0, :] * wx0 + top[..., x1, :] * wx1
+    bottom = bottom[..., x0, :] * wx0 + bottom[..., x1, :] * wx1
+    resized = top * wy0[:, None, None] + bottom * wy1[:, None, None]
+    out = np.zeros((*images.shape[:-3], height, width, images.shape[-1]), np.float32)
+    rows = slice(geo.pad_top, geo.pad_top + geo.resized_h)
+    cols = slice(geo.pad_left, geo.pad_left + geo.resized_w)
+    out[..., rows, cols, :] = np.clip(resized, 0.0, 1.0)
+    return out

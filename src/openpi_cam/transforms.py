@@ -78,6 +78,33 @@ def parse_image(value: Any, key: str, *, channels_first: bool | None = None) -> 
     return np.ascontiguousarray(img)
 
 
+def parse_lerobot_image(value: Any, key: str) -> np.ndarray:
+    """A camera frame as LeRobot takes it -> float32 ``[3, H, W]`` in ``[0, 1]``: uint8 ``[H, W, 3]`` (a robot's
+    frame, divided by 255) or float ``[3, H, W]`` in ``[0, 1]`` (a LeRobot dataset's frame, kept as it is)."""
+    img = _as_array(value, key)
+    if img.dtype == np.uint8:
+        if img.ndim != 3 or img.shape[-1] != 3:
+            raise InvalidRequest(f"'{key}': a uint8 image must be [H, W, 3], got shape {img.shape}")
+        img = img.transpose(2, 0, 1).astype(np.float32) / np.float32(255)
+    elif np.issubdtype(img.dtype, np.floating):
+        if img.ndim != 3 or img.shape[0] != 3:
+            raise InvalidRequest(f"'{key}': a float image must be [3, H, W] in [0, 1], got shape {img.shape}")
+        if not np.all(np.isfinite(img)):
+            raise InvalidRequest(f"'{key}': float image contains NaN or inf")
+        if img.size and (img.min() < 0.0 or img.max() > 1.0):
+            raise InvalidRequest(
+                f"'{key}': float image values must lie in [0, 1], got [{float(img.min())}, {float(img.max())}]"
+            )
+        img = img.astype(np.float32)
+    else:
+        raise InvalidRequest(
+            f"'{key}': image dtype {img.dtype} is not supported; send uint8 [H, W, 3] or float [3, H, W]"
+        )
+    if min(img.shape[1:]) < 1:
+        raise InvalidRequest(f"'{key}': empty image, shape {img.shape}")
+    return np.ascontiguousarray(img)
+
+
 def parse_vector(value: Any, key: str, *, dim: int | None = None, allow_scalar: bool = False) -> np.ndarray:
     """A finite 1-D numeric vector (a scalar becomes length 1 when ``allow_scalar``), checked against ``dim``."""
     arr = _as_array(value, key)
@@ -132,6 +159,11 @@ def make_bool_mask(*dims: int) -> tuple[bool, ...]:
 
 # --------------------------------------------------------------------------------------------------------------------
 # Transforms
+
+
+# Values an input transform leaves for the output transforms of the same request (a LeRobot relative-action step's
+# state): `Policy` takes this entry out of the model inputs and adds its items to what the output transforms see.
+OUTPUT_CONTEXT = "output_context"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -247,6 +279,10 @@ class ResizeImages:
 
     height: int
     width: int
+
+    def client_frame(self, image: np.ndarray) -> np.ndarray:
+        """An image this transform receives as the uint8 ``[H, W, 3]`` frame a trace records (here: itself)."""
+        return image
 
     def __call__(self, data: DataDict) -> DataDict:
         images = data["image"]

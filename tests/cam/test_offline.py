@@ -26,6 +26,7 @@ from paths import REPO_ROOT
 
 from openpi_cam import cli
 from openpi_cam.cam.batching import explain_traces
+from openpi_cam.cam.faithfulness_run import step_model_inputs
 from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.offline import (
     SOURCE_KEY,
@@ -35,11 +36,13 @@ from openpi_cam.cam.offline import (
     iter_run_steps,
     record_observation,
 )
-from openpi_cam.cam.run_format import StepRecord, load_run
+from openpi_cam.cam.run_format import IMAGE_INPUT, StepRecord, load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.cli import explain_run
+from openpi_cam.cli.options import ExplainFlags
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import ExplainSkipped, Explanation
+from openpi_cam.policies.libero import make_libero_example
 from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.serving import RequestContext
 from openpi_cam.vocabulary import ExplainOptions
@@ -373,7 +376,9 @@ _DATA_PARALLEL = textwrap.dedent(
     from cam_support import demo_obs, policy_part
     from openpi_cam.cam.batching import data_mesh, explain_traces, shard_batch
     from openpi_cam.model.observation import stack_observations
-    from openpi_cam.policies import demo_reach
+    from openpi_cam.cli.options import ExplainFlags
+from openpi_cam.policies import demo_reach
+from openpi_cam.policies.libero import make_libero_example
     from openpi_cam.policies.family import ExplainOptions
 
     policy = model_spec.create_demo_policy()
@@ -429,3 +434,81 @@ def test_data_parallel_over_two_host_devices_matches_one_device(tmp_path):
             _assert_maps_close(spmd, single, f"row {b} {kind}")
     rows = [out[f"single/{b}/gradnorm/base_0_rgb"] for b in range(3)]
     assert not np.allclose(rows[0], rows[1]) and not np.allclose(rows[1], rows[2])  # rows cannot be swapped unseen
+
+
+def _served_run(policy: Any, observations: list[dict], cam_dir: pathlib.Path, run_config: dict) -> pathlib.Path:
+    """A run the side channel wrote while serving `observations` (raw frames kept), with their responses."""
+    cam = wrap_policy_with_cam(policy, CAMOptions(every_k=1, cam_dir=cam_dir, save_frames="both", maps=("gradnorm",),
+                                                  check_patches=0), run_config=run_config)  # fmt: skip
+    actions = [cam.infer(obs, RequestContext("robot", i))["actions"] for i, obs in enumerate(observations)]
+    cam.close(timeout=None)
+    assert_pairwise_different(actions)  # identity below means the replay served each request's own actions
+    return cam.run_dir
+
+
+REPLAYED_FAMILIES = [
+    pytest.param("pi0_fast", id="pi0_fast"),
+    pytest.param("pi05", id="pi05"),
+    pytest.param("pi0", id="pi0", marks=pytest.mark.slow),
+    pytest.param("lerobot", id="lerobot_pi05"),
+]
+
+
+@pytest.mark.parametrize("family", REPLAYED_FAMILIES)
+def test_a_served_run_replays_through_explain_run_with_its_own_actions(family, demo_policy, golden_dir, tmp_path):
+    """`explain-run RUN_DIR` of a run `serve` wrote with raw frames: every step is served again with the model the run
+    records, the client's other inputs (the state) and the step's noise, and returns the very output it recorded
+    (exit 0, every step compared). pi0.5 and pi0 draw their noise at random: a replay that drew its own would
+    mismatch."""
+    if family == "pi0":  # upstream's tiny pi0 LIBERO policy
+        root = golden_dir / "tiny_policy_pi0_libero"
+        model = ModelSpec(root / "checkpoint", "pi0_libero", root / "paligemma_tokenizer_tiny.model", dtype="float32")
+        policy = model.create()
+        observations = [make_libero_example(seed=seed) for seed in (3, 4, 5)]
+    elif family == "lerobot":  # LeRobot's own tiny pi0.5 folder, its cases' 120 x 160 and 96 x 96 frames resized
+        model = ModelSpec(golden_dir / "lerobot_pi05_tiny")
+        policy = model.create()
+        observations = _lerobot_cases(golden_dir / "lerobot_pi05_tiny" / "cases.npz")
+    else:
+        model = ModelSpec.demo(family)
+        policy = demo_policy if family == "pi0_fast" else model.create()
+        observations = [policy_part(demo_obs(seed)) for seed in (3, 4, 5)]
+    run_dir = _served_run(policy, observations, tmp_path / "served", model.resolved().to_json())
+    steps = load_run(run_dir).steps
+    assert set(steps[0].client_inputs) == set(_numeric_keys(observations[0]))
+    # Only a LeRobot policy's float-resized images need their own copy: an OpenPI image is its uint8 frame exactly.
+    stored = {k for step in steps for k in step.inputs if k.startswith(IMAGE_INPUT)}
+    assert bool(stored) == (family == "lerobot"), stored
+    for step, obs in zip(steps, observations, strict=True):  # the model's images, rebuilt from the step exactly
+        trace = policy.infer_traced(obs, noise=step.inputs.get("noise"))[1]
+        rebuilt = step_model_inputs(step)[0].images
+        for camera, image in trace.observation.images.items():
+            np.testing.assert_array_equal(rebuilt[camera], np.asarray(image), err_msg=camera)
+    rc = explain_run.main(run_dir, out=tmp_path / "replayed", explanation=ExplainFlags(maps=("gradnorm",)),
+                          progress=False)  # fmt: skip
+    assert rc == 0
+    (replayed,) = (tmp_path / "replayed").iterdir()
+    counters = load_run(replayed).manifest["counters"]["external"]
+    assert counters["actions_compared"] == len(observations) and counters["actions_mismatched"] == 0
+
+
+def _lerobot_cases(path: pathlib.Path) -> list[dict]:
+    """The golden's three single frames as a LeRobot client sends them (uint8 [H, W, 3] frames, its feature names)."""
+    with np.load(path) as z:
+        return [
+            {
+                "observation.images.base": z[f"{case}/input_uint8_hwc/observation.images.base"],
+                "observation.images.wrist": z[f"{case}/input_uint8_hwc/observation.images.wrist"],
+                "observation.state": z[f"{case}/input/observation.state"],
+                "task": str(z[f"{case}/input/task"]),
+            }
+            for case in ("case0", "case1", "case2")
+        ]
+
+
+def _numeric_keys(obs: dict) -> list[str]:
+    return [
+        k
+        for k, v in obs.items()
+        if k not in ("prompt", "task") and np.asarray(v).dtype.kind in "biuf" and np.ndim(v) < 3
+    ]

@@ -14,7 +14,7 @@ from cam_support import demo_obs, policy_part
 from openpi_cam import cli
 from openpi_cam.cam.batching import explain_batch
 from openpi_cam.cam.reliance import EMPTY_PROMPT, reliance, without_camera
-from openpi_cam.cam.run_format import load_run, reliance_figures
+from openpi_cam.cam.run_format import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.policies.model_spec import create_demo_policy
 from openpi_cam.vocabulary import ExplainOptions, MapOptions
@@ -59,20 +59,20 @@ def test_reliance_equals_the_change_a_direct_rerun_measures(family, demo_policy,
         (explained,) = explain_batch(policy.explainer, [trace], OPTIONS, [seed])
         measured = reliance(policy, policy.explainer, trace, explained.result, MapOptions())
         score = _direct_score(policy, trace, trace.observation)
-        assert measured["score"] == pytest.approx(score, abs=SCORE_ATOL)
+        assert measured.score == pytest.approx(score, abs=SCORE_ATOL)
         valid = [c for c, info in explained.result.cameras.items() if info["valid"]]
-        assert list(measured["cameras"]) == valid  # pi0.5's masked blank camera has none
+        assert list(measured.cameras) == valid  # pi0.5's masked blank camera has none
         for camera in valid:
             replaced = without_camera(trace.observation, camera, MapOptions())
             drop = score - _direct_score(policy, trace, replaced)
-            assert measured["cameras"][camera]["score_drop"] == pytest.approx(drop, abs=SCORE_ATOL)
+            assert measured.cameras[camera].score_drop == pytest.approx(drop, abs=SCORE_ATOL)
         emptied = policy.with_prompt(trace, EMPTY_PROMPT)
         drop = score - _direct_score(policy, trace, emptied)
-        assert measured["prompt"]["score_drop"] == pytest.approx(drop, abs=SCORE_ATOL)
+        assert measured.prompt.score_drop == pytest.approx(drop, abs=SCORE_ATOL)
         # the prompt's action change is what serving the request with an empty prompt returns, the same noise drawn
         served = policy.infer({**obs, "prompt": EMPTY_PROMPT}, noise=trace.sample_inputs.get("noise"))["actions"]
         change = np.sqrt(np.mean((np.asarray(served, np.float64) - response["actions"]) ** 2))
-        assert measured["prompt"]["action_change"] == change
+        assert measured.prompt.action_change == change
 
 
 def test_explain_batch_measures_reliance_only_with_the_policy_that_served(demo_policy):
@@ -81,7 +81,7 @@ def test_explain_batch_measures_reliance_only_with_the_policy_that_served(demo_p
     with pytest.raises(ValueError, match="pass the policy that served"):
         explain_batch(demo_policy.explainer, [trace], options, [0])
     (explained,) = explain_batch(demo_policy.explainer, [trace], options, [0], policy=demo_policy)
-    assert set(explained.reliance["cameras"]) == {"base_0_rgb", "wrist_0_rgb"} and "prompt" in explained.reliance
+    assert set(explained.reliance.cameras) == {"base_0_rgb", "wrist_0_rgb"} and explained.reliance.prompt is not None
     (plain,) = explain_batch(demo_policy.explainer, [trace], OPTIONS, [0], policy=demo_policy)
     assert plain.reliance is None
 
@@ -99,13 +99,13 @@ def test_the_side_channel_stores_reliance_per_step_and_stats_reads_it(tmp_path, 
         _, trace = demo_policy.infer_traced(obs)
         (explained,) = explain_batch(demo_policy.explainer, [trace], OPTIONS, [0])
         expected = reliance(demo_policy, demo_policy.explainer, trace, explained.result, MapOptions())
-        assert reliance_figures(step.meta.reliance) == pytest.approx(reliance_figures(expected))
+        assert step.meta.reliance.figures() == pytest.approx(expected.figures())
     out = tmp_path / "stats.json"
-    cli.main(["stats", str(wrapped.run_dir), "--format", "json", "--out", str(out), "--map", "gradnorm"])
+    cli.main(["stats", str(wrapped.run_dir), "--format", "json", "--out", str(out), "--kind", "gradnorm"])
     data = json.loads(out.read_text())
     for row, step in zip(data["steps"], run.steps, strict=True):
-        assert row["prompt/reliance_score"] == pytest.approx(step.meta.reliance["prompt"]["score_drop"])
+        assert row["prompt/reliance_score"] == pytest.approx(step.meta.reliance.prompt.score_drop)
         assert row["base_0_rgb/reliance_actions"] == pytest.approx(
-            step.meta.reliance["cameras"]["base_0_rgb"]["action_change"]
+            step.meta.reliance.cameras["base_0_rgb"].action_change
         )
     assert set(data["summary"]["mean_reliance"]) >= {"base_0_rgb/reliance_score", "prompt/reliance_actions"}

@@ -13,7 +13,7 @@ from cam_support import assert_pairwise_different, demo_obs, policy_part
 
 from openpi_cam.cam import faithfulness as fm
 from openpi_cam.cam.faithfulness_run import step_model_inputs
-from openpi_cam.cam.run_format import load_run
+from openpi_cam.cam.run_format import SpotCheck, load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.cam.spot_check import spot_check_masks
 from openpi_cam.vocabulary import MapOptions
@@ -60,17 +60,17 @@ def test_logged_checks_are_the_models_own_rescores(tmp_path, demo_policy):
     seen = []
     for step in run.steps:
         check = step.meta.check
-        assert check["patches"] == 4 and check["seed"] == step.meta.step
+        assert check.patches == 4 and check.seed == step.meta.step
         obs, outputs, sample_inputs = step_model_inputs(step)
         painting = MapOptions(**step.meta.map_options)
-        for camera, c in check["cameras"].items():
+        for camera, c in check.cameras.items():
             grid = np.shape(step.maps_of("gradnorm")[camera])
             n = grid[0] * grid[1]
             for kind in ("gradcam", "gradnorm", "occlusion"):  # the logged maps' peaks, row-major
-                assert c["top_patch"][kind] == int(np.argmax(fm.reduce_map(step.maps_of(kind)[camera]))), kind
-            assert len(set(c["random_patches"])) == 4 and all(0 <= i < n for i in c["random_patches"])
+                assert c.top_patch[kind] == int(np.argmax(fm.reduce_map(step.maps_of(kind)[camera]))), kind
+            assert len(set(c.random_patches)) == 4 and all(0 <= i < n for i in c.random_patches)
             # Re-run here, one single patch per row, from the step file alone.
-            cells = [c["top_patch"][k] for k in ("gradcam", "gradnorm", "occlusion")] + c["random_patches"]
+            cells = [c.top_patch[k] for k in ("gradcam", "gradnorm", "occlusion")] + list(c.random_patches)
             masks = np.zeros((1 + len(cells), n), bool)
             masks[np.arange(1, len(masks)), cells] = True
             scores = demo_policy.explainer.rescore(
@@ -79,15 +79,15 @@ def test_logged_checks_are_the_models_own_rescores(tmp_path, demo_policy):
             drops = scores[0] - scores[1:]
             # Two float32 programs batching the variants differently: 1e-5 |score| (test_faithfulness_run.py).
             atol = 1e-5 * max(abs(float(scores[0])), 1.0)
-            assert c["score"] == pytest.approx(step.meta.score, abs=REPLAY_ATOL)
-            logged = [c["top_patch_drop"][k] for k in ("gradcam", "gradnorm", "occlusion")] + c["random_patch_drops"]
+            assert c.score == pytest.approx(step.meta.score, abs=REPLAY_ATOL)
+            logged = [c.top_patch_drop[k] for k in ("gradcam", "gradnorm", "occlusion")] + list(c.random_patch_drops)
             np.testing.assert_allclose(logged, drops, rtol=0, atol=atol)
             # Occlusion's top patch is the best single patch: its drop is the occlusion map's maximum, and no random
             # patch drops the score more.
             occlusion = step.maps_of("occlusion")[camera]
-            assert c["top_patch_drop"]["occlusion"] == pytest.approx(float(occlusion.max()), abs=atol)
-            assert max(c["random_patch_drops"]) <= c["top_patch_drop"]["occlusion"] + atol
-            seen.append(c["top_patch_drop"]["gradnorm"])
+            assert c.top_patch_drop["occlusion"] == pytest.approx(float(occlusion.max()), abs=atol)
+            assert max(c.random_patch_drops) <= c.top_patch_drop["occlusion"] + atol
+            seen.append(c.top_patch_drop["gradnorm"])
     assert len(set(np.round(seen, 4))) > 1, seen  # the steps differ, so a check filed under another step would show
 
 
@@ -97,4 +97,4 @@ def test_no_check_when_off_and_a_named_skip_for_multi_score_targets(tmp_path, de
     off = _run(tmp_path / "off", demo_policy, check_patches=0)
     assert all(s.meta.check is None and "check" not in s.meta.to_json() and s.map_kinds for s in off.steps)
     tokens = _run(tmp_path / "tokens", demo_policy, target="all-action-tokens")
-    assert all(s.meta.check == {"skipped": "multi_score_target"} and s.map_kinds for s in tokens.steps)
+    assert all(s.meta.check == SpotCheck(skipped="multi_score_target") and s.map_kinds for s in tokens.steps)

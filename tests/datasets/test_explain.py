@@ -41,7 +41,7 @@ BOX = {"observation.target_box": "target_box"}
 
 
 def _job(source, out, **kw) -> DatasetJob:
-    keys, nested = dataset_keys("demo_reach", {})
+    keys, nested = dataset_keys(ModelSpec(), {})
     return DatasetJob(source, out, ModelSpec(), OPTIONS, keys, batch_size=BATCH, extra=BOX, nested_keys=nested, **kw)
 
 
@@ -127,9 +127,12 @@ def test_a_killed_job_resumes_without_writing_a_frame_twice(explained, tmp_path)
     """The command in a subprocess, killed (SIGKILL) once its first shard is written, then run again: the second run
     explains only the missing episodes, and the result equals an uninterrupted run frame for frame."""
     source, out = LEROBOT_DIR / "demo_reach_v21_video", tmp_path / "killed.maps"
+    # Every episode of the dataset: with compiled programs cached an episode takes a fraction of a second, and the kill
+    # must still find some left to do.
+    episodes = len(open_dataset(source).episodes)
     args = [
         sys.executable, "-m", "openpi_cam", "explain", str(source), "--out", str(out), "--maps", *KINDS,
-        "--episodes", "0-2", "--batch-size", "4", "--check-patches", "2",
+        "--episodes", f"0-{episodes - 1}", "--batch-size", "4", "--check-patches", "2",
         "--extra", "observation.target_box=target_box", "--no-progress",
     ]  # fmt: skip
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
@@ -142,12 +145,12 @@ def test_a_killed_job_resumes_without_writing_a_frame_twice(explained, tmp_path)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     first = sorted(out.glob("data/*/*.parquet"))
-    assert 1 <= len(first) < 3, "the kill must land mid-job for this test to say anything"
+    assert 1 <= len(first) < episodes, "the kill must land mid-job for this test to say anything"
     done = subprocess.run(args, cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stderr
     assert f"({len(first)} already written" in done.stderr
     resumed = fmt.open_maps_dataset(out).table().to_pydict()
-    reference = pa.concat_tables([explained["demo_reach_v21_video"][0].table(e) for e in (0, 1, 2)]).to_pydict()
+    reference = pa.concat_tables([explained["demo_reach_v21_video"][0].table(e) for e in range(episodes)]).to_pydict()
     assert resumed["index"] == reference["index"]
     assert not [p for p in out.rglob("*") if p.is_file() and p.suffix == ".tmp"]
     # Same program, same inputs: the maps agree to float32 rounding of a differently scheduled process (measured
@@ -240,7 +243,7 @@ def test_dataset_actions_target_explains_the_recorded_chunk(tmp_path, demo_polic
     """`--target dataset-actions` (pi0-FAST): the explained tokens are the recorded chunk's FAST action tokens as
     training tokenises them (recomputed here from the parquet), and the expert's chunks score a higher
     log-probability than the same chunks negated (the demo model learned the expert)."""
-    keys, nested = dataset_keys("demo_reach", {})
+    keys, nested = dataset_keys(ModelSpec(), {})
     options = ExplainOptions(target="chunk", maps=KINDS, check_patches=0)
 
     def run(source, out):
@@ -306,7 +309,7 @@ def test_faithfulness_of_a_maps_dataset_serves_its_frames_again(explained, tmp_p
 def test_flow_matching_families_refuse_dataset_actions(tmp_path):
     from openpi_cam.datasets.explain import EpisodeExplainer
 
-    keys, nested = dataset_keys("demo_reach_pi05", {})
+    keys, nested = dataset_keys(ModelSpec(config="demo_reach_pi05"), {})
     options = ExplainOptions(target="chunk", maps=KINDS)
     job = DatasetJob(
         LEROBOT_DIR / "demo_reach_v30_image",

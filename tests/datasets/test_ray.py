@@ -39,7 +39,9 @@ SOURCE = LEROBOT_DIR / "demo_reach_v30_video"
 # actor in the middle of one to kill.
 EPISODES = (0, 1, 2, 3, 6)
 KINDS = ("gradcam", "gradnorm")
-OPTIONS = ExplainOptions(target="action-token", maps=KINDS, check_patches=2)
+# No target: the family's default, as the README's command leaves it (the driver must plan the target the actors
+# resolve).
+OPTIONS = ExplainOptions(maps=KINDS, check_patches=2)
 BOX = {"observation.target_box": "target_box"}
 WORKERS = 2
 # The maps, scores and spot checks of a frame come from the same float32 programs on the same CPU in either engine,
@@ -51,7 +53,7 @@ ENGINE_LOG = "openpi_cam.datasets.ray_engine"
 
 
 def _job(out, source=SOURCE, episodes=EPISODES) -> DatasetJob:
-    keys, nested = dataset_keys("demo_reach", {})
+    keys, nested = dataset_keys(ModelSpec(), {})
     return DatasetJob(
         source, out, ModelSpec(), OPTIONS, keys, batch_size=4, extra=BOX, episodes=episodes, nested_keys=nested
     )

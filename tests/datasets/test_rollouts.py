@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from openpi_cam import cli
-from openpi_cam.cam.run_format import reliance_figures
+from openpi_cam.cam.run_format import Reliance
 from openpi_cam.datasets import maps_dataset as fmt
 from openpi_cam.datasets.explain import DatasetJob, dataset_keys, run_local
 from openpi_cam.datasets.lerobot import DatasetError, open_dataset
@@ -104,7 +104,7 @@ def explained(recorded, tmp_path_factory):
     the robot asked the server). The options of tests/datasets' other jobs, so compiled programs are shared."""
     root, _ = recorded
     out = tmp_path_factory.mktemp("maps") / "rollouts.maps"
-    keys, nested = dataset_keys("demo_reach", {})
+    keys, nested = dataset_keys(ModelSpec(), {})
     options = ExplainOptions(target="action-token", maps=("gradcam", "gradnorm"), check_patches=2)
     extra = {demo_reach.LEROBOT_TARGET_BOX: TARGET_BOX}
     job = DatasetJob(root, out, ModelSpec(), options, keys, batch_size=4, every=5, extra=extra, nested_keys=nested)
@@ -140,7 +140,7 @@ def test_rows_carry_their_episodes_outcome_read_from_next_success(recorded, expl
 
 def test_stats_show_failures_beside_successes_and_how_well_each_figure_finds_them(recorded, explained, tmp_path):
     out = tmp_path / "stats.json"
-    cli.main(["stats", str(explained), "--format", "json", "--out", str(out), "--map", "gradnorm"])
+    cli.main(["stats", str(explained), "--format", "json", "--out", str(out), "--kind", "gradnorm"])
     data = json.loads(out.read_text())
     outcomes, frames = data["summary"]["outcomes"], data["frames"]
     ranked = {e["episode_index"]: e for e in data["summary"]["episode_ranking"]}
@@ -223,7 +223,9 @@ def test_reliance_columns_hold_each_frames_reliance_and_the_views_average_them(r
     ]
     rows = maps.table().to_pylist()
     for row in rows:
-        assert {k: row[k] for k in fmt.reliance_columns(maps.info)} == reliance_figures(json.loads(row["reliance"]))
+        assert {k: row[k] for k in fmt.reliance_columns(maps.info)} == Reliance.from_json(
+            json.loads(row["reliance"])
+        ).figures()
     views = compute_views(maps, "gradnorm")
     for name, group in views.outcomes["by_outcome"].items():
         chosen = [r for r in rows if r["episode_success"] == (name == "success")]

@@ -38,7 +38,7 @@ CAMERA_FEATURES = {"base_0_rgb": "observation.images.base", "wrist_0_rgb": "obse
 @pytest.fixture(scope="module")
 def maps_root(tmp_path_factory):
     out = tmp_path_factory.mktemp("maps") / "demo_maps"
-    keys, nested = dataset_keys("demo_reach", {})
+    keys, nested = dataset_keys(ModelSpec(), {})
     # The options of tests/cam's dataset jobs (batches of 4 included): the same compiled programs, which a process of
     # the test run may then load from JAX's compilation cache instead of compiling.
     options = ExplainOptions(target="action-token", maps=KINDS, check_patches=2)

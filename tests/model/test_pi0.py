@@ -91,6 +91,31 @@ def test_full_size_trees_equal_upstreams(name):
     assert (expert.width, expert.depth, expert.lora_rank) == (1024, 18, 32 if "lora" in name else 0)
 
 
+def test_the_model_reads_its_own_camera_set_in_its_order():
+    """`Pi0Config.image_keys` is the model's camera set: upstream's three under other names give upstream's actions
+    exactly; another order is another token order (other actions); a camera the set names must be sent."""
+    model = load_model("pi05")
+    d, obs = load_case("pi05", "case_a")
+    new_names = ("observation.images.front", "observation.images.left", "observation.images.right")
+    names = dict(zip(CAMERAS, new_names, strict=True))
+    renamed = dataclasses.replace(
+        obs,
+        images={names[c]: v for c, v in obs.images.items()},
+        image_masks={names[c]: v for c, v in obs.image_masks.items()},
+    )
+
+    def actions(image_keys: tuple[str, ...], observation: Observation) -> np.ndarray:
+        cfg = dataclasses.replace(model.config, image_keys=image_keys)
+        return np.asarray(pi0.sample_actions_jit(model.params, observation, jnp.asarray(d["noise"]), cfg=cfg))
+
+    upstream = np.asarray(model.sample_actions(jax.random.key(0), obs, noise=d["noise"]))
+    np.testing.assert_array_equal(actions(tuple(names.values()), renamed), upstream)
+    swapped = tuple(names[c] for c in (CAMERAS[1], CAMERAS[0], CAMERAS[2]))
+    assert np.abs(actions(swapped, renamed) - upstream).max() > 1e-3
+    with pytest.raises(ValueError, match=r"lacks the camera\(s\) \['base_0_rgb', 'left"):
+        actions(CAMERAS, renamed)
+
+
 def flow_cases(slow_families: tuple[str, ...] = ()) -> list:
     """(family, case) pairs, the slow tier's marked: case_c, the batch of two, compiles programs of its own (the fast
     tier batches flow models in serving/test_batching.py), and so does each family in `slow_families`."""

@@ -12,13 +12,13 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any
 
 import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from openpi_cam.cam.reliance import Resampler, reliance
+from openpi_cam.cam.run_format import Reliance, SpotCheck
 from openpi_cam.cam.spot_check import check_trace
 from openpi_cam.model.observation import Observation, pad_rows, stack_observations
 from openpi_cam.model.sharding import BATCH_AXIS
@@ -86,9 +86,9 @@ class Explained:
     reliance took."""
 
     result: Explanation | ExplainSkipped
-    check: dict[str, Any] | None
+    check: SpotCheck | None
     explain_ms: float
-    reliance: dict[str, Any] | None = None
+    reliance: Reliance | None = None
 
 
 def explain_batch(
@@ -111,8 +111,8 @@ def explain_batch(
         raise ValueError("reliance re-runs the policy: pass the policy that served the traces")
     start = time.perf_counter()
     results = explain_traces(explainer, traces, options.explanation, mesh=mesh, pad_to=pad_to)
-    checks: list[dict[str, Any] | None] = [None] * len(results)
-    relied: list[dict[str, Any] | None] = [None] * len(results)
+    checks: list[SpotCheck | None] = [None] * len(results)
+    relied: list[Reliance | None] = [None] * len(results)
     rerun = options.check_patches or options.reliance
     if rerun and before_check is not None and any(not isinstance(r, ExplainSkipped) for r in results):
         before_check()

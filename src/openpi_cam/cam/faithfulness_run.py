@@ -36,8 +36,8 @@ from jax.sharding import Mesh
 from openpi_cam.cam import faithfulness as metrics
 from openpi_cam.cam.batching import data_mesh, explain_rows
 from openpi_cam.cam.run_evidence import ig_summary
-from openpi_cam.cam.run_format import CAMRun, CAMStep, StepMeta
-from openpi_cam.model.observation import Observation
+from openpi_cam.cam.run_format import IMAGE_INPUT, CAMRun, CAMStep, StepMeta
+from openpi_cam.model.observation import Observation, uint8_to_model
 from openpi_cam.policies.family import Explainer, ExplainSkipped, Explanation
 from openpi_cam.vocabulary import MAP_KINDS, ExplainOptions, MapOptions
 
@@ -74,7 +74,10 @@ def step_model_inputs(step: CAMStep) -> tuple[Observation, np.ndarray, dict[str,
     missing = [c for c in cameras if c not in frames] + [k for k in ("output", "state") if k not in inputs]
     if not cameras or missing:
         raise ExplainSkipped("not_replayable", f"step {step.seq} lacks {missing or 'its cameras'} (save model frames)")
-    images = {c: (np.asarray(frames[c], np.float32) / 255.0 * 2.0 - 1.0)[None] for c in cameras}
+    images = {
+        c: np.asarray(inputs[IMAGE_INPUT + c] if IMAGE_INPUT + c in inputs else uint8_to_model(frames[c]))[None]
+        for c in cameras
+    }
     masks = {c: np.asarray([info.valid]) for c, info in cameras.items()}
     fields = {k: np.asarray(inputs[k])[None] if k in inputs else None for k in _OBS_INPUTS}
     obs = Observation(images=images, image_masks=masks, **fields)

@@ -201,8 +201,8 @@ def explain_replays(
                     log.warning("explain: %s: %s (further ones are only counted)", r.source, explained.result)
                 continue
             counts["explained_malformed"] += trace.malformed_reason is not None
-            if explained.check is not None and "skipped" in explained.check:
-                counts[f"check_skipped_{explained.check['skipped']}"] += 1
+            if explained.check is not None and explained.check.skipped is not None:
+                counts[f"check_skipped_{explained.check.skipped}"] += 1
             record = step_record(
                 trace,
                 explained.result,

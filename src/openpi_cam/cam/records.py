@@ -9,7 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.cam.run_format import CameraMeta, StepMeta, StepRecord
+from openpi_cam.cam.run_format import IMAGE_INPUT, CameraMeta, Reliance, SpotCheck, StepMeta, StepRecord
+from openpi_cam.model.observation import uint8_to_model
 from openpi_cam.policies.family import Explanation
 from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.policies.policy import InferenceTrace
@@ -108,6 +109,11 @@ def model_inputs(trace: InferenceTrace) -> dict[str, np.ndarray]:
         value = getattr(obs, name)
         if value is not None:
             inputs[name] = np.asarray(value)[0]
+    for camera, image in obs.images.items():
+        # A model image the uint8 model frame does not hold exactly (LeRobot resizes in float) is kept as it is.
+        x = np.asarray(image, np.float32)[0]
+        if not np.array_equal(np.asarray(uint8_to_model(model_frame_uint8(x))), x):
+            inputs[IMAGE_INPUT + camera] = x
     return inputs
 
 
@@ -121,8 +127,8 @@ def step_record(
     save_frames: SaveFrames,
     extra: Mapping[str, Any],
     explain_ms: float,
-    check: Mapping[str, Any] | None = None,
-    reliance: Mapping[str, Any] | None = None,
+    check: SpotCheck | None = None,
+    reliance: Reliance | None = None,
 ) -> StepRecord:
     """The logger record of one explained inference, in the layout docs/FORMAT.md describes; `extra`: the client's
     `cam_extra/` values (numeric arrays go to the step file, the rest to `StepMeta.extra`); `check`: its spot check
@@ -155,8 +161,8 @@ def step_record(
         explain_ms=round(explain_ms, 3),
         extra=extra_values,
         extra_arrays=tuple(sorted(extra_arrays)),  # stored as `extra/<key>` in the step file
-        check=None if check is None else dict(check),
-        reliance=None if reliance is None else dict(reliance),
+        check=check,
+        reliance=reliance,
         details=dict(explanation.details),
     )
     return StepRecord(

@@ -12,20 +12,20 @@ tokens kept) and the model run again. Each reports two changes against the serve
 
 A camera the model masks (pi0.5's blank right wrist) has none. A score drop needs one explained score: for a target
 with a score per token (`all-action-tokens`) only the action change is measured. Best effort like the spot check: a
-failure is recorded as {"skipped": "failed_<Error>"} and the step keeps its maps.
+failure is recorded as `Reliance(skipped="failed_<Error>")` and the step keeps its maps.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
-from typing import Any, Protocol
+from typing import Protocol
 
 import jax
 import numpy as np
 from jax.sharding import Mesh
 
-from openpi_cam.cam.run_format import RELIANCE_PROMPT
+from openpi_cam.cam.run_format import Dependence, Reliance
 from openpi_cam.model.attribution import baseline_images
 from openpi_cam.model.observation import Observation
 from openpi_cam.policies.family import Explainer, ExplainSkipped, Explanation
@@ -67,10 +67,9 @@ def reliance(
     options: MapOptions,
     *,
     mesh: Mesh | None = None,
-) -> dict[str, Any]:
-    """{"score": the explained score re-run, "cameras": {camera: {"score_drop", "action_change"}}, "prompt": {...}}
-    for one traced, explained inference (module docstring), stored as `StepMeta.reliance`; a score drop is None
-    where the target has several scores. With a `mesh`, `explainer` is placed on it."""
+) -> Reliance:
+    """The reliance of one traced, explained inference (module docstring), stored as `StepMeta.reliance`: a score
+    drop is None where the target has several scores. With a `mesh`, `explainer` is placed on it."""
     try:
         cameras = [c for c, info in explanation.cameras.items() if info.get("valid", True)]
         output = np.asarray(trace.output)[None]
@@ -89,14 +88,13 @@ def reliance(
                 painted, prompted = {}, {}
         scores = {c: np.asarray(s, np.float64) for c, s in painted.items()}
         score = float(scores[cameras[0]][0]) if scores else None
-        out: dict[str, Any] = {"score": score, "cameras": {}}
+        relied = {}
         for c in cameras:
             changed = policy.resample(trace, without_camera(trace.observation, c, options))
             drop = None if c not in scores else float(scores[c][0] - scores[c][1])
-            out["cameras"][c] = {"score_drop": drop, "action_change": action_change(changed, served_actions)}
+            relied[c] = Dependence(drop, action_change(changed, served_actions))
         changed = policy.resample(trace, emptied)
         drop = None if score is None else score - float(np.asarray(next(iter(prompted.values())))[0])
-        out[RELIANCE_PROMPT] = {"score_drop": drop, "action_change": action_change(changed, served_actions)}
-        return out
+        return Reliance(score, relied, Dependence(drop, action_change(changed, served_actions)))
     except Exception as e:
-        return {"skipped": f"failed_{type(e).__name__}", "error": str(e)[:200]}
+        return Reliance(skipped=f"failed_{type(e).__name__}", error=str(e)[:200])

@@ -39,15 +39,7 @@ def ig_summary(run: CAMRun) -> dict[str, Any] | None:
 
 
 def read_check(meta: StepMeta, kind: str) -> dict[str, tuple[float, tuple[float, ...]]]:
-    """A logged step's spot check of one map kind: camera -> (its top patch's score drop, the random patches' drops).
-    A random draw of the kind's own top patch is left out: it is no competitor, and without it a top patch no
-    better than a random one beats the R' others with probability 1 / (R' + 1)."""
-    out = {}
-    for camera, c in ((meta.check or {}).get("cameras") or {}).items():
-        top = (c.get("top_patch_drop") or {}).get(kind)
-        if not isinstance(top, (int, float)):
-            continue
-        own = (c.get("top_patch") or {}).get(kind)
-        pairs = zip(c.get("random_patches") or (), c.get("random_patch_drops") or (), strict=False)
-        out[camera] = (float(top), tuple(float(d) for i, d in pairs if i != own))
-    return out
+    """A logged step's spot check of one map kind: camera -> (its top patch's score drop, the random patches' drops
+    without the kind's own top patch: `CameraCheck.drops`)."""
+    cameras = {} if meta.check is None else meta.check.cameras
+    return {camera: drops for camera, c in cameras.items() if (drops := c.drops(kind)) is not None}

@@ -37,6 +37,8 @@ STEPS_DIR = "steps"
 FRAME_PREFIX = "frame/"
 MODEL_FRAME_PREFIX = "frame_model/"
 INPUT_PREFIX = "input/"  # the explained call's non-image model inputs (token ids, masks, generated output)
+# under `input/`: a model image its uint8 `frame_model/` does not hold exactly (float32 [H, W, 3] in [-1, 1])
+IMAGE_INPUT = "image/"
 EXTRA_ARRAY_PREFIX = "extra/"  # numeric arrays a client sent under `cam_extra/` (other values: meta["extra"])
 # the client's other numeric observation values (e.g. its state), stored with raw frames: what a replay sends again
 CLIENT_PREFIX = "client/"
@@ -194,6 +196,80 @@ def _list(value: tuple[Any, ...] | None) -> list[Any] | None:
 
 
 @dataclasses.dataclass(frozen=True)
+class CameraCheck:
+    """One camera's spot check (`meta.check.cameras.<camera>`, `cam.spot_check`)."""
+
+    score: float  # the explained score, nothing painted
+    top_patch: dict[str, int]  # kind -> row-major index of the map's highest cell
+    top_patch_drop: dict[str, float]  # kind -> score minus the score with that patch alone painted
+    random_patches: tuple[int, ...]
+    random_patch_drops: tuple[float, ...]
+
+    @classmethod
+    def from_json(cls, value: Any) -> CameraCheck:
+        d = dict(value) if isinstance(value, Mapping) else {}
+        top, drop = d.get("top_patch") or {}, d.get("top_patch_drop") or {}
+        return cls(
+            score=float(d.get("score", math.nan)),
+            top_patch={str(k): int(v) for k, v in top.items() if _number(v)},
+            top_patch_drop={str(k): float(v) for k, v in drop.items() if _number(v)},
+            random_patches=tuple(int(i) for i in d.get("random_patches") or ()),
+            random_patch_drops=tuple(float(x) for x in d.get("random_patch_drops") or ()),
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "score": self.score,
+            "top_patch": dict(self.top_patch),
+            "top_patch_drop": dict(self.top_patch_drop),
+            "random_patches": list(self.random_patches),
+            "random_patch_drops": list(self.random_patch_drops),
+        }
+
+    def drops(self, kind: str) -> tuple[float, tuple[float, ...]] | None:
+        """(the kind's top patch's drop, the random patches' drops), or None when the kind was not checked. A random
+        draw of the kind's own top patch is left out: it is no competitor, and without it a top patch no better than
+        a random one beats the R' others with probability 1 / (R' + 1)."""
+        if kind not in self.top_patch_drop:
+            return None
+        own = self.top_patch.get(kind)
+        pairs = zip(self.random_patches, self.random_patch_drops, strict=False)
+        return self.top_patch_drop[kind], tuple(d for i, d in pairs if i != own)
+
+
+@dataclasses.dataclass(frozen=True)
+class SpotCheck:
+    """A step's spot check (`meta.check`): per valid camera its figures, or why it was skipped."""
+
+    patches: int = 0  # random patches per camera
+    seed: int = 0
+    cameras: dict[str, CameraCheck] = dataclasses.field(default_factory=dict)
+    skipped: str | None = None  # why there are no figures (e.g. "multi_score_target", "failed_<Error>")
+    error: str | None = None  # the first 200 characters of a failure's message
+
+    @classmethod
+    def from_json(cls, value: Any) -> SpotCheck:
+        d = dict(value) if isinstance(value, Mapping) else {}
+        cameras = d.get("cameras") if isinstance(d.get("cameras"), Mapping) else {}
+        return cls(
+            patches=int(d.get("patches", 0)),
+            seed=int(d.get("seed", 0)),
+            cameras={str(c): CameraCheck.from_json(v) for c, v in cameras.items()},
+            skipped=_str_or_none(d.get("skipped")),
+            error=_str_or_none(d.get("error")),
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        if self.skipped is not None:
+            return {"skipped": self.skipped, **({} if self.error is None else {"error": self.error})}
+        return {
+            "patches": self.patches,
+            "seed": self.seed,
+            "cameras": {c: v.to_json() for c, v in self.cameras.items()},
+        }
+
+
+@dataclasses.dataclass(frozen=True)
 class CameraMeta:
     """One camera of a logged step (`meta.cameras.<camera>`, docs/FORMAT.md)."""
 
@@ -234,18 +310,65 @@ _CAMERA_FIELDS = frozenset(f.name for f in dataclasses.fields(CameraMeta)) - {"d
 RELIANCE_PROMPT = "prompt"  # a step's reliance on its prompt, beside its cameras' (`cam.reliance`)
 
 
-def reliance_figures(reliance: Mapping[str, Any] | None) -> dict[str, float | None]:
-    """A step's reliance (`StepMeta.reliance`) as flat figures: `<camera>/reliance_score` (the explained score's
-    drop), `<camera>/reliance_actions` (the action chunk's change) and the same under `prompt/`; {} when it was not
-    measured or was skipped."""
-    if not reliance or "skipped" in reliance:
-        return {}
-    entries = {**reliance.get("cameras", {}), RELIANCE_PROMPT: reliance.get(RELIANCE_PROMPT, {})}
-    return {
-        f"{name}/reliance_{what}": entry.get(key)
-        for name, entry in entries.items()
-        for what, key in (("score", "score_drop"), ("actions", "action_change"))
-    }
+@dataclasses.dataclass(frozen=True)
+class Dependence:
+    """How much a step depends on one of its inputs, measured without it (`meta.reliance.cameras.<camera>`, or
+    `meta.reliance.prompt`)."""
+
+    score_drop: float | None  # the explained score minus its value without the input; None: a target of many scores
+    action_change: float  # root mean square over the chunk of the returned actions' change, in the robot's units
+
+    @classmethod
+    def from_json(cls, value: Any) -> Dependence:
+        d = dict(value) if isinstance(value, Mapping) else {}
+        return cls(_float_or_none(d.get("score_drop")), float(d.get("action_change", math.nan)))
+
+    def to_json(self) -> dict[str, Any]:
+        return {"score_drop": self.score_drop, "action_change": self.action_change}
+
+
+@dataclasses.dataclass(frozen=True)
+class Reliance:
+    """A step's reliance (`meta.reliance`, `cam.reliance`): the explained score re-run, and how much the step depends
+    on each camera the model saw and on its prompt; or why it was not measured."""
+
+    score: float | None = None  # the explained score re-run (None: a target of many scores)
+    cameras: dict[str, Dependence] = dataclasses.field(default_factory=dict)
+    prompt: Dependence | None = None  # with the prompt emptied, its state tokens kept
+    skipped: str | None = None  # why there are no figures ("failed_<Error>")
+    error: str | None = None  # the first 200 characters of a failure's message
+
+    @classmethod
+    def from_json(cls, value: Any) -> Reliance:
+        d = dict(value) if isinstance(value, Mapping) else {}
+        cameras = d.get("cameras") if isinstance(d.get("cameras"), Mapping) else {}
+        prompt = d.get(RELIANCE_PROMPT)
+        return cls(
+            score=_float_or_none(d.get("score")),
+            cameras={str(c): Dependence.from_json(v) for c, v in cameras.items()},
+            prompt=Dependence.from_json(prompt) if isinstance(prompt, Mapping) else None,
+            skipped=_str_or_none(d.get("skipped")),
+            error=_str_or_none(d.get("error")),
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        if self.skipped is not None:
+            return {"skipped": self.skipped, **({} if self.error is None else {"error": self.error})}
+        return {
+            "score": self.score,
+            "cameras": {c: v.to_json() for c, v in self.cameras.items()},
+            RELIANCE_PROMPT: None if self.prompt is None else self.prompt.to_json(),
+        }
+
+    def figures(self) -> dict[str, float | None]:
+        """Flat figures: `<camera>/reliance_score` (the score's drop) and `<camera>/reliance_actions` (the actions'
+        change), then the same under `prompt/`; {} when it was skipped."""
+        entries = {**self.cameras, **({} if self.prompt is None else {RELIANCE_PROMPT: self.prompt})}
+        return {
+            f"{name}/reliance_{what}": value
+            for name, entry in entries.items()
+            for what, value in (("score", entry.score_drop), ("actions", entry.action_change))
+        }
 
 
 @dataclasses.dataclass(frozen=True)
@@ -272,8 +395,8 @@ class StepMeta:
     explain_ms: float | None = None
     extra: dict[str, Any] = dataclasses.field(default_factory=dict)  # `cam_extra/` values other than numeric arrays
     extra_arrays: tuple[str, ...] = ()  # the `cam_extra/` keys stored as `extra/<key>` arrays
-    check: dict[str, Any] | None = None  # the spot check (`cam.spot_check`); None when it was off
-    reliance: dict[str, Any] | None = None  # camera and prompt reliance (`cam.reliance`); None when not measured
+    check: SpotCheck | None = None  # the spot check (`cam.spot_check`); None when it was off
+    reliance: Reliance | None = None  # camera and prompt reliance (`cam.reliance`); None when not measured
     details: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     @classmethod
@@ -298,8 +421,8 @@ class StepMeta:
             explain_ms=_float_or_none(d.get("explain_ms")),
             extra=dict(extra) if isinstance(extra, Mapping) else {},
             extra_arrays=_strs(d.get("extra_arrays")) or (),
-            check=dict(check) if isinstance(check, Mapping) else None,
-            reliance=dict(reliance) if isinstance(reliance, Mapping) else None,
+            check=SpotCheck.from_json(check) if isinstance(check, Mapping) else None,
+            reliance=Reliance.from_json(reliance) if isinstance(reliance, Mapping) else None,
             details={k: v for k, v in d.items() if k not in _STEP_FIELDS},
         )
 
@@ -319,7 +442,7 @@ class StepMeta:
             "extra": self.extra,
             "extra_arrays": list(self.extra_arrays),
         }
-        measured = {k: v for k, v in (("check", self.check), ("reliance", self.reliance)) if v is not None}
+        measured = {k: v.to_json() for k, v in (("check", self.check), ("reliance", self.reliance)) if v is not None}
         return written | body | measured
 
     def explained(self) -> dict[str, Any]:

@@ -397,8 +397,8 @@ class CAMPolicy:
             return
         if job.trace.malformed_reason is not None:
             self.count("explained_malformed")
-        if check is not None and "skipped" in check:
-            self.count(f"check_skipped_{check['skipped']}", check.get("error"))
+        if check is not None and check.skipped is not None:
+            self.count(f"check_skipped_{check.skipped}", check.error)
         explained_at = time.monotonic()  # the explanation and its spot check
         timing = JobTiming(job.connection, job.step, job.ended, started, explained_at)
         explain_ms = (explained_at - started) * 1000.0
@@ -510,7 +510,7 @@ class CAMPolicy:
             return f"inference (the example's explanation was skipped: {explanation})"
         what = f"inference and the {explanation.target} explanation"
         if check is not None:
-            what += f" (spot check skipped: {check['skipped']})" if "skipped" in check else " with its spot check"
+            what += f" (spot check skipped: {check.skipped})" if check.skipped else " with its spot check"
         if trace.malformed_reason is not None:
             # The example's generation holds no action tokens: the fallback target was compiled, not the configured
             # one (the side channel's first well-formed request compiles that, off the robot's path).

@@ -15,13 +15,13 @@ from __future__ import annotations
 import contextlib
 import zlib
 from collections.abc import Mapping
-from typing import Any
 
 import jax
 import numpy as np
 from jax.sharding import Mesh
 
 from openpi_cam.cam.faithfulness import patch_order
+from openpi_cam.cam.run_format import CameraCheck, SpotCheck
 from openpi_cam.policies.family import Explainer, ExplainSkipped, Explanation
 from openpi_cam.policies.policy import InferenceTrace
 from openpi_cam.vocabulary import MapOptions
@@ -65,7 +65,7 @@ def check_trace(
     patches: int,
     seed: int,
     mesh: Mesh | None = None,
-) -> dict[str, Any]:
+) -> SpotCheck:
     """`meta.check` of one traced, explained inference: per valid camera, the unpainted score, each kind's top patch
     and its drop, the random patches and their drops. {"skipped": why} when the target has one score per token
     (one number cannot check it), and best effort like the rest of the side channel: a failure is recorded as
@@ -73,7 +73,7 @@ def check_trace(
     try:
         masks, layout = _camera_masks(explanation, patches, seed)
         if not masks:
-            return {"skipped": "no_valid_camera"}
+            return SpotCheck(skipped="no_valid_camera")
         with jax.set_mesh(mesh) if mesh is not None else contextlib.nullcontext():
             scores = explainer.rescore(
                 trace.observation,
@@ -84,19 +84,19 @@ def check_trace(
                 options,
             )
     except ExplainSkipped as e:
-        return {"skipped": e.reason}
+        return SpotCheck(skipped=e.reason)
     except Exception as e:
-        return {"skipped": f"failed_{type(e).__name__}", "error": str(e)[:200]}
+        return SpotCheck(skipped=f"failed_{type(e).__name__}", error=str(e)[:200])
     kinds = list(explanation.maps)
     cameras = {}
     for camera, (tops, randoms) in layout.items():
         s = np.asarray(scores[camera], np.float64)
         drops = s[0] - s[1:]
-        cameras[camera] = {
-            "score": float(s[0]),
-            "top_patch": dict(zip(kinds, tops, strict=True)),
-            "top_patch_drop": {k: float(d) for k, d in zip(kinds, drops[: len(kinds)], strict=True)},
-            "random_patches": randoms,
-            "random_patch_drops": [float(d) for d in drops[len(kinds) :]],
-        }
-    return {"patches": patches, "seed": seed, "cameras": cameras}
+        cameras[camera] = CameraCheck(
+            score=float(s[0]),
+            top_patch=dict(zip(kinds, tops, strict=True)),
+            top_patch_drop={k: float(d) for k, d in zip(kinds, drops[: len(kinds)], strict=True)},
+            random_patches=tuple(randoms),
+            random_patch_drops=tuple(float(d) for d in drops[len(kinds) :]),
+        )
+    return SpotCheck(patches=patches, seed=seed, cameras=cameras)

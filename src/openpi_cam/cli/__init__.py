@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "render": ("openpi_cam.cli.render", "overlays, videos and an HTML report for a CAM run"),
     "stats": ("openpi_cam.cli.stats", "per-step, per-camera map statistics of a CAM run"),
     "rebuild-manifest": ("openpi_cam.cli.rebuild_manifest", "rebuild a CAM run's manifest from its step files"),
+    "export": ("openpi_cam.cli.export", "write an OpenPI pi0 / pi0.5 checkpoint as a LeRobot policy folder"),
 }
 # Earlier names of commands, still accepted: alias -> command.
 ALIASES: dict[str, str] = {"cam-index": "rebuild-manifest"}

@@ -80,14 +80,14 @@ def main(
             raise ValueError("--workers and --ray-address run the Ray engine: add --engine ray")
         spec = model.resolved()
         overrides = parse_pairs(keys, "--keys")
-        mapping, nested = dataset_keys(spec.config, overrides)  # type: ignore[arg-type]  (resolved() names one)
+        mapping, nested = dataset_keys(spec, overrides)
         options, recorded = explanation.options(), None
         if options.target == DATASET_ACTIONS:
-            recorded = recorded_actions_feature(spec.config, overrides)  # type: ignore[arg-type]
+            recorded = recorded_actions_feature(spec, overrides)
             if recorded is None:
                 raise ValueError(
-                    f"--target {DATASET_ACTIONS}: config {spec.config!r} declares no recorded actions; name the "
-                    "feature with --keys actions=FEATURE"
+                    f"--target {DATASET_ACTIONS}: the model declares no recorded actions; name the feature with --keys "
+                    "actions=FEATURE"
                 )
             options = dataclasses.replace(options, target="chunk")
         job = DatasetJob(

@@ -7,7 +7,12 @@ import pathlib
 import tyro
 
 from openpi_cam.golden import check_folder
-from openpi_cam.policies.golden_policy import is_policy_folder, run_policy_golden
+from openpi_cam.policies.golden_policy import (
+    is_lerobot_golden,
+    is_policy_folder,
+    run_lerobot_golden,
+    run_policy_golden,
+)
 
 
 def main(folder: tyro.conf.Positional[pathlib.Path]) -> int:
@@ -16,7 +21,10 @@ def main(folder: tyro.conf.Positional[pathlib.Path]) -> int:
 
     Args:
         folder: a model-level golden folder (config.json, checkpoint/params, case_*.npz: `tiny_pi0_fast`, `tiny_pi0`,
-            `tiny_pi05`), a policy-level one (case.json: `tiny_policy_pi05_droid`, `tiny_policy_pi0_libero`), or
-            `param_trees/` (full-size parameter trees).
+            `tiny_pi05`), a policy-level one (case.json: `tiny_policy_pi05_droid`, `tiny_policy_pi0_libero`), a
+            LeRobot policy folder with LeRobot's reference arrays (cases.npz: `lerobot_pi05_tiny`,
+            `lerobot_pi0_tiny`), or `param_trees/` (full-size parameter trees).
     """
+    if is_lerobot_golden(folder):
+        return check_folder(folder, run_lerobot_golden)
     return check_folder(folder, run_policy_golden if is_policy_folder(folder) else None)

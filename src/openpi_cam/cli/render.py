@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pathlib
 import sys
+from typing import Annotated
 
 import tyro
 
@@ -21,7 +22,7 @@ from openpi_cam.vocabulary import DEFAULT_MAP_KIND, MapKind
 def main(
     run_dir: tyro.conf.Positional[pathlib.Path],
     out: pathlib.Path | None = None,
-    map: MapKind = DEFAULT_MAP_KIND,  # type: ignore[assignment]
+    kind: Annotated[MapKind, tyro.conf.arg(aliases=("--map",))] = DEFAULT_MAP_KIND,  # type: ignore[assignment]
     norm: Norm = "step",
     alpha: float = 0.5,
     tile_height: int = 240,
@@ -38,8 +39,9 @@ def main(
     Args:
         run_dir: a CAM run directory (holds run.json and steps/), or a maps dataset (`explain-dataset`'s output):
             per episode an overlay video of the source dataset's frames, and a report of the dataset-level views.
-        out: output directory; defaults to RUN_DIR/render-<map>.
-        map: which kind of map to draw (README, "Which map to trust"; Grad-CAM is `gradcam`).
+        out: output directory; defaults to RUN_DIR/render-<kind>.
+        kind: which kind of map to draw (README, "Which map to trust"; Grad-CAM is `gradcam`); `--map` is its
+            earlier spelling.
         norm: divide maps by the step's maximum over cameras ("step") or by the whole run's maximum ("run").
         alpha: opacity of the heatmap over the image.
         tile_height: height in pixels of each camera tile in the panels and videos.
@@ -53,7 +55,7 @@ def main(
     """
     if is_maps_dataset(run_dir):
         opts = DatasetRenderOptions(
-            map=map,
+            map=kind,
             norm=norm,
             alpha=alpha,
             tile_height=tile_height,
@@ -67,9 +69,9 @@ def main(
         print("openpi-cam render: --episodes selects a maps dataset's episodes; RUN_DIR is a run", file=sys.stderr)
         return 2
     run = load_run(run_dir, load_arrays=False)
-    out_dir = pathlib.Path(out) if out is not None else default_render_dir(run_dir, map)
+    out_dir = pathlib.Path(out) if out is not None else default_render_dir(run_dir, kind)
     opts = RenderOptions(
-        map=map,
+        map=kind,
         norm=norm,
         alpha=alpha,
         tile_height=tile_height,
@@ -86,7 +88,7 @@ def main(
     print(f"rendered {len(result.steps)} steps to {result.report or out_dir}", file=sys.stderr)
     if rerun is not None:
         try:
-            write_rrd(run_dir, rerun, norm=norm, alpha=alpha, map_kind=map)
+            write_rrd(run_dir, rerun, norm=norm, alpha=alpha, map_kind=kind)
         except ImportError as e:
             print(f"openpi-cam render: {e}", file=sys.stderr)
             return 1

@@ -146,6 +146,7 @@ def main(
     _configure_logging()
     try:
         _check_batching(batch_window_ms, max_batch)
+        _check_side_channel_flags(cam)
         policy = _create_policy(model, stop_at_action_end)
         run_config = {**model.resolved().to_json(), "stop_at_action_end": stop_at_action_end}
         served = _with_side_channel(policy, cam, model, run_config)
@@ -177,6 +178,21 @@ def _configure_logging() -> None:
     # for this package only (readiness, connections, shutdown); libraries stay at WARNING.
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s", force=True)
     logging.getLogger("openpi_cam").setLevel(logging.INFO)
+
+
+def _check_side_channel_flags(flags: SideChannelFlags) -> None:
+    """With the side channel off, a --cam flag would be accepted and ignored: refused instead, naming it.
+    `drain_timeout` also bounds the server's own shutdown, so it stands alone."""
+    if flags.every_k:
+        return
+    unused = [
+        f.name
+        for f in dataclasses.fields(flags)
+        if f.name not in ("every_k", "drain_timeout") and getattr(flags, f.name) != getattr(SIDE_CHANNEL_OFF, f.name)
+    ]
+    if unused:
+        names = ", ".join("--cam." + n.replace("_", "-") for n in unused)
+        raise StartupError(f"{names} given but the side channel is off: add --cam.every-k K", 2)
 
 
 def _check_batching(batch_window_ms: float | None, max_batch: int) -> None:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import pathlib
 import sys
-from typing import Literal
+from typing import Annotated, Literal
 
 import tyro
 
@@ -23,7 +23,7 @@ def main(
     run_dir: tyro.conf.Positional[pathlib.Path],
     format: Format = "csv",
     out: pathlib.Path | None = None,
-    map: MapKind = DEFAULT_MAP_KIND,  # type: ignore[assignment]
+    kind: Annotated[MapKind, tyro.conf.arg(aliases=("--map",))] = DEFAULT_MAP_KIND,  # type: ignore[assignment]
 ) -> int:
     """Per-step, per-camera statistics of a CAM run's maps (one row per step, `<camera>/<field>` columns).
 
@@ -32,13 +32,14 @@ def main(
             one row per frame, and the dataset-level views in the JSON summary; `datasets.views`).
         format: csv, json (rows plus a summary) or parquet (summary in the file metadata).
         out: output file; defaults to stdout for csv/json and RUN_DIR/stats.parquet (a maps dataset's
-            stats-<map>.parquet) for parquet.
-        map: which kind of map the statistics describe (README, "Which map to trust").
+            stats-<kind>.parquet) for parquet.
+        kind: which kind of map the statistics describe (README, "Which map to trust"); `--map` is its earlier
+            spelling.
     """
     if is_maps_dataset(run_dir):
-        return _dataset_stats(run_dir, format, out, map)
+        return _dataset_stats(run_dir, format, out, kind)
     try:
-        steps = view_steps(load_run(run_dir, load_arrays=False).steps, map)
+        steps = view_steps(load_run(run_dir, load_arrays=False).steps, kind)
     except MissingMaps as e:
         print(f"openpi-cam stats: {e}", file=sys.stderr)
         return 2

@@ -21,12 +21,11 @@ import numpy as np
 
 from openpi_cam.cam.batching import data_mesh, explain_batch
 from openpi_cam.cam.records import resume_mismatch
-from openpi_cam.cam.run_format import dumps, reliance_figures
+from openpi_cam.cam.run_format import Reliance, SpotCheck, dumps
 from openpi_cam.datasets import maps_dataset as fmt
 from openpi_cam.datasets.lerobot import DatasetError, LeRobotDataset, open_dataset
 from openpi_cam.datasets.lerobot_writer import REWARD, SUCCESS
 from openpi_cam.nested import unflatten_dict
-from openpi_cam.policies.config import resolve_config
 from openpi_cam.policies.family import ExplainSkipped, Explanation, resolve_target
 from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.policies.policy import InferenceTrace, Policy
@@ -85,18 +84,19 @@ def parse_pairs(pairs: Sequence[str], flag: str) -> dict[str, str]:
     return out
 
 
-def dataset_keys(config: str, overrides: Mapping[str, str]) -> tuple[dict[str, str], bool]:
-    """(observation key -> dataset feature, whether keys `a/b` nest): the config's declared LeRobot mapping,
-    overridden key by key, without its `actions` entry (`recorded_actions_feature`)."""
-    cfg = resolve_config(config)
-    keys = {**(cfg.lerobot_keys or {}), **overrides}
+def dataset_keys(model: ModelSpec, overrides: Mapping[str, str]) -> tuple[dict[str, str], bool]:
+    """(observation key -> dataset feature, whether keys `a/b` nest): the model's LeRobot mapping (a named config's
+    declared one, a LeRobot policy's own feature names), overridden key by key, without its `actions` entry
+    (`recorded_actions_feature`)."""
+    declared, nested = model.dataset_keys()
+    keys = {**declared, **overrides}
     keys.pop(ACTIONS_KEY, None)
-    return keys, cfg.lerobot_nested
+    return keys, nested
 
 
-def recorded_actions_feature(config: str, overrides: Mapping[str, str]) -> str | None:
+def recorded_actions_feature(model: ModelSpec, overrides: Mapping[str, str]) -> str | None:
     """The feature holding the recorded actions: the mapping's `actions` entry (`--keys actions=FEATURE`)."""
-    return {**(resolve_config(config).lerobot_keys or {}), **overrides}.get(ACTIONS_KEY)
+    return {**model.dataset_keys()[0], **overrides}.get(ACTIONS_KEY)
 
 
 def check_features(ds: LeRobotDataset, job: DatasetJob) -> None:
@@ -195,8 +195,8 @@ def frame_row(
     trace: InferenceTrace,
     explanation: Explanation,
     response: Mapping[str, Any],
-    check: Mapping[str, Any] | None,
-    reliance: Mapping[str, Any] | None,
+    check: SpotCheck | None,
+    reliance: Reliance | None,
     *,
     info: fmt.MapsInfo,
     job: DatasetJob,
@@ -225,24 +225,24 @@ def frame_row(
             }
         ),
         "details": dumps(explanation.details),
-        "check": None if check is None else dumps(check),
+        "check": None if check is None else dumps(check.to_json()),
     }
     for kind in info.kinds:
         for camera in info.cameras:
             m = explanation.maps.get(kind, {}).get(camera)
             row[fmt.map_column(kind, camera)] = None if m is None else _flat(m)
-    check_cameras = (check or {}).get("cameras", {})
+    check_cameras = {} if check is None else check.cameras
     for camera in info.cameras:
-        figures = check_cameras.get(camera, {})
+        figures = check_cameras.get(camera)
         for kind in info.kinds:
-            row[fmt.check_column(kind, camera)] = figures.get("top_patch_drop", {}).get(kind)
-        row[fmt.check_column(fmt.CHECK_RANDOM, camera)] = figures.get("random_patch_drops")
+            row[fmt.check_column(kind, camera)] = None if figures is None else figures.top_patch_drop.get(kind)
+        row[fmt.check_column(fmt.CHECK_RANDOM, camera)] = None if figures is None else list(figures.random_patch_drops)
     for feature, name in job.extra.items():
         row[f"extra/{name}"] = _flat(frame[feature], np.float64)
     if info.reliance:
-        figures = reliance_figures(reliance)
-        row["reliance"] = None if reliance is None else dumps(reliance)
-        row |= {column: figures.get(column) for column in fmt.reliance_columns(info)}
+        measured = {} if reliance is None else reliance.figures()
+        row["reliance"] = None if reliance is None else dumps(reliance.to_json())
+        row |= {column: measured.get(column) for column in fmt.reliance_columns(info)}
     return row
 
 

@@ -22,6 +22,7 @@ import numpy as np
 from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.records import step_record
 from openpi_cam.cam.run_evidence import REPORT_FILE
+from openpi_cam.cam.run_format import SpotCheck
 from openpi_cam.datasets import maps_dataset as fmt
 from openpi_cam.datasets.explain import DatasetJob, EpisodeExplainer
 from openpi_cam.policies.family import Explanation
@@ -116,7 +117,7 @@ def build_run(
                     save_frames="both",
                     extra={**extra, "index": int(row["index"])},
                     explain_ms=float(row["explain_ms"] or 0.0),
-                    check=None if row["check"] is None else json.loads(row["check"]),
+                    check=None if row["check"] is None else SpotCheck.from_json(json.loads(row["check"])),
                 )
                 counts["rows"] += logger.log_step(record)
     finally:

@@ -197,7 +197,7 @@ def schema(info: MapsInfo) -> pa.Schema:
 
 def reliance_columns(info: MapsInfo) -> list[str]:
     """`<camera>/reliance_score`, `<camera>/reliance_actions` for every camera the model sees, then `prompt/...`:
-    the flat figures of each row's reliance (`cam.run_format.reliance_figures`)."""
+    the flat figures of each row's reliance (`cam.run_format.Reliance.figures`)."""
     names = [*info.cameras, RELIANCE_PROMPT]
     return [f"{name}/reliance_{what}" for name in names for what in ("score", "actions")]
 

@@ -45,9 +45,6 @@ from openpi_cam.datasets.explain import (
     selected_episodes,
 )
 from openpi_cam.datasets.lerobot import DatasetError, LeRobotDataset, open_dataset
-from openpi_cam.model.checkpoint import read_param_shapes
-from openpi_cam.model.config import architecture_from_params, family_of
-from openpi_cam.policies.config import resolve_config
 from openpi_cam.vocabulary import DEFAULT_TARGETS
 
 log = logging.getLogger(__name__)
@@ -61,20 +58,16 @@ def planned(dataset: LeRobotDataset, job: DatasetJob) -> tuple[DatasetJob, fmt.M
     """The job with its target resolved, and the maps dataset's info.json, made on the driver without loading the
     model.
 
-    `job_info` needs the model's patch grid, family and cameras; the first two follow from the checkpoint's parameter
-    shapes (read from its metadata, no array data) and the cameras from the config, so the driver, which may be a
-    small head node without an accelerator, never holds the weights. A target left to the family's default is
-    resolved here, as the loaded policy resolves it. Every actor checks that the info its loaded model gives is this
-    one before it writes a shard (`_ExplainEpisodes`)."""
-    model = job.model.resolved()
-    config = resolve_config(model.config)  # type: ignore[arg-type]  (resolved() names one)
-    shapes = read_param_shapes(model.checkpoint / "params")
-    family = family_of(shapes)
-    _, siglip = architecture_from_params(shapes)
+    `job_info` needs the model's patch grid, family and cameras (`ModelSpec.facts`: parameter shapes and configs, no
+    array data), so the driver, which may be a small head node without an accelerator, never holds the weights. A
+    target left to the family's default is resolved here, as the loaded policy resolves it. Every actor checks that
+    the info its loaded model gives is this one before it writes a shard (`_ExplainEpisodes`)."""
+    facts = job.model.facts()
+    family = facts.family
     job = dataclasses.replace(
         job, options=dataclasses.replace(job.options, target=job.options.target or DEFAULT_TARGETS[family])
     )
-    return job, job_info(dataset, job, family=family, grid=siglip.grid, camera_sources=config.camera_sources)
+    return job, job_info(dataset, job, family=family, grid=facts.grid, camera_sources=facts.camera_sources)
 
 
 class _ExplainEpisodes:

@@ -17,7 +17,6 @@ section per rendered episode (its video and a strip of its frames). Figures: `da
 from __future__ import annotations
 
 import dataclasses
-import html
 import math
 import pathlib
 from collections.abc import Mapping, Sequence
@@ -45,6 +44,7 @@ from openpi_cam.viz.overlay import blend, upsample
 from openpi_cam.viz.progress import progress
 from openpi_cam.viz.render import Norm, label_font, slug
 from openpi_cam.viz.report import REPORT_STYLE, write_page
+from openpi_cam.viz.text import escape, html_table, number, percent
 from openpi_cam.viz.video import Mp4Writer
 from openpi_cam.vocabulary import DEFAULT_MAP_KIND, MAP_KIND_INFO
 
@@ -246,32 +246,18 @@ def render_dataset(
     return result
 
 
-def _e(x: Any) -> str:
-    return html.escape(str(x), quote=True)
-
-
-def _f(x: Any, digits: int = 3) -> str:
-    return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{digits}g}"
-
-
 def _pct(x: Any) -> str:
-    return "-" if x is None else f"{100 * x:.0f}%"
-
-
-def _table(head: Sequence[str], rows: Sequence[Sequence[str]], raw: bool = False) -> str:
-    """An HTML table; cells are escaped unless `raw` (cells that already hold markup)."""
-    body = "".join("<tr>" + "".join(f"<td>{v if raw else _e(v)}</td>" for v in row) + "</tr>" for row in rows)
-    return "<table><tr>" + "".join(f"<th>{_e(h)}</th>" for h in head) + f"</tr>{body}</table>"
+    return percent(x, 0)
 
 
 def _checks_section(views: DatasetViews) -> str:
     rows = [
         (
-            ("<b>" + _e(s["kind"]) + "</b>") if s["kind"] == views.kind else _e(s["kind"]),
-            _e(s["camera"]),
+            ("<b>" + escape(s["kind"]) + "</b>") if s["kind"] == views.kind else escape(s["kind"]),
+            escape(s["camera"]),
             str(s["frames"]),
-            _f(s["median_top_drop"]),
-            _f(s["median_random_drop"]),
+            number(s["median_top_drop"]),
+            number(s["median_random_drop"]),
             f"{_pct(s['beats_median_random'])} (chance ~50%)",
             f"{_pct(s['beats_every_random'])} (chance {_pct(s['chance_every'])})",
         )
@@ -287,13 +273,13 @@ def _checks_section(views: DatasetViews) -> str:
         "top patch beats every random patch",
     )
     table = (
-        _table(head, rows, raw=True)
+        html_table(head, rows, raw=True)
         if rows
         else "<p class='warn'>no spot checks stored (explain with --check-patches N to store them)</p>"
     )
     return (
         "<section id='evidence'><h2>how faithful are these maps? (spot checks stored with the frames)</h2>"
-        f"<p>{_e(MAP_KIND_INFO[views.kind].note)}</p>"
+        f"<p>{escape(MAP_KIND_INFO[views.kind].note)}</p>"
         "<p class='dim'>each frame's map was checked when it was computed: the explained score's drop with the map's "
         "top patch painted by the baseline, next to the drops of a few random patches painted alone</p>"
         f"{table}</section>"
@@ -317,14 +303,15 @@ def _prior_section(views: DatasetViews, out_dir: pathlib.Path, opts: DatasetRend
             for h in views.hot[c]
         )
         parts.append(
-            f"<div class='prior' data-camera='{_e(c)}'><h3>{_e(c)} <small class='dim'>"
-            f"{_e(views.camera_sources.get(c, ''))}</small></h3>"
-            f"<figure><img src='{_e(prior_rel)}' alt='mean map {_e(c)}'><figcaption>mean map</figcaption></figure>"
-            f"<figure><img src='{_e(rate_rel)}' alt='hot rate {_e(c)}'><figcaption>share of frames in the top-{k}"
-            "</figcaption></figure>"
-            f"<p>{fit['frames']} frames with mass; cosine to the prior: mean {_f(fit['mean_cosine'])}, median "
-            f"{_f(fit['median_cosine'])}; pooled R² {_f(fit['pooled_r2'])}; mean total-variation distance "
-            f"{_f(fit['mean_distance'])}; frames whose peak sits on a flagged patch: {_pct(fit['peak_on_hot'])}</p>"
+            f"<div class='prior' data-camera='{escape(c)}'><h3>{escape(c)} <small class='dim'>"
+            f"{escape(views.camera_sources.get(c, ''))}</small></h3>"
+            f"<figure><img src='{escape(prior_rel)}' alt='mean map {escape(c)}'>"
+            "<figcaption>mean map</figcaption></figure>"
+            f"<figure><img src='{escape(rate_rel)}' alt='hot rate {escape(c)}'>"
+            f"<figcaption>share of frames in the top-{k}</figcaption></figure>"
+            f"<p>{fit['frames']} frames with mass; cosine to the prior: mean {number(fit['mean_cosine'])}, median "
+            f"{number(fit['median_cosine'])}; pooled R² {number(fit['pooled_r2'])}; mean total-variation distance "
+            f"{number(fit['mean_distance'])}; frames whose peak sits on a flagged patch: {_pct(fit['peak_on_hot'])}</p>"
             f"<ul>{flagged or '<li>no patch flagged</li>'}</ul></div>"
         )
     return (
@@ -348,13 +335,13 @@ def _ranking_section(views: DatasetViews, result: DatasetRenderResult) -> str:
             (
                 str(e["rank"]),
                 link,
-                _e(e["task"]),
+                escape(e["task"]),
                 str(e["frames"]),
-                _f(e["entropy"]),
-                _f(e["z"], 2),
-                _f(e["distance"]),
+                number(e["entropy"]),
+                number(e["z"], 2),
+                number(e["distance"]),
                 str(e["malformed"]),
-                _f(e["mean_score"]),
+                number(e["mean_score"]),
                 *([_outcome(e)] if views.outcomes is not None else []),
                 *(_pct(e["cameras"][c]["mean_share"]) for c in views.cameras),
             )
@@ -364,7 +351,7 @@ def _ranking_section(views: DatasetViews, result: DatasetRenderResult) -> str:
         "episode's frames of each camera's normalised map entropy (1: spread evenly), z over the dataset's episodes; "
         "on the demo's failing rollouts failed episodes come first this way (docs/MAP_KINDS.md). Distance: the mean "
         "total-variation distance between each camera's map and the camera's prior</p>"
-        f"{_table(head, rows, raw=True)}</section>"
+        f"{html_table(head, rows, raw=True)}</section>"
     )
 
 
@@ -374,7 +361,7 @@ def _outcome(e: Mapping[str, Any]) -> str:
 
 def _auroc(f: Mapping[str, Any]) -> str:
     low, high = f["auroc_ci95"]
-    return "-" if f["auroc"] is None else f"{f['auroc']:.2f} ({_f(low, 2)}-{_f(high, 2)})"
+    return "-" if f["auroc"] is None else f"{f['auroc']:.2f} ({number(low, 2)}-{number(high, 2)})"
 
 
 def _outcomes_section(views: DatasetViews) -> str:
@@ -391,21 +378,22 @@ def _outcomes_section(views: DatasetViews) -> str:
     head += ["prompt reliance: score", "actions"] if relied else []
     rows = []
     for name, g in groups.items():
-        cells = [name, str(g["episodes"]), str(g["frames"]), _f(g["mean_score"])]
+        cells = [name, str(g["episodes"]), str(g["frames"]), number(g["mean_score"])]
         cells += [
-            _pct(g["cameras"][c][k]) if k == "mean_share" else _f(g["cameras"][c][k])
+            _pct(g["cameras"][c][k]) if k == "mean_share" else number(g["cameras"][c][k])
             for c in views.cameras
             for k in keys
         ]
         if relied:
-            cells += [_f(g[RELIANCE_PROMPT]["mean_reliance_score"]), _f(g[RELIANCE_PROMPT]["mean_reliance_actions"])]
+            prompt = g[RELIANCE_PROMPT]
+            cells += [number(prompt["mean_reliance_score"]), number(prompt["mean_reliance_actions"])]
         rows.append(cells)
     early = o["early_warning"]["figures"]
     found = [
         (
             name,
             _auroc(f),
-            _f(f["precision_at_failures"], 2),
+            number(f["precision_at_failures"], 2),
             _auroc(early[name]) if name in early else "-",
         )
         for name, f in o["failure_finding"].items()
@@ -415,13 +403,13 @@ def _outcomes_section(views: DatasetViews) -> str:
     return (
         f"<section id='outcomes'><h2>failed and successful episodes</h2><p>{o['failures']} of {o['episodes']} "
         "episodes failed (an episode succeeds when any frame's outcome is true, as lerobot-eval counts it)</p>"
-        f"{_table(head, rows)}<h3>which figure finds the failures?</h3><p class='dim'>ROC AUC of each episode figure "
-        "as a failure score (larger = failure; 0.5 is chance, below 0.5 the figure finds successes), with its 95% "
-        f"bootstrap interval; precision among the {o['failures']} highest-scoring episodes (chance "
-        f"{_f(chance, 2)}); early warning: the same figure from each episode's first "
+        f"{html_table(head, rows)}<h3>which figure finds the failures?</h3><p class='dim'>ROC AUC of each episode "
+        "figure as a failure score (larger = failure; 0.5 is chance, below 0.5 the figure finds successes), with its "
+        f"95% bootstrap interval; precision among the {o['failures']} highest-scoring episodes (chance "
+        f"{number(chance, 2)}); early warning: the same figure from each episode's first "
         f"{o['early_warning']['frames']} explained frames only. Failed episodes run to the step limit, so length "
         "alone finds them: a figure is worth reading where it beats length, or early.</p>"
-        f"{_table(['figure', 'AUROC (95%)', 'precision at #failures', 'early warning AUROC'], found)}</section>"
+        f"{html_table(['figure', 'AUROC (95%)', 'precision at #failures', 'early warning AUROC'], found)}</section>"
     )
 
 
@@ -443,25 +431,26 @@ def _tasks_section(views: DatasetViews) -> str:
                 for c in views.cameras
                 for v in (
                     _pct(t["cameras"][c]["mean_share"]),
-                    _f(t["cameras"][c]["mean_entropy_norm"]),
+                    number(t["cameras"][c]["mean_entropy_norm"]),
                     _peak(t["cameras"][c]),
                 )
             ),
         )
         for t in views.tasks
     ]
-    return f"<section id='tasks'><h2>per task</h2>{_table(head, rows)}</section>"
+    return f"<section id='tasks'><h2>per task</h2>{html_table(head, rows)}</section>"
 
 
 def _episode_section(views: DatasetViews, result: DatasetRenderResult, episode: int) -> str:
     e = next((x for x in views.episodes if x["episode_index"] == episode), None)
     video, strip = result.videos.get(episode), result.strips.get(episode)
     media = (
-        f"<p><a href='{_e(video)}'>MP4</a></p><video src='{_e(video)}' controls loop muted preload='metadata'></video>"
+        f"<p><a href='{escape(video)}'>MP4</a></p>"
+        f"<video src='{escape(video)}' controls loop muted preload='metadata'></video>"
         if video
         else ""
     )
-    media += f"<img class='strip' src='{_e(strip)}' alt='episode {episode}'>" if strip else ""
+    media += f"<img class='strip' src='{escape(strip)}' alt='episode {episode}'>" if strip else ""
     head = ("camera", "share", "entropy (norm.)", "usual peak (row, col)", "cosine to the prior", "distance")
     rows = []
     if e is not None:
@@ -471,17 +460,17 @@ def _episode_section(views: DatasetViews, result: DatasetRenderResult, episode: 
                 (
                     c,
                     _pct(cam["mean_share"]),
-                    _f(cam["mean_entropy_norm"]),
+                    number(cam["mean_entropy_norm"]),
                     _peak(cam),
-                    _f(cam["mean_prior_cosine"]),
-                    _f(cam["mean_prior_distance"]),
+                    number(cam["mean_prior_cosine"]),
+                    number(cam["mean_prior_distance"]),
                 )
             )
-    title = f"episode {episode}" + (f" · {_e(e['task'])} · rank {e['rank']} · z {_f(e['z'], 2)}" if e else "")
+    title = f"episode {episode}" + (f" · {escape(e['task'])} · rank {e['rank']} · z {number(e['z'], 2)}" if e else "")
     title += f" · {_outcome(e)}" if e is not None and e.get("success") is not None else ""
     return (
         f"<section class='episode' id='episode-{episode}' data-episode='{episode}' "
-        f"data-frames='{result.frames.get(episode, 0)}'><h3>{title}</h3>{media}{_table(head, rows)}</section>"
+        f"data-frames='{result.frames.get(episode, 0)}'><h3>{title}</h3>{media}{html_table(head, rows)}</section>"
     )
 
 
@@ -497,13 +486,13 @@ def write_dataset_report(ds: MapsDataset, result: DatasetRenderResult, opts: Dat
         if opts.norm == "step"
         else "over the rendered episodes",
     }
-    dl = "".join(f"<dt>{_e(k)}</dt><dd>{_e(v)}</dd>" for k, v in facts.items())
+    dl = "".join(f"<dt>{escape(k)}</dt><dd>{escape(v)}</dd>" for k, v in facts.items())
     episodes = "".join(_episode_section(views, result, e) for e in result.frames)
     style = (
         REPORT_STYLE + ".prior figure{display:inline-block;margin:4px 12px 4px 0}img.strip{display:block;margin:4px 0}"
     )
     body = (
-        f"<h1>maps dataset {_e(ds.root.name)}: {_e(MAP_KIND_INFO[views.kind].label)} maps</h1><dl>{dl}</dl>"
+        f"<h1>maps dataset {escape(ds.root.name)}: {escape(MAP_KIND_INFO[views.kind].label)} maps</h1><dl>{dl}</dl>"
         f"{_checks_section(views)}{_prior_section(views, result.out_dir, opts)}{_outcomes_section(views)}"
         f"{_ranking_section(views, result)}"
         f"{_tasks_section(views)}<h2>episodes</h2>{episodes}"

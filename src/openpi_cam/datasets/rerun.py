@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 import os
 import pathlib
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 
@@ -42,20 +42,12 @@ from openpi_cam.datasets.maps_dataset import MapsDataset, reliance_columns
 from openpi_cam.datasets.views import DatasetViews, compute_views
 from openpi_cam.viz.colormap import colorize
 from openpi_cam.viz.overlay import upsample
-from openpi_cam.viz.rerun_sink import RERUN_MISSING
+from openpi_cam.viz.rerun_sink import import_rerun
 from openpi_cam.viz.stats import mean_score
 from openpi_cam.vocabulary import DEFAULT_MAP_KIND, MAP_KIND_INFO
 
 FRAME_DRAW_ORDER = 0.0
 LAYER_DRAW_ORDER = 1.0  # the map is drawn above the frame
-
-
-def _import_rerun() -> Any:
-    try:
-        import rerun
-    except ImportError as e:
-        raise ImportError(RERUN_MISSING) from e
-    return rerun
 
 
 def layer_image(frame_hw: tuple[int, int], m: np.ndarray, scale: float) -> np.ndarray:
@@ -118,7 +110,7 @@ def write_dataset_rrd(
     source: pathlib.Path | None = None,
 ) -> pathlib.Path:
     """Writes `episodes` (default: every written one) of the maps dataset with their source frames to `out_path`."""
-    rr = _import_rerun()
+    rr = import_rerun()
     chosen = select_episodes(ds, episodes)
     views = views if views is not None and views.kind == map_kind else compute_views(ds, map_kind)
     lr = source_dataset(ds, source)

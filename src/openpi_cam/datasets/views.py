@@ -47,7 +47,7 @@ import dataclasses
 import json
 import math
 from collections import Counter
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -68,6 +68,7 @@ from openpi_cam.datasets.maps_dataset import (
 )
 from openpi_cam.viz.overlay import reduce_tokens
 from openpi_cam.viz.stats import camera_stats, mean_score
+from openpi_cam.viz.text import finite_mean
 
 FRAME_COLUMNS = ("index", "episode_index", "frame_index", "timestamp", "task", "target", "score", "malformed")
 # The carried feature (`--extra FEATURE=target_box`) holding the task region: a box (x0, y0, x1, y1) in the client
@@ -256,11 +257,6 @@ def _finite_or_none(x: Any) -> Any:
     return None if isinstance(x, float) and not math.isfinite(x) else x
 
 
-def _mean(values: Iterable[Any]) -> float | None:
-    v = [float(x) for x in values if x is not None and isinstance(x, (int, float)) and math.isfinite(x)]
-    return float(np.mean(v)) if v else None
-
-
 def _check_figures(top: Any, randoms: Any) -> tuple[float, float, float]:
     """(top patch's drop, median random drop, largest random drop), NaN where the frame has no check."""
     drops = [float(d) for d in (randoms or []) if d is not None and math.isfinite(d)]
@@ -392,13 +388,13 @@ def compute_views(
         cos = [row[f"{c}/prior_cosine"] for row in rows]
         fit[c] = {
             "frames": acc[c].frames,
-            "mean_cosine": _mean(cos),
+            "mean_cosine": finite_mean(cos),
             "median_cosine": _finite_or_none(float(np.median([x for x in cos if x is not None])))
             if any(x is not None for x in cos)
             else None,
             "pooled_r2": 1.0 - sums[c]["sse"] / sums[c]["sst"] if sums[c]["sst"] > 0 else None,
-            "mean_distance": _mean(row[f"{c}/prior_distance"] for row in rows),
-            "peak_on_hot": _mean(row[f"{c}/peak_on_hot"] for row in rows if row[f"{c}/peak_on_hot"] is not None),
+            "mean_distance": finite_mean(row[f"{c}/prior_distance"] for row in rows),
+            "peak_on_hot": finite_mean(row[f"{c}/peak_on_hot"] for row in rows if row[f"{c}/peak_on_hot"] is not None),
         }
     by_episode: dict[int, list[dict[str, Any]]] = {}
     by_task: dict[str, list[dict[str, Any]]] = {}
@@ -500,8 +496,7 @@ PROMPT_FIGURES = ("mean_reliance_score", "mean_reliance_actions")
 def episode_figures(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str]) -> dict[str, float]:
     """The single figures of an episode (or of its first frames) that `outcome_views` tries as failure detectors:
     the ranking's entropy, the distance to the prior, the mean explained score, per camera `CAMERA_FIGURES` and the
-    prompt's
-    `PROMPT_FIGURES`. NaN: not measured."""
+    prompt's `PROMPT_FIGURES`. NaN: not measured."""
     summary = group_summary(rows, cameras)
     figures = {
         "entropy": episode_entropy(rows, cameras),
@@ -558,7 +553,7 @@ def group_summary(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str]) -> 
     prior, the mean nuisance mass and reliance, and the prompt's mean reliance (None where not measured)."""
     out: dict[str, Any] = {
         "frames": len(rows),
-        "mean_score": _mean(mean_score(row["score"]) for row in rows),
+        "mean_score": finite_mean(mean_score(row["score"]) for row in rows),
         "malformed": sum(1 for row in rows if row["malformed"]),
         "dominant": dict(Counter(row["dominant"] for row in rows if row["dominant"] is not None)),
     }
@@ -571,22 +566,25 @@ def group_summary(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str]) -> 
         mode, count = peaks.most_common(1)[0] if peaks else (None, 0)
         per_camera[c] = {
             "valid_frames": len(valid),
-            "mean_share": _mean(row[f"{c}/share"] for row in valid),
-            "mean_entropy": _mean(row[f"{c}/entropy"] for row in valid),
-            "mean_entropy_norm": _mean(row[f"{c}/entropy_norm"] for row in valid),
+            "mean_share": finite_mean(row[f"{c}/share"] for row in valid),
+            "mean_entropy": finite_mean(row[f"{c}/entropy"] for row in valid),
+            "mean_entropy_norm": finite_mean(row[f"{c}/entropy_norm"] for row in valid),
             "peak_mode": list(mode) if mode else None,
             "peak_mode_rate": count / sum(peaks.values()) if peaks else None,
-            "mean_peak": [_mean(row[f"{c}/peak_row"] for row in valid), _mean(row[f"{c}/peak_col"] for row in valid)],
-            "mean_prior_cosine": _mean(row.get(f"{c}/prior_cosine") for row in valid),
-            "mean_prior_distance": _mean(row.get(f"{c}/prior_distance") for row in valid),
-            "mean_nuisance_mass": _mean(row.get(f"{c}/nuisance_mass") for row in valid),
-            "mean_reliance_score": _mean(row.get(f"{c}/reliance_score") for row in valid),
-            "mean_reliance_actions": _mean(row.get(f"{c}/reliance_actions") for row in valid),
+            "mean_peak": [
+                finite_mean(row[f"{c}/peak_row"] for row in valid),
+                finite_mean(row[f"{c}/peak_col"] for row in valid),
+            ],
+            "mean_prior_cosine": finite_mean(row.get(f"{c}/prior_cosine") for row in valid),
+            "mean_prior_distance": finite_mean(row.get(f"{c}/prior_distance") for row in valid),
+            "mean_nuisance_mass": finite_mean(row.get(f"{c}/nuisance_mass") for row in valid),
+            "mean_reliance_score": finite_mean(row.get(f"{c}/reliance_score") for row in valid),
+            "mean_reliance_actions": finite_mean(row.get(f"{c}/reliance_actions") for row in valid),
         }
     out["cameras"] = per_camera
     out[RELIANCE_PROMPT] = {
-        "mean_reliance_score": _mean(row.get(f"{RELIANCE_PROMPT}/reliance_score") for row in rows),
-        "mean_reliance_actions": _mean(row.get(f"{RELIANCE_PROMPT}/reliance_actions") for row in rows),
+        "mean_reliance_score": finite_mean(row.get(f"{RELIANCE_PROMPT}/reliance_score") for row in rows),
+        "mean_reliance_actions": finite_mean(row.get(f"{RELIANCE_PROMPT}/reliance_actions") for row in rows),
     }
     return out
 

@@ -6,12 +6,14 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, Literal
 
 # Upstream's PaliGemma tokenizer id that ends a generation.
 EOS_TOKEN = 1
 # Upstream's default decoding budget (`Pi0FAST.sample_actions(max_decoding_steps=256)`).
 MAX_DECODING_STEPS = 256
+# The cameras upstream's pi0 / pi0.5 read, in token order (upstream `IMAGE_KEYS`).
+PI0_IMAGE_KEYS = ("base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb")
 
 
 def remat_by_default(width: int) -> bool:
@@ -89,7 +91,13 @@ class Pi0FASTConfig:
 class Pi0Config:
     """pi0 / pi0.5: the PaliGemma backbone (`gemma`, `siglip`) plus a flow-matching action expert (`expert`, the
     `_1` weights). pi0.5 (`pi05`) conditions the expert's norms on the time (adaRMS) and reads the state as prompt
-    text; pi0 feeds the state as one token through `state_proj`."""
+    text; pi0 feeds the state as one token through `state_proj`.
+
+    `image_keys` are the cameras the model reads, in token order (upstream's three; a LeRobot policy's are its
+    config's image features). `flow_time` is how the Euler integration's times and their sine-cosine embedding are
+    evaluated: "openpi" accumulates t += dt and embeds t in float32 (upstream's JAX model); "lerobot" rounds
+    t = 1 + k dt once and embeds it in float64 before rounding to float32 (LeRobot's PyTorch port), so that its
+    chunks are reproduced to float32 rounding rather than to the float32 error of the embedding."""
 
     gemma: GemmaConfig = GemmaConfig()
     expert: GemmaConfig = GemmaConfig(width=1024, mlp_dim=4096, vocab_size=0)
@@ -100,6 +108,8 @@ class Pi0Config:
     max_token_len: int = 48  # upstream: 48 for pi0, 200 for pi0.5
     dtype: str = "bfloat16"
     num_steps: int = 10  # Euler steps of `sample_actions`, upstream's default
+    image_keys: tuple[str, ...] = PI0_IMAGE_KEYS
+    flow_time: Literal["openpi", "lerobot"] = "openpi"
 
     @property
     def image_resolution(self) -> tuple[int, int]:

@@ -16,6 +16,12 @@ from openpi_cam.image_tools import resize_with_pad
 logger = logging.getLogger(__name__)
 
 
+def uint8_to_model(image: Any) -> jax.Array:
+    """A uint8 image as the model's float32 input in [-1, 1]: upstream's `x / 255 * 2 - 1`, computed by JAX as upstream
+    computes it (NumPy rounds some values one ulp apart)."""
+    return jnp.asarray(image).astype(jnp.float32) / 255.0 * 2.0 - 1.0
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Observation:
@@ -40,7 +46,7 @@ class Observation:
         images = {}
         for name, image in data["image"].items():
             if image.dtype == np.uint8:
-                image = image.astype(np.float32) / 255.0 * 2.0 - 1.0
+                image = uint8_to_model(image)
             images[name] = image
         return cls(
             images=images,
@@ -57,7 +63,7 @@ def preprocess_observation(
     obs: Observation, image_resolution: tuple[int, int], image_keys: Sequence[str] | None = None
 ) -> Observation:
     """Inference-time preprocessing as upstream: resize-with-pad images that are not at the model resolution and
-    default missing image masks to True. `image_keys` (upstream's pi0 / pi0.5 pass `IMAGE_KEYS`) fixes which cameras
+    default missing image masks to True. `image_keys` (pi0 / pi0.5 pass their config's cameras) fixes which cameras
     the model sees and in which order; None keeps the observation's own (pi0-FAST passes its dict order)."""
     batch_shape = obs.state.shape[:-1]
     if image_keys is not None and (missing := [k for k in image_keys if k not in obs.images]):

@@ -22,6 +22,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from openpi_cam.model import gemma
 from openpi_cam.model.checkpoint import load_params
@@ -29,20 +30,31 @@ from openpi_cam.model.config import GemmaConfig, Pi0Config, pi0_architecture_fro
 from openpi_cam.model.init import init_from_shapes
 from openpi_cam.model.observation import Observation, preprocess_observation
 from openpi_cam.model.paligemma import embed_images, embed_prefix, make_attn_mask
+from openpi_cam.model.safetensors_weights import LEROBOT_HEADS, HeadCounts, load_safetensors_params
 from openpi_cam.nested import flatten_dict
-
-# The cameras upstream's pi0 / pi0.5 read, in token order (upstream `IMAGE_KEYS`).
-IMAGE_KEYS = ("base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb")
 
 KVCache = tuple[jax.Array, jax.Array]  # K (after RoPE) and V of every layer: [L, B, P, K, Hd] each
 
 
-def posemb_sincos(t: jax.Array, dim: int, min_period: float = 4e-3, max_period: float = 4.0) -> jax.Array:
+MIN_PERIOD, MAX_PERIOD = 4e-3, 4.0  # the time embedding's period range (upstream's and LeRobot's defaults)
+
+
+def posemb_sincos(t: jax.Array, dim: int, min_period: float = MIN_PERIOD, max_period: float = MAX_PERIOD) -> jax.Array:
     """Sine-cosine embedding of scalar times t [B] -> [B, dim], the sine half first."""
     fraction = jnp.linspace(0.0, 1.0, dim // 2)
     period = min_period * (max_period / min_period) ** fraction
     angles = jnp.einsum("i,j->ij", t, 1.0 / period * 2 * math.pi, precision=jax.lax.Precision.HIGHEST)
     return jnp.concatenate([jnp.sin(angles), jnp.cos(angles)], axis=-1)
+
+
+def lerobot_time_grid(num_steps: int, dim: int) -> tuple[np.ndarray, np.ndarray]:
+    """LeRobot's Euler times t_k = 1 + k dt (rounded to float32 once) [n] and their sine-cosine embeddings [n, dim],
+    evaluated in float64 and rounded to float32, as its PyTorch port computes them."""
+    dt = -1.0 / num_steps
+    t = np.asarray([1.0 + k * dt for k in range(num_steps)], np.float32)
+    period = MIN_PERIOD * (MAX_PERIOD / MIN_PERIOD) ** np.linspace(0.0, 1.0, dim // 2)
+    angles = (1.0 / period * 2 * math.pi)[None, :] * t.astype(np.float64)[:, None]
+    return t, np.concatenate([np.sin(angles), np.cos(angles)], axis=-1).astype(np.float32)
 
 
 def _linear(p: dict, x: jax.Array) -> jax.Array:
@@ -147,22 +159,22 @@ def _configs(cfg: Pi0Config) -> tuple[GemmaConfig, GemmaConfig]:
 
 
 def preprocess(obs: Observation, cfg: Pi0Config) -> Observation:
-    """Upstream's inference preprocessing for pi0 / pi0.5: the three `IMAGE_KEYS` cameras, in that order, and a
-    prefix without AR structure (upstream's pi0 prefix is fully bidirectional whatever the tokenizer produced)."""
-    return dataclasses.replace(preprocess_observation(obs, cfg.image_resolution, IMAGE_KEYS), token_ar_mask=None)
+    """Upstream's inference preprocessing for pi0 / pi0.5: the model's cameras (`cfg.image_keys`), in that order, and
+    a prefix without AR structure (upstream's pi0 prefix is fully bidirectional whatever the tokenizer produced)."""
+    return dataclasses.replace(preprocess_observation(obs, cfg.image_resolution, cfg.image_keys), token_ar_mask=None)
 
 
 def embed_suffix(
-    params: dict, cfg: Pi0Config, state: jax.Array, x_t: jax.Array, t: jax.Array
+    params: dict, cfg: Pi0Config, state: jax.Array, x_t: jax.Array, t: jax.Array, time_emb: jax.Array | None = None
 ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array | None]:
     """(tokens [B, S, E], input mask [B, S], AR mask [S], adaRMS condition [B, E] or None).
 
     pi0: a state token then H action tokens that mix x_t with the time embedding through an MLP; the state token
     sees the prefix and itself, the action tokens the prefix, the state and each other. pi0.5: H action tokens only,
-    the time entering through the condition."""
+    the time entering through the condition. `time_emb` [B, E] replaces the embedding of t (LeRobot's time grid)."""
     width = cfg.expert.width
     actions = _linear(params["action_in_proj"], x_t)  # [B, H, E]
-    time_emb = posemb_sincos(t, width)
+    time_emb = posemb_sincos(t, width) if time_emb is None else time_emb
     b, h = x_t.shape[:2]
     if cfg.pi05:
         cond = jax.nn.swish(_linear(params["time_mlp_out"], jax.nn.swish(_linear(params["time_mlp_in"], time_emb))))
@@ -185,10 +197,17 @@ def fill_prefix_cache(params: dict, image_tokens: jax.Array, obs: Observation, c
 
 
 def velocity(
-    params: dict, cfg: Pi0Config, cache: KVCache, prefix_mask: jax.Array, state: jax.Array, x_t: jax.Array, t: jax.Array
+    params: dict,
+    cfg: Pi0Config,
+    cache: KVCache,
+    prefix_mask: jax.Array,
+    state: jax.Array,
+    x_t: jax.Array,
+    t: jax.Array,
+    time_emb: jax.Array | None = None,
 ) -> jax.Array:
     """v_t [B, H, A] at x_t and time t [B], the suffix attending to the cached prefix (one Euler step's model call)."""
-    tokens, suffix_mask, suffix_ar, cond = embed_suffix(params, cfg, state, x_t, t)
+    tokens, suffix_mask, suffix_ar, cond = embed_suffix(params, cfg, state, x_t, t, time_emb)
     s = tokens.shape[1]
     mask = jnp.concatenate(
         [
@@ -209,7 +228,8 @@ def denoise(
     """The Euler integration of upstream's `sample_actions` from the image tokens on, differentiable in them.
 
     t runs from 1 (noise) to 0 in `num_steps` steps of dt = -1 / num_steps accumulated in float32 exactly as upstream
-    (its while-loop condition `t >= -dt / 2` always stops after `num_steps` steps). Each step is rematerialised, so a
+    (its while-loop condition `t >= -dt / 2` always stops after `num_steps` steps), or on LeRobot's grid
+    (`cfg.flow_time`, `lerobot_time_grid`). Each step is rematerialised, so a
     backward pass through all steps keeps one step's activations at a time. Returns x_0 [B, H, A], and with `record`
     (x before each step [B, n, H, A], v at each step [B, n, H, A], t at each step [n])."""
     cache, prefix_mask = fill_prefix_cache(params, image_tokens, obs, cfg)
@@ -217,12 +237,16 @@ def denoise(
     b = noise.shape[0]
 
     @jax.checkpoint
-    def step(carry, _):
+    def step(carry, grid):
         x_t, t = carry
-        v_t = velocity(params, cfg, cache, prefix_mask, obs.state, x_t, jnp.broadcast_to(t, (b,)))
+        emb = None
+        if grid is not None:
+            t, emb = grid[0], jnp.broadcast_to(grid[1], (b, grid[1].shape[-1]))
+        v_t = velocity(params, cfg, cache, prefix_mask, obs.state, x_t, jnp.broadcast_to(t, (b,)), emb)
         return (x_t + dt * v_t, t + dt), (x_t, v_t, t) if record else None
 
-    (x_0, _), trace = jax.lax.scan(step, (noise, jnp.asarray(1.0, jnp.float32)), None, length=cfg.num_steps)
+    grid = lerobot_time_grid(cfg.num_steps, cfg.expert.width) if cfg.flow_time == "lerobot" else None
+    (x_0, _), trace = jax.lax.scan(step, (noise, jnp.asarray(1.0, jnp.float32)), grid, length=cfg.num_steps)
     if not record:
         return x_0
     xs, vs, ts = trace
@@ -293,6 +317,20 @@ class Pi0:
     ) -> Pi0:
         """Loads an OpenPI `<checkpoint>/params` directory (bfloat16 weights in bfloat16, as upstream serves)."""
         params = load_params(params_dir, dtype=None if dtype == "float32" else dtype)
+        return cls.from_params(params, scan=scan, dtype=dtype, **data_config)
+
+    @classmethod
+    def from_safetensors(
+        cls,
+        path: str | pathlib.Path,
+        *,
+        dtype: str = "bfloat16",
+        heads: HeadCounts = LEROBOT_HEADS,
+        scan: bool | None = None,
+        **data_config: Any,
+    ) -> Pi0:
+        """Loads a PyTorch `model.safetensors` (LeRobot's keys or OpenPI's export), every weight cast to `dtype`."""
+        params, _ = load_safetensors_params(path, dtype=dtype, heads=heads)
         return cls.from_params(params, scan=scan, dtype=dtype, **data_config)
 
     @property

@@ -2,8 +2,10 @@
 that runs and maps datasets record as JSON, so a run is explained or measured again with the very model that made it.
 
 No checkpoint folder names the bundled demo model of the config (`demo_reach`, the tiny pi0-FAST, by default; or
-`demo_reach_pi05`), with its own tokenizers, in float32. A checkpoint folder is loaded by `create_policy`, which
-recognises its format; without `--dtype` it computes as upstream serves (bfloat16).
+`demo_reach_pi05`), with its own tokenizers, in float32. A checkpoint folder is recognised by `checkpoint_format`:
+OpenPI's orbax checkpoint or PyTorch export, served with a named config (pi0_fast_droid unless one is named) in
+bfloat16 as upstream serves; or a LeRobot pi0 / pi0.5 policy folder, which its own config.json describes (no config is
+named) and which computes in the dtype it was saved with.
 """
 
 from __future__ import annotations
@@ -15,8 +17,13 @@ from typing import Any, Literal
 
 import jax
 
-from openpi_cam.model.config import MAX_DECODING_STEPS
+from openpi_cam.model.checkpoint import read_param_shapes
+from openpi_cam.model.config import MAX_DECODING_STEPS, architecture_from_params, family_of
+from openpi_cam.model.safetensors_weights import pi0_config_from_tensors, read_tensor_infos
 from openpi_cam.policies import demo_reach
+from openpi_cam.policies.checkpoint_format import PARAMS_DIR, WEIGHTS_FILE, CheckpointFormat, checkpoint_format
+from openpi_cam.policies.config import resolve_config
+from openpi_cam.policies.lerobot import RequestLayout, read_head_counts
 from openpi_cam.policies.policy import Policy, create_policy
 
 Dtype = Literal["bfloat16", "float32"]
@@ -24,8 +31,16 @@ Dtype = Literal["bfloat16", "float32"]
 DEFAULT_CHECKPOINT_CONFIG = "pi0_fast_droid"
 DEMO_DTYPE: Dtype = "float32"  # the bundled models were trained and are measured in float32
 CHECKPOINT_DTYPE: Dtype = "bfloat16"  # upstream's `create_trained_policy`
+LEROBOT_DTYPE: Dtype = "float32"  # a LeRobot config's default `dtype`
+DTYPES: tuple[Dtype, ...] = ("bfloat16", "float32")
 # What must be the same for new steps to join a run or maps dataset (tokenizer files may move between machines).
 _OUTPUT_FIELDS = ("checkpoint_dir", "config", "dtype")
+
+
+def _is_demo(config: str | None) -> bool:
+    """Whether a config is a demo model's: its tokenizers ship beside its checkpoint, it decodes few steps and was
+    trained in float32, wherever its checkpoint lies."""
+    return config in demo_reach.DEMO_MODELS
 
 
 def _path(value: str | pathlib.Path | None) -> pathlib.Path | None:
@@ -33,19 +48,31 @@ def _path(value: str | pathlib.Path | None) -> pathlib.Path | None:
 
 
 @dataclasses.dataclass(frozen=True)
+class ModelFacts:
+    """What planning a job needs of a model without its weights."""
+
+    family: str  # pi0_fast, pi0, pi05
+    grid: tuple[int, int]  # SigLIP's patch grid of every camera
+    camera_sources: dict[str, str | None]  # model camera -> observation key (None: a blank camera), in token order
+
+
+@dataclasses.dataclass(frozen=True)
 class ModelSpec:
     """The model a command loads. Commands take these fields as flags (`--checkpoint-dir`, `--config`, ...)."""
 
-    # checkpoint folder: OpenPI's `params/` + `assets/<asset_id>/norm_stats.json`; default: the bundled demo model.
+    # checkpoint folder: OpenPI's (`params/` or `model.safetensors`, and `assets/<asset_id>/norm_stats.json`) or a
+    # LeRobot pi0 / pi0.5 policy folder (`config.json`, `model.safetensors`, its processors); default: the bundled
+    # demo model.
     checkpoint_dir: pathlib.Path | None = None
     # named policy config (pi0_fast_droid, pi05_droid, pi0_libero, ...); default: `demo_reach` for the bundled model,
-    # pi0_fast_droid for a checkpoint.
+    # pi0_fast_droid for an OpenPI checkpoint; a LeRobot folder takes none (its config.json says what it is).
     config: str | None = None
     # PaliGemma SentencePiece model; default: the bundled model's own, else $OPENPI_DATA_HOME's (README).
     paligemma_tokenizer: pathlib.Path | None = None
     # FAST action tokenizer folder (pi0-FAST); default: the bundled model's own, else the Hugging Face cache's.
     fast_tokenizer: pathlib.Path | None = None
-    # parameter and compute dtype; default: float32 for the bundled model, bfloat16 (as upstream serves) otherwise.
+    # parameter and compute dtype; default: float32 for the bundled model, a LeRobot folder's own (its config.json),
+    # bfloat16 (as upstream serves) for an OpenPI checkpoint.
     dtype: Dtype | None = None
     # prompt used when a request has none.
     default_prompt: str | None = None
@@ -69,23 +96,32 @@ class ModelSpec:
             )
         return demo_reach.DEMO_MODELS[config]
 
+    @property
+    def format(self) -> CheckpointFormat:
+        """The checkpoint folder's format (`checkpoint_format`; the bundled models are orbax)."""
+        return checkpoint_format(self.checkpoint)
+
     def resolved(self) -> ModelSpec:
         """The same model with the config and dtype defaults filled in and paths made absolute: what a run records.
         The bundled model is `checkpoint_dir` None (its files are found wherever the package is installed), also where
         it was named by its path (as runs made before specs were recorded name it)."""
-        demo = self.bundled is not None or self.config in demo_reach.DEMO_MODELS
+        demo = self.bundled is not None or _is_demo(self.config)
         checkpoint = None if self.checkpoint_dir is None else self.checkpoint
-        if self.config in demo_reach.DEMO_MODELS:
-            bundled_checkpoint = (
-                demo_reach.DEFAULT_ASSETS[demo_reach.DEMO_MODELS[self.config]] / demo_reach.CHECKPOINT.name
-            )
-            checkpoint = None if checkpoint == bundled_checkpoint else checkpoint
+        if _is_demo(self.config):
+            assets = demo_reach.DEFAULT_ASSETS[demo_reach.DEMO_MODELS[self.config]]  # type: ignore[index]
+            checkpoint = None if checkpoint == assets / demo_reach.CHECKPOINT.name else checkpoint
+        if checkpoint is not None and not demo and self.format == "lerobot":
+            saved = RequestLayout.read(checkpoint).config.dtype
+            config, dtype = self.config, self.dtype or (saved if saved in DTYPES else LEROBOT_DTYPE)
+        else:
+            config = self.config or (demo_reach.DEMO_CONFIG.name if self.bundled else DEFAULT_CHECKPOINT_CONFIG)
+            dtype = self.dtype or (DEMO_DTYPE if demo else CHECKPOINT_DTYPE)
         return ModelSpec(
             checkpoint_dir=checkpoint,
-            config=self.config or (demo_reach.DEMO_CONFIG.name if self.bundled else DEFAULT_CHECKPOINT_CONFIG),
+            config=config,
             paligemma_tokenizer=None if self.paligemma_tokenizer is None else self.paligemma_tokenizer.resolve(),
             fast_tokenizer=None if self.fast_tokenizer is None else self.fast_tokenizer.resolve(),
-            dtype=self.dtype or (DEMO_DTYPE if demo else CHECKPOINT_DTYPE),
+            dtype=dtype,  # type: ignore[arg-type]
             default_prompt=self.default_prompt,
         )
 
@@ -96,24 +132,56 @@ class ModelSpec:
             return demo_reach.DEFAULT_ASSETS[model] / demo_reach.CHECKPOINT.name
         return pathlib.Path(self.checkpoint_dir).expanduser().resolve()  # type: ignore[arg-type]
 
+    def tokenizers(self) -> tuple[pathlib.Path | None, pathlib.Path | None]:
+        """(PaliGemma SentencePiece model, FAST tokenizer folder) as given; a demo model's ship beside its checkpoint
+        (`demo.train` writes them there too); None leaves the choice to the loader (upstream's cache locations)."""
+        spec = self.resolved()
+        paligemma, fast = spec.paligemma_tokenizer, spec.fast_tokenizer
+        if _is_demo(spec.config):
+            paligemma = paligemma or spec.checkpoint.parent / demo_reach.PALIGEMMA_TOKENIZER.name
+            fast = fast or spec.checkpoint.parent / demo_reach.FAST_TOKENIZER.name
+        return paligemma, fast
+
     def create(self, *, stop_at_action_end: bool = False, rng: jax.Array | None = None) -> Policy:
         spec = self.resolved()
-        checkpoint, paligemma, fast = spec.checkpoint, spec.paligemma_tokenizer, spec.fast_tokenizer
-        demo = spec.config in demo_reach.DEMO_MODELS
-        if demo:  # a demo model's tokenizers ship beside its checkpoint (`demo.train` writes them there too)
-            paligemma = paligemma or checkpoint.parent / demo_reach.PALIGEMMA_TOKENIZER.name
-            fast = fast or checkpoint.parent / demo_reach.FAST_TOKENIZER.name
+        paligemma, fast = self.tokenizers()
         return create_policy(
-            spec.config,  # type: ignore[arg-type]  (resolved() always names one)
-            checkpoint,
+            spec.config,
+            spec.checkpoint,
             paligemma_tokenizer=paligemma,
             fast_tokenizer=fast,
             dtype=spec.dtype,  # type: ignore[arg-type]
             default_prompt=spec.default_prompt,
             stop_at_action_end=stop_at_action_end,
-            max_decoding_steps=demo_reach.MAX_DECODING_STEPS if demo else MAX_DECODING_STEPS,
+            max_decoding_steps=demo_reach.MAX_DECODING_STEPS if _is_demo(spec.config) else MAX_DECODING_STEPS,
             rng=rng,
         )
+
+    def dataset_keys(self) -> tuple[dict[str, str], bool]:
+        """How a LeRobot dataset feeds this model: observation key -> dataset feature (with `actions`, the recorded
+        actions), and whether observation keys `a/b` nest. A named config declares it (upstream's `RepackTransform`); a
+        LeRobot policy reads its own feature names."""
+        spec = self.resolved()
+        if spec.config is None:
+            return RequestLayout.read(spec.checkpoint).dataset_keys, False
+        config = resolve_config(spec.config)
+        return dict(config.lerobot_keys or {}), config.lerobot_nested
+
+    def facts(self) -> ModelFacts:
+        """The family, SigLIP patch grid and cameras of the model, read from the folder's metadata, tensor shapes and
+        configs without loading a weight (a Ray driver plans a job with them)."""
+        spec = self.resolved()
+        folder = spec.checkpoint
+        if spec.config is None:
+            layout = RequestLayout.read(folder)
+            cfg, _ = pi0_config_from_tensors(read_tensor_infos(folder / WEIGHTS_FILE), read_head_counts(folder))
+            return ModelFacts(layout.config.type, cfg.siglip.grid, layout.camera_sources)
+        sources = dict(resolve_config(spec.config).camera_sources)
+        if spec.format == "orbax":
+            shapes = read_param_shapes(folder / PARAMS_DIR)
+            return ModelFacts(family_of(shapes), architecture_from_params(shapes)[1].grid, sources)
+        cfg, _ = pi0_config_from_tensors(read_tensor_infos(folder / WEIGHTS_FILE), read_head_counts(folder))
+        return ModelFacts("pi05" if cfg.pi05 else "pi0", cfg.siglip.grid, sources)
 
     def to_json(self) -> dict[str, Any]:
         return {f.name: _jsonable(getattr(self, f.name)) for f in dataclasses.fields(self)}

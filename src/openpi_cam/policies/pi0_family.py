@@ -23,6 +23,7 @@ from openpi_cam.errors import InvalidRequest
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.pi0 import Pi0
 from openpi_cam.model.pi0_maps import CHUNK, maps_for_actions, rescore_masks
+from openpi_cam.model.safetensors_weights import LEROBOT_HEADS, HeadCounts
 from openpi_cam.policies.config import PolicyConfig
 from openpi_cam.policies.family import (
     ExplainSkipped,
@@ -120,34 +121,15 @@ class FlowParts:
     sample: Sampler
 
 
-def build_pi0(
-    config: PolicyConfig,
-    params_dir: Path,
-    *,
-    paligemma_tokenizer: str | Path | sentencepiece.SentencePieceProcessor | None,
-    dtype: str,
-) -> FlowParts:
-    """The model restored from `params_dir` and the PaliGemma tokenizer (None: upstream's cache location)."""
-    if not isinstance(paligemma_tokenizer, sentencepiece.SentencePieceProcessor):
-        paligemma_tokenizer = load_paligemma_tokenizer(paligemma_tokenizer)
-    tokenizer = Pi0PromptTokenizer(paligemma_tokenizer, config.max_token_len)
-    model = Pi0.from_checkpoint(
-        params_dir, action_horizon=config.action_horizon, max_token_len=config.max_token_len, dtype=dtype
-    )
-    if model.family != config.family:
-        raise ValueError(f"config {config.name!r} serves {config.family}, the checkpoint is a {model.family} model")
-    if model.config.action_dim != config.action_dim:
-        raise ValueError(
-            f"config {config.name!r} pads states and actions to {config.action_dim} dims, the checkpoint's "
-            f"action projections have {model.config.action_dim}"
-        )
+def flow_sampler(model: Pi0) -> Sampler:
+    """The family's `Sampler`: each row's noise drawn as upstream's `sample_actions` draws it for a batch of one from
+    that request's key, or the caller's `noise` [horizon, action dim]; returns the chunk and the noise."""
 
     def sample(
         rngs: Sequence[jax.Array], observation: Observation, noise: np.ndarray | None
     ) -> tuple[np.ndarray, dict]:
         shape = (observation.state.shape[0], model.config.action_horizon, model.config.action_dim)
         if noise is None:
-            # Each row's noise is what upstream's sample_actions draws from that request's key for a batch of one.
             drawn = jnp.concatenate([jax.random.normal(rng, (1, *shape[1:])) for rng in rngs])
         elif np.size(noise) != np.prod(shape):
             raise InvalidRequest(
@@ -158,5 +140,33 @@ def build_pi0(
         actions = jax.block_until_ready(model.sample_actions(rngs[0], observation, noise=drawn))
         return np.asarray(actions), {"noise": np.asarray(drawn)}
 
+    return sample
+
+
+def build_pi0(
+    config: PolicyConfig,
+    weights: Path,
+    *,
+    paligemma_tokenizer: str | Path | sentencepiece.SentencePieceProcessor | None,
+    dtype: str,
+    heads: HeadCounts = LEROBOT_HEADS,
+) -> FlowParts:
+    """The model restored from `weights` (an orbax `params` directory, or a PyTorch `model.safetensors` whose head
+    counts `heads` gives) and the PaliGemma tokenizer (None: upstream's cache location)."""
+    if not isinstance(paligemma_tokenizer, sentencepiece.SentencePieceProcessor):
+        paligemma_tokenizer = load_paligemma_tokenizer(paligemma_tokenizer)
+    tokenizer = Pi0PromptTokenizer(paligemma_tokenizer, config.max_token_len)
+    data_config = {"action_horizon": config.action_horizon, "max_token_len": config.max_token_len, "dtype": dtype}
+    if weights.suffix == ".safetensors":
+        model = Pi0.from_safetensors(weights, heads=heads, **data_config)
+    else:
+        model = Pi0.from_checkpoint(weights, **data_config)
+    if model.family != config.family:
+        raise ValueError(f"config {config.name!r} serves {config.family}, the checkpoint is a {model.family} model")
+    if model.config.action_dim != config.action_dim:
+        raise ValueError(
+            f"config {config.name!r} pads states and actions to {config.action_dim} dims, the checkpoint's "
+            f"action projections have {model.config.action_dim}"
+        )
     tokenize = (TokenizePrompt(tokenizer, config.discrete_state_input), PadStatesAndActions(config.action_dim))
-    return FlowParts(model, tokenizer, tokenize, PassActions(), FlowExplainer(model), sample)
+    return FlowParts(model, tokenizer, tokenize, PassActions(), FlowExplainer(model), flow_sampler(model))

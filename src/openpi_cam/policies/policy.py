@@ -21,15 +21,19 @@ from openpi_cam.letterbox import LetterboxGeometry, letterbox_geometry
 from openpi_cam.model.checkpoint import read_param_shapes
 from openpi_cam.model.config import MAX_DECODING_STEPS, family_of
 from openpi_cam.model.observation import Observation, pad_rows, stack_observations
+from openpi_cam.model.safetensors_weights import read_tensor_infos, torch_family
 from openpi_cam.nested import flatten_dict
 from openpi_cam.normalize import load_checkpoint_norm_stats
+from openpi_cam.policies.checkpoint_format import PARAMS_DIR, WEIGHTS_FILE, checkpoint_format
 from openpi_cam.policies.config import PolicyConfig, resolve_config
 from openpi_cam.policies.family import Explainer, OutputDecoder, Sampler
+from openpi_cam.policies.lerobot import LeRobotParts, build_lerobot, read_head_counts
 from openpi_cam.policies.pi0_family import FlowParts, build_pi0
 from openpi_cam.policies.pi0_fast_family import FastParts, build_pi0_fast
 from openpi_cam.policies.robot import RobotInputs, example_observation
 from openpi_cam.tokenizers.fast import FastActionTokenizer
 from openpi_cam.transforms import (
+    OUTPUT_CONTEXT,
     DataDict,
     InjectDefaultPrompt,
     Normalize,
@@ -42,8 +46,6 @@ from openpi_cam.transforms import (
 
 logger = logging.getLogger(__name__)
 _REQUESTS = "requests"  # counted beside the malformed reasons
-# The model inputs a prompt's tokenize steps make (`Observation`'s fields of the same names), and the state they pad.
-_TOKEN_FIELDS = ("state", "tokenized_prompt", "tokenized_prompt_mask", "token_ar_mask", "token_loss_mask")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,9 +64,12 @@ class InferenceTrace:
     # the client's numeric observation values other than its images and prompt, at their `a/b` keys (e.g. the state):
     # with the raw images and the prompt, what the client sent
     client_inputs: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
-    # the normalised state as the prompt tokenizer read it (before pi0's padding): with another prompt, what
-    # `Policy.with_prompt` tokenises again
-    tokenizer_state: np.ndarray | None = None
+    # the client's observation as it was sent (its arrays shared, not copied): what `Policy.with_prompt` prepares
+    # again with another prompt
+    request: Mapping[str, Any] | None = None
+    # what the input transforms left for the output transforms (`OUTPUT_CONTEXT`): with the state, what turns the
+    # raw output into the robot's actions again (`Policy.resample`)
+    output_context: Mapping[str, Any] = dataclasses.field(default_factory=dict)
 
     @property
     def camera_names(self) -> tuple[str, ...]:
@@ -85,11 +90,12 @@ class _Prepared:
 
     observation: Observation
     state: np.ndarray  # the state the output transforms see
-    pre_resize_images: dict[str, np.ndarray]
+    pre_resize_images: dict[str, np.ndarray]  # uint8 [H, W, 3] client frames
     prompt: str
     camera_sources: Mapping[str, str | None]
     client_inputs: dict[str, np.ndarray]
-    tokenizer_state: np.ndarray | None
+    context: Mapping[str, Any]  # what the input transforms left for the output transforms (`OUTPUT_CONTEXT`)
+    request: Mapping[str, Any]  # the client's observation as it was sent
 
     @property
     def signature(self) -> tuple:
@@ -154,10 +160,6 @@ class Policy:
             raise ValueError("Policy transforms need exactly one robot input transform and one ResizeImages")
         self._robot_inputs: RobotInputs = robot[0]
         self._resolution = (resize[0].height, resize[0].width)
-        # the family's tokenize steps: every transform after the resize (`build_transforms`)
-        self._tokenize = self._transforms[self._transforms.index(resize[0]) + 1 :]
-        if not self._tokenize:
-            raise ValueError("Policy transforms need the family's tokenize steps after ResizeImages")
         self._lock = threading.Lock()
         self._malformed = WarnOnceCounter(logger, "Malformed generation, upstream's zero-action fallback returned")
 
@@ -272,13 +274,14 @@ class Policy:
             # Upstream would tokenise them into the prompt as a training target; at inference that is never meant.
             raise InvalidRequest("'actions' must not be sent with an observation")
         camera_sources = self._robot_inputs.camera_sources_for(obs)
-        inputs, pre_resize_images, prompt, tokenizer_state = self._apply_inputs(_copy_containers(obs))
+        inputs, pre_resize_images, prompt = self._apply_inputs(_copy_containers(obs))
+        context = inputs.pop(OUTPUT_CONTEXT, {})
         # A leading batch axis on every leaf (jax pytree order, i.e. cameras sorted by name), as upstream.
         batched = jax.tree.map(lambda x: jnp.asarray(x)[np.newaxis, ...], inputs)
         observation = Observation.from_dict(batched)
         client = _client_inputs(obs, set(camera_sources.values()))
         state = np.asarray(batched["state"][0])
-        return _Prepared(observation, state, pre_resize_images, prompt, camera_sources, client, tokenizer_state)
+        return _Prepared(observation, state, pre_resize_images, prompt, camera_sources, client, context, obs)
 
     def _serve(
         self,
@@ -320,7 +323,7 @@ class Policy:
     ) -> tuple[dict[str, Any], InferenceTrace]:
         output = np.asarray(raw)
         actions, reason = self._decoder.extract(output)
-        outputs = self._output_transform({"state": request.state, "actions": actions})
+        outputs = self._output_transform({**request.context, "state": request.state, "actions": actions})
         outputs["policy_timing"] = {"infer_ms": model_time * 1000}
         cameras = request.observation.camera_names
         images, sources = request.pre_resize_images, request.camera_sources
@@ -334,15 +337,16 @@ class Policy:
             prompt=request.prompt,
             malformed_reason=reason,
             client_inputs=request.client_inputs,
-            tokenizer_state=request.tokenizer_state,
+            request=request.request,
+            output_context=request.context,
         )
         return outputs, trace
 
     def resample(self, trace: InferenceTrace, observation: Observation) -> np.ndarray:
         """The actions `infer` returns when the model sees `observation` (B = 1; e.g. the traced input with a camera
-        replaced, or `with_prompt`'s) in place of the traced call's input: the traced call's noise (pi0 / pi0.5)
-        and state through the same sampler, decoder and output transforms. The policy's rng and counters are
-        untouched. -> actions [horizon, action dim] in the robot's units."""
+        replaced, or `with_prompt`'s) in place of the traced call's input: the traced call's noise (pi0 / pi0.5),
+        state and output context through the same sampler, decoder and output transforms. The policy's rng and
+        counters are untouched. -> actions [horizon, action dim] in the robot's units."""
         noise = trace.sample_inputs.get("noise")
         with self._lock:
             _, rng = jax.random.split(self._rng)  # unused by the families' samplers given the noise (pi0-FAST greedy)
@@ -356,19 +360,16 @@ class Policy:
     def _robot_actions(self, trace: InferenceTrace, raw: np.ndarray) -> np.ndarray:
         actions, _ = self._decoder.extract(np.asarray(raw))
         state = np.asarray(trace.observation.state)[0]
-        return np.asarray(self._output_transform({"state": state, "actions": actions})["actions"])
+        outputs = self._output_transform({**trace.output_context, "state": state, "actions": actions})
+        return np.asarray(outputs["actions"])
 
     def with_prompt(self, trace: InferenceTrace, prompt: str) -> Observation:
-        """The traced call's model input with `prompt` in place of its prompt: the family's tokenize steps run again
-        on the state they read, the images and everything else kept."""
-        if trace.tokenizer_state is None:
-            raise ValueError("the trace does not hold the state its prompt was tokenised with")
-        data: DataDict = {"state": np.asarray(trace.tokenizer_state), "prompt": prompt, "image": {}, "image_mask": {}}
-        for transform in self._tokenize:
-            data = transform(data)
-        # as `_prepare` batches them: through JAX's dtypes (a float64 state becomes float32)
-        batched = {k: jnp.asarray(data[k])[np.newaxis, ...] for k in _TOKEN_FIELDS if data.get(k) is not None}
-        return dataclasses.replace(trace.observation, **batched)
+        """The traced call's model input with `prompt` in place of its prompt: the client's observation prepared
+        again (every input transform, so the prompt is tokenised as served, with the state where the family puts
+        it), its images and state unchanged."""
+        if trace.request is None:
+            raise ValueError("the trace does not hold the client's observation to prepare again")
+        return self._prepare({**trace.request, "prompt": prompt}).observation
 
     def training_inputs(self, obs: Mapping[str, Any], actions: np.ndarray) -> DataDict:
         """The model inputs training builds from an observation and a recorded action chunk [horizon, action dim]:
@@ -380,20 +381,18 @@ class Policy:
         data["actions"] = np.asarray(actions)
         return self._apply_inputs(data)[0]
 
-    def _apply_inputs(self, data: DataDict) -> tuple[DataDict, dict[str, np.ndarray], str, np.ndarray | None]:
-        """Run the input transforms, keeping the images just before resizing, the prompt just before it is
-        tokenised (the last value it has before a transform consumes it) and the state the tokenize steps read."""
+    def _apply_inputs(self, data: DataDict) -> tuple[DataDict, dict[str, np.ndarray], str]:
+        """Run the input transforms, keeping the images just before resizing (as the uint8 frames a trace records)
+        and the prompt just before it is tokenised (the last value it has before a transform consumes it)."""
         images: dict[str, np.ndarray] = {}
-        prompt, state = "", None
+        prompt = ""
         for transform in self._transforms:
             if isinstance(transform, ResizeImages):
-                images = dict(data["image"])
+                images = {name: transform.client_frame(image) for name, image in data["image"].items()}
             if data.get("prompt") is not None:
                 prompt = parse_prompt(data["prompt"])
-            if transform is self._tokenize[0]:
-                state = np.asarray(data["state"]) if "state" in data else None
             data = transform(data)
-        return data, images, prompt, state
+        return data, images, prompt
 
 
 def build_transforms(
@@ -421,8 +420,22 @@ def build_transforms(
     return inputs, outputs
 
 
+def lerobot_policy(parts: LeRobotParts, *, rng: jax.Array | None = None) -> Policy:
+    """The served policy of a LeRobot folder's parts (`lerobot.build_lerobot`)."""
+    return Policy(
+        parts.model,
+        transforms=parts.transforms,
+        sample=parts.sample,
+        decoder=parts.decoder,
+        explainer=parts.explainer,
+        output_transforms=parts.output_transforms,
+        rng=rng,
+        metadata=parts.metadata,
+    )
+
+
 def create_policy(
-    config: str | PolicyConfig,
+    config: str | PolicyConfig | None,
     checkpoint_dir: str | Path,
     *,
     paligemma_tokenizer: str | Path | sentencepiece.SentencePieceProcessor | None = None,
@@ -433,29 +446,46 @@ def create_policy(
     max_decoding_steps: int = MAX_DECODING_STEPS,
     rng: jax.Array | None = None,
 ) -> Policy:
-    """A served policy from ``<checkpoint_dir>/params`` and ``<checkpoint_dir>/assets/<asset_id>/norm_stats.json``.
+    """A served policy from a checkpoint folder, whose format `checkpoint_format` recognises: OpenPI's orbax
+    checkpoint (``params/`` and ``assets/<asset_id>/norm_stats.json``) or OpenPI's PyTorch export
+    (``model.safetensors`` and the same ``assets/``), both served with a named `config`; or a LeRobot pi0 / pi0.5
+    policy folder, served by its own files (its ``config.json`` says what it is, so `config` is None).
 
-    ``paligemma_tokenizer``: a SentencePiece model path or a loaded processor (None: upstream's cache location);
+    ``paligemma_tokenizer``: a SentencePiece model path or a loaded processor (None: upstream's cache location; for a
+    LeRobot folder the tokenizer its preprocessor names, then the Hugging Face cache);
     ``fast_tokenizer``: a FAST tokenizer directory or a loaded `FastActionTokenizer` (None: the HF cache).
     ``stop_at_action_end`` ends decoding at the first token containing "|" (upstream decodes to EOS; what follows
     "|" is ignored by action extraction, so actions are unchanged, only the generation is shorter).
     """
-    cfg = resolve_config(config)
     checkpoint_dir = Path(checkpoint_dir)
-    params_dir = checkpoint_dir / "params"
-    if not params_dir.is_dir():
-        raise FileNotFoundError(f"model params not found: expected an orbax checkpoint directory at {params_dir}")
-    checkpoint_family = family_of(read_param_shapes(params_dir))
-    if checkpoint_family != cfg.family:
-        raise ValueError(
-            f"config {cfg.name!r} serves {cfg.family}, the checkpoint at {params_dir} is {checkpoint_family}"
+    kind = checkpoint_format(checkpoint_dir)
+    if kind == "lerobot":
+        if config is not None:
+            name = config if isinstance(config, str) else config.name
+            raise ValueError(
+                f"{checkpoint_dir} is a LeRobot policy folder, served by its own config.json, not {name!r}"
+            )
+        lerobot = build_lerobot(
+            checkpoint_dir, paligemma_tokenizer=paligemma_tokenizer, dtype=dtype, default_prompt=default_prompt
         )
+        return lerobot_policy(lerobot, rng=rng)
+    if config is None:
+        raise ValueError(f"{checkpoint_dir} is an OpenPI checkpoint ({kind}): name the config that serves it")
+    cfg = resolve_config(config)
+    if kind == "orbax":
+        weights = checkpoint_dir / PARAMS_DIR
+        checkpoint_family = family_of(read_param_shapes(weights))
+    else:
+        weights = checkpoint_dir / WEIGHTS_FILE
+        checkpoint_family = torch_family(read_tensor_infos(weights), where=str(weights))
+    if checkpoint_family != cfg.family:
+        raise ValueError(f"config {cfg.name!r} serves {cfg.family}, the checkpoint at {weights} is {checkpoint_family}")
     norm_stats = load_checkpoint_norm_stats(checkpoint_dir, cfg.asset_id)
     parts: FastParts | FlowParts
     if cfg.family == "pi0_fast":
         parts = build_pi0_fast(
             cfg,
-            params_dir,
+            weights,
             paligemma_tokenizer=paligemma_tokenizer,
             fast_tokenizer=fast_tokenizer,
             dtype=dtype,
@@ -463,7 +493,8 @@ def create_policy(
             stop_at_action_end=stop_at_action_end,
         )
     else:
-        parts = build_pi0(cfg, params_dir, paligemma_tokenizer=paligemma_tokenizer, dtype=dtype)
+        heads = read_head_counts(checkpoint_dir)
+        parts = build_pi0(cfg, weights, paligemma_tokenizer=paligemma_tokenizer, dtype=dtype, heads=heads)
     inputs, outputs = build_transforms(
         cfg, norm_stats, parts.tokenize, parts.model.config.image_resolution, default_prompt=default_prompt
     )

@@ -23,6 +23,7 @@ import numpy as np
 from openpi_cam.cam.run_evidence import REPORT_FILE, ig_summary, read_check, read_report
 from openpi_cam.cam.run_format import CAMRun
 from openpi_cam.viz.stats import StepStats
+from openpi_cam.viz.text import percent
 from openpi_cam.vocabulary import MAP_KIND_INFO
 
 
@@ -220,12 +221,12 @@ def map_evidence(run: CAMRun, kind: str, stats: Sequence[StepStats]) -> MapEvide
     )
 
 
+def _pct(x: float | None) -> str:
+    return percent(x, 0)
+
+
 def _num(x: float | None) -> str:
     return "-" if x is None else f"{x:.2f}"
-
-
-def _share(x: float | None) -> str:
-    return "-" if x is None else f"{x:.0%}"
 
 
 def panel_header(evidence: MapEvidence) -> str:
@@ -245,7 +246,7 @@ def check_rows(evidence: MapEvidence) -> list[tuple[str, ...]]:
             str(s.steps),
             f"{s.median_top_drop:.3g}",
             f"{s.median_random_drop:.3g}",
-            f"{_share(s.beats_random)} (chance {_share(s.chance)})",
+            f"{_pct(s.beats_random)} (chance {_pct(s.chance)})",
         )
         for s in evidence.check_summary
     ]
@@ -274,7 +275,7 @@ def summary_rows(evidence: MapEvidence) -> list[tuple[str, ...]]:
     rows = []
     for f in evidence.cameras:
         rand = "-" if f.randomisation is None else f"{f.randomisation:.2f} (null {_num(f.null)})"
-        point = "-" if f.pointing is None else f"{_share(f.pointing)} (chance {_share(f.pointing_chance)})"
+        point = "-" if f.pointing is None else f"{_pct(f.pointing)} (chance {_pct(f.pointing_chance)})"
         deletion = f"{_num(f.deletion_k1)} (random {_num(f.random_k1)})"
-        rows.append((f.camera, str(f.steps), deletion, _share(f.top1_occlusion), rand, point))
+        rows.append((f.camera, str(f.steps), deletion, _pct(f.top1_occlusion), rand, point))
     return rows

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import html
 import math
 import pathlib
 from collections import Counter
@@ -13,6 +12,7 @@ from typing import Any
 from openpi_cam.cam.run_format import RELIANCE_PROMPT, StepMeta
 from openpi_cam.viz.evidence import CHECK_COLUMNS, SUMMARY_COLUMNS, MapEvidence, check_rows, summary_rows
 from openpi_cam.viz.stats import StepStats, aggregate, camera_names
+from openpi_cam.viz.text import escape, html_table, number, percent
 
 _PALETTE = ("#4e9af1", "#f28e2b", "#59a14f", "#e15759", "#b07aa1", "#76b7b2", "#edc948", "#ff9da7")
 
@@ -98,10 +98,6 @@ def by_connection(stats: Sequence[StepStats]) -> dict[str, list[StepStats]]:
     return groups
 
 
-def _escape(x: Any) -> str:
-    return html.escape(str(x), quote=True)
-
-
 def _polyline(xs: Sequence[float], ys: Sequence[float], color: str, dash: str = "") -> str:
     """Polylines broken at missing (NaN) values."""
     runs: list[list[str]] = [[]]
@@ -147,7 +143,7 @@ def timeline_svg(
 
     parts = [
         f'<svg class="timeline" viewBox="0 0 {width} {height}" width="{width}" height="{height}" role="img">',
-        f'<text x="{left}" y="13" class="t">{_escape(title)}</text>',
+        f'<text x="{left}" y="13" class="t">{escape(title)}</text>',
         f'<rect x="{left}" y="{top}" width="{plot_w}" height="{plot_h}" class="frame"/>',
         f'<text x="{left - 4}" y="{top + 9}" class="ax" text-anchor="end">{hi:.3g}</text>',
         f'<text x="{left - 4}" y="{top + plot_h}" class="ax" text-anchor="end">{lo:.3g}</text>',
@@ -159,7 +155,7 @@ def timeline_svg(
         tip = f"seq {st.seq}, step {st.step}" + (": " + "; ".join(reasons) if reasons else "")
         parts.append(
             f'<a href="#step-{st.seq}"><rect x="{left + i * slot:.1f}" y="{top}" width="{max(slot, 1):.1f}"'
-            f' height="{plot_h}" class="{cls}"><title>{_escape(tip)}</title></rect></a>'
+            f' height="{plot_h}" class="{cls}"><title>{escape(tip)}</title></rect></a>'
         )
     xs = [x_of(i) for i in range(n)]
     legend_x = left
@@ -171,7 +167,7 @@ def timeline_svg(
         mark = f'<line x1="{legend_x}" y1="24" x2="{legend_x + 14}" y2="24" stroke="{color}" stroke-width="2"' + (
             f' stroke-dasharray="{dash}"/>' if dash else "/>"
         )
-        parts.append(f'{mark}<text x="{legend_x + 18}" y="28" class="lg">{_escape(label)}</text>')
+        parts.append(f'{mark}<text x="{legend_x + 18}" y="28" class="lg">{escape(label)}</text>')
         legend_x += 6 * len(label) + 34
     parts.append(
         f'<text x="{left}" y="{height - 4}" class="ax">steps {steps[0].step if n else ""}..'
@@ -228,24 +224,24 @@ def _connection_section(
     )
     conn_flags = [(st, flags[st.seq]) for st in steps if st.seq in flags]
     flag_items = "".join(
-        f'<li><a href="#step-{st.seq}">seq {st.seq} (step {st.step})</a>: {_escape("; ".join(r))}</li>'
+        f'<li><a href="#step-{st.seq}">seq {st.seq} (step {st.step})</a>: {escape("; ".join(r))}</li>'
         for st, r in conn_flags
     )
     video = result.videos.get(conn)
     media = (
-        f'<p><a href="{_escape(video["mp4"])}">MP4</a> · <a href="{_escape(video["gif"])}">GIF</a></p>'
-        f'<video src="{_escape(video["mp4"])}" controls loop muted preload="metadata"></video>'
+        f'<p><a href="{escape(video["mp4"])}">MP4</a> · <a href="{escape(video["gif"])}">GIF</a></p>'
+        f'<video src="{escape(video["mp4"])}" controls loop muted preload="metadata"></video>'
         if video
         else ""
     )
     thumbs = "".join(
         f'<a href="#step-{st.seq}" class="th{" flagged" if st.seq in flags else ""}" title="seq {st.seq}">'
-        f'<img src="{_escape(result.steps[st.seq].thumb)}" alt="seq {st.seq}" loading="lazy"></a>'
+        f'<img src="{escape(result.steps[st.seq].thumb)}" alt="seq {st.seq}" loading="lazy"></a>'
         for st in steps
     )
     return (
-        f'<section class="conn" id="conn-{_escape(conn)}">'
-        f"<h2>connection {_escape(conn)} · {len(steps)} steps</h2>{media}"
+        f'<section class="conn" id="conn-{escape(conn)}">'
+        f"<h2>connection {escape(conn)} · {len(steps)} steps</h2>{media}"
         f"{share}{peaks}{score}{nuisance}"
         f"<h3>flagged steps ({len(conn_flags)})</h3><ul>{flag_items or '<li>none</li>'}</ul>"
         f'<div class="thumbs">{thumbs}</div></section>'
@@ -254,37 +250,32 @@ def _connection_section(
 
 def _evidence_section(evidence: MapEvidence) -> str:
     """How faithful the drawn kind measured on this run, before any map is shown."""
-    table = _table(SUMMARY_COLUMNS, summary_rows(evidence)) if evidence.cameras else ""
+    table = html_table(SUMMARY_COLUMNS, summary_rows(evidence)) if evidence.cameras else ""
     if evidence.check_summary:
         table += "<p class='dim'>spot checks stored with the steps (live or offline explain)</p>"
-        table += _table(CHECK_COLUMNS, check_rows(evidence))
+        table += html_table(CHECK_COLUMNS, check_rows(evidence))
     facts = []
     if evidence.zero_share is not None:
-        facts.append(f"{_pct(evidence.zero_share)} of the drawn camera-steps have an all-zero (or all-negative) map")
+        facts.append(f"{percent(evidence.zero_share)} of the drawn camera-steps have an all-zero (or all-negative) map")
     ig = evidence.ig_completeness
     if ig:
         facts.append(
-            f"IG completeness over {ig['steps']} steps: largest relative error {_pct(ig['max_relative_error'])}"
+            f"IG completeness over {ig['steps']} steps: largest relative error {percent(ig['max_relative_error'])}"
         )
-    items = "".join(f"<li>{_escape(f)}</li>" for f in facts)
+    items = "".join(f"<li>{escape(f)}</li>" for f in facts)
     return (
-        f'<section class="evidence" id="evidence" data-status="{_escape(evidence.status)}">'
-        f"<h2>how faithful are these maps?</h2><p>{_escape(evidence.note)}</p>"
-        f'<p class="{"warn" if evidence.status == "missing" else "dim"}">{_escape(evidence.status_line)}</p>'
+        f'<section class="evidence" id="evidence" data-status="{escape(evidence.status)}">'
+        f"<h2>how faithful are these maps?</h2><p>{escape(evidence.note)}</p>"
+        f'<p class="{"warn" if evidence.status == "missing" else "dim"}">{escape(evidence.status_line)}</p>'
         f"{table}<ul>{items}</ul></section>"
     )
 
 
-def _table(head: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
-    body = "".join("<tr>" + "".join(f"<td>{_escape(v)}</td>" for v in row) + "</tr>" for row in rows)
-    return "<table><tr>" + "".join(f"<th>{_escape(h)}</th>" for h in head) + f"</tr>{body}</table>"
-
-
 def _failures_section(failures: Sequence[Failure]) -> str:
     items = "".join(
-        f'<li><a href="#step-{f.seq}">seq {f.seq} (connection {_escape(f.connection)}, step {f.step})</a>: '
-        f'malformed generation <code class="reason">{_escape(f.reason)}</code>, explained with target '
-        f'<code class="target">{_escape(f.target)}</code></li>'
+        f'<li><a href="#step-{f.seq}">seq {f.seq} (connection {escape(f.connection)}, step {f.step})</a>: '
+        f'malformed generation <code class="reason">{escape(f.reason)}</code>, explained with target '
+        f'<code class="target">{escape(f.target)}</code></li>'
         for f in failures
     )
     return (
@@ -313,11 +304,11 @@ def _step_section(
         shift = "-" if math.isnan(cs.peak_shift) else f"{cs.peak_shift:.2f}"
         entropy = "-" if math.isnan(cs.entropy_norm) else f"{cs.entropy_norm:.3f}"
         link = assets.overlays.get(c)
-        name = f'<a href="{_escape(link)}">{_escape(c)}</a>' if link else _escape(c)
+        name = f'<a href="{escape(link)}">{escape(c)}</a>' if link else escape(c)
         rows.append(
             f"<tr><td>{name}</td><td>{'yes' if cs.valid else 'no'}</td><td>{100 * cs.share:.1f}%</td>"
             f"<td>{entropy}</td><td>{peak}</td><td>{shift}</td>"
-            f'<td class="evidence">{_escape(evidence.step_line(st.seq, c)) if evidence else "-"}</td>'
+            f'<td class="evidence">{escape(evidence.step_line(st.seq, c)) if evidence else "-"}</td>'
             + (f"<td>{_reliance(st, c)}</td>" if st.reliance else "")
             + "</tr>"
         )
@@ -326,20 +317,20 @@ def _step_section(
     nav = " ".join(
         f'<a href="#step-{s.seq}">{label}</a>' for s, label in zip(prev_next, ("prev", "next"), strict=True) if s
     )
-    warn = f'<p class="warn">{_escape("; ".join(flags))}</p>' if flags else ""
+    warn = f'<p class="warn">{escape("; ".join(flags))}</p>' if flags else ""
     if failure is not None:
-        warn = f'<p class="fail">malformed generation: {_escape(failure.reason)}</p>' + warn
+        warn = f'<p class="fail">malformed generation: {escape(failure.reason)}</p>' + warn
     return (
         f'<section class="step{" failure" if failure else ""}" id="step-{st.seq}" data-seq="{st.seq}">'
-        f"<h3>seq {st.seq} · connection {_escape(st.connection)} · step {st.step} · {_escape(st.target)} · "
+        f"<h3>seq {st.seq} · connection {escape(st.connection)} · step {st.step} · {escape(st.target)} · "
         f"score {st.score:.4g} <small>{nav}</small></h3>{warn}"
-        f'<a href="{_escape(assets.panel)}"><img class="panel" src="{_escape(assets.panel)}" alt="seq {st.seq}"></a>'
+        f'<a href="{escape(assets.panel)}"><img class="panel" src="{escape(assets.panel)}" alt="seq {st.seq}"></a>'
         "<table><tr><th>camera</th><th>valid</th><th>share</th><th>entropy (norm.)</th><th>peak (row, col)</th>"
         "<th>peak shift</th><th>top patch's drop / best patch's</th>"
         + ("<th>reliance: score drop / action change without it</th>" if st.reliance else "")
         + "</tr>"
         f"{''.join(rows)}</table>"
-        f"<p class='dim'>tokens {_escape(' '.join(map(str, st.token_ids)))}</p></section>"
+        f"<p class='dim'>tokens {escape(' '.join(map(str, st.token_ids)))}</p></section>"
     )
 
 
@@ -347,7 +338,7 @@ def _reliance(st: StepStats, name: str) -> str:
     """The step's reliance on a camera or its prompt: the explained score's drop and the action chunk's change (root
     mean square, robot units) when it is replaced by the baseline frame (the prompt: emptied)."""
     score, actions = st.reliance.get(f"{name}/reliance_score"), st.reliance.get(f"{name}/reliance_actions")
-    return f"{_num(score)} / {_num(actions)}"
+    return f"{number(score)} / {number(actions)}"
 
 
 REPORT_STYLE = """
@@ -411,11 +402,11 @@ def write_report(
         "flagged": f"attention left the connection's usual camera, or the score fell by more than "
         f"{100 * score_drop:.0f}% from the previous step",
     }
-    info_html = "".join(f"<dt>{_escape(k)}</dt><dd>{_escape(v)}</dd>" for k, v in info.items() if v is not None)
+    info_html = "".join(f"<dt>{escape(k)}</dt><dd>{escape(v)}</dd>" for k, v in info.items() if v is not None)
     cam_rows = "".join(
-        f"<tr><td>{_escape(c)}</td><td>{a['valid_steps']}</td><td>{_pct(a['mean_share'])}</td>"
-        f"<td>{_num(a['mean_entropy_norm'])}</td><td>{_pct(a['peak_stay_rate'])}</td>"
-        f"<td>{_num(a['mean_peak_shift'])}</td><td>{a['dominant_steps']}</td></tr>"
+        f"<tr><td>{escape(c)}</td><td>{a['valid_steps']}</td><td>{percent(a['mean_share'])}</td>"
+        f"<td>{number(a['mean_entropy_norm'])}</td><td>{percent(a['peak_stay_rate'])}</td>"
+        f"<td>{number(a['mean_peak_shift'])}</td><td>{a['dominant_steps']}</td></tr>"
         for c, a in summary["cameras"].items()
     )
     groups = by_connection(stats)
@@ -436,7 +427,7 @@ def write_report(
                 )
             )
     body = (
-        f"<h1>CAM run {_escape(run_id)}: {_escape(map_label)} maps</h1>"
+        f"<h1>CAM run {escape(run_id)}: {escape(map_label)} maps</h1>"
         f"<dl>{info_html}</dl>"
         "<table><tr><th>camera</th><th>valid steps</th><th>mean share</th><th>mean entropy (norm.)</th>"
         f"<th>peak stayed</th><th>mean peak shift (cells)</th><th>dominant in</th></tr>{cam_rows}</table>"
@@ -448,14 +439,6 @@ def write_report(
 
 def write_page(path: pathlib.Path, title: str, body: str, style: str = REPORT_STYLE) -> pathlib.Path:
     """Writes an HTML page with the reports' head (charset, escaped title, style) around `body` (HTML)."""
-    head = f'<head><meta charset="utf-8"><title>{_escape(title)}</title><style>{style}</style></head>'
+    head = f'<head><meta charset="utf-8"><title>{escape(title)}</title><style>{style}</style></head>'
     path.write_text(f'<!doctype html><html lang="en">{head}<body>{body}</body></html>\n', encoding="utf-8")
     return path
-
-
-def _pct(x: float | None) -> str:
-    return "-" if x is None else f"{100 * x:.1f}%"
-
-
-def _num(x: float | None) -> str:
-    return "-" if x is None else f"{x:.3g}"

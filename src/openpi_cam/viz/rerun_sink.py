@@ -36,7 +36,7 @@ from openpi_cam.vocabulary import DEFAULT_MAP_KIND
 RERUN_MISSING = 'writing a Rerun recording needs rerun-sdk: pip install "openpi-cam[rerun]"'
 
 
-def _import_rerun() -> Any:
+def import_rerun() -> Any:
     try:
         import rerun
     except ImportError as e:
@@ -71,7 +71,7 @@ def write_rrd(
     """Writes the run's frames, overlays (of `map_kind` maps), per-camera attention shares, each step's reliance
     when it was measured and, when the run has a faithfulness report, each step's figure for the drawn kind to
     `out_path`."""
-    rr = _import_rerun()
+    rr = import_rerun()
     run = load_run(run_dir, load_arrays=False)
     steps = view_steps(run.steps, map_kind)
     stats = compute_stats(steps)

@@ -21,8 +21,9 @@ import numpy as np
 
 from openpi_cam.cam.faithfulness import nuisance_mass_ratio, target_cells
 from openpi_cam.cam.run_evidence import read_check
-from openpi_cam.cam.run_format import CAMStep, StepMeta, client_extra, reliance_figures
+from openpi_cam.cam.run_format import CAMStep, StepMeta, client_extra
 from openpi_cam.viz.overlay import reduce_tokens
+from openpi_cam.viz.text import finite_mean
 from openpi_cam.vocabulary import MAP_KIND_INFO
 
 
@@ -127,7 +128,7 @@ class StepStats:
     score: float  # mean over tokens for multi-token targets
     token_ids: tuple[int, ...]
     cameras: dict[str, CameraStats]
-    # the step's reliance on each camera and its prompt (`run_format.reliance_figures`); {} when not measured
+    # the step's reliance on each camera and its prompt (`run_format.Reliance.figures`); {} when not measured
     reliance: dict[str, float | None] = dataclasses.field(default_factory=dict)
 
     @property
@@ -222,7 +223,7 @@ def compute_stats(steps: Iterable[MapView]) -> list[StepStats]:
                 score=mean_score(meta.score),
                 token_ids=meta.token_ids,
                 cameras=cameras,
-                reliance=reliance_figures(meta.reliance),
+                reliance={} if meta.reliance is None else meta.reliance.figures(),
             )
         )
     return out
@@ -278,11 +279,6 @@ def to_rows(stats: Sequence[StepStats]) -> list[dict[str, Any]]:
     return rows
 
 
-def _mean(values: Iterable[float]) -> float | None:
-    v = [x for x in values if x is not None and not math.isnan(x)]
-    return float(np.mean(v)) if v else None
-
-
 def aggregate(stats: Sequence[StepStats]) -> dict[str, Any]:
     """Run-level summary: per camera mean share/entropy, peak-stay rate, mean shift, and dominance counts; the mean
     reliance figures where steps have them."""
@@ -294,10 +290,10 @@ def aggregate(stats: Sequence[StepStats]) -> dict[str, Any]:
         stayed = [x.peak_stayed for x in cs if x.peak_stayed is not None]
         per_camera[c] = {
             "valid_steps": sum(x.valid for x in cs),
-            "mean_share": _mean(x.share for x in cs if x.valid),
-            "mean_entropy": _mean(x.entropy for x in cs),
-            "mean_entropy_norm": _mean(x.entropy_norm for x in cs),
-            "mean_peak_shift": _mean(x.peak_shift for x in cs),
+            "mean_share": finite_mean(x.share for x in cs if x.valid),
+            "mean_entropy": finite_mean(x.entropy for x in cs),
+            "mean_entropy_norm": finite_mean(x.entropy_norm for x in cs),
+            "mean_peak_shift": finite_mean(x.peak_shift for x in cs),
             "peak_stay_rate": float(np.mean(stayed)) if stayed else None,
             "dominant_steps": dominant.count(c),
         }
@@ -305,10 +301,10 @@ def aggregate(stats: Sequence[StepStats]) -> dict[str, Any]:
     return {
         "steps": len(stats),
         "connections": len({st.connection for st in stats}),
-        "mean_score": _mean(st.score for st in stats),
+        "mean_score": finite_mean(st.score for st in stats),
         "cameras": per_camera,
         **(
-            {"mean_reliance": {n: _mean(st.reliance.get(n) for st in stats) for n in reliance_names}}
+            {"mean_reliance": {n: finite_mean(st.reliance.get(n) for st in stats) for n in reliance_names}}
             if reliance_names
             else {}
         ),

@@ -1,0 +1,43 @@
+"""`openpi-cam export --to lerobot [--checkpoint-dir DIR] --config NAME --out DIR`: an OpenPI pi0 / pi0.5 checkpoint as
+a LeRobot policy folder, which LeRobot's `from_pretrained` and processor loaders read and `serve`, `explain-dataset`
+and `golden` take like any LeRobot folder."""
+
+from __future__ import annotations
+
+import pathlib
+import sys
+from typing import Literal
+
+import tyro
+
+from openpi_cam.cli.options import BUNDLED_MODEL
+from openpi_cam.policies.lerobot_export import export_lerobot
+from openpi_cam.policies.model_spec import ModelSpec
+
+
+def main(
+    out: pathlib.Path,
+    model: tyro.conf.OmitArgPrefixes[ModelSpec] = BUNDLED_MODEL,
+    to: Literal["lerobot"] = "lerobot",
+) -> int:
+    """Write an OpenPI orbax checkpoint in another framework's layout.
+
+    Args:
+        out: the folder to write (new or empty).
+        model: the checkpoint and the named config that serves it (its robot must map onto LeRobot features); the
+            PaliGemma tokenizer given, or a demo model's own, is shipped in the folder's tokenizer/ (else the folder
+            names PaliGemma's Hub tokenizer, as LeRobot's own folders do). No --checkpoint-dir: the bundled model of
+            the config (`--config demo_reach_pi05`).
+        to: the layout: `lerobot` (a LeRobot 0.6 pi0 / pi0.5 policy folder, statistics from the checkpoint's own
+            assets/).
+    """
+    try:
+        spec = model.resolved()
+        if spec.config is None:
+            raise ValueError(f"{spec.checkpoint} is a LeRobot folder already")
+        folder = export_lerobot(spec.checkpoint, spec.config, out, paligemma_tokenizer=model.tokenizers()[0])
+    except (ValueError, FileNotFoundError, FileExistsError, KeyError) as e:
+        print(f"openpi-cam export: {e}", file=sys.stderr)
+        return 2
+    print(f"wrote the LeRobot {to} policy folder {folder}")
+    return 0

@@ -1,0 +1,769 @@
+"""LeRobot pi0 / pi0.5 policy folders, served as LeRobot runs them: its processor pipelines read from the folder's
+own files, step by step in the folder's order, around the pi0 / pi0.5 model read from its `model.safetensors`.
+
+A folder is what LeRobot's `save_pretrained` and the processors' `save_pretrained` write: `config.json` (`type`
+pi0 / pi05, the features, the chunk size, the normalisation modes), `model.safetensors`, `policy_preprocessor.json`
+and `policy_postprocessor.json` with the normaliser statistics each names (`<feature>.<stat>` keys). Which steps
+there are, in which order, and where the statistics live differ between LeRobot versions, so nothing is assumed:
+each step of the lists is built from its own entry (`STEPS`), and a step not known here is refused naming it.
+
+Requests carry the checkpoint's own feature names: `observation.images.<name>` (uint8 [H, W, 3] from a robot, or
+float [3, H, W] in [0, 1] from a LeRobot dataset), `observation.state`, and the task as `prompt` (openpi-client) or
+`task`. Between the steps a request is a flat dict as LeRobot's transition holds it (feature -> array, `task` ->
+text); `ModelInputs` then lays it out for the model, and `LeRobotResizeImages` prepares the images as LeRobot's
+policy does before SigLIP (`_preprocess_images`: torch's bilinear letterbox, then x * 2 - 1). The response is the
+post-processed chunk: `chunk_size` rows of the action feature's dims.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import ml_dtypes
+import numpy as np
+import sentencepiece
+from safetensors.numpy import load_file
+
+from openpi_cam.errors import InvalidRequest
+from openpi_cam.image_tools import resize_with_pad_torch_bilinear
+from openpi_cam.letterbox import letterbox_geometry
+from openpi_cam.model.config import Pi0Config
+from openpi_cam.model.pi0 import MAX_PERIOD, MIN_PERIOD, Pi0
+from openpi_cam.model.safetensors_weights import LEROBOT_HEADS, HeadCounts
+from openpi_cam.policies.checkpoint_format import CONFIG_FILE, POSTPROCESSOR_FILE, PREPROCESSOR_FILE, WEIGHTS_FILE
+from openpi_cam.policies.family import Sampler
+from openpi_cam.policies.pi0_family import FlowExplainer, flow_sampler
+from openpi_cam.policies.robot import GenericOutputs, lookup
+from openpi_cam.tokenizers.paligemma import PALIGEMMA_HUB_ID, hf_cached_file, hf_hub_cache, load_paligemma_tokenizer
+from openpi_cam.tokenizers.pi0 import pad_tokens, pi05_prompt
+from openpi_cam.transforms import (
+    OUTPUT_CONTEXT,
+    DataDict,
+    PadStatesAndActions,
+    PassActions,
+    ResizeImages,
+    Transform,
+    parse_lerobot_image,
+    parse_prompt,
+    parse_vector,
+)
+
+OBS_STATE = "observation.state"
+OBS_IMAGES = "observation.images."
+ACTION = "action"
+TASK = "task"
+TOKENS = "observation.language.tokens"
+TOKEN_MASK = "observation.language.attention_mask"
+SERVED_TYPES = ("pi0", "pi05")
+FAST_TYPES = ("pi0_fast", "pi0fast")  # LeRobot's pi0-FAST (0.5 and later; earlier releases)
+# The shared LeRobot goldens record there, under "tiny", the sizes they substituted into LeRobot at run time; the only
+# ones the weights cannot show are the attention head counts (`HeadCounts`). `export --to lerobot` writes the same.
+SIZES_RECORD = "golden_meta.json"
+LEROBOT_SIZES = Pi0Config()  # gemma_2b, gemma_300m and PaliGemma's SigLIP: the sizes LeRobot's configs know
+NORM_MODES = ("IDENTITY", "MEAN_STD", "MIN_MAX", "QUANTILES", "QUANTILE10")
+# The statistics (low, high) each range mode maps onto [-1, 1].
+_RANGE_STATS = {"MIN_MAX": ("min", "max"), "QUANTILES": ("q01", "q99"), "QUANTILE10": ("q10", "q90")}
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# The folder's files
+
+
+@dataclasses.dataclass(frozen=True)
+class Feature:
+    type: str  # VISUAL, STATE, ACTION, ENV, ...
+    shape: tuple[int, ...]
+
+
+def _features(raw: Any, where: str) -> dict[str, Feature]:
+    if not isinstance(raw, Mapping):
+        raise ValueError(f"{where}: expected a mapping of features, got {type(raw).__name__}")
+    out = {}
+    for name, spec in raw.items():
+        if not isinstance(spec, Mapping) or "type" not in spec or "shape" not in spec:
+            raise ValueError(f"{where}: feature {name!r} needs a type and a shape")
+        out[str(name)] = Feature(str(spec["type"]), tuple(int(d) for d in spec["shape"]))
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class LeRobotConfig:
+    """What serving reads from a LeRobot pi0 / pi0.5 `config.json` (the rest configures training)."""
+
+    type: str
+    input_features: dict[str, Feature]
+    output_features: dict[str, Feature]
+    chunk_size: int
+    max_state_dim: int
+    max_action_dim: int
+    num_inference_steps: int
+    tokenizer_max_length: int
+    image_resolution: tuple[int, int]
+    empty_cameras: int
+    normalization_mapping: dict[str, str]
+    dtype: str
+
+    @classmethod
+    def read(cls, path: Path) -> LeRobotConfig:
+        where = str(path)
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise ValueError(f"{where}: not readable as JSON ({e})") from e
+        kind = data.get("type")
+        if kind in FAST_TYPES:
+            raise ValueError(
+                f"{where}: type {kind!r} is LeRobot's pi0-FAST, which is not served: its processor loads the FAST "
+                "tokenizer's code from the Hugging Face Hub, so no reference of it could be made offline"
+            )
+        if kind not in SERVED_TYPES:
+            raise ValueError(f"{where}: type {kind!r} is not served (LeRobot pi0 / pi0.5: {', '.join(SERVED_TYPES)})")
+        periods = (data.get("min_period", MIN_PERIOD), data.get("max_period", MAX_PERIOD))
+        if periods != (MIN_PERIOD, MAX_PERIOD):
+            raise ValueError(f"{where}: time embedding periods {periods} differ from pi0's {(MIN_PERIOD, MAX_PERIOD)}")
+        try:
+            return cls(
+                type=kind,
+                input_features=_features(data.get("input_features", {}), f"{where}: input_features"),
+                output_features=_features(data.get("output_features", {}), f"{where}: output_features"),
+                chunk_size=int(data["chunk_size"]),
+                max_state_dim=int(data.get("max_state_dim", 32)),
+                max_action_dim=int(data.get("max_action_dim", 32)),
+                num_inference_steps=int(data.get("num_inference_steps", 10)),
+                tokenizer_max_length=int(data["tokenizer_max_length"]),
+                image_resolution=tuple(int(d) for d in data.get("image_resolution", (224, 224))),  # type: ignore[arg-type]
+                empty_cameras=int(data.get("empty_cameras", 0)),
+                normalization_mapping={str(k): str(v) for k, v in data.get("normalization_mapping", {}).items()},
+                dtype=str(data.get("dtype", "float32")),
+            )
+        except KeyError as e:
+            raise ValueError(f"{where}: missing {e.args[0]!r}") from None
+
+    @property
+    def empty_camera_names(self) -> tuple[str, ...]:
+        """The blank cameras LeRobot adds for `empty_cameras` (masked, -1 in the model image)."""
+        return tuple(f"{OBS_IMAGES}empty_camera_{i}" for i in range(self.empty_cameras))
+
+    @property
+    def cameras(self) -> tuple[str, ...]:
+        """The cameras the model reads, in LeRobot's token order: the image features a request brings, in the
+        config's order, then the blank ones (LeRobot appends the cameras missing from a batch)."""
+        real = [k for k, f in self.input_features.items() if f.type == "VISUAL" and k not in self.empty_camera_names]
+        return (*real, *self.empty_camera_names)
+
+    @property
+    def real_cameras(self) -> tuple[str, ...]:
+        return tuple(c for c in self.cameras if c not in self.empty_camera_names)
+
+    @property
+    def state_dim(self) -> int:
+        feature = self.input_features.get(OBS_STATE)
+        return feature.shape[0] if feature is not None else self.max_state_dim  # LeRobot's default for a missing one
+
+    @property
+    def action_dim(self) -> int:
+        feature = self.output_features.get(ACTION)
+        return feature.shape[0] if feature is not None else self.max_action_dim
+
+
+@dataclasses.dataclass(frozen=True)
+class StepSpec:
+    """One entry of a processor pipeline file."""
+
+    name: str  # the registry name (or the class path of an unregistered step)
+    config: dict[str, Any]
+    state_file: str | None
+
+
+def read_pipeline(path: Path) -> list[StepSpec]:
+    where = str(path)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"{where}: not readable as JSON ({e})") from e
+    steps = data.get("steps") if isinstance(data, dict) else None
+    if not isinstance(steps, list):
+        raise ValueError(f"{where}: no 'steps' list")
+    out = []
+    for i, entry in enumerate(steps):
+        name = entry.get("registry_name") or entry.get("class") if isinstance(entry, dict) else None
+        if not isinstance(name, str):
+            raise ValueError(f"{where}: step {i} names no registry_name")
+        out.append(StepSpec(name, dict(entry.get("config") or {}), entry.get("state_file")))
+    return out
+
+
+def read_stats(folder: Path, spec: StepSpec, where: str) -> dict[str, dict[str, np.ndarray]]:
+    """A normaliser's statistics from the state file it names: `<feature>.<stat>` -> float32 arrays."""
+    if spec.state_file is None:
+        raise ValueError(f"{where}: step {spec.name} names no state_file with its statistics")
+    path = folder / spec.state_file
+    if not path.is_file():
+        raise FileNotFoundError(f"{where}: step {spec.name}'s statistics {path} are missing")
+    stats: dict[str, dict[str, np.ndarray]] = {}
+    for key, value in load_file(str(path)).items():
+        feature, _, stat = key.rpartition(".")
+        stats.setdefault(feature, {})[stat] = np.asarray(value, np.float32)
+    return stats
+
+
+def read_head_counts(folder: Path) -> HeadCounts:
+    """The attention head counts of a folder's weights: its sizes record where it has one (tiny models), else
+    LeRobot's defaults."""
+    path = folder / SIZES_RECORD
+    if not path.is_file():
+        return LEROBOT_HEADS
+    try:
+        tiny = json.loads(path.read_text())["tiny"]
+        gemma = {int(tiny[stack]["num_heads"]) for stack in ("vlm", "expert")}
+        siglip = int(tiny["siglip"]["num_attention_heads"])
+    except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"{path}: no readable 'tiny' sizes ({type(e).__name__}: {e})") from e
+    if len(gemma) != 1:
+        raise ValueError(f"{path}: the language model and the expert attend jointly, but their head counts differ")
+    return HeadCounts(gemma=gemma.pop(), siglip=siglip)
+
+
+_GEMMA_SIZES = ("width", "depth", "mlp_dim", "num_heads", "num_kv_heads", "head_dim")
+_SIGLIP_SIZES = {  # Hugging Face's SiglipVisionConfig names of ours
+    "hidden_size": "width",
+    "num_hidden_layers": "depth",
+    "num_attention_heads": "num_heads",
+    "intermediate_size": "mlp_dim",
+    "patch_size": "patch_size",
+    "image_size": "image_size",
+    "projection_dim": "out_dim",
+}
+
+
+def sizes_record(cfg: Pi0Config) -> dict[str, Any]:
+    """The sizes of a pi0 / pi0.5 architecture in the shared LeRobot goldens' record layout."""
+    return {
+        "tiny": {
+            "vlm": {name: getattr(cfg.gemma, name) for name in _GEMMA_SIZES},
+            "expert": {name: getattr(cfg.expert, name) for name in _GEMMA_SIZES},
+            "siglip": {hf: getattr(cfg.siglip, ours) for hf, ours in _SIGLIP_SIZES.items()},
+        },
+        "vocab_size": cfg.gemma.vocab_size,
+    }
+
+
+def write_sizes_record(folder: Path, cfg: Pi0Config) -> Path | None:
+    """Writes the sizes record of a model whose sizes LeRobot's variant table lacks (what `read_head_counts` reads,
+    and what LeRobot needs substituted at run time to build the model); None, and nothing written, for LeRobot's own
+    sizes."""
+    record = sizes_record(cfg)
+    if record == sizes_record(LEROBOT_SIZES):
+        return None
+    path = folder / SIZES_RECORD
+    path.write_text(json.dumps(record, indent=1))
+    return path
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# Processor steps (each a transform over the flat request dict)
+
+
+@dataclasses.dataclass(frozen=True)
+class Normalizer:
+    """LeRobot's (un)normaliser: per feature type the mode of `modes`, with its formulas and zero-range guards, in
+    float32; observation features are (un)normalised where the request has them, the action under `actions`."""
+
+    features: Mapping[str, Feature]
+    modes: Mapping[str, str]  # feature type -> mode
+    stats: Mapping[str, Mapping[str, np.ndarray]]
+    eps: float
+    inverse: bool
+    only: frozenset[str] | None = None  # LeRobot's normalize_observation_keys
+
+    def _apply(self, key: str, feature_type: str, x: np.ndarray) -> np.ndarray:
+        mode = self.modes.get(feature_type, "IDENTITY")
+        if mode == "IDENTITY" or key not in self.stats:
+            return x
+        s, eps, x = self.stats[key], np.float32(self.eps), np.asarray(x, np.float32)
+        if mode == "MEAN_STD":
+            return x * s["std"] + s["mean"] if self.inverse else (x - s["mean"]) / (s["std"] + eps)
+        low_name, high_name = _RANGE_STATS[mode]
+        low = s[low_name]
+        denom = s[high_name] - low
+        denom = np.where(denom == 0, eps, denom).astype(np.float32)
+        if mode == "MIN_MAX":
+            return (x + 1) / 2 * denom + low if self.inverse else 2 * (x - low) / denom - 1
+        return (x + 1) * denom / 2 + low if self.inverse else 2 * (x - low) / denom - 1
+
+    def __call__(self, data: DataDict) -> DataDict:
+        out = dict(data)
+        for key, feature in self.features.items():
+            if feature.type != "ACTION" and key in out and (self.only is None or key in self.only):
+                out[key] = self._apply(key, feature.type, out[key])
+        if "actions" in out:  # LeRobot (un)normalises the action as `action` whatever its features list
+            out["actions"] = self._apply(ACTION, "ACTION", out["actions"])
+        return out
+
+
+def _normalizer(folder: Path, spec: StepSpec, where: str, *, inverse: bool) -> Normalizer:
+    cfg = spec.config
+    features = _features(cfg.get("features", {}), f"{where}: step {spec.name} features")
+    modes = {str(k): str(v) for k, v in cfg.get("norm_map", {}).items()}
+    if unknown := sorted(set(modes.values()) - set(NORM_MODES)):
+        raise ValueError(f"{where}: step {spec.name}: normalisation mode {unknown[0]!r} is not LeRobot's")
+    stats = read_stats(folder, spec, where)
+    for key, feature in features.items():
+        mode = modes.get(feature.type, "IDENTITY")
+        if mode == "IDENTITY" or key not in stats:
+            continue
+        needed = ("mean", "std") if mode == "MEAN_STD" else _RANGE_STATS[mode]
+        for stat in needed:
+            if stat not in stats[key]:
+                raise ValueError(f"{where}: {mode} of {key!r} needs {key}.{stat} in {spec.state_file}")
+            value = stats[key][stat]
+            if feature.type == "VISUAL" and value.ndim == 1:  # LeRobot broadcasts flat image stats per channel
+                stats[key][stat] = value = value.reshape(-1, 1, 1)
+            elif feature.type != "VISUAL" and value.shape != feature.shape:
+                raise ValueError(
+                    f"{where}: {key}.{stat} in {spec.state_file} has shape {list(value.shape)}, the feature "
+                    f"{list(feature.shape)}"
+                )
+    only = cfg.get("normalize_observation_keys")
+    return Normalizer(
+        features, modes, stats, float(cfg.get("eps", 1e-8)), inverse, None if only is None else frozenset(only)
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class Rename:
+    """`rename_observations_processor`: observation keys renamed by the map, the others kept."""
+
+    rename_map: Mapping[str, str]
+
+    def __call__(self, data: DataDict) -> DataDict:
+        return {self.rename_map.get(k, k): v for k, v in data.items()}
+
+
+@dataclasses.dataclass(frozen=True)
+class Passthrough:
+    """Steps without effect on one request here: batching (the policy batches), device placement."""
+
+    name: str
+
+    def __call__(self, data: DataDict) -> DataDict:
+        return data
+
+
+# `device_processor`'s float dtypes (torch's names) as NumPy dtypes.
+_FLOAT_DTYPES = {
+    "float16": np.float16, "half": np.float16, "float32": np.float32, "float": np.float32,
+    "float64": np.float64, "double": np.float64, "bfloat16": ml_dtypes.bfloat16,
+}  # fmt: skip
+
+
+@dataclasses.dataclass(frozen=True)
+class CastFloats:
+    """`device_processor` with a float dtype: every float array of the request rounded through it, as LeRobot casts
+    them (the model then computes in its own dtype)."""
+
+    dtype: str
+
+    def __call__(self, data: DataDict) -> DataDict:
+        cast = _FLOAT_DTYPES[self.dtype]
+        return {
+            k: v.astype(cast).astype(np.float32) if isinstance(v, np.ndarray) and v.dtype.kind == "f" else v
+            for k, v in data.items()
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class RelativeActions:
+    """`relative_actions_processor`: at inference it only remembers the state it sees (for the postprocessor's
+    `absolute_actions_processor`); `mask` says which action dims are relative (LeRobot's `_build_mask`)."""
+
+    enabled: bool
+    exclude_joints: tuple[str, ...]
+    action_names: tuple[str, ...] | None
+
+    def mask(self, action_dim: int) -> np.ndarray:
+        tokens = [str(name).lower() for name in self.exclude_joints if name]
+        if not tokens or self.action_names is None:
+            return np.ones(action_dim, bool)
+        mask = [not any(t == str(n).lower() or t in str(n).lower() for t in tokens) for n in self.action_names]
+        return np.asarray((mask + [True] * action_dim)[:action_dim], bool)
+
+    def __call__(self, data: DataDict) -> DataDict:
+        if OBS_STATE not in data:
+            return data
+        context = {**data.get(OUTPUT_CONTEXT, {}), "relative_state": np.asarray(data[OBS_STATE], np.float32)}
+        return {**data, OUTPUT_CONTEXT: context}
+
+
+@dataclasses.dataclass(frozen=True)
+class AbsoluteActions:
+    """`absolute_actions_processor`: the remembered state added back on the relative dims, when enabled."""
+
+    enabled: bool
+    relative: RelativeActions | None
+
+    def __call__(self, data: DataDict) -> DataDict:
+        if not self.enabled:
+            return data
+        actions = np.array(data["actions"], np.float32)
+        state = np.asarray(data["relative_state"], np.float32)
+        mask = self.relative.mask(actions.shape[-1])  # type: ignore[union-attr]  (checked when built)
+        dims = min(len(mask), state.shape[-1])
+        actions[..., :dims] += state[:dims] * mask[:dims]
+        return {**data, "actions": actions}
+
+
+@dataclasses.dataclass(frozen=True)
+class NewLine:
+    """`pi0_new_line_processor`: the task ends with a newline (appended unless present)."""
+
+    def __call__(self, data: DataDict) -> DataDict:
+        task = data.get(TASK)
+        if isinstance(task, str) and not task.endswith("\n"):
+            return {**data, TASK: task + "\n"}
+        return data
+
+
+@dataclasses.dataclass(frozen=True)
+class Pi05Prompt:
+    """`pi05_prepare_state_tokenizer_processor_step`: the task becomes pi0.5's prompt with the (normalised) state
+    discretised into 256 bins."""
+
+    task_key: str = TASK
+
+    def __call__(self, data: DataDict) -> DataDict:
+        if OBS_STATE not in data:
+            raise InvalidRequest(f"pi0.5 needs '{OBS_STATE}' for its prompt")
+        return {**data, self.task_key: pi05_prompt(data[self.task_key], np.asarray(data[OBS_STATE], np.float32))}
+
+
+@dataclasses.dataclass(frozen=True)
+class Tokenize:
+    """`tokenizer_processor`: the task with BOS, right-padded with the pad id to `max_length` (truncated), as the
+    Hugging Face PaliGemma tokenizer LeRobot calls does with the same SentencePiece model."""
+
+    sp: sentencepiece.SentencePieceProcessor
+    max_length: int
+    task_key: str = TASK
+
+    def __call__(self, data: DataDict) -> DataDict:
+        pad_id = self.sp.pad_id() if self.sp.pad_id() >= 0 else 0
+        tokens, mask = pad_tokens(self.sp.encode(data[self.task_key], add_bos=True), self.max_length, pad_id)
+        return {**data, TOKENS: tokens, TOKEN_MASK: mask}
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# Around the steps: the request in, the model's layout out
+
+
+@dataclasses.dataclass(frozen=True)
+class LeRobotInputs:
+    """A request with the checkpoint's feature names -> the flat dict LeRobot's preprocessor starts from; knows which
+    request key feeds each model camera (the keys before the folder's renaming)."""
+
+    cameras: Mapping[str, str | None]  # model camera -> request key (None: a blank camera)
+    state_key: str
+    state_dim: int
+    shapes: Mapping[str, tuple[int, ...]]  # model camera -> declared [C, H, W] (the example's frame sizes)
+    default_prompt: str | None = None
+
+    @property
+    def camera_sources(self) -> Mapping[str, str | None]:
+        return dict(self.cameras)
+
+    def camera_sources_for(self, obs: Mapping[str, Any]) -> dict[str, str | None]:
+        return dict(self.cameras)
+
+    def example(self) -> dict[str, Any]:
+        """Random uint8 frames at each camera's declared size, a random state and a prompt."""
+        rng = np.random.default_rng(0)
+        obs: dict[str, Any] = {self.state_key: rng.random(self.state_dim).astype(np.float32), "prompt": "do something"}
+        for camera, key in self.cameras.items():
+            if key is not None:
+                _, h, w = self.shapes[camera]
+                obs[key] = rng.integers(256, size=(h, w, 3), dtype=np.uint8)
+        return obs
+
+    def __call__(self, data: DataDict) -> DataDict:
+        out: DataDict = {key: parse_lerobot_image(lookup(data, key), key) for key in self.cameras.values() if key}
+        state = parse_vector(lookup(data, self.state_key), self.state_key, dim=self.state_dim)
+        out[self.state_key] = state.astype(np.float32)
+        prompt = next((data[k] for k in ("prompt", TASK) if data.get(k) is not None), self.default_prompt)
+        if prompt is None:
+            raise InvalidRequest("missing 'prompt' (or 'task'), and no default prompt is configured")
+        out[TASK] = out["prompt"] = parse_prompt(prompt)
+        return out
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelInputs:
+    """The preprocessed request in the model's layout: images [H, W, 3] in [0, 1] per model camera (blank ones black,
+    at the model's resolution, masked), the normalised state, the tokens."""
+
+    cameras: tuple[str, ...]
+    blank: tuple[str, ...]
+    resolution: tuple[int, int]
+
+    def __call__(self, data: DataDict) -> DataDict:
+        images = {
+            c: np.zeros((*self.resolution, 3), np.float32) if c in self.blank else np.moveaxis(data[c], 0, -1)
+            for c in self.cameras
+        }
+        return {
+            "image": images,
+            "image_mask": {c: np.bool_(c not in self.blank) for c in self.cameras},
+            "state": np.asarray(data[OBS_STATE], np.float32),
+            "tokenized_prompt": np.asarray(data[TOKENS], np.int32),
+            "tokenized_prompt_mask": np.asarray(data[TOKEN_MASK], bool),
+            OUTPUT_CONTEXT: dict(data.get(OUTPUT_CONTEXT, {})),
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class LeRobotResizeImages(ResizeImages):
+    """LeRobot's image preparation before SigLIP: float images in [0, 1] letterboxed with torch's bilinear
+    interpolation (no antialiasing, clamped, centred zero padding), then x * 2 - 1."""
+
+    def client_frame(self, image: np.ndarray) -> np.ndarray:
+        return np.clip(np.round(np.asarray(image, np.float32) * 255), 0, 255).astype(np.uint8)
+
+    def __call__(self, data: DataDict) -> DataDict:
+        resized = {}
+        for name, image in data["image"].items():
+            try:
+                letterbox_geometry(image.shape[-3], image.shape[-2], self.height, self.width)
+            except ValueError as e:
+                raise InvalidRequest(f"image for camera '{name}': {e}") from e
+            resized[name] = resize_with_pad_torch_bilinear(image, self.height, self.width) * np.float32(2) - 1
+        return {**data, "image": resized}
+
+
+@dataclasses.dataclass(frozen=True)
+class ActionDims:
+    """The model's chunk cut to the action feature's dims (LeRobot's `predict_action_chunk`), other entries kept."""
+
+    action_dim: int
+
+    def __call__(self, data: DataDict) -> DataDict:
+        return {**data, "actions": np.asarray(data["actions"], np.float32)[..., : self.action_dim]}
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# The pipelines and the policy's parts
+
+
+def resolve_tokenizer(
+    folder: Path, tokenizer_name: str | None, override: str | Path | sentencepiece.SentencePieceProcessor | None
+) -> sentencepiece.SentencePieceProcessor:
+    """`override` (a SentencePiece model), else `tokenizer.model` in the directory the tokenizer step names (relative
+    to the folder, or absolute), else in the Hugging Face cache's snapshot of that repository (LeRobot's default is
+    PaliGemma's). Nothing is downloaded."""
+    if isinstance(override, sentencepiece.SentencePieceProcessor):
+        return override
+    if override is not None:
+        return load_paligemma_tokenizer(override)
+    name = tokenizer_name or PALIGEMMA_HUB_ID
+    candidates = [folder / name / "tokenizer.model", Path(name).expanduser() / "tokenizer.model"]
+    for candidate in candidates:
+        if candidate.is_file():
+            return load_paligemma_tokenizer(candidate)
+    if name.count("/") == 1 and (cached := hf_cached_file(name, "tokenizer.model")) is not None:
+        return load_paligemma_tokenizer(cached)
+    raise FileNotFoundError(
+        f"{folder}: tokenizer {name!r} not found: looked at {candidates[0]}, {candidates[1]} and the Hugging Face "
+        f"cache {hf_hub_cache()}; pass a SentencePiece model (paligemma_tokenizer=) or copy {PALIGEMMA_HUB_ID}'s "
+        "tokenizer.model to one of those places (nothing is downloaded)"
+    )
+
+
+def _relative_step(spec: StepSpec) -> RelativeActions:
+    names = spec.config.get("action_names")
+    return RelativeActions(
+        bool(spec.config.get("enabled", False)),
+        tuple(spec.config.get("exclude_joints") or ()),
+        None if names is None else tuple(names),
+    )
+
+
+def preprocessor_steps(
+    folder: Path, specs: Sequence[StepSpec], paligemma_tokenizer: Any, where: str
+) -> tuple[list[Transform], int]:
+    """The preprocessor's steps as transforms, in the file's order, and the token length its tokenizer pads to."""
+    steps: list[Transform] = []
+    max_length = None
+    for spec in specs:
+        cfg = spec.config
+        if spec.name == "rename_observations_processor":
+            steps.append(Rename(dict(cfg.get("rename_map") or {})))
+        elif spec.name == "to_batch_processor":
+            steps.append(Passthrough(spec.name))
+        elif spec.name == "device_processor":
+            dtype = cfg.get("float_dtype")
+            if dtype is not None and dtype not in _FLOAT_DTYPES:
+                raise ValueError(f"{where}: device_processor float_dtype {dtype!r} is not one of torch's")
+            steps.append(Passthrough(spec.name) if dtype in (None, "float32", "float") else CastFloats(str(dtype)))
+        elif spec.name == "relative_actions_processor":
+            steps.append(_relative_step(spec))
+        elif spec.name == "normalizer_processor":
+            steps.append(_normalizer(folder, spec, where, inverse=False))
+        elif spec.name in ("pi0_new_line_processor", "smolvla_new_line_processor"):
+            steps.append(NewLine())
+        elif spec.name == "pi05_prepare_state_tokenizer_processor_step":
+            steps.append(Pi05Prompt(str(cfg.get("task_key", TASK))))
+        elif spec.name == "tokenizer_processor":
+            if (cfg.get("padding", "max_length"), cfg.get("padding_side", "right")) != ("max_length", "right"):
+                raise ValueError(f"{where}: step tokenizer_processor pads {cfg.get('padding')!r} on the "
+                                 f"{cfg.get('padding_side')!r}; served: 'max_length' on the right")  # fmt: skip
+            max_length = int(cfg.get("max_length", 512))
+            sp = resolve_tokenizer(folder, cfg.get("tokenizer_name"), paligemma_tokenizer)
+            steps.append(Tokenize(sp, max_length, str(cfg.get("task_key", TASK))))
+        else:
+            raise ValueError(f"{where}: processor step {spec.name!r} is not implemented")
+    if max_length is None:
+        raise ValueError(f"{where}: no tokenizer_processor step")
+    return steps, max_length
+
+
+def postprocessor_steps(
+    folder: Path, specs: Sequence[StepSpec], relative: RelativeActions | None, where: str
+) -> list[Transform]:
+    steps: list[Transform] = []
+    for spec in specs:
+        if spec.name == "unnormalizer_processor":
+            steps.append(_normalizer(folder, spec, where, inverse=True))
+        elif spec.name == "absolute_actions_processor":
+            enabled = bool(spec.config.get("enabled", False))
+            if enabled and (relative is None or not relative.enabled):
+                raise ValueError(f"{where}: absolute_actions_processor is enabled without an enabled relative step")
+            steps.append(AbsoluteActions(enabled, relative))
+        elif spec.name == "device_processor":
+            steps.append(Passthrough(spec.name))
+        else:
+            raise ValueError(f"{where}: processor step {spec.name!r} is not implemented")
+    return steps
+
+
+def _request_key(feature: str, renames: Sequence[Mapping[str, str]]) -> str:
+    """The request key that the preprocessor's renaming turns into `feature`."""
+    for rename_map in reversed(renames):
+        feature = next((old for old, new in rename_map.items() if new == feature), feature)
+    return feature
+
+
+@dataclasses.dataclass(frozen=True)
+class RequestLayout:
+    """What a LeRobot folder's requests carry, read from its config and preprocessor alone (no weights): the request
+    key of each model camera (None: a blank one), of the state and of the recorded action."""
+
+    config: LeRobotConfig
+    camera_sources: dict[str, str | None]
+    state_key: str
+
+    @classmethod
+    def read(cls, folder: str | Path) -> RequestLayout:
+        folder = Path(folder)
+        cfg = LeRobotConfig.read(folder / CONFIG_FILE)
+        specs = read_pipeline(folder / PREPROCESSOR_FILE)
+        renames = [dict(s.config.get("rename_map") or {}) for s in specs if s.name == "rename_observations_processor"]
+        sources = {c: _request_key(c, renames) for c in cfg.real_cameras} | {c: None for c in cfg.empty_camera_names}
+        return cls(cfg, sources, _request_key(OBS_STATE, renames))
+
+    @property
+    def dataset_keys(self) -> dict[str, str]:
+        """Observation key -> dataset feature for a dataset recorded with the checkpoint's own features: each request
+        key is the feature of that name, and `actions` the recorded action."""
+        keys = {key: key for key in (*self.camera_sources.values(), self.state_key) if key is not None}
+        return keys | ({"actions": ACTION} if ACTION in self.config.output_features else {})
+
+
+@dataclasses.dataclass(frozen=True)
+class LeRobotParts:
+    """What `create_policy` assembles into a `Policy` for a LeRobot folder."""
+
+    config: LeRobotConfig
+    model: Pi0
+    preprocessor: tuple[Transform, ...]  # the request in, then the folder's preprocessor steps: LeRobot's batch
+    transforms: tuple[Transform, ...]  # the preprocessor, then the model's layout and image preparation
+    output_transforms: tuple[Transform, ...]
+    sample: Sampler
+    explainer: FlowExplainer
+    decoder: PassActions
+    metadata: dict[str, Any]
+
+
+def build_lerobot(
+    folder: str | Path,
+    *,
+    paligemma_tokenizer: str | Path | sentencepiece.SentencePieceProcessor | None = None,
+    dtype: str = "float32",
+    default_prompt: str | None = None,
+) -> LeRobotParts:
+    """The model and the pipelines of a LeRobot pi0 / pi0.5 folder; every file is checked (one line naming what is
+    wrong) before the weights are read."""
+    folder = Path(folder)
+    cfg = LeRobotConfig.read(folder / CONFIG_FILE)
+    pre_where, post_where = str(folder / PREPROCESSOR_FILE), str(folder / POSTPROCESSOR_FILE)
+    pre_specs, post_specs = read_pipeline(folder / PREPROCESSOR_FILE), read_pipeline(folder / POSTPROCESSOR_FILE)
+    pre, max_length = preprocessor_steps(folder, pre_specs, paligemma_tokenizer, pre_where)
+    relative = next((s for s in pre if isinstance(s, RelativeActions)), None)
+    post = postprocessor_steps(folder, post_specs, relative, post_where)
+    if cfg.image_resolution[0] != cfg.image_resolution[1]:
+        raise ValueError(f"{folder / CONFIG_FILE}: image_resolution {cfg.image_resolution} is not square")
+    model = Pi0.from_safetensors(
+        folder / WEIGHTS_FILE,
+        dtype=dtype,
+        heads=read_head_counts(folder),
+        action_horizon=cfg.chunk_size,
+        max_token_len=max_length,
+        num_steps=cfg.num_inference_steps,
+        image_keys=cfg.cameras,
+        flow_time="lerobot",
+    )
+    where = str(folder / CONFIG_FILE)
+    if model.family != cfg.type:
+        raise ValueError(f"{where}: type {cfg.type!r}, but {folder / WEIGHTS_FILE} holds a {model.family} model")
+    if model.config.image_resolution != cfg.image_resolution:
+        raise ValueError(f"{where}: image_resolution {cfg.image_resolution}, the weights' SigLIP reads "
+                         f"{model.config.image_resolution}")  # fmt: skip
+    if (cfg.max_state_dim, cfg.max_action_dim) != (model.config.action_dim,) * 2:
+        raise ValueError(f"{where}: max_state_dim {cfg.max_state_dim} / max_action_dim {cfg.max_action_dim}, the "
+                         f"weights' projections take {model.config.action_dim}")  # fmt: skip
+    if cfg.action_dim > cfg.max_action_dim or cfg.state_dim > cfg.max_state_dim:
+        raise ValueError(f"{where}: state {cfg.state_dim} / action {cfg.action_dim} dims exceed the model's 32")
+    renames = [s.rename_map for s in pre if isinstance(s, Rename)]
+    sources = {c: _request_key(c, renames) for c in cfg.real_cameras} | {c: None for c in cfg.empty_camera_names}
+    shapes = {c: cfg.input_features[c].shape for c in cfg.real_cameras}
+    inputs = LeRobotInputs(sources, _request_key(OBS_STATE, renames), cfg.state_dim, shapes, default_prompt)
+    preprocessor = (inputs, *pre)
+    transforms = (
+        *preprocessor,
+        ModelInputs(cfg.cameras, cfg.empty_camera_names, cfg.image_resolution),
+        LeRobotResizeImages(*cfg.image_resolution),
+        PadStatesAndActions(cfg.max_state_dim),
+    )
+    outputs = (ActionDims(cfg.action_dim), *post, GenericOutputs(cfg.action_dim))
+    metadata = {
+        "lerobot": {
+            "type": cfg.type,
+            "cameras": list(cfg.real_cameras),
+            "state": _request_key(OBS_STATE, renames),
+            "state_dim": cfg.state_dim,
+            "action_dim": cfg.action_dim,
+            "chunk_size": cfg.chunk_size,
+        }
+    }
+    return LeRobotParts(
+        cfg,
+        model,
+        preprocessor,
+        transforms,
+        outputs,
+        flow_sampler(model),
+        FlowExplainer(model),
+        PassActions(),
+        metadata,
+    )

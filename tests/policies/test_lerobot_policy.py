@@ -1,0 +1,371 @@
+"""LeRobot pi0 / pi0.5 policy folders served as LeRobot runs them, against LeRobot 0.6.1's own arrays
+(`../shared/golden/lerobot_pi05_tiny`, `lerobot_pi0_tiny`), and every way a folder or a request can be wrong.
+
+Tolerances are `openpi_cam.golden`'s for LeRobot goldens, where the reasoning is: chunks and the explained objective
+within SAFETY times the golden's own float32 variation (its batch rows against the same frames alone), the gradient
+GRADIENT_AMPLIFICATION times that, model-space images within 4 float32 epsilons; preprocessed state, prompt text,
+tokens and masks exactly. Folders are changed in copies under tmp_path, never in ../shared.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from paths import GOLDEN_DIR
+from safetensors import safe_open
+from safetensors_edit import edit_safetensors
+
+from openpi_cam import golden
+from openpi_cam.cli import golden as cli_golden
+from openpi_cam.errors import InvalidRequest
+from openpi_cam.letterbox import letterbox_geometry
+from openpi_cam.model.pi0 import Pi0
+from openpi_cam.model.safetensors_weights import save_safetensors_params
+from openpi_cam.policies.checkpoint_format import checkpoint_format
+from openpi_cam.policies.golden_policy import run_lerobot_golden
+from openpi_cam.policies.lerobot import Feature, Normalizer, write_sizes_record
+from openpi_cam.policies.policy import create_policy
+from openpi_cam.vocabulary import ExplainOptions
+
+FOLDERS = {"pi05": GOLDEN_DIR / "lerobot_pi05_tiny", "pi0": GOLDEN_DIR / "lerobot_pi0_tiny"}
+PI05 = FOLDERS["pi05"]
+CAMERAS = ("observation.images.base", "observation.images.wrist")
+# Layer 1's: layer 0's projections are the anchors the architecture is read from, so another tensor disagrees with
+# a misshapen one of them.
+Q_PROJ = "model.paligemma_with_expert.paligemma.model.language_model.layers.1.self_attn.q_proj.weight"
+
+
+def cases(folder: Path) -> dict[str, np.ndarray]:
+    with np.load(folder / "cases.npz", allow_pickle=False) as npz:
+        return {k: npz[k] for k in npz.files}
+
+
+def request(d: dict[str, np.ndarray], case: str = "case0", *, uint8: bool = False) -> dict:
+    """A frame as a LeRobot dataset gives it (float [3, H, W]) or as a robot sends it (uint8 [H, W, 3])."""
+    images = {c: d[f"{case}/input_uint8_hwc/{c}" if uint8 else f"{case}/input/{c}"] for c in CAMERAS}
+    return images | {"observation.state": d[f"{case}/input/observation.state"], "task": str(d[f"{case}/input/task"])}
+
+
+def policy_of(folder: Path, **kwargs):
+    return create_policy(None, folder, dtype="float32", **kwargs)
+
+
+def copy_folder(tmp_path: Path, folder: Path = PI05) -> Path:
+    target = tmp_path / folder.name
+    shutil.copytree(folder, target)
+    for path in [target, *target.rglob("*")]:
+        path.chmod(0o755 if path.is_dir() else 0o644)  # ../shared is read-only; the copy is edited
+    return target
+
+
+def edit_json(path: Path, change) -> None:
+    data = json.loads(path.read_text())
+    change(data)
+    path.write_text(json.dumps(data))
+
+
+def assert_one_line(error: BaseException, *names: str) -> None:
+    message = str(error)
+    assert "\n" not in message, message
+    for name in names:
+        assert name in message, f"{name!r} not in: {message}"
+
+
+# ------------------------------------------------------------------------------------------- parity with LeRobot
+
+
+@pytest.mark.parametrize("family", list(FOLDERS))
+def test_lerobots_pipelines_model_and_gradient_are_reproduced(family):
+    """Every frame (the batch's two rows served alone): preprocessed state and prompt text, tokens, masks, model
+    images, normalised and post-processed chunks; the gradient w.r.t. the first camera's model image."""
+    results = run_lerobot_golden(FOLDERS[family], verbose=False)
+    failed = [r.line() for r in results if not r.ok]
+    assert not failed, "\n".join(failed)
+    names = {(r.case, r.name) for r in results}
+    for case in ("case0", "case1", "case2", "batch2[0]", "batch2[1]"):
+        for name in ("pre/task", "pre/observation.state", "pre/observation.language.tokens", "action",
+                     "action_normalized_padded", f"model/{CAMERAS[0]}", f"model/{CAMERAS[1]}"):  # fmt: skip
+            assert (case, name) in names
+    assert ("grad", "d_objective_d_model_image0") in names
+    assert (("case0", "model/state_padded") in names) == (family == "pi0")  # pi0's state enters through state_proj
+
+
+def test_the_stable_entry_point_serves_the_post_processed_chunk():
+    d = cases(PI05)
+    policy = create_policy(None, PI05, paligemma_tokenizer=PI05 / "tokenizer" / "tokenizer.model", dtype="float32")
+    response = policy.infer(request(d), noise=d["case0/noise"][0])
+    want = d["case0/action"][0]
+    assert response["actions"].shape == (10, 7)
+    rel = golden.SAFETY * golden.lerobot_variation(
+        d["meta/batch2_row_vs_single_maxdiff"], d["batch2/action_normalized"]
+    )
+    assert (c := golden.compare("case0", "action", response["actions"], want, rel=rel)).ok, c.line()
+    # The prompt may come as openpi-client sends it; another frame gives other actions.
+    as_prompt = {k: v for k, v in request(d).items() if k != "task"} | {"prompt": str(d["case0/input/task"])}
+    np.testing.assert_array_equal(policy.infer(as_prompt, noise=d["case0/noise"][0])["actions"], response["actions"])
+    other = policy.infer(request(d, "case1"), noise=d["case0/noise"][0])["actions"]
+    assert np.abs(other - response["actions"]).max() > 1e-2
+    assert policy.metadata["lerobot"]["cameras"] == list(CAMERAS)
+
+
+def test_the_trace_describes_lerobots_placement_and_the_maps_explain_the_served_chunk():
+    d = cases(PI05)
+    policy = policy_of(PI05)
+    _, trace = policy.infer_traced(request(d), noise=d["case0/noise"][0])
+    assert policy.model.config.image_keys == CAMERAS  # LeRobot's token order: the config's image features
+    assert set(trace.camera_names) == set(CAMERAS)
+    assert trace.camera_sources == {c: c for c in CAMERAS}
+    assert trace.prompt == str(d["case0/input/task"])
+    for camera in CAMERAS:
+        np.testing.assert_array_equal(trace.raw_images[camera], d[f"case0/input_uint8_hwc/{camera}"])
+        assert bool(np.asarray(trace.observation.image_masks[camera])[0])
+    assert trace.geometry[CAMERAS[0]] == letterbox_geometry(120, 160, 224, 224)
+    assert (trace.geometry[CAMERAS[0]].pad_top, trace.geometry[CAMERAS[0]].resized_h) == (28, 168)
+    (explanation,) = policy.explainer.explain(
+        trace.observation, trace.output[None], ExplainOptions(target="chunk", maps=("gradcam",)),
+        {k: v[None] for k, v in trace.sample_inputs.items()},
+    )  # fmt: skip
+    assert set(explanation.maps["gradcam"]) == set(CAMERAS)
+    assert all(m.shape == (16, 16) for m in explanation.maps["gradcam"].values())
+    # The explanation re-runs the served chunk (LeRobot's time grid included): the same numbers.
+    assert explanation.details["replay_max_abs_diff"] <= 1e-5 * np.abs(trace.output).max()
+
+
+# ---------------------------------------------------------------------------------------------------- formats
+
+
+def openpi_pytorch_export(tmp_path: Path) -> tuple[Path, Path]:
+    """The tiny pi0.5 DROID policy's checkpoint as OpenPI's PyTorch export lays it out (bare keys, its assets)."""
+    orbax = GOLDEN_DIR / "tiny_policy_pi05_droid" / "checkpoint"
+    model = Pi0.from_checkpoint(orbax / "params", dtype="float32")
+    export = tmp_path / "pi05_droid_pytorch"
+    export.mkdir()
+    save_safetensors_params(export / "model.safetensors", model.params, model.config, prefix="")
+    shutil.copytree(orbax / "assets", export / "assets")
+    write_sizes_record(export, model.config)
+    return orbax, export
+
+
+def test_formats_are_recognised_in_one_place(tmp_path):
+    orbax, export = openpi_pytorch_export(tmp_path)
+    assert checkpoint_format(orbax) == "orbax"
+    assert checkpoint_format(PI05) == "lerobot"
+    assert checkpoint_format(export) == "openpi_pytorch"
+    shutil.rmtree(export / "assets")
+    with pytest.raises(FileNotFoundError) as raised:
+        checkpoint_format(export)
+    assert_one_line(raised.value, "assets/")
+    with pytest.raises(FileNotFoundError) as raised:
+        checkpoint_format(tmp_path / "nothing")
+    assert_one_line(raised.value, "nothing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError) as raised:
+        checkpoint_format(tmp_path / "empty")
+    assert_one_line(raised.value, "params", "policy_preprocessor.json", "OpenPI PyTorch export")
+
+
+def test_openpis_pytorch_export_is_served_like_its_orbax_checkpoint(tmp_path):
+    orbax, export = openpi_pytorch_export(tmp_path)
+    root = GOLDEN_DIR / "tiny_policy_pi05_droid"
+    with np.load(root / "case_1.npz") as npz:
+        d = {k: npz[k] for k in npz.files}
+    prompt = json.loads((root / "case.json").read_text())["cases"]["case_1"]["prompt"]
+    obs = {"observation/" + k[len("raw/") :]: v for k, v in d.items() if k.startswith("raw/")} | {"prompt": prompt}
+    kwargs = {"paligemma_tokenizer": root / "paligemma_tokenizer_tiny.model", "dtype": "float32"}
+    from_orbax = create_policy("pi05_droid", orbax, **kwargs).infer(obs, noise=d["noise"])
+    from_export = create_policy("pi05_droid", export, **kwargs).infer(obs, noise=d["noise"])
+    np.testing.assert_array_equal(from_export["actions"], from_orbax["actions"])
+    with pytest.raises(ValueError) as raised:
+        create_policy(None, export, **kwargs)
+    assert_one_line(raised.value, "name the config")
+    with pytest.raises(ValueError) as raised:
+        create_policy("pi05_droid", PI05, **kwargs)
+    assert_one_line(raised.value, "LeRobot policy folder", "'pi05_droid'")
+
+
+# ------------------------------------------------------------------------------------------------ bad folders
+
+
+def test_a_missing_file_is_named(tmp_path):
+    folder = copy_folder(tmp_path)
+    (folder / "policy_postprocessor.json").unlink()
+    with pytest.raises(FileNotFoundError) as raised:
+        policy_of(folder)
+    assert_one_line(raised.value, "policy_postprocessor.json")
+    folder = copy_folder(tmp_path / "b")
+    (folder / "policy_preprocessor_step_3_normalizer_processor.safetensors").unlink()
+    with pytest.raises(FileNotFoundError) as raised:
+        policy_of(folder)
+    assert_one_line(raised.value, "normalizer_processor", "policy_preprocessor_step_3_normalizer_processor.safetensors")
+
+
+@pytest.mark.parametrize(
+    ("edit", "names"),
+    [
+        ({"drop": (Q_PROJ,)}, ("missing tensor", Q_PROJ)),
+        ({"add": {"model.extra.weight": np.zeros(2, np.float32)}}, ("unexpected tensor", "model.extra.weight")),
+        ({"replace": {Q_PROJ: np.zeros((64, 64), np.float32)}}, (Q_PROJ, "[64, 64], expected [128, 64]")),
+    ],
+)
+def test_a_bad_weight_is_named(tmp_path, edit, names):
+    folder = copy_folder(tmp_path)
+    edit_safetensors(PI05 / "model.safetensors", folder / "model.safetensors", **edit)
+    with pytest.raises(ValueError) as raised:
+        policy_of(folder)
+    assert_one_line(raised.value, *names)
+
+
+def test_an_unknown_processor_step_or_type_is_named(tmp_path):
+    folder = copy_folder(tmp_path)
+    edit_json(folder / "policy_preprocessor.json", lambda d: d["steps"].insert(2, {"registry_name": "crop_processor"}))
+    with pytest.raises(ValueError) as raised:
+        policy_of(folder)
+    assert_one_line(raised.value, "'crop_processor'", "not implemented", "policy_preprocessor.json")
+    for kind, words in (("pi052", ("'pi052'", "not served")), ("pi0_fast", ("pi0-FAST", "Hugging Face Hub"))):
+        folder = copy_folder(tmp_path / kind)
+        edit_json(folder / "config.json", lambda d, kind=kind: d.update(type=kind))
+        with pytest.raises(ValueError) as raised:
+            policy_of(folder)
+        assert_one_line(raised.value, *words)
+
+
+def test_the_tokenizer_is_found_in_the_folder_then_the_hugging_face_cache_and_never_downloaded(tmp_path, monkeypatch):
+    d = cases(PI05)
+    folder = copy_folder(tmp_path)
+    tokenizer = folder / "tokenizer" / "tokenizer.model"
+    snapshot = tmp_path / "hf" / "hub" / "models--tiny--paligemma" / "snapshots" / "0123abc"
+    snapshot.mkdir(parents=True)
+    shutil.copy(tokenizer, snapshot / "tokenizer.model")
+    shutil.rmtree(folder / "tokenizer")
+    edit_json(folder / "policy_preprocessor.json",
+              lambda p: p["steps"][5]["config"].update(tokenizer_name="tiny/paligemma"))  # fmt: skip
+    monkeypatch.delenv("HF_HUB_CACHE", raising=False)
+    monkeypatch.setenv("HF_HOME", str(tmp_path / "hf"))
+    served = policy_of(folder).infer_traced(request(d), noise=d["case0/noise"][0])[1]
+    np.testing.assert_array_equal(
+        np.asarray(served.observation.tokenized_prompt)[0], d["case0/pre/observation.language.tokens"][0]
+    )
+    monkeypatch.setenv("HF_HOME", str(tmp_path / "empty"))
+    with pytest.raises(FileNotFoundError) as raised:
+        policy_of(folder)
+    assert_one_line(raised.value, "'tiny/paligemma'", "nothing is downloaded")
+
+
+def test_bad_requests_are_named():
+    d = cases(PI05)
+    policy = policy_of(PI05)
+    good = request(d)
+    bad = {
+        "observation.images.wrist": ({k: v for k, v in good.items() if k != CAMERAS[1]}, InvalidRequest),
+        "expected 8 values": (good | {"observation.state": np.zeros(9, np.float32)}, InvalidRequest),
+        "a float image must be [3, H, W]": (good | {CAMERAS[0]: np.zeros((120, 160, 3), np.float32)}, InvalidRequest),
+        "missing 'prompt' (or 'task')": ({k: v for k, v in good.items() if k != "task"}, InvalidRequest),
+    }
+    for message, (obs, error) in bad.items():
+        with pytest.raises(error) as raised:
+            policy.infer(obs, noise=d["case0/noise"][0])
+        assert_one_line(raised.value, message)
+
+
+# ------------------------------------------------------------------------------- steps the goldens do not cover
+
+
+def test_every_normalisation_mode_maps_its_statistics_to_the_unit_range_and_back():
+    x = np.asarray([-1.5, 0.25, 3.0, 7.0], np.float32)
+    stats = {
+        "mean": np.asarray([0.5, 0.0, 1.0, 7.0], np.float32), "std": np.asarray([2.0, 1.0, 0.5, 0.0], np.float32),
+        "min": np.asarray([-2.0, -1.0, 0.0, 7.0], np.float32), "max": np.asarray([2.0, 1.0, 4.0, 7.0], np.float32),
+        "q01": np.asarray([-1.5, -0.5, 0.5, 7.0], np.float32), "q99": np.asarray([1.5, 0.5, 3.0, 7.0], np.float32),
+        "q10": np.asarray([-1.0, -0.25, 1.0, 7.0], np.float32), "q90": np.asarray([1.0, 0.25, 3.0, 7.0], np.float32),
+    }  # fmt: skip
+    features = {"observation.state": Feature("STATE", (4,)), "action": Feature("ACTION", (4,))}
+    ranges = {"MIN_MAX": ("min", "max"), "QUANTILES": ("q01", "q99"), "QUANTILE10": ("q10", "q90")}
+    for mode in ("MEAN_STD", "MIN_MAX", "QUANTILES", "QUANTILE10", "IDENTITY"):
+        modes = {"STATE": mode, "ACTION": mode}
+        forward = Normalizer(features, modes, {k: stats for k in features}, 1e-8, inverse=False)
+        inverse = dataclasses.replace(forward, inverse=True)
+        y = forward({"observation.state": x})["observation.state"]
+        assert y.dtype == np.float32 and np.all(np.isfinite(y)), mode  # dim 3 has a zero range: guarded, no inf
+        back = inverse({"actions": y})["actions"]
+        np.testing.assert_allclose(back[:3], x[:3], rtol=1e-6, err_msg=mode)
+        if mode in ranges:
+            low, high = (stats[name] for name in ranges[mode])
+            ends = forward({"observation.state": np.stack([low, high])})["observation.state"]
+            np.testing.assert_allclose(ends[:, :3], [[-1] * 3, [1] * 3], atol=1e-6, err_msg=mode)
+            assert ends[0, 3] == -1  # a zero range maps its value to -1, as LeRobot's epsilon does
+        elif mode == "MEAN_STD":
+            np.testing.assert_allclose(y[:3], ((x - stats["mean"])[:3] / stats["std"][:3]), rtol=1e-6)
+        else:
+            np.testing.assert_array_equal(y, x)
+
+
+def test_relative_actions_add_the_raw_state_back_on_their_dims(tmp_path):
+    d = cases(PI05)
+    names = ["j0", "j1", "j2", "j3", "j4", "j5", "gripper"]
+    folder = copy_folder(tmp_path)
+
+    def enable(steps: list, relative: bool) -> None:
+        step = next(s for s in steps if s["registry_name"].startswith("relative" if relative else "absolute"))
+        step["config"].update(enabled=True, **({"action_names": names} if relative else {}))
+
+    edit_json(folder / "policy_preprocessor.json", lambda p: enable(p["steps"], True))
+    edit_json(folder / "policy_postprocessor.json", lambda p: enable(p["steps"], False))
+    noise = d["case0/noise"][0]
+    base = policy_of(PI05).infer(request(d), noise=noise)["actions"]
+    relative = policy_of(folder).infer(request(d), noise=noise)["actions"]
+    state = d["case0/input/observation.state"]
+    mask = np.asarray([n != "gripper" for n in names])
+    np.testing.assert_allclose(relative, base + np.where(mask, state[:7], 0), rtol=0, atol=1e-6)
+
+
+def test_blank_cameras_are_masked_and_leave_the_chunk_unchanged(tmp_path):
+    d = cases(PI05)
+    folder = copy_folder(tmp_path)
+    edit_json(folder / "config.json", lambda c: c.update(empty_cameras=1))
+    noise = d["case0/noise"][0]
+    policy = policy_of(folder)
+    response, trace = policy.infer_traced(request(d), noise=noise)
+    blank = "observation.images.empty_camera_0"
+    assert policy.model.config.image_keys == (*CAMERAS, blank)  # LeRobot appends the cameras a batch lacks
+    assert trace.camera_sources[blank] is None and trace.raw_images[blank] is None
+    assert not bool(np.asarray(trace.observation.image_masks[blank])[0])
+    np.testing.assert_array_equal(np.asarray(trace.observation.images[blank]), -1.0)
+    # A masked camera is seen by no token and moves no position, so the chunk is the two-camera one.
+    base = policy_of(PI05).infer(request(d), noise=noise)["actions"]
+    np.testing.assert_allclose(response["actions"], base, rtol=0, atol=1e-6 * np.abs(base).max())
+
+
+def test_a_renamed_camera_is_requested_under_its_old_name(tmp_path):
+    d = cases(PI05)
+    folder = copy_folder(tmp_path)
+    rename = {"observation.images.front": CAMERAS[0]}
+    edit_json(folder / "policy_preprocessor.json", lambda p: p["steps"][0]["config"].update(rename_map=rename))
+    policy = policy_of(folder)
+    assert policy.camera_sources == {CAMERAS[0]: "observation.images.front", CAMERAS[1]: CAMERAS[1]}
+    obs = request(d)
+    obs["observation.images.front"] = obs.pop(CAMERAS[0])
+    noise = d["case0/noise"][0]
+    np.testing.assert_array_equal(
+        policy.infer(obs, noise=noise)["actions"], policy_of(PI05).infer(request(d), noise=noise)["actions"]
+    )
+
+
+def test_the_weights_read_are_lerobots_tensors():
+    """The q projection of LeRobot's first layer is the model's (a mapping slip would show here before the chunks)."""
+    policy = policy_of(PI05)
+    with safe_open(str(PI05 / "model.safetensors"), framework="np") as f:
+        q = f.get_tensor(Q_PROJ)
+    ours = np.asarray(policy.model.params["PaliGemma"]["llm"]["layers"]["attn"]["q_einsum"]["w"])[1]
+    np.testing.assert_array_equal(ours, q.reshape(8, 16, 64).transpose(0, 2, 1))
+
+
+def test_the_golden_command_takes_lerobot_folders(tmp_path, capsys):
+    folder = copy_folder(tmp_path)
+    edit_json(folder / "config.json", lambda c: c.update(type="pi052"))
+    assert cli_golden.main(folder) == 1  # the LeRobot check ran, and refused the folder in one line
+    assert "config.json: type 'pi052' is not served" in capsys.readouterr().out
