@@ -2,30 +2,59 @@
 
 from __future__ import annotations
 
+import contextlib
+import json
+import pathlib
+
 import tyro
 
 from openpi_cam.cam.faithfulness_run import format_report
-from openpi_cam.demo.run import DemoOptions, run_demo
+from openpi_cam.cam.outcomes import wilson_interval
+from openpi_cam.datasets.lerobot import DatasetError
+from openpi_cam.datasets.rollouts import RolloutRecorder
+from openpi_cam.demo.quality import EPISODES_FILE
+from openpi_cam.demo.run import ROLLOUT_FPS, DemoOptions, run_demo
+from openpi_cam.policies.demo_reach import ASSET_ID
 from openpi_cam.vocabulary import MAP_KIND_INFO
 
 DEFAULT = DemoOptions()
 
 
-def main(opts: tyro.conf.OmitArgPrefixes[DemoOptions] = DEFAULT) -> int:
+def main(opts: tyro.conf.OmitArgPrefixes[DemoOptions] = DEFAULT, record: pathlib.Path | None = None) -> int:
     """Run the bundled model end to end: server + side channel + simulated robot + rendered reports + figures.
 
     Args:
         opts: what to run (every flag below).
+        record: also record every episode as a LeRobot v3.0 dataset in this new folder, as `lerobot-eval
+            --eval.recording=true` records evaluation rollouts: per executed action the cameras (AV1 video), the
+            state, the action, the named block's box (`observation.target_box`), the perturbation's index
+            (`perturbation`) and `next.reward` / `next.success` / `next.done`; `meta/demo_episodes.json` names each
+            episode's perturbation, seed and outcome.
     """
+    if record is not None and record.exists() and (not record.is_dir() or any(record.iterdir())):
+        print(f"openpi-cam demo: --record {record} exists and is not an empty folder")
+        return 1
+    recorder = None if record is None else RolloutRecorder(record, fps=ROLLOUT_FPS, robot_type=ASSET_ID)
     try:
-        result = run_demo(opts)
-    except OSError as e:
+        with recorder or contextlib.nullcontext():
+            result = run_demo(opts, sink=recorder)
+    except (OSError, DatasetError) as e:
         print(f"openpi-cam demo: {e}")
         return 1
+    if record is not None:
+        episodes = [{"episode_index": i, **e} for i, e in enumerate(result.episodes)]
+        rollouts = {"perturbations": list(opts.perturb), "episodes": episodes}
+        (record / "meta" / EPISODES_FILE).write_text(json.dumps(rollouts, indent=2))
     wins = sum(r["success"] for r in result.episodes)
     print(f"\nopenpi-cam demo: {wins}/{len(result.episodes)} episodes reached their block in {result.seconds:.0f}s")
+    if len(opts.perturb) > 1 or opts.perturbations[0].kind != "clean":
+        for name in opts.perturb:
+            outcomes = [r["success"] for r in result.episodes if r["perturbation"] == name]
+            low, high = wilson_interval(sum(outcomes), len(outcomes))
+            print(f"  {name:>16}: {sum(outcomes)}/{len(outcomes)} (95% interval {low:.0%}-{high:.0%})")
     figures = result.figures
-    print(f"pointing game over {figures['steps']} steps (the base camera's map peaks on the named block):")
+    if figures["steps"]:
+        print(f"pointing game over {figures['steps']} steps (the base camera's map peaks on the named block):")
     for kind, f in figures["maps"].items():
         if not f["steps"]:
             continue
@@ -34,7 +63,10 @@ def main(opts: tyro.conf.OmitArgPrefixes[DemoOptions] = DEFAULT) -> int:
         print()
         print(format_report(result.faithfulness))
         print()
-    print(f"run directory: {result.run_dir}")
+    if result.run_dir is not None:
+        print(f"run directory: {result.run_dir}")
     for kind, report in result.reports.items():
         print(f"open the {MAP_KIND_INFO[kind].label} report: {report}")
+    if record is not None:
+        print(f"recorded {len(result.episodes)} episodes as a LeRobot dataset: {record}")
     return 0

@@ -8,43 +8,103 @@ import dataclasses
 import json
 import pathlib
 import time
-from typing import Any, Literal
+from collections.abc import Mapping, Sequence
+from typing import Any, Literal, Protocol
+
+import numpy as np
 
 from openpi_cam.cam.faithfulness_run import FaithfulnessOptions, evaluate_run
 from openpi_cam.cam.run_evidence import REPORT_FILE
 from openpi_cam.cam.run_format import dumps, load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
-from openpi_cam.demo import bundled, quality, sim
+from openpi_cam.demo import bundled, quality, task
 from openpi_cam.demo.client import PolicyClient
+from openpi_cam.demo.perturb import CLEAN, Perturbation
+from openpi_cam.policies import demo_reach
 from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.serving.server import start_server_in_thread
 from openpi_cam.viz.render import RenderOptions, default_render_dir, render_run
 from openpi_cam.vocabulary import MAP_KINDS, Baseline, IgSpace, MapKind, MapOptions, Target
 
 
-def run_episodes(url: str, episodes: int, *, seed: int, max_calls: int, execute: int) -> list[dict[str, Any]]:
-    """Closed loop over the server: observe, infer a chunk, execute its first `execute` actions, repeat."""
+class RolloutSink(Protocol):
+    """Where a recorded rollout goes, a step at a time (`datasets.rollouts.RolloutRecorder`, composed by the command
+    line): per executed action, the frame the robot saw before it (by LeRobot feature name, the action included) and
+    what followed it, as lerobot-eval records evaluation episodes."""
+
+    def step(self, frame: Mapping[str, Any], *, task: str, reward: float, success: bool, done: bool) -> None: ...
+
+    def end_episode(self) -> int | None: ...
+
+
+def rollout_frame(sample: task.Sample, action: np.ndarray, perturbation: int) -> dict[str, Any]:
+    """A recorded step by LeRobot feature name (`demo_reach.LEROBOT_KEYS`): the cameras, the state, the executed action,
+    the named block's box as the base camera shows it and the index of the episode's perturbation."""
+    keys = demo_reach.LEROBOT_KEYS
+    return {
+        keys[demo_reach.IMAGE_KEY]: sample.base_image,
+        keys[demo_reach.WRIST_KEY]: sample.wrist_image,
+        keys[demo_reach.STATE_KEY]: np.asarray(sample.state, np.float32),
+        keys["actions"]: np.asarray(action, np.float32),
+        demo_reach.LEROBOT_TARGET_BOX: np.asarray(sample.target_box, np.float32),
+        PERTURBATION_FEATURE: np.array([perturbation], np.int64),
+    }
+
+
+def run_episodes(
+    url: str,
+    episodes: int,
+    *,
+    seed: int,
+    max_calls: int,
+    execute: int,
+    perturbations: Sequence[Perturbation] = (CLEAN,),
+    sink: RolloutSink | None = None,
+) -> list[dict[str, Any]]:
+    """Closed loop over the server: observe, infer a chunk, execute its first `execute` actions one step at a time,
+    repeat until the block is reached or `max_calls` chunks are spent. Episode i is the scene of seed + i // P under
+    perturbation i % P (P perturbations): every perturbation meets the same scenes. Each step goes to `sink`."""
     results = []
     with PolicyClient(url) as client:
         for e in range(episodes):
-            episode = sim.new_episode(seed + e)
+            which = e % len(perturbations)
+            episode_seed = seed + e // len(perturbations)
+            episode = perturbations[which].episode(episode_seed)
             calls = 0
             while calls < max_calls and not episode.success:
-                reply = client.infer(bundled.client_observation(episode.observe(), episode.scene))
+                sample = episode.observe()
+                reply = client.infer(bundled.client_observation(sample, episode.scene))
                 calls += 1
-                episode.execute(reply["actions"], execute)
+                chunk = np.asarray(reply["actions"])[:execute]
+                for j, action in enumerate(chunk):
+                    success = episode.execute(action[None])
+                    last = calls == max_calls and j == len(chunk) - 1
+                    if sink is not None:
+                        frame = rollout_frame(sample, action, which)
+                        sink.step(
+                            frame, task=sample.prompt, reward=float(success), success=success, done=success or last
+                        )
+                    if success:
+                        break
+                    sample = episode.observe()
+            if sink is not None:
+                sink.end_episode()
             results.append(
                 {
-                    "seed": seed + e,
+                    "seed": episode_seed,
+                    "perturbation": perturbations[which].name,
                     "prompt": episode.observe().prompt,
                     "success": bool(episode.success),
                     "calls": calls,
+                    "steps": episode.steps,
                     "final_distance": float(((episode.state - episode.goal) ** 2).sum() ** 0.5),
                 }
             )
     return results
 
 
+ROLLOUT_FPS = 10  # the frame rate recorded rollouts declare (the simulator has no clock: one frame per action)
+PERTURBATION_FEATURE = "perturbation"  # a recorded frame's index into the run's perturbations
 DRAIN_S = 3600.0  # how long the end of a demo run may spend explaining requests still queued
 
 
@@ -60,8 +120,14 @@ class DemoOptions:
     max_calls: int = 6
     # actions of each returned chunk the robot executes before asking again.
     execute: int = 5
-    # the first episode's seed (episode i uses seed + i).
+    # the first episode's seed (episode i uses seed + i // P for P perturbations).
     seed: int = 0
+    # what the episodes are run under, in turn (`kind=strength`: clean, distractors=N, hue=DEGREES, shift=PIXELS,
+    # dim=FACTOR, absent; `openpi_cam.demo.perturb`): episode i under the (i mod P)-th, so each meets the same scenes.
+    perturb: tuple[str, ...] = ("clean",)
+    # serve with the explanation side channel on (every request explained and logged, then faithfulness and reports);
+    # off, the episodes are only driven (and recorded with `--record`).
+    explain: bool = True
     # what the maps explain for each inference.
     target: Target = "chunk"
     # write overlays and the HTML report of each map kind after the run.
@@ -82,10 +148,19 @@ class DemoOptions:
     # pixels (through SigLIP).
     ig_space: IgSpace = MapOptions.ig_space
 
+    @property
+    def perturbations(self) -> tuple[Perturbation, ...]:
+        return tuple(Perturbation.parse(p) for p in self.perturb)
+
+    def __post_init__(self) -> None:
+        if not self.perturb:
+            raise ValueError("--perturb needs at least one perturbation (clean: none)")
+        self.perturbations  # noqa: B018  (refused as the flags are parsed)
+
 
 @dataclasses.dataclass
 class DemoResult:
-    run_dir: pathlib.Path
+    run_dir: pathlib.Path | None  # None: the side channel was off
     episodes: list[dict[str, Any]]
     figures: dict[str, Any]
     reports: dict[str, pathlib.Path]
@@ -93,8 +168,9 @@ class DemoResult:
     faithfulness: dict[str, Any] | None = None  # `cam.faithfulness_run.evaluate_run`'s report
 
 
-def run_demo(opts: DemoOptions) -> DemoResult:
-    """Serves, drives, renders and scores; raises OSError when the side channel cannot create its run directory."""
+def run_demo(opts: DemoOptions, sink: RolloutSink | None = None) -> DemoResult:
+    """Serves, drives (recording every step into `sink`), renders and scores; raises OSError when the side channel
+    cannot create its run directory."""
     t0 = time.time()
     model = ModelSpec.demo(opts.model, opts.assets)
     policy = model.create()
@@ -107,17 +183,30 @@ def run_demo(opts: DemoOptions) -> DemoResult:
         map_options=MapOptions(baseline=opts.baseline, ig_space=opts.ig_space),
         queue_size=max(64, opts.num_episodes * opts.max_calls),  # room for every request: the demo logs each one
     )
-    demo = {"episodes": opts.num_episodes, "seed": opts.seed, "model": opts.model}
+    demo = {"episodes": opts.num_episodes, "seed": opts.seed, "model": opts.model, "perturb": list(opts.perturb)}
     run_config = {**model.resolved().to_json(), "demo": demo}
-    cam = wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=str(model.checkpoint))
+    cam = (
+        wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=str(model.checkpoint))
+        if (opts.explain)
+        else None
+    )
     # The demo explains every request: the drain at the end is the rest of the run's work, not a shutdown grace.
-    server = start_server_in_thread(cam, metadata=policy.metadata, close_timeout=DRAIN_S)
+    server = start_server_in_thread(cam or policy, metadata=policy.metadata, close_timeout=DRAIN_S)
     try:
         episodes = run_episodes(
-            server.url, opts.num_episodes, seed=opts.seed, max_calls=opts.max_calls, execute=opts.execute
+            server.url,
+            opts.num_episodes,
+            seed=opts.seed,
+            max_calls=opts.max_calls,
+            execute=opts.execute,
+            perturbations=opts.perturbations,
+            sink=sink,
         )
     finally:
         server.stop(timeout=DRAIN_S + 60)  # closes the side channel too, which drains its queue
+    if cam is None:
+        figures = {"episodes": len(episodes), "success_rate": quality.success_rate(episodes), "steps": 0, "maps": {}}
+        return DemoResult(None, episodes, figures, {}, time.time() - t0)
     if cam.run_dir is None:
         raise OSError(f"the side channel could not create a run directory under {opts.out}; see the log")
     run_dir = cam.run_dir
