@@ -247,8 +247,8 @@ def _record_rollouts(ctx: Context, command: str) -> None:
     shell(ctx, command)
     dataset = open_dataset(ctx.workdir / "rollouts")
     assert len(dataset.episodes) == 12 and {"next.success", "next.reward", "next.done"} <= set(dataset.features)
-    episodes = json.loads((ctx.workdir / "rollouts" / "meta" / "demo_episodes.json").read_text())
-    assert len(episodes) == 12
+    listed = json.loads((ctx.workdir / "rollouts" / "meta" / "demo_episodes.json").read_text())
+    assert listed["perturbations"] == ["clean", "hue=45", "absent"] and len(listed["episodes"]) == 12
 
 
 def _explain_rollouts(ctx: Context, command: str) -> None:
