@@ -1,6 +1,7 @@
 """Frames explained per second when explaining a LeRobot dataset: the local engine and Ray with 1 and 2 workers.
 
     python benchmarks/bench_dataset.py [--dataset demo_reach_v30_video --rounds 1]
+    python benchmarks/bench_dataset.py --batch-sizes 1 4 16 --dataset rollouts [--rounds 3]
 
 The bundled demo model (pi0-FAST, float32) explains every episode of a LeRobot-written demo dataset from
 `../shared/lerobot` (gradcam + gradnorm of the first action token, the default spot check), each engine in a fresh
@@ -21,7 +22,10 @@ per engine:
   its first (the engine's per-episode debug records); for the local engine, a second pass over the dataset with the
   same, now compiled, policy (`run_local` reports no per-episode split).
 
-With `--rounds` above 1 the engines run in a rotated order each round and the medians are printed. The machine line
+With `--batch-sizes`, the local engine alone at each batch size (frames explained per model call, within an
+episode), each in a fresh process, steady phases as above; `--dataset rollouts` records closed-loop demo rollouts
+first (8 episodes of 30 frames: long enough for batches of 16). With `--rounds` above 1 the engines (batch sizes) run
+in a rotated order each round and the medians are printed. The machine line
 gives the load average before and after: on a shared machine the workers compete with everything else for the cores.
 """
 
@@ -54,7 +58,8 @@ def _job(spec: dict[str, Any], out: pathlib.Path) -> Any:
 
     keys, nested = dataset_keys(ModelSpec(), {})
     options = ExplainOptions(target="action-token", maps=("gradcam", "gradnorm"))
-    return DatasetJob(pathlib.Path(spec["source"]), out, ModelSpec(), options, keys, nested_keys=nested)
+    batch = spec.get("batch_size", 8)
+    return DatasetJob(pathlib.Path(spec["source"]), out, ModelSpec(), options, keys, batch, nested_keys=nested)
 
 
 def run_local_job(spec: dict[str, Any]) -> dict[str, Any]:
@@ -171,22 +176,85 @@ def figures(run: dict[str, Any]) -> dict[str, float]:
     return out
 
 
+def record_rollouts(out: pathlib.Path) -> pathlib.Path:
+    """Closed-loop demo rollouts that all run to the step limit (`openpi-cam demo --perturb absent --record`): 8
+    episodes of 30 frames, long enough for batches of 16 frames within an episode."""
+    from openpi_cam import cli
+
+    argv = ["demo", "--no-explain", "--num-episodes", "8", "--perturb", "absent", "--record", str(out)]
+    cli.main(argv)
+    return out
+
+
+def batch_sizes(args: argparse.Namespace) -> None:
+    """The local engine's steady frames per second at each batch size, each in a fresh process, side by side (the
+    order rotated every round)."""
+    from openpi_cam.datasets.lerobot import open_dataset
+
+    load_before = os.getloadavg()
+    with tempfile.TemporaryDirectory() as tmp:
+        source = record_rollouts(pathlib.Path(tmp) / "rollouts") if args.dataset == "rollouts" else _source(args)
+        ds = open_dataset(source)
+        runs: dict[int, list[dict[str, float]]] = {b: [] for b in args.batch_sizes}
+        for r in range(args.rounds):
+            for i in range(len(args.batch_sizes)):
+                batch = args.batch_sizes[(i + r) % len(args.batch_sizes)]
+                out = pathlib.Path(tmp) / f"r{r}-b{batch}"
+                out.mkdir()
+                spec = {"source": str(source), "out": str(out), "engine": "local", "workers": 1, "batch_size": batch}
+                run = spawn(spec, out / "stderr.log")
+                runs[batch].append(figures(run))
+                print(f"round {r}: batch {batch}: {run['frames']} frames", file=sys.stderr, flush=True)
+        load_after = os.getloadavg()
+    print(machine_line(load_before, load_after))
+    lengths = [ds.episode_length(e) for e in ds.episodes]
+    print(
+        f"dataset {source.name}: {len(lengths)} episodes of {min(lengths)}-{max(lengths)} frames; demo pi0-FAST "
+        f"float32, gradcam + gradnorm of the first action token, spot check on; local engine, steady (a second pass "
+        f"with the compiled policy); {args.rounds} round(s), medians"
+    )
+    columns = ["batch size", "steady frames/s", "vs batch 1", *(f"{p} ms/frame" for p in PHASES)]
+    print("| " + " | ".join(columns) + " |")
+    print("|" + " --- |" * len(columns))
+    med = {b: {k: statistics.median(f[k] for f in rs) for k in rs[0] if k != "per_worker"} for b, rs in runs.items()}
+    base = med[args.batch_sizes[0]]
+    for batch, m in med.items():
+        fps = 1000.0 / sum(m[f"{p}_ms"] for p in PHASES)
+        base_fps = 1000.0 / sum(base[f"{p}_ms"] for p in PHASES)
+        cells = [str(batch), f"{fps:.2f}", f"{fps / base_fps:.2f}", *(f"{m[f'{p}_ms']:.1f}" for p in PHASES)]
+        print("| " + " | ".join(cells) + " |")
+
+
+def _source(args: argparse.Namespace) -> pathlib.Path:
+    source = pathlib.Path(args.dataset)
+    return source if source.is_dir() else SHARED_LEROBOT / args.dataset
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--dataset", default="demo_reach_v30_video", help="a folder of ../shared/lerobot, or a path")
+    parser.add_argument(
+        "--dataset",
+        default="demo_reach_v30_video",
+        help="a folder of ../shared/lerobot, a path, or `rollouts` (recorded demo rollouts, 30 frames an episode)",
+    )
     parser.add_argument("--rounds", type=int, default=1)
     parser.add_argument("--cold", action="store_true", help="no warm-up: every worker compiles from scratch")
+    parser.add_argument(
+        "--batch-sizes", type=int, nargs="+", help="compare the local engine's batch sizes instead of the engines"
+    )
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
         spec = json.loads(args.child)
         print(json.dumps(run_local_job(spec) if spec["engine"] == "local" else run_ray_job(spec)))
         return
+    if args.batch_sizes:
+        batch_sizes(args)
+        return
 
     from openpi_cam.datasets.lerobot import open_dataset
 
-    source = pathlib.Path(args.dataset)
-    source = source if source.is_dir() else SHARED_LEROBOT / args.dataset
+    source = _source(args)
     n_episodes = len(open_dataset(source).episodes)
     if n_episodes < 2 * max(w for _, w in ENGINES):
         raise SystemExit(f"{source} has {n_episodes} episodes: too few for two per worker")

@@ -8,11 +8,13 @@ Two steps, two environments:
 
 `write` (the project's environment) records rollouts of the demo reaching task, the way `lerobot-eval
 --eval.recording=true` records evaluation episodes (per frame the observation, the action taken and the step's
-`next.reward` / `next.success` / `next.done`); every other episode's controller heads for the wrong block, so those
-episodes fail and run to the step limit. It writes two datasets: `mixed` (base camera as AV1 video, wrist camera as
-PNG images, one file each) and `split` (both cameras as video, file limits so small that every episode has its own
-files, two files a chunk). Beside each it stores `<name>.expected.npz`: every column as given to the writer, the
-camera frames as given, and the video frames as our reader decodes them.
+`next.reward` / `next.success` / `next.done`). It writes three datasets: `rollouts`, the bundled pi0-FAST driven
+closed loop through the websocket server under perturbations (`openpi-cam demo --record`'s recorder), and two written
+frame by frame with a scripted controller, every other episode of which heads for the wrong block (so those episodes
+fail and run to the step limit): `mixed` (base camera as AV1 video, wrist camera as PNG images, one file each) and
+`split` (both cameras as video, file limits so small that every episode has its own files, two files a chunk). Beside
+each it stores `<name>.expected.npz`: every column as given to the writer, the camera frames as given, and the video
+frames as our reader decodes them.
 
 `check` (a LeRobot 0.6.1 environment, e.g. /work/lerobot-env, see its README.txt; it imports nothing of openpi_cam)
 opens each dataset with `LeRobotDataset(repo_id, root=..., video_backend="pyav")`, reads every frame through
@@ -101,8 +103,55 @@ def _record(root: Path, *, base: str, wrist: str, **limits) -> dict[str, np.ndar
     return {name: np.stack(values) for name, values in expected.items()}
 
 
+class _Capture:
+    """A rollout sink that keeps every step it passes on to the recorder: what the dataset must give back."""
+
+    def __init__(self, recorder) -> None:
+        self.recorder = recorder
+        self.expected: dict[str, list] = {}
+
+    def step(self, frame, *, task: str, reward: float, success: bool, done: bool) -> None:
+        self.recorder.step(frame, task=task, reward=reward, success=success, done=done)
+        outcome = {"next.reward": np.float32([reward]), "next.success": np.array([success]), "next.done": [done]}
+        for name, value in {**frame, **outcome, "task": np.array(task)}.items():
+            self.expected.setdefault(name, []).append(np.asarray(value))
+
+    def end_episode(self):
+        return self.recorder.end_episode()
+
+
+def _record_rollouts(root: Path) -> dict[str, np.ndarray]:
+    """Closed-loop demo rollouts under perturbations, served through the real websocket server and client and
+    recorded as `openpi-cam demo --record` records them."""
+    from openpi_cam.datasets.lerobot import open_dataset
+    from openpi_cam.datasets.rollouts import RolloutRecorder
+    from openpi_cam.demo.run import ROLLOUT_FPS, DemoOptions, run_demo
+
+    assert ROLLOUT_FPS == FPS
+    options = DemoOptions(num_episodes=EPISODES, perturb=("clean", "hue=45", "shift=32", "absent"), explain=False)
+    with RolloutRecorder(root, fps=ROLLOUT_FPS, robot_type="demo_reach") as recorder:
+        capture = _Capture(recorder)
+        run_demo(options, sink=capture)
+    expected = {name: np.stack(values) for name, values in capture.expected.items()}
+    ours = open_dataset(root)
+    for name in ours.camera_features:
+        expected[f"decoded/{name}"] = np.stack(
+            [f[name] for e in ours.episodes for f in ours.frames(e, features=[name])]
+        )
+    return expected
+
+
 def write(out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
+    expected = _record_rollouts(out / "rollouts")
+    np.savez_compressed(out / "rollouts.expected.npz", **expected)
+    ends = expected["next.done"][:, 0]
+    summary = {
+        "frames": len(ends),
+        "successes": int(expected["next.success"][ends, 0].sum()),
+        "episodes": int(ends.sum()),
+    }
+    print(json.dumps({"dataset": str(out / "rollouts"), **summary}))
     datasets = {
         "mixed": {"base": "video", "wrist": "image"},
         "split": {

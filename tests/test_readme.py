@@ -243,7 +243,27 @@ def _explain_dataset(ctx: Context, command: str) -> None:
             assert ours.select(columns).equals(theirs.select(columns)), shard.name
 
 
+def _record_rollouts(ctx: Context, command: str) -> None:
+    shell(ctx, command)
+    dataset = open_dataset(ctx.workdir / "rollouts")
+    assert len(dataset.episodes) == 12 and {"next.success", "next.reward", "next.done"} <= set(dataset.features)
+    listed = json.loads((ctx.workdir / "rollouts" / "meta" / "demo_episodes.json").read_text())
+    assert listed["perturbations"] == ["clean", "hue=45", "absent"] and len(listed["episodes"]) == 12
+
+
+def _explain_rollouts(ctx: Context, command: str) -> None:
+    shell(ctx, command)
+    table = pq.read_table(next((ctx.workdir / "rollouts.maps").glob("data/*/*.parquet")))
+    assert {"episode_success", "episode_length"} <= set(table.column_names)
+    assert any(c.startswith("reliance") for c in table.column_names), table.column_names
+
+
 def _dataset_views(ctx: Context, command: str) -> None:
+    if "failures.json" in command:  # the rollouts': outcomes and how well each figure finds the failures
+        shell(ctx, command)
+        outcomes = json.loads((ctx.workdir / "failures.json").read_text())["summary"]["outcomes"]
+        assert outcomes["episodes"] == 12 and "length" in outcomes["failure_finding"]
+        return
     shell(ctx, command)
     lerobot = "lerobot_views" in command
     views = json.loads((ctx.workdir / ("lerobot_views.json" if lerobot else "views.json")).read_text())
@@ -288,6 +308,8 @@ STEPS = (
     Step(r"\.venv/bin/openpi-cam explain-dataset \.\./shared/lerobot/demo_reach_v30_video .*", _explain_dataset),
     Step(r"\.venv/bin/openpi-cam stats \w+\.maps --format json > \w+\.json", _dataset_views),
     Step(r"\.venv/bin/openpi-cam golden \.\./shared/golden/lerobot_pi05_tiny", _golden),
+    Step(r"\.venv/bin/openpi-cam demo --no-explain .* --record rollouts", _record_rollouts),
+    Step(r"\.venv/bin/openpi-cam explain-dataset rollouts .*", _explain_rollouts),
     Step(r"\.venv/bin/openpi-cam export --to lerobot --config demo_reach_pi05 --out demo_pi05_lerobot", _export),
     Step(r"\.venv/bin/openpi-cam serve --checkpoint-dir demo_pi05_lerobot --port 8000", _serving),
     Step(r"\.venv/bin/openpi-cam render demo_reach_v30_video\.maps --kind gradnorm", _dataset_render),

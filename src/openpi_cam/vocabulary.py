@@ -158,14 +158,16 @@ SAVE_FRAMES: tuple[str, ...] = ("none", "raw", "model", "both")
 DEFAULT_PATCHES = 4
 _O = TypeVar("_O", bound="ExplainOptions")
 # What runs made before an option was recorded used.
-_UNRECORDED = {"ig_space": "tokens", "occlusion_region": 1, "occlusion_masks": 0}
+_UNRECORDED = {"ig_space": "tokens", "occlusion_region": 1, "occlusion_masks": 0, "reliance": False}
 
 
 @dataclasses.dataclass(frozen=True)
 class ExplainOptions:
     """What an explained step explains and carries: one set for the side channel, recorded runs and datasets (the
     side channel's options add its queue to these, `cam.side_channel.CAMOptions`). Families compute `maps` of
-    `target` with `map_options`; the spot check re-runs `check_patches` random patches beside each map's top one."""
+    `target` with `map_options`; the spot check re-runs `check_patches` random patches beside each map's top one;
+    `reliance` re-runs the step with each camera replaced by the baseline frame and with the prompt emptied
+    (`cam.reliance`)."""
 
     # None: the family's own default (`DEFAULT_TARGETS`), resolved against the loaded model.
     target: Target | None = None
@@ -174,6 +176,7 @@ class ExplainOptions:
     maps: tuple[MapKind, ...] = DEFAULT_KINDS
     map_options: MapOptions = dataclasses.field(default_factory=MapOptions)  # of the "ig" / "occlusion" kinds
     check_patches: int = DEFAULT_PATCHES  # 0: no spot check
+    reliance: bool = False  # measure camera and prompt reliance: one re-run per camera and one for the prompt
 
     def __post_init__(self) -> None:
         if self.target is not None and self.target not in TARGETS:
@@ -207,6 +210,7 @@ class ExplainOptions:
             "occlusion_region": o.occlusion_region,
             "occlusion_masks": o.random_masks if o.occlusion_mode == "random" else 0,
             "check_patches": self.check_patches,
+            "reliance": self.reliance,
         }
 
     @classmethod
@@ -227,6 +231,7 @@ class ExplainOptions:
             maps=tuple(data.get("maps") or DEFAULT_KINDS),
             map_options=map_options,
             check_patches=int(data.get("check_patches", DEFAULT_PATCHES)),
+            reliance=bool(data["reliance"]),
         )
 
     def mismatch(self, recorded: Mapping[str, Any]) -> list[str]:

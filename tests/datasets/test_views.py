@@ -23,7 +23,7 @@ from openpi_cam.datasets.frames import aligned_frames, episode_rows
 from openpi_cam.datasets.lerobot import open_dataset
 from openpi_cam.datasets.maps_dataset import open_maps_dataset
 from openpi_cam.datasets.render import DatasetRenderOptions, episode_frame
-from openpi_cam.datasets.views import compute_views, flag_hot, hot_rates, in_top_k, top_k
+from openpi_cam.datasets.views import compute_views, flag_hot, hot_rates, in_top_k, prior_fit, top_k
 from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.viz.colormap import colorize
 from openpi_cam.viz.overlay import upsample
@@ -126,37 +126,47 @@ def test_hot_patch_rule_flags_a_patch_hot_in_every_frame_and_nothing_else():
     # Maps without mass are left out; ties at the k-th value all count.
     assert hot_rates(np.zeros((5, 4, 4)), 1).sum() == 0
     assert in_top_k(np.ones((1, 4, 4)), 1).all()
+    # A camera the model masked in every frame (pi0.5's blank right wrist) leaves no frame: nothing hot, no error.
+    assert (
+        in_top_k(np.zeros((0, 4, 4)), 1).shape == (0, 4, 4)
+        and prior_fit(np.zeros((0, 4, 4)), np.ones((4, 4)))[2].size == 0
+    )
 
 
-def _write_odd_episode(root, source_episode: int, episode: int) -> None:
-    """A copy of `source_episode`'s shard as `episode`, each frame's maps replaced by a single hot patch at a
-    pseudo-random place: nothing like the maps the model gives."""
+def _write_episode(root, source_episode: int, episode: int, spread: bool) -> None:
+    """A copy of `source_episode`'s shard as `episode`, each frame's maps replaced by maps nothing like the model's:
+    the same value on every patch (`spread`: entropy 1), or a single hot patch at a pseudo-random place (entropy 0)."""
     info = open_maps_dataset(root).info
     rows = pq.read_table(root / fmt.shard_path(source_episode)).to_pylist()
     rng = np.random.default_rng(7)
     for r in rows:
         r["episode_index"] = episode
-        r["index"] += 10_000
+        r["index"] += 10_000 * episode
         for kind in KINDS:
             for camera in CAMERA_FEATURES:
-                spike = np.zeros(16, np.float32)
-                spike[rng.integers(16)] = 1.0
-                r[f"{kind}/{camera}"] = spike.tolist()
+                m = np.ones(16, np.float32) if spread else np.eye(16, dtype=np.float32)[rng.integers(16)]
+                r[f"{kind}/{camera}"] = m.tolist()
     fmt.write_shard(root, info, episode, rows)
 
 
-def test_episode_ranking_puts_a_perturbed_episode_first(maps_root, tmp_path):
+def test_episode_ranking_puts_the_most_diffuse_maps_first(maps_root, tmp_path):
     root = tmp_path / "maps"
     shutil.copytree(maps_root, root)
-    _write_odd_episode(root, 0, 9)
+    _write_episode(root, 0, 9, spread=True)
+    _write_episode(root, 1, 10, spread=False)
     views = compute_views(open_maps_dataset(root), "gradnorm")
     ranking = views.episodes
-    assert ranking[0]["episode_index"] == 9
-    assert sorted(e["episode_index"] for e in ranking) == [*EPISODES, 9]
+    assert ranking[0]["episode_index"] == 9 and ranking[0]["entropy"] == pytest.approx(1.0)
+    assert ranking[-1]["episode_index"] == 10 and ranking[-1]["entropy"] == 0.0
+    assert sorted(e["episode_index"] for e in ranking) == [*EPISODES, 9, 10]
     assert ranking[0]["z"] > 0 > ranking[-1]["z"]
-    # The z-scores are those of the episodes' mean distances.
-    d = np.array([e["distance"] for e in ranking])
-    np.testing.assert_allclose([e["z"] for e in ranking], (d - d.mean()) / d.std(), rtol=1e-9)
+    # The z-scores are those of the episodes' mean entropies; the entropy is the frames' mean over cameras.
+    h = np.array([e["entropy"] for e in ranking])
+    np.testing.assert_allclose([e["z"] for e in ranking], (h - h.mean()) / h.std(), rtol=1e-9)
+    for e in ranking:
+        rows = [r for r in views.rows if r["episode_index"] == e["episode_index"]]
+        frames = [np.mean([r[f"{c}/entropy_norm"] for c in CAMERA_FEATURES]) for r in rows]
+        assert e["entropy"] == pytest.approx(np.mean(frames), rel=1e-12)
 
 
 def test_render_writes_an_aligned_video_per_episode_a_report_and_a_lerobot_shaped_recording(maps_root, tmp_path):
@@ -186,7 +196,7 @@ def test_render_writes_an_aligned_video_per_episode_a_report_and_a_lerobot_shape
             errors = [np.abs(frame - w).mean() for w in want]
             assert errors[i] < 2.5 and int(np.argmin(errors)) == i, (episode, i, errors)
         assert f"id='episode-{episode}'" in html and f"data-frames='{len(rows)}'" in html
-    assert "positional prior" in html and "episodes, oddest first" in html and "per task" in html
+    assert "positional prior" in html and "episodes, most diffuse maps first" in html and "per task" in html
     assert "top patch beats the median random patch" in html
     for camera in CAMERA_FEATURES:
         assert (out / "prior" / f"{camera}-prior.png").is_file()

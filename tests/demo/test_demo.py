@@ -13,7 +13,7 @@ import pytest
 
 from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.run_format import StepRecord, load_run
-from openpi_cam.demo import bundled, quality, sim, task, train
+from openpi_cam.demo import bundled, perturb, quality, sim, task, train
 from openpi_cam.demo.data import Batches, load_normalize
 from openpi_cam.demo.run import DemoOptions, run_demo
 from openpi_cam.policies import demo_reach, model_spec
@@ -445,3 +445,77 @@ def test_short_demo_run_is_readable(tmp_path):
     report = result.faithfulness
     assert report["steps_evaluated"] == len(run.steps) and report["score_replay_max_abs_diff"] < 1e-4
     assert report["cameras"]["base_0_rgb"]["kinds"]["occlusion"]["deletion_k1"]["median"] == pytest.approx(1.0)
+
+
+def _has_colour(image: np.ndarray, colours: Any) -> np.ndarray:
+    """bool [H, W]: the pixels whose colour is one of `colours`."""
+    return np.isin(image.reshape(-1, 3).view("V3"), np.array(list(colours), np.uint8).view("V3")).reshape(
+        image.shape[:2]
+    )
+
+
+def test_each_perturbation_changes_what_it_says_on_the_clean_episode():
+    """Every perturbation lays itself over the clean episode of the same seed (same scene, start and named block)."""
+    for seed in range(12):
+        clean = sim.new_episode(seed)
+        ref = clean.observe()
+        runs = {
+            p: perturb.Perturbation.parse(p).episode(seed) for p in ("clean", "distractors=2", "hue=45", "shift=20")
+        }
+        runs |= {p: perturb.Perturbation.parse(p).episode(seed) for p in ("dim=0.5", "absent")}
+        for episode in runs.values():
+            np.testing.assert_array_equal(episode.state, clean.state)
+            assert (
+                episode.scene.target_block == clean.scene.target_block and episode.goal.tolist() == clean.goal.tolist()
+            )
+        seen = {name: episode.observe() for name, episode in runs.items()}
+        np.testing.assert_array_equal(seen["clean"].base_image, ref.base_image)
+        # distractors: two more blocks, in unseen colours, apart from the others; the rest of the view as before
+        added = runs["distractors=2"].scene.blocks[len(clean.scene.blocks) :]
+        assert len(added) == 2 and all(b.color in task.UNSEEN_COLORS for b in added)
+        drawn = seen["distractors=2"].base_image
+        for block in added:
+            x0, y0, x1, y1 = block.box
+            assert (drawn[y0:y1, x0:x1] == task.UNSEEN_COLORS[block.color]).all(axis=-1).mean() > 0.8
+        changed = (drawn != ref.base_image).any(axis=-1)
+        inside = np.zeros_like(changed)
+        for block in added:
+            inside[block.box[1] : block.box[3], block.box[0] : block.box[2]] = True
+        assert not (changed & ~inside).any()
+        # hue: only block pixels change colour, and none keeps a training colour; the prompt is the clean one
+        hue = seen["hue=45"]
+        is_block = _has_colour(ref.base_image, task.COLORS.values())
+        assert ((hue.base_image != ref.base_image).any(axis=-1) == is_block).all()
+        assert not _has_colour(hue.base_image, task.COLORS.values()).any() and hue.prompt == ref.prompt
+        # shift: the base view and the box move together by the same offset, the wrist view stays
+        shifted = seen["shift=20"]
+        np.testing.assert_array_equal(shifted.wrist_image, ref.wrist_image)
+        x0, y0, x1, y1 = shifted.target_box
+        dx, dy = x0 - ref.target_box[0], y0 - ref.target_box[1]
+        if (x1 - x0, y1 - y0) == (12, 12):  # the box stayed whole in the image
+            assert round(np.hypot(dx, dy)) in (19, 20, 21)  # 20 px, each axis rounded to whole pixels
+            np.testing.assert_array_equal(
+                shifted.base_image[y0:y1, x0:x1], ref.base_image[y0 - dy : y1 - dy, x0 - dx : x1 - dx]
+            )
+        # dim: every pixel scaled; absent: the prompt names a training colour that no block has
+        np.testing.assert_array_equal(seen["dim=0.5"].base_image, np.round(ref.base_image * 0.5).astype(np.uint8))
+        named = seen["absent"].prompt.split()[2]
+        assert named in task.COLORS and named not in {b.color for b in clean.scene.blocks}
+
+
+@pytest.mark.parametrize(
+    ("text", "problem"),
+    [
+        ("hue", "STRENGTH"),
+        ("absent=1", "STRENGTH"),
+        ("distractors=3", "from 1 to 2"),
+        ("shift=-4", "P > 0"),
+        ("dim=1.5", "0 <= F < 1"),
+        ("blur=2", "unknown perturbation"),
+        ("hue=x", "must be a number"),
+    ],
+)
+def test_bad_perturbations_are_refused_in_one_line(text, problem):
+    with pytest.raises(ValueError, match=problem):
+        perturb.Perturbation.parse(text)
+    assert perturb.Perturbation.parse(perturb.Perturbation.parse("hue=45").name) == perturb.Perturbation("hue", 45)

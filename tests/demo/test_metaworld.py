@@ -1,4 +1,5 @@
-"""The Meta-World demo's simulator, data and perturbations (MuJoCo through the `metaworld` extra, rendered headless)."""
+"""The Meta-World demo's simulator, data and perturbations (MuJoCo through the `metaworld` extra, rendered headless).
+The tests that step the simulator are in the slow tier."""
 
 from __future__ import annotations
 
@@ -26,12 +27,12 @@ def test_perturbations_parse_and_refuse_in_one_line():
     assert Perturbation.parse("clean") == metaworld_sim.CLEAN
     assert Perturbation.parse("distractors=3").value == 3
     assert Perturbation.parse("prompt=").strength == ""
-    assert Perturbation.parse("colour=90").name == "colour=90"
+    assert Perturbation.parse("hue=90").name == "hue=90"
     for bad, says in [
         ("blur=2", "unknown perturbation"),
-        ("light=dark", "needs a number"),
+        ("dim=dark", "needs a number"),
         ("distractors=1.5", "whole number"),
-        ("light=-1", ">= 0"),
+        ("dim=-1", ">= 0"),
         ("clean=1", "no strength"),
     ]:
         with pytest.raises(ValueError, match=says) as e:
@@ -53,6 +54,7 @@ def test_a_chunk_repeats_its_episodes_last_action_past_the_end():
     np.testing.assert_array_equal(demos.chunk(3, 3), actions[[3, 4, 4]])
 
 
+@pytest.mark.slow
 def test_the_expert_presses_the_button_and_the_state_hides_it():
     with MetaWorldSim(3) as sim:
         first = sim.frame()
@@ -70,14 +72,16 @@ def test_the_expert_presses_the_button_and_the_state_hides_it():
     assert first.target_mask[y0:y1, x0:x1].sum() == first.target_mask.sum()
 
 
+@pytest.mark.slow
 def test_scenes_follow_the_seed():
     with MetaWorldSim(1) as a, MetaWorldSim(1) as b, MetaWorldSim(2) as c:
         np.testing.assert_array_equal(a.frame().base_image, b.frame().base_image)
         assert a.frame().target_box != c.frame().target_box
 
 
-def test_a_colour_change_touches_only_the_box_and_the_mask_is_where_it_is():
-    with MetaWorldSim(4) as clean, MetaWorldSim(4, Perturbation.parse("colour=120")) as turned:
+@pytest.mark.slow
+def test_a_hue_turn_touches_only_the_box_and_the_mask_is_where_it_is():
+    with MetaWorldSim(4) as clean, MetaWorldSim(4, Perturbation.parse("hue=120")) as turned:
         before, after = clean.frame(), turned.frame()
     np.testing.assert_array_equal(before.target_mask, after.target_mask)
     changed = np.any(before.base_image != after.base_image, axis=-1)
@@ -86,10 +90,11 @@ def test_a_colour_change_touches_only_the_box_and_the_mask_is_where_it_is():
     assert not changed[~_grown(before.target_mask)].any()
 
 
-def test_light_shift_and_distractors_change_the_scene_as_stated():
+@pytest.mark.slow
+def test_dim_shift_and_distractors_change_the_scene_as_stated():
     with MetaWorldSim(5) as sim:
         clean = sim.frame()
-    with MetaWorldSim(5, Perturbation.parse("light=0.3")) as sim:
+    with MetaWorldSim(5, Perturbation.parse("dim=0.3")) as sim:
         dim = sim.frame()
     # Lit surfaces scale with the light; the emissive and ambient-free parts keep some brightness.
     assert dim.base_image.mean() < 0.7 * clean.base_image.mean()
@@ -109,6 +114,7 @@ def test_light_shift_and_distractors_change_the_scene_as_stated():
         assert sim.frame().prompt == ""
 
 
+@pytest.mark.slow
 def test_the_bundled_model_presses_the_button_served_with_the_side_channel(tmp_path):
     """`openpi-cam demo --sim metaworld` at toy length: the bundled pi0.5 served over the websocket, every call
     explained and logged with the box the simulator sees, and the episode solved (the model succeeds in most clean

@@ -369,3 +369,27 @@ def test_the_golden_command_takes_lerobot_folders(tmp_path, capsys):
     edit_json(folder / "config.json", lambda c: c.update(type="pi052"))
     assert cli_golden.main(folder) == 1  # the LeRobot check ran, and refused the folder in one line
     assert "config.json: type 'pi052' is not served" in capsys.readouterr().out
+
+
+def test_reliance_re_runs_a_lerobot_folder_with_its_own_preprocessor_and_postprocessor(tmp_path):
+    """`cam.reliance`'s re-runs on a folder whose prompt is tokenised by LeRobot's preprocessor and whose actions go
+    back through a relative-action postprocessor: the served call's actions come back exactly, and an emptied prompt
+    is what serving the request without its task returns."""
+    d = cases(PI05)
+    folder = copy_folder(tmp_path)
+
+    def enable(steps: list, relative: bool) -> None:
+        step = next(s for s in steps if s["registry_name"].startswith("relative" if relative else "absolute"))
+        step["config"].update(enabled=True, **({"action_names": [f"j{i}" for i in range(7)]} if relative else {}))
+
+    edit_json(folder / "policy_preprocessor.json", lambda p: enable(p["steps"], True))
+    edit_json(folder / "policy_postprocessor.json", lambda p: enable(p["steps"], False))
+    policy, noise = policy_of(folder), d["case0/noise"][0]
+    response, trace = policy.infer_traced(request(d), noise=noise)
+    np.testing.assert_array_equal(policy.resample(trace, trace.observation), response["actions"])
+    np.testing.assert_array_equal(policy.served_actions(trace), response["actions"])
+    emptied = policy.with_prompt(trace, "")
+    assert not np.array_equal(np.asarray(emptied.tokenized_prompt), np.asarray(trace.observation.tokenized_prompt))
+    np.testing.assert_array_equal(np.asarray(emptied.state), np.asarray(trace.observation.state))
+    without = policy.infer({**request(d), "prompt": ""}, noise=noise)["actions"]
+    np.testing.assert_array_equal(policy.resample(trace, emptied), without)

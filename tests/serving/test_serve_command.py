@@ -214,3 +214,38 @@ def test_sigterm_during_a_long_explanation_exits_cleanly_with_the_run_closed(tin
     manifest = read_json(run_dir / MANIFEST_JSON)
     assert manifest is not None and manifest["closed"] is True and manifest["num_steps"] == 0
     assert manifest["counters"]["external"]["unfinished_at_shutdown"] == 1
+
+
+def test_serve_records_each_connection_as_an_episode_of_a_lerobot_dataset(demo_observations, tmp_path):
+    """`serve --record DIR`: two robots' connections become two episodes of a LeRobot v3.0 dataset, each frame holding
+    what its request sent (frames, state, the `cam_extra/` box, the prompt as its task) and the chunk it got; our
+    reader opens it (LeRobot's own reader is checked outside CI: benchmarks/check_lerobot_reads.py)."""
+    from openpi_cam.datasets.lerobot import open_dataset
+
+    root = tmp_path / "served"
+    boxed = [
+        obs | {"cam_extra/target_box": np.arange(4, dtype=np.float32) + i} for i, obs in enumerate(demo_observations)
+    ]
+    sent = [boxed[:3], boxed[3:] + boxed[:1]]
+    with serve_subprocess(tmp_path, "--record", str(root), "--record-fps", "5") as (proc, port, log_path):
+        for i, observations in enumerate(sent):  # one connection after the other: episode i
+            collect(send_observations(port, tmp_path / f"robot{i}", observations))
+        _stop(proc, log_path)
+    dataset = open_dataset(root)
+    assert dataset.fps == 5 and dataset.episodes == [0, 1]
+    assert {"observation.image", "observation.wrist_image", "observation.state", "target_box", "action"} <= set(
+        dataset.features
+    )
+    for episode, observations in enumerate(sent):
+        frames = list(dataset.frames(episode))
+        answers = responses(tmp_path / f"robot{episode}", len(observations))
+        assert len(frames) == len(observations)
+        for frame, obs, answer in zip(frames, observations, answers, strict=True):
+            assert frame["task"] == obs["prompt"]
+            np.testing.assert_allclose(frame["observation.state"], obs["observation/state"], rtol=1e-6)
+            np.testing.assert_allclose(frame["target_box"], obs["cam_extra/target_box"], rtol=1e-6)
+            np.testing.assert_array_equal(frame["action"], np.asarray(answer["actions"], np.float32)[0])
+            np.testing.assert_array_equal(frame["action.chunk"], np.asarray(answer["actions"], np.float32).ravel())
+            # AV1 video: a lossy copy of the frame sent (the LeRobot-written datasets differ by 2.7 of 255 on average).
+            error = np.abs(frame["observation.image"].astype(float) - obs["observation/image"].astype(float)).mean()
+            assert error < 8.0, error

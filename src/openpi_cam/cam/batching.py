@@ -17,7 +17,8 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from openpi_cam.cam.run_format import SpotCheck
+from openpi_cam.cam.reliance import Resampler, reliance
+from openpi_cam.cam.run_format import Reliance, SpotCheck
 from openpi_cam.cam.spot_check import check_trace
 from openpi_cam.model.observation import Observation, pad_rows, stack_observations
 from openpi_cam.model.sharding import BATCH_AXIS
@@ -80,12 +81,14 @@ def explain_rows(
 
 @dataclasses.dataclass(frozen=True)
 class Explained:
-    """One trace's explanation (or why it was skipped), its spot check (None: skipped, or no check asked) and the
-    row's share of the wall time the batch's maps and checks took."""
+    """One trace's explanation (or why it was skipped), its spot check (None: skipped, or no check asked), its
+    reliance (None: skipped, or not asked) and the row's share of the wall time the batch's maps, checks and
+    reliance took."""
 
     result: Explanation | ExplainSkipped
     check: SpotCheck | None
     explain_ms: float
+    reliance: Reliance | None = None
 
 
 def explain_batch(
@@ -97,27 +100,31 @@ def explain_batch(
     mesh: Mesh | None = None,
     pad_to: int = 0,
     before_check: Callable[[], object] | None = None,
+    policy: Resampler | None = None,
 ) -> list[Explained]:
     """The maps of every trace (`explain_traces`), then each explained row's spot check (`cam.spot_check`, seeded by
-    `seeds[i]`) when `options.check_patches` asks for one. `before_check` runs between the two phases (the side
-    channel waits there for inference to pause). An exception of the explainer propagates; a failed check is
-    recorded in the check."""
+    `seeds[i]`) when `options.check_patches` asks for one and its reliance (`cam.reliance`, re-run by `policy`)
+    when `options.reliance` does. `before_check` runs between the maps and the re-runs (the side channel waits there
+    for inference to pause). An exception of the explainer propagates; a failed check or reliance is recorded in
+    it."""
+    if options.reliance and policy is None:
+        raise ValueError("reliance re-runs the policy: pass the policy that served the traces")
     start = time.perf_counter()
     results = explain_traces(explainer, traces, options.explanation, mesh=mesh, pad_to=pad_to)
     checks: list[SpotCheck | None] = [None] * len(results)
-    if options.check_patches and any(not isinstance(r, ExplainSkipped) for r in results):
-        if before_check is not None:
-            before_check()
-        for i, (trace, result) in enumerate(zip(traces, results, strict=True)):
-            if not isinstance(result, ExplainSkipped):
-                checks[i] = check_trace(
-                    explainer,
-                    trace,
-                    result,
-                    options.map_options,
-                    patches=options.check_patches,
-                    seed=seeds[i],
-                    mesh=mesh,
-                )
+    relied: list[Reliance | None] = [None] * len(results)
+    rerun = options.check_patches or options.reliance
+    if rerun and before_check is not None and any(not isinstance(r, ExplainSkipped) for r in results):
+        before_check()
+    for i, (trace, result) in enumerate(zip(traces, results, strict=True)):
+        if isinstance(result, ExplainSkipped):
+            continue
+        if options.check_patches:
+            patches = options.check_patches
+            checks[i] = check_trace(
+                explainer, trace, result, options.map_options, patches=patches, seed=seeds[i], mesh=mesh
+            )
+        if policy is not None and options.reliance:
+            relied[i] = reliance(policy, explainer, trace, result, options.map_options, mesh=mesh)
     per_row_ms = (time.perf_counter() - start) * 1000.0 / max(1, len(results))
-    return [Explained(r, c, per_row_ms) for r, c in zip(results, checks, strict=True)]
+    return [Explained(r, c, per_row_ms, d) for r, c, d in zip(results, checks, relied, strict=True)]

@@ -238,9 +238,17 @@ def target_cells(
     box = extra.get("target_box")
     if box is None or camera != extra.get("target_camera", next(iter(meta.cameras), None)):
         return None
-    x0, y0, x1, y1 = (float(v) for v in box)
     info = meta.cameras.get(camera)
-    geometry = None if info is None else info.geometry
+    return client_box_cells(box, None if info is None else info.geometry, grid, model_hw)
+
+
+def client_box_cells(
+    box: Sequence[float], geometry: Mapping[str, Any] | None, grid: tuple[int, int], model_hw: Sequence[int] | None
+) -> np.ndarray | None:
+    """The patches of a box (x0, y0, x1, y1) in a client image, on the model frame of size `model_hw` that the
+    camera's letterbox `geometry` (`LetterboxGeometry.as_dict`) places it in (its own size, when given); None
+    without either. -> bool [Hp, Wp]"""
+    x0, y0, x1, y1 = (float(v) for v in box)
     if geometry:  # client pixels -> model pixels through the letterbox
         sx, sy = geometry["resized_w"] / geometry["orig_w"], geometry["resized_h"] / geometry["orig_h"]
         x0, x1 = geometry["pad_left"] + x0 * sx, geometry["pad_left"] + x1 * sx

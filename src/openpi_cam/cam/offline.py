@@ -192,7 +192,7 @@ def explain_replays(
                     counts["actions_mismatched"] += not _actions_match(ours, recorded)
         # a short last batch is padded to batch_size so that it reuses the compiled program
         done_rows = explain_batch(
-            explainer, traces, options, [r.step for r in chunk], mesh=mesh, pad_to=options.batch_size
+            explainer, traces, options, [r.step for r in chunk], mesh=mesh, pad_to=options.batch_size, policy=policy
         )
         for r, trace, stamp, explained in zip(chunk, traces, stamps, done_rows, strict=True):
             if isinstance(explained.result, ExplainSkipped):
@@ -213,6 +213,7 @@ def explain_replays(
                 extra={**r.extra, SOURCE_KEY: r.source},
                 explain_ms=explained.explain_ms,
                 check=explained.check,
+                reliance=explained.reliance,
             )
             counts["completed" if cam_logger.log_step(record) else "not_logged"] += 1
     summary = {k: counts[k] for k in ("observations", "completed", "actions_compared", "actions_mismatched")}

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.cam.run_format import IMAGE_INPUT, CameraMeta, SpotCheck, StepMeta, StepRecord
+from openpi_cam.cam.run_format import IMAGE_INPUT, CameraMeta, Reliance, SpotCheck, StepMeta, StepRecord
 from openpi_cam.model.observation import uint8_to_model
 from openpi_cam.policies.family import Explanation
 from openpi_cam.policies.model_spec import ModelSpec
@@ -128,10 +128,11 @@ def step_record(
     extra: Mapping[str, Any],
     explain_ms: float,
     check: SpotCheck | None = None,
+    reliance: Reliance | None = None,
 ) -> StepRecord:
     """The logger record of one explained inference, in the layout docs/FORMAT.md describes; `extra`: the client's
     `cam_extra/` values (numeric arrays go to the step file, the rest to `StepMeta.extra`); `check`: its spot check
-    (`cam.spot_check`), stored as `StepMeta.check` when given."""
+    (`cam.spot_check`), stored as `StepMeta.check` when given; `reliance` (`cam.reliance`) as `StepMeta.reliance`."""
     extra_values, extra_arrays = split_extra_values(extra)
     frames, client_inputs = {}, {}
     if save_frames in ("raw", "both"):  # what replaying the step needs: the client's frames and its other values
@@ -161,6 +162,7 @@ def step_record(
         extra=extra_values,
         extra_arrays=tuple(sorted(extra_arrays)),  # stored as `extra/<key>` in the step file
         check=check,
+        reliance=reliance,
         details=dict(explanation.details),
     )
     return StepRecord(

@@ -307,6 +307,70 @@ class CameraMeta:
 _CAMERA_FIELDS = frozenset(f.name for f in dataclasses.fields(CameraMeta)) - {"details"}
 
 
+RELIANCE_PROMPT = "prompt"  # a step's reliance on its prompt, beside its cameras' (`cam.reliance`)
+
+
+@dataclasses.dataclass(frozen=True)
+class Dependence:
+    """How much a step depends on one of its inputs, measured without it (`meta.reliance.cameras.<camera>`, or
+    `meta.reliance.prompt`)."""
+
+    score_drop: float | None  # the explained score minus its value without the input; None: a target of many scores
+    action_change: float  # root mean square over the chunk of the returned actions' change, in the robot's units
+
+    @classmethod
+    def from_json(cls, value: Any) -> Dependence:
+        d = dict(value) if isinstance(value, Mapping) else {}
+        return cls(_float_or_none(d.get("score_drop")), float(d.get("action_change", math.nan)))
+
+    def to_json(self) -> dict[str, Any]:
+        return {"score_drop": self.score_drop, "action_change": self.action_change}
+
+
+@dataclasses.dataclass(frozen=True)
+class Reliance:
+    """A step's reliance (`meta.reliance`, `cam.reliance`): the explained score re-run, and how much the step depends
+    on each camera the model saw and on its prompt; or why it was not measured."""
+
+    score: float | None = None  # the explained score re-run (None: a target of many scores)
+    cameras: dict[str, Dependence] = dataclasses.field(default_factory=dict)
+    prompt: Dependence | None = None  # with the prompt emptied, its state tokens kept
+    skipped: str | None = None  # why there are no figures ("failed_<Error>")
+    error: str | None = None  # the first 200 characters of a failure's message
+
+    @classmethod
+    def from_json(cls, value: Any) -> Reliance:
+        d = dict(value) if isinstance(value, Mapping) else {}
+        cameras = d.get("cameras") if isinstance(d.get("cameras"), Mapping) else {}
+        prompt = d.get(RELIANCE_PROMPT)
+        return cls(
+            score=_float_or_none(d.get("score")),
+            cameras={str(c): Dependence.from_json(v) for c, v in cameras.items()},
+            prompt=Dependence.from_json(prompt) if isinstance(prompt, Mapping) else None,
+            skipped=_str_or_none(d.get("skipped")),
+            error=_str_or_none(d.get("error")),
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        if self.skipped is not None:
+            return {"skipped": self.skipped, **({} if self.error is None else {"error": self.error})}
+        return {
+            "score": self.score,
+            "cameras": {c: v.to_json() for c, v in self.cameras.items()},
+            RELIANCE_PROMPT: None if self.prompt is None else self.prompt.to_json(),
+        }
+
+    def figures(self) -> dict[str, float | None]:
+        """Flat figures: `<camera>/reliance_score` (the score's drop) and `<camera>/reliance_actions` (the actions'
+        change), then the same under `prompt/`; {} when it was skipped."""
+        entries = {**self.cameras, **({} if self.prompt is None else {RELIANCE_PROMPT: self.prompt})}
+        return {
+            f"{name}/reliance_{what}": value
+            for name, entry in entries.items()
+            for what, value in (("score", entry.score_drop), ("actions", entry.action_change))
+        }
+
+
 @dataclasses.dataclass(frozen=True)
 class StepMeta:
     """A step's metadata (the step file's `meta` JSON, docs/FORMAT.md), read once into typed fields.
@@ -332,13 +396,14 @@ class StepMeta:
     extra: dict[str, Any] = dataclasses.field(default_factory=dict)  # `cam_extra/` values other than numeric arrays
     extra_arrays: tuple[str, ...] = ()  # the `cam_extra/` keys stored as `extra/<key>` arrays
     check: SpotCheck | None = None  # the spot check (`cam.spot_check`); None when it was off
+    reliance: Reliance | None = None  # camera and prompt reliance (`cam.reliance`); None when not measured
     details: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     @classmethod
     def from_json(cls, value: Mapping[str, Any]) -> StepMeta:
         """The metadata of a step JSON object (or of an index line, whose extra fields land in `details`)."""
         d = dict(value)
-        cameras, extra, check = d.get("cameras"), d.get("extra"), d.get("check")
+        cameras, extra, check, reliance = d.get("cameras"), d.get("extra"), d.get("check"), d.get("reliance")
         return cls(
             schema_version=_int_or_none(d.get("schema_version")),
             run_id=_str_or_none(d.get("run_id")),
@@ -357,12 +422,13 @@ class StepMeta:
             extra=dict(extra) if isinstance(extra, Mapping) else {},
             extra_arrays=_strs(d.get("extra_arrays")) or (),
             check=SpotCheck.from_json(check) if isinstance(check, Mapping) else None,
+            reliance=Reliance.from_json(reliance) if isinstance(reliance, Mapping) else None,
             details={k: v for k, v in d.items() if k not in _STEP_FIELDS},
         )
 
     def to_json(self) -> dict[str, Any]:
-        """The step JSON object: what the writer stores (the logger-filled fields only where set; `check` only
-        when there is one)."""
+        """The step JSON object: what the writer stores (the logger-filled fields only where set; `check` and
+        `reliance` only when there is one)."""
         written = {name: getattr(self, name) for name in RESERVED_META if getattr(self, name) is not None}
         body = {
             "target": self.target,
@@ -376,7 +442,8 @@ class StepMeta:
             "extra": self.extra,
             "extra_arrays": list(self.extra_arrays),
         }
-        return written | body | ({} if self.check is None else {"check": self.check.to_json()})
+        measured = {k: v.to_json() for k, v in (("check", self.check), ("reliance", self.reliance)) if v is not None}
+        return written | body | measured
 
     def explained(self) -> dict[str, Any]:
         """What the model family wrote about its explanation, with the target: what `Explainer.rescore` reads."""

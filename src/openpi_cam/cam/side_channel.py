@@ -41,6 +41,7 @@ from jax.sharding import Mesh
 from openpi_cam.cam.batching import explain_batch
 from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.records import bounded_extra, split_extra, step_record
+from openpi_cam.cam.reliance import Resampler
 from openpi_cam.counters import WarnOnceCounter
 from openpi_cam.model.sharding import BATCH_AXIS
 from openpi_cam.policies.family import Explainer, ExplainSkipped, resolve_target
@@ -50,8 +51,8 @@ from openpi_cam.vocabulary import SAVE_FRAMES, ExplainOptions, SaveFrames
 logger = logging.getLogger(__name__)
 
 
-class TracedPolicy(Protocol):
-    """What the side channel wraps (`openpi_cam.policies.Policy`)."""
+class TracedPolicy(Resampler, Protocol):
+    """What the side channel wraps (`openpi_cam.policies.Policy`); re-running it (`Resampler`) only for reliance."""
 
     @property
     def metadata(self) -> dict[str, Any]: ...
@@ -378,7 +379,12 @@ class CAMPolicy:
         try:
             # the spot check re-runs the model: a phase of its own, like the write
             (explained,) = explain_batch(
-                self._explainer, [job.trace], self._options, [job.step], before_check=self._wait_for_no_inference
+                self._explainer,
+                [job.trace],
+                self._options,
+                [job.step],
+                before_check=self._wait_for_no_inference,
+                policy=self._policy,
             )
         except Exception as e:
             self._record(JobTiming(job.connection, job.step, job.ended, started, time.monotonic()))
@@ -410,6 +416,7 @@ class CAMPolicy:
                 extra=job.extra,
                 explain_ms=explain_ms,
                 check=check,
+                reliance=explained.reliance,
             )
             logged = self._logger.log_step(record)  # type: ignore[union-attr]  (no jobs without a logger)
         except Exception as e:
@@ -497,7 +504,7 @@ class CAMPolicy:
             return "nothing (the robot transform offers no example observation)"
         if self._logger is None or self._options.every_k == 0:
             return "inference"
-        (explained,) = explain_batch(self._explainer, [trace], self._options, [0])
+        (explained,) = explain_batch(self._explainer, [trace], self._options, [0], policy=self._policy)
         explanation, check = explained.result, explained.check
         if isinstance(explanation, ExplainSkipped):
             return f"inference (the example's explanation was skipped: {explanation})"

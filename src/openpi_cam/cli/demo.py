@@ -3,50 +3,64 @@ few (Meta-World, `--sim metaworld`)."""
 
 from __future__ import annotations
 
-import math
+import contextlib
+import json
+import pathlib
 
 import tyro
 
 from openpi_cam.cam.faithfulness_run import format_report
-from openpi_cam.demo.run import DemoOptions, run_demo
+from openpi_cam.cam.outcomes import wilson_interval
+from openpi_cam.datasets.lerobot import DatasetError
+from openpi_cam.datasets.rollouts import RolloutRecorder
+from openpi_cam.demo.quality import EPISODES_FILE
+from openpi_cam.demo.run import ROLLOUT_FPS, ROLLOUT_FPS_METAWORLD, DemoOptions, run_demo
+from openpi_cam.policies import demo_metaworld, demo_reach
 from openpi_cam.vocabulary import MAP_KIND_INFO
 
 DEFAULT = DemoOptions()
-Z95 = 1.959964  # the standard normal's 97.5% quantile
 
 
-def wilson_interval(successes: int, n: int) -> tuple[float, float]:
-    """The 95% Wilson score interval of a success rate (sound at 0 or n successes, unlike the normal one)."""
-    if n == 0:
-        return 0.0, 1.0
-    p, z2 = successes / n, Z95**2
-    centre = (p + z2 / (2 * n)) / (1 + z2 / n)
-    half = Z95 * math.sqrt(p * (1 - p) / n + z2 / (4 * n * n)) / (1 + z2 / n)
-    return max(0.0, centre - half), min(1.0, centre + half)
-
-
-def main(opts: tyro.conf.OmitArgPrefixes[DemoOptions] = DEFAULT) -> int:
+def main(opts: tyro.conf.OmitArgPrefixes[DemoOptions] = DEFAULT, record: pathlib.Path | None = None) -> int:
     """Run a bundled model end to end: server + side channel + simulated robot + rendered reports + figures.
 
     Args:
         opts: what to run (every flag below).
+        record: also record every episode as a LeRobot v3.0 dataset in this new folder, as `lerobot-eval
+            --eval.recording=true` records evaluation rollouts: per executed action the cameras (AV1 video), the
+            state, the action, the target's box in the base camera (`observation.target_box`: the named block, or
+            Meta-World's button box), the perturbation's index
+            (`perturbation`) and `next.reward` / `next.success` / `next.done`; `meta/demo_episodes.json` names each
+            episode's perturbation, seed and outcome.
     """
+    if record is not None and record.exists() and (not record.is_dir() or any(record.iterdir())):
+        print(f"openpi-cam demo: --record {record} exists and is not an empty folder")
+        return 1
+    metaworld = opts.sim == "metaworld"
+    fps, robot = (ROLLOUT_FPS_METAWORLD, demo_metaworld.ASSET_ID) if metaworld else (ROLLOUT_FPS, demo_reach.ASSET_ID)
+    recorder = None if record is None else RolloutRecorder(record, fps=fps, robot_type=robot)
     try:
-        result = run_demo(opts)
-    except OSError as e:
+        with recorder or contextlib.nullcontext():
+            result = run_demo(opts, sink=recorder)
+    except (OSError, DatasetError) as e:
         print(f"openpi-cam demo: {e}")
         return 1
+    if record is not None:
+        episodes = [{"episode_index": i, **e} for i, e in enumerate(result.episodes)]
+        rollouts = {"perturbations": list(opts.perturb), "episodes": episodes}
+        (record / "meta" / EPISODES_FILE).write_text(json.dumps(rollouts, indent=2))
     wins = sum(r["success"] for r in result.episodes)
-    goal = "pressed the button" if opts.sim == "metaworld" else "reached their block"
+    goal = "pressed the button" if metaworld else "reached their block"
     print(f"\nopenpi-cam demo: {wins}/{len(result.episodes)} episodes {goal} in {result.seconds:.0f}s")
-    if opts.sim == "metaworld":
-        print("success per perturbation (95% Wilson interval):")
-        for name in dict.fromkeys(r["perturbation"] for r in result.episodes):
+    if metaworld or len(opts.perturb) > 1 or opts.perturbations[0].kind != "clean":
+        for name in opts.perturb:
             outcomes = [r["success"] for r in result.episodes if r["perturbation"] == name]
             low, high = wilson_interval(sum(outcomes), len(outcomes))
-            print(f"  {name:>20}: {sum(outcomes)}/{len(outcomes)} ({low:.0%}-{high:.0%})")
+            print(f"  {name:>20}: {sum(outcomes)}/{len(outcomes)} (95% interval {low:.0%}-{high:.0%})")
     figures = result.figures
-    print(f"pointing game over {figures['steps']} steps (the base camera's map peaks on the target):")
+    if figures["steps"]:
+        target = "the button's box" if metaworld else "the named block"
+        print(f"pointing game over {figures['steps']} steps (the base camera's map peaks on {target}):")
     for kind, f in figures["maps"].items():
         if not f["steps"]:
             continue
@@ -55,7 +69,10 @@ def main(opts: tyro.conf.OmitArgPrefixes[DemoOptions] = DEFAULT) -> int:
         print()
         print(format_report(result.faithfulness))
         print()
-    print(f"run directory: {result.run_dir}")
+    if result.run_dir is not None:
+        print(f"run directory: {result.run_dir}")
     for kind, report in result.reports.items():
         print(f"open the {MAP_KIND_INFO[kind].label} report: {report}")
+    if record is not None:
+        print(f"recorded {len(result.episodes)} episodes as a LeRobot dataset: {record}")
     return 0

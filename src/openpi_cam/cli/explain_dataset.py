@@ -44,6 +44,7 @@ def main(
     workers: int = 1,
     ray_address: str | None = None,
     keep_going: bool = False,
+    outcome: str | None = None,
     progress: bool = True,
 ) -> int:
     """Serve every selected frame of a LeRobot dataset to the policy as a robot would send it, explain it, and write
@@ -67,6 +68,9 @@ def main(
         workers: Ray actors, each with its own model (one GPU each where the cluster has GPUs).
         ray_address: an existing Ray cluster's address (default: start a local Ray instance).
         keep_going: skip an episode with bad data (counted and named in the summary) instead of stopping.
+        outcome: the feature whose truth in any frame of an episode makes it a success (default: `next.success`,
+            as `lerobot-eval --eval.recording=true` records it, where the dataset has it); each row then carries its
+            episode's length, success and return (`next.reward` summed), and `stats` tells failures from successes.
         progress: show progress on stderr.
     """
     try:
@@ -99,6 +103,7 @@ def main(
             every=every_k,
             nested_keys=nested,
             keep_going=keep_going,
+            outcome=outcome,
         )
 
         def show(items: object, n: int) -> object:

@@ -59,6 +59,10 @@ class ExplainFlags:
     # each explained step's spot check paints each map's top patch and this many random patches (a few re-runs per
     # camera) and stores the score drops with the maps, so every map carries evidence of its own; 0: no check.
     check_patches: int = DEFAULT_PATCHES
+    # also measure how much each step relies on each camera and on its prompt: the explained score's drop and the
+    # action chunk's change with the camera replaced by the baseline frame, and with the prompt emptied (one re-run
+    # per camera and one for the prompt, each a full inference).
+    reliance: bool = False
 
     def __post_init__(self) -> None:
         self.options()  # what the options would refuse later is refused as the command line is parsed
@@ -78,6 +82,7 @@ class ExplainFlags:
             maps=self.maps,
             map_options=map_options,
             check_patches=self.check_patches,
+            reliance=self.reliance,
         )
 
 

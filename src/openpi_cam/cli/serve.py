@@ -19,6 +19,7 @@ import tyro
 
 from openpi_cam.cam.side_channel import CAMOptions, CAMPolicy, wrap_policy_with_cam
 from openpi_cam.cli.options import BUNDLED_MODEL, ExplainFlags
+from openpi_cam.datasets.served_episodes import EpisodeRecorder
 from openpi_cam.policies.family import resolve_target
 from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.policies.policy import Policy
@@ -119,6 +120,8 @@ def main(
     warm_up: bool = True,
     batch_window_ms: float | None = None,
     max_batch: int = 8,
+    record: Path | None = None,
+    record_fps: int = 10,
 ) -> int:
     """Serve an OpenPI checkpoint (pi0-FAST, pi0 or pi0.5) over websockets (openpi-client compatible), optionally
     explaining every k-th request of each connection in the background (`--cam.every-k`).
@@ -142,16 +145,22 @@ def main(
             per model call, as upstream.
         max_batch: requests per batched call at most, a power of two (calls run at power-of-two batch sizes: one
             compiled program each, all compiled at warm-up).
+        record: record every connection as an episode of a new LeRobot v3.0 dataset in this folder (its requests'
+            images and values, prompts and served chunks; `datasets.served_episodes`), saved when it closes.
+        record_fps: the recorded dataset's frame rate (LeRobot's timestamps are frame index / fps): the rate at which
+            the robot sends requests.
     """
     _configure_logging()
     try:
         _check_batching(batch_window_ms, max_batch)
         _check_side_channel_flags(cam)
+        _check_recording(record, record_fps)
         policy = _create_policy(model, stop_at_action_end)
         run_config = {**model.resolved().to_json(), "stop_at_action_end": stop_at_action_end}
         served = _with_side_channel(policy, cam, model, run_config)
+        outer = served if record is None else _recording(served, record, record_fps)
         server = _server(
-            served,
+            outer,
             policy.metadata,
             family=policy.model.family,
             host=host,
@@ -170,7 +179,7 @@ def main(
         return e.status
     if warm_up:
         _warm_up(served, policy, batch_window_ms, max_batch)
-    return _serve(server, served, host, port)
+    return _serve(server, served, outer, host, port)
 
 
 def _configure_logging() -> None:
@@ -241,7 +250,7 @@ def _with_side_channel(
 
 
 def _server(
-    served: Policy | CAMPolicy,
+    served: Policy | CAMPolicy | EpisodeRecorder,
     metadata: dict[str, Any],
     *,
     family: str,
@@ -296,13 +305,27 @@ def _warm_up(served: Policy | CAMPolicy, policy: Policy, batch_window_ms: float 
     logger.info("warmed up %s in %.1f s%s", warmed, time.monotonic() - start, batches)
 
 
-def _serve(server: PolicyServer, served: Policy | CAMPolicy, host: str, port: int) -> int:
-    """Listens until SIGINT / SIGTERM, then drains and closes."""
+def _check_recording(root: Path | None, fps: int) -> None:
+    if root is not None and root.exists() and any(root.iterdir()):
+        raise StartupError(f"--record {root} exists and is not empty: name a new folder", 2)
+    if fps < 1:
+        raise StartupError(f"--record-fps must be >= 1, got {fps}", 2)
+
+
+def _recording(served: Policy | CAMPolicy, root: Path, fps: int) -> EpisodeRecorder:
+    logger.info("recording every connection as an episode of the LeRobot dataset %s", root)
+    return EpisodeRecorder(served, root, fps=fps)
+
+
+def _serve(
+    server: PolicyServer, served: Policy | CAMPolicy, outer: Policy | CAMPolicy | EpisodeRecorder, host: str, port: int
+) -> int:
+    """Listens until SIGINT / SIGTERM, then drains and closes (`outer`: what the server serves, `served` within it)."""
     try:
         server.serve_forever()
     except OSError as e:  # the port is taken, or the host is not this machine's
         print(f"openpi-cam serve: cannot listen on {host}:{port}: {e}", file=sys.stderr)
-        served.close(0.0)
+        outer.close(0.0)
         return 1
     if isinstance(served, CAMPolicy) and served.computing:
         # The manifest is written; an explanation still runs in XLA on the worker thread, and interpreter shutdown

@@ -21,9 +21,10 @@ import numpy as np
 
 from openpi_cam.cam.batching import data_mesh, explain_batch
 from openpi_cam.cam.records import resume_mismatch
-from openpi_cam.cam.run_format import SpotCheck, dumps
+from openpi_cam.cam.run_format import Reliance, SpotCheck, dumps
 from openpi_cam.datasets import maps_dataset as fmt
 from openpi_cam.datasets.lerobot import DatasetError, LeRobotDataset, open_dataset
+from openpi_cam.datasets.lerobot_writer import REWARD, SUCCESS
 from openpi_cam.nested import unflatten_dict
 from openpi_cam.policies.family import ExplainSkipped, Explanation, resolve_target
 from openpi_cam.policies.model_spec import ModelSpec
@@ -55,6 +56,9 @@ class DatasetJob:
     # `--target dataset-actions`: the dataset feature whose recorded chunk (this frame's action and the next ones, the
     # last repeated past the episode's end, as LeRobot pads) is explained instead of the model's own generation.
     recorded_actions: str | None = None
+    # the feature whose truth (non-zero) in any frame of an episode makes it a success, as lerobot-eval counts one;
+    # None: `next.success` where the dataset records it (no outcomes otherwise).
+    outcome: str | None = None
 
     def __post_init__(self) -> None:
         if self.every < 1:
@@ -100,12 +104,32 @@ def check_features(ds: LeRobotDataset, job: DatasetJob) -> None:
     wanted = [(f"--keys {k}", f) for k, f in job.keys.items()] + [(f"--extra {f}", f) for f in job.extra]
     if job.recorded_actions is not None:
         wanted.append((f"--target {DATASET_ACTIONS} (--keys {ACTIONS_KEY}=FEATURE)", job.recorded_actions))
+    if job.outcome is not None:
+        wanted.append(("--outcome", job.outcome))
     for flag, feature in wanted:
         if feature not in ds.features:
             raise DatasetError(
                 f"{ds.root / 'meta/info.json'}: feature {feature!r} ({flag}) is not in the dataset; it has "
                 f"{sorted(ds.features)}"
             )
+
+
+def outcome_features(ds: LeRobotDataset, job: DatasetJob) -> tuple[str | None, str | None]:
+    """(the feature an episode's success is read from, the feature its return sums): the job's outcome feature, or
+    lerobot-eval's `next.success` where the dataset has it; `next.reward` beside it where the dataset has it."""
+    outcome = job.outcome or (SUCCESS if SUCCESS in ds.features else None)
+    return outcome, (REWARD if outcome is not None and REWARD in ds.features else None)
+
+
+def episode_outcome(ds: LeRobotDataset, episode: int, outcome: str, reward: str | None) -> dict[str, Any]:
+    """The `episode_*` columns of one episode (`maps_dataset.OUTCOME_COLUMNS`), read from all its frames."""
+    frames = list(ds.frames(episode, features=[outcome] if reward is None else [outcome, reward]))
+    rewards = None if reward is None else [np.asarray(f[reward], np.float64).sum() for f in frames]
+    return {
+        fmt.EPISODE_LENGTH: len(frames),
+        fmt.EPISODE_SUCCESS: any(bool(np.asarray(f[outcome]).any()) for f in frames),
+        fmt.EPISODE_RETURN: None if rewards is None else float(sum(rewards)),
+    }
 
 
 def selected_episodes(ds: LeRobotDataset, job: DatasetJob) -> list[int]:
@@ -131,6 +155,7 @@ def job_info(
     if job.options.target is None:
         raise ValueError("job_info needs the job's target resolved against the model's family")
     options = job.options
+    outcome, reward = outcome_features(ds, job)
     return fmt.MapsInfo(
         source=str(pathlib.Path(job.source).resolve()),
         source_version=ds.version,
@@ -148,6 +173,8 @@ def job_info(
         nested_keys=job.nested_keys,
         scores_per_row=0 if options.target == "all-action-tokens" else 1,
         options={**options.to_json(), "batch_size": job.batch_size},
+        outcome=outcome,
+        reward=reward,
     )
 
 
@@ -169,6 +196,7 @@ def frame_row(
     explanation: Explanation,
     response: Mapping[str, Any],
     check: SpotCheck | None,
+    reliance: Reliance | None,
     *,
     info: fmt.MapsInfo,
     job: DatasetJob,
@@ -211,6 +239,10 @@ def frame_row(
         row[fmt.check_column(fmt.CHECK_RANDOM, camera)] = None if figures is None else list(figures.random_patch_drops)
     for feature, name in job.extra.items():
         row[f"extra/{name}"] = _flat(frame[feature], np.float64)
+    if info.reliance:
+        measured = {} if reliance is None else reliance.figures()
+        row["reliance"] = None if reliance is None else dumps(reliance.to_json())
+        row |= {column: measured.get(column) for column in fmt.reliance_columns(info)}
     return row
 
 
@@ -259,6 +291,9 @@ class EpisodeExplainer:
         seconds = dict.fromkeys(("decode", "inference", "explanation", "writing"), 0.0)
         length = self.dataset.episode_length(episode)
         wanted = set(range(0, length, job.every))
+        outcome = {}
+        if self.info.outcome is not None:
+            outcome = episode_outcome(self.dataset, episode, self.info.outcome, self.info.reward)
         rows: list[dict[str, Any]] = []
         pending: list[tuple[Mapping[str, Any], InferenceTrace, dict[str, Any]]] = []
 
@@ -266,7 +301,9 @@ class EpisodeExplainer:
             t0 = time.perf_counter()
             traces = [trace for _, trace, _ in pending]
             seeds = [int(frame["index"]) for frame, _, _ in pending]
-            done = explain_batch(self.explainer, traces, options, seeds, mesh=self.mesh, pad_to=job.batch_size)
+            done = explain_batch(
+                self.explainer, traces, options, seeds, mesh=self.mesh, pad_to=job.batch_size, policy=self.policy
+            )
             for (frame, trace, response), explained in zip(pending, done, strict=True):
                 if isinstance(explained.result, ExplainSkipped):
                     counts[f"skipped_{explained.result.reason}"] += 1
@@ -279,11 +316,12 @@ class EpisodeExplainer:
                     explained.result,
                     response,
                     explained.check,
+                    explained.reliance,
                     info=self.info,
                     job=job,
                     explain_ms=explained.explain_ms,
                 )
-                rows.append(row)
+                rows.append(row | outcome)
             seconds["explanation"] += time.perf_counter() - t0
             pending.clear()
 

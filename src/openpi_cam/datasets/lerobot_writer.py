@@ -90,10 +90,12 @@ class Feature:
         }
 
 
+# What followed a frame's action, by lerobot-eval's names.
+REWARD, SUCCESS, DONE = "next.reward", "next.success", "next.done"
 OUTCOME_FEATURES: dict[str, Feature] = {
-    "next.reward": Feature("float32", (1,)),
-    "next.success": Feature("bool", (1,)),
-    "next.done": Feature("bool", (1,)),
+    REWARD: Feature("float32", (1,)),
+    SUCCESS: Feature("bool", (1,)),
+    DONE: Feature("bool", (1,)),
 }
 # Written by the writer for every frame; a frame may not carry them.
 DEFAULT_FEATURES: dict[str, Feature] = {
@@ -784,7 +786,10 @@ def _checked_feature(root: Path, name: str, feature: Any) -> Feature:
 
 __all__ = [
     "DEFAULT_FEATURES",
+    "DONE",
     "OUTCOME_FEATURES",
+    "REWARD",
+    "SUCCESS",
     "DatasetError",
     "DatasetWriter",
     "Feature",

@@ -15,7 +15,12 @@ Columns: `index`, `episode_index`, `frame_index`, `timestamp`, `task`, `target`,
 (the model's action chunk, row-major), `explain_ms`; per map kind and camera `<kind>/<camera>`, the raw map as
 float32 in row-major order over the camera's patch grid (`MapsInfo.grids`); the spot check as `check/<kind>/<camera>`
 (the score's drop with the kind's top patch painted) and `check/random/<camera>` (the drops of the random patches),
-with the whole check as JSON in `check`; `cameras` and `details` as JSON; `extra/<name>` for carried features.
+with the whole check as JSON in `check`; `cameras` and `details` as JSON; `extra/<name>` for carried features. When
+reliance was measured (`--reliance`), `reliance` holds it as JSON (`cam.reliance`) and `<camera>/reliance_score`,
+`<camera>/reliance_actions`, `prompt/reliance_score`, `prompt/reliance_actions` its figures. When
+the source records outcomes (`MapsInfo.outcome`), every row carries its episode's: `episode_length` (the source
+episode's frames), `episode_success` (any frame's outcome true, as lerobot-eval counts a success) and
+`episode_return` (the sum of the episode's `next.reward`; null without one).
 
 Reading needs pyarrow and numpy only, so the commands that read maps (`stats`, `render`) do not load JAX.
 """
@@ -34,18 +39,22 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from openpi_cam.cam.run_format import dumps
+from openpi_cam.cam.run_format import RELIANCE_PROMPT, dumps
 
 FORMAT = "openpi-cam maps dataset"
 # 2: the model as the command line names it (`model`), the explanation options in one encoding (`options`).
-FORMAT_VERSION = 2
+# 3: episode outcomes (`outcome`, `reward`; the `episode_*` columns); reliance columns (`options.reliance`).
+FORMAT_VERSION = 3
 INFO_JSON = "meta/info.json"
 SUMMARY_JSON = "meta/summary.json"
 DATA_DIR = "data"
 EPISODES_PER_CHUNK = 1000
 CHECK_RANDOM = "random"  # `check/random/<camera>`: the random patches' drops
 # info.json fields, besides the model and the explanation options, that must match to add episodes to a maps dataset.
-SOURCE_KEYS = ("source", "source_version", "recorded_actions", "keys", "every", "nested_keys")
+SOURCE_KEYS = ("source", "source_version", "recorded_actions", "keys", "every", "nested_keys", "outcome", "reward")
+# Each row's episode, when the source records outcomes: its length in source frames, whether it succeeded, its return.
+EPISODE_LENGTH, EPISODE_SUCCESS, EPISODE_RETURN = "episode_length", "episode_success", "episode_return"
+OUTCOME_COLUMNS = (EPISODE_LENGTH, EPISODE_SUCCESS, EPISODE_RETURN)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,10 +79,17 @@ class MapsInfo:
     every: int = 1
     nested_keys: bool = False
     scores_per_row: int = 1  # 0: one score per explained token (a list)
+    outcome: str | None = None  # the source feature whose truth in any frame makes an episode a success
+    reward: str | None = None  # the source feature summed into an episode's return
 
     @property
     def cameras(self) -> list[str]:
         return list(self.grids)
+
+    @property
+    def reliance(self) -> bool:
+        """Whether the rows carry camera and prompt reliance (`--reliance`)."""
+        return bool(self.options.get("reliance"))
 
     def grid(self, camera: str) -> tuple[int, int]:
         hp, wp = self.grids[camera]
@@ -167,7 +183,23 @@ def schema(info: MapsInfo) -> pa.Schema:
     fields += [pa.field(check_column(k, c), pa.float64()) for k in kinds for c in cameras]
     fields += [pa.field(check_column(CHECK_RANDOM, c), pa.list_(pa.float64())) for c in cameras]
     fields += [pa.field(f"extra/{name}", pa.list_(pa.float64())) for name in info.extra.values()]
+    if info.reliance:
+        fields += [pa.field("reliance", pa.string())]
+        fields += [pa.field(column, pa.float64()) for column in reliance_columns(info)]
+    if info.outcome is not None:
+        fields += [
+            pa.field(EPISODE_LENGTH, pa.int64()),
+            pa.field(EPISODE_SUCCESS, pa.bool_()),
+            pa.field(EPISODE_RETURN, pa.float64()),
+        ]
     return pa.schema(fields)
+
+
+def reliance_columns(info: MapsInfo) -> list[str]:
+    """`<camera>/reliance_score`, `<camera>/reliance_actions` for every camera the model sees, then `prompt/...`:
+    the flat figures of each row's reliance (`cam.run_format.Reliance.figures`)."""
+    names = [*info.cameras, RELIANCE_PROMPT]
+    return [f"{name}/reliance_{what}" for name in names for what in ("score", "actions")]
 
 
 def write_shard(root: pathlib.Path, info: MapsInfo, episode: int, rows: Sequence[Mapping[str, Any]]) -> str:

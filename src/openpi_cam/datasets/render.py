@@ -9,9 +9,9 @@ video frame, the cameras side by side (the map bilinearly stretched over the fra
 written with PyAV.
 
 The report (OUT/index.html, relative links to the files beside it, no network) opens with the spot checks stored in
-the maps dataset, then the positional prior with its flagged hot patches, the episodes ranked oddest first, the
-per-task table, and a section per rendered episode (its video and a strip of its frames). Figures:
-`datasets.views`.
+the maps dataset, then the positional prior with its flagged hot patches, failed and successful episodes side by side
+(when the source records outcomes), the episodes ranked with the most diffuse maps first, the per-task table, and a
+section per rendered episode (its video and a strip of its frames). Figures: `datasets.views`.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 from PIL import Image, ImageDraw
 
+from openpi_cam.cam.run_format import RELIANCE_PROMPT
 from openpi_cam.datasets.frames import (
     EpisodeRows,
     aligned_frames,
@@ -322,7 +323,9 @@ def _prior_section(views: DatasetViews, out_dir: pathlib.Path, opts: DatasetRend
 
 
 def _ranking_section(views: DatasetViews, result: DatasetRenderResult) -> str:
-    head = ["rank", "episode", "task", "frames", "distance to the prior", "z", "malformed", "mean score"]
+    head = ["rank", "episode", "task", "frames", "entropy (norm.)", "z", "distance to the prior", "malformed"]
+    head += ["mean score"]
+    head += ["outcome"] if views.outcomes is not None else []
     head += [f"{c} share" for c in views.cameras]
     rows = []
     for e in views.episodes:
@@ -334,17 +337,79 @@ def _ranking_section(views: DatasetViews, result: DatasetRenderResult) -> str:
                 link,
                 escape(e["task"]),
                 str(e["frames"]),
-                number(e["distance"]),
+                number(e["entropy"]),
                 number(e["z"], 2),
+                number(e["distance"]),
                 str(e["malformed"]),
                 number(e["mean_score"]),
+                *([_outcome(e)] if views.outcomes is not None else []),
                 *(_pct(e["cameras"][c]["mean_share"]) for c in views.cameras),
             )
         )
     return (
-        "<section id='ranking'><h2>episodes, oddest first</h2><p class='dim'>distance: the mean over the episode's "
-        "frames of the total-variation distance between each camera's map and the camera's prior; z over the "
-        f"dataset's episodes</p>{html_table(head, rows, raw=True)}</section>"
+        "<section id='ranking'><h2>episodes, most diffuse maps first</h2><p class='dim'>entropy: the mean over the "
+        "episode's frames of each camera's normalised map entropy (1: spread evenly), z over the dataset's episodes; "
+        "on the demo's failing rollouts failed episodes come first this way (docs/MAP_KINDS.md). Distance: the mean "
+        "total-variation distance between each camera's map and the camera's prior</p>"
+        f"{html_table(head, rows, raw=True)}</section>"
+    )
+
+
+def _outcome(e: Mapping[str, Any]) -> str:
+    return "-" if e.get("success") is None else ("success" if e["success"] else "<b class='warn'>failure</b>")
+
+
+def _auroc(f: Mapping[str, Any]) -> str:
+    low, high = f["auroc_ci95"]
+    return "-" if f["auroc"] is None else f"{f['auroc']:.2f} ({number(low, 2)}-{number(high, 2)})"
+
+
+def _outcomes_section(views: DatasetViews) -> str:
+    """Failed and successful episodes side by side, and how well each episode figure finds the failures."""
+    o = views.outcomes
+    if o is None:
+        return ""
+    groups = o["by_outcome"]
+    relied = views.info.reliance
+    what = ("share", "entropy (norm.)", "distance", "nuisance") + (("reliance: score", "actions") if relied else ())
+    keys = ("mean_share", "mean_entropy_norm", "mean_prior_distance", "mean_nuisance_mass")
+    keys += ("mean_reliance_score", "mean_reliance_actions") if relied else ()
+    head = ["outcome", "episodes", "frames", "mean score", *(f"{c} {w}" for c in views.cameras for w in what)]
+    head += ["prompt reliance: score", "actions"] if relied else []
+    rows = []
+    for name, g in groups.items():
+        cells = [name, str(g["episodes"]), str(g["frames"]), number(g["mean_score"])]
+        cells += [
+            _pct(g["cameras"][c][k]) if k == "mean_share" else number(g["cameras"][c][k])
+            for c in views.cameras
+            for k in keys
+        ]
+        if relied:
+            prompt = g[RELIANCE_PROMPT]
+            cells += [number(prompt["mean_reliance_score"]), number(prompt["mean_reliance_actions"])]
+        rows.append(cells)
+    early = o["early_warning"]["figures"]
+    found = [
+        (
+            name,
+            _auroc(f),
+            number(f["precision_at_failures"], 2),
+            _auroc(early[name]) if name in early else "-",
+        )
+        for name, f in o["failure_finding"].items()
+        if f["auroc"] is not None
+    ]
+    chance = o["failures"] / o["episodes"] if o["episodes"] else None
+    return (
+        f"<section id='outcomes'><h2>failed and successful episodes</h2><p>{o['failures']} of {o['episodes']} "
+        "episodes failed (an episode succeeds when any frame's outcome is true, as lerobot-eval counts it)</p>"
+        f"{html_table(head, rows)}<h3>which figure finds the failures?</h3><p class='dim'>ROC AUC of each episode "
+        "figure as a failure score (larger = failure; 0.5 is chance, below 0.5 the figure finds successes), with its "
+        f"95% bootstrap interval; precision among the {o['failures']} highest-scoring episodes (chance "
+        f"{number(chance, 2)}); early warning: the same figure from each episode's first "
+        f"{o['early_warning']['frames']} explained frames only. Failed episodes run to the step limit, so length "
+        "alone finds them: a figure is worth reading where it beats length, or early.</p>"
+        f"{html_table(['figure', 'AUROC (95%)', 'precision at #failures', 'early warning AUROC'], found)}</section>"
     )
 
 
@@ -402,6 +467,7 @@ def _episode_section(views: DatasetViews, result: DatasetRenderResult, episode: 
                 )
             )
     title = f"episode {episode}" + (f" · {escape(e['task'])} · rank {e['rank']} · z {number(e['z'], 2)}" if e else "")
+    title += f" · {_outcome(e)}" if e is not None and e.get("success") is not None else ""
     return (
         f"<section class='episode' id='episode-{episode}' data-episode='{episode}' "
         f"data-frames='{result.frames.get(episode, 0)}'><h3>{title}</h3>{media}{html_table(head, rows)}</section>"
@@ -427,7 +493,8 @@ def write_dataset_report(ds: MapsDataset, result: DatasetRenderResult, opts: Dat
     )
     body = (
         f"<h1>maps dataset {escape(ds.root.name)}: {escape(MAP_KIND_INFO[views.kind].label)} maps</h1><dl>{dl}</dl>"
-        f"{_checks_section(views)}{_prior_section(views, result.out_dir, opts)}{_ranking_section(views, result)}"
+        f"{_checks_section(views)}{_prior_section(views, result.out_dir, opts)}{_outcomes_section(views)}"
+        f"{_ranking_section(views, result)}"
         f"{_tasks_section(views)}<h2>episodes</h2>{episodes}"
     )
     return write_page(result.out_dir / "index.html", f"maps dataset {ds.root.name}", body, style)

@@ -8,8 +8,11 @@ logs the camera under):
                              above the frame (cleared on frames where the model did not see the camera)
   openpi_cam/<kind>/share/<camera>   the camera's share of the frame's map mass (`viz.stats`)
   openpi_cam/score           the explained score (mean over tokens for multi-token targets)
-  openpi_cam/about           (static) what the maps are, their spot checks, the flagged hot patches and the oddest
-                             episodes (`datasets.views`)
+  openpi_cam/success         the episode's outcome (1: it succeeded), when the source records outcomes
+  openpi_cam/reliance_score/<camera or prompt>, openpi_cam/reliance_actions/<camera or prompt>
+                             the frame's reliance (`--reliance`): the score's drop and the chunk's change without it
+  openpi_cam/about           (static) what the maps are, their spot checks, the flagged hot patches, how well each
+                             figure finds failures (with outcomes) and the top-ranked episodes (`datasets.views`)
 Timelines: `frame_index` (sequence) and `timestamp` (seconds, logged as LeRobot logs it) as in LeRobot's recordings,
 plus `episode_index` and `index` (the dataset-wide frame index, which plays the episodes one after another). One
 recording holds every chosen episode; on `frame_index` and `timestamp` the episodes share the same times, so pick
@@ -35,7 +38,7 @@ from openpi_cam.datasets.frames import (
     select_episodes,
     source_dataset,
 )
-from openpi_cam.datasets.maps_dataset import MapsDataset
+from openpi_cam.datasets.maps_dataset import MapsDataset, reliance_columns
 from openpi_cam.datasets.views import DatasetViews, compute_views
 from openpi_cam.viz.colormap import colorize
 from openpi_cam.viz.overlay import upsample
@@ -75,7 +78,19 @@ def _about(views: DatasetViews, norm: str) -> str:
     lines += ["", "## hot patches (in the top-k of most frames whatever they show)", ""]
     hot = [h for c in views.cameras for h in views.hot[c]]
     lines += [f"- {h.camera}: row {h.row}, col {h.col}, hot in {h.rate:.0%} of frames" for h in hot] or ["- none"]
-    lines += ["", "## oddest episodes (distance of their maps to the dataset's mean map)", ""]
+    if views.outcomes is not None:
+        o = views.outcomes
+        lines += ["", f"## outcomes: {o['failures']} of {o['episodes']} episodes failed", ""]
+        lines += ["| figure | failure-finding AUROC (larger = failure) | early warning AUROC |", "| --- | --- | --- |"]
+        early = o["early_warning"]["figures"]
+        lines += [
+            f"| {name} | {f['auroc']:.2f} | "
+            + (f"{early[name]['auroc']:.2f}" if early.get(name, {}).get("auroc") is not None else "-")
+            + " |"
+            for name, f in o["failure_finding"].items()
+            if f["auroc"] is not None
+        ]
+    lines += ["", "## episodes with the most diffuse maps (mean normalised entropy)", ""]
     lines += [
         f"- episode {e['episode_index']} ({e['task']}): z {e['z']:.2f}" if e["z"] is not None else ""
         for e in views.episodes[:10]
@@ -101,6 +116,9 @@ def write_dataset_rrd(
     lr = source_dataset(ds, source)
     features = {c: f for c, f in ds.info.camera_sources.items() if f in lr.features}
     dataset_max = dataset_scale(ds, map_kind, chosen) if norm == "run" else 0.0
+    outcome = {e["episode_index"]: e.get("success") for e in views.episodes}
+    reliance = reliance_columns(ds.info) if ds.info.reliance else []
+    relied = {row["index"]: row for row in views.rows} if reliance else {}
     out_path = pathlib.Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     rec = rr.RecordingStream("openpi-cam", recording_id=f"openpi-cam maps {ds.root.name} {map_kind}")
@@ -120,6 +138,13 @@ def write_dataset_rrd(
                 score = mean_score(rows.score[i])
                 if math.isfinite(score):
                     rec.log("openpi_cam/score", rr.Scalars(score))
+                if outcome.get(episode) is not None:
+                    rec.log("openpi_cam/success", rr.Scalars(float(outcome[episode])))
+                for name in reliance:  # `<camera or prompt>/reliance_<score or actions>`
+                    value = relied[rows.index[i]].get(name)
+                    if value is not None:
+                        what, figure = name.rsplit("/", 1)
+                        rec.log(f"openpi_cam/{figure}/{rr.escape_entity_path_part(what)}", rr.Scalars(value))
                 for camera, m in maps.items():
                     share = float(m.sum()) / total if total > 0 and valid.get(camera, True) else 0.0
                     rec.log(f"openpi_cam/{map_kind}/share/{rr.escape_entity_path_part(camera)}", rr.Scalars(share))

@@ -19,12 +19,23 @@ Definitions (the frame's map of a camera normalised to sum 1 is `p`; the camera'
   flagged: a map unrelated to position puts a patch in its top-k in about k / P of the frames, so a patch in the
   top-k of most frames, whatever they show, points at the model's position embeddings more than at the image (the
   artefact of OpenPI issue #947). `peak_on_hot`, per frame: whether the frame's peak sits on a flagged patch.
-* **Odd episodes**: an episode's distance is the mean over its frames of the mean `prior_distance` over the frame's
-  cameras; episodes are ranked by it, largest first, with its z-score over the dataset's episodes (0 when they all
-  lie at one distance), so the episodes whose maps look least like the dataset's usual ones come first.
+* **Episode ranking**: an episode's entropy is the mean over its frames of the mean `entropy_norm` over the frame's
+  cameras; episodes are ranked by it, largest first (the most diffuse maps first), with its z-score over the
+  dataset's episodes (0 when they all lie at one value). Chosen by evidence (docs/MAP_KINDS.md, "Do the maps find
+  the failures?"): on the demo's failing rollouts it ranks failed episodes first (ROC AUC 0.76 and 0.73 for
+  pi0-FAST and pi0.5, gradient norm), where the earlier ranking by distance to the prior (still each episode's
+  `distance`: the mean over its frames of the mean `prior_distance` over the frame's cameras) ranked them last
+  (0.25, 0.27): failed episodes' maps are diffuse, and diffuse maps lie near the mean map.
 * **Spot checks** (`check/<kind>/<camera>`, `check/random/<camera>`): per kind and camera, the share of frames whose
   top patch lowers the score more than the median random patch does (about 50% for a top patch no better than a
   random one) and more than every random patch (chance 1 / (R + 1) for R random patches).
+* **Nuisance mass** of a frame's map, where the rows carry the task region (`extra/target_box`, a box in the first
+  camera's client image): the share of the first camera's map mass outside the region's patches (Zhang et al.).
+* **Reliance** (rows of a `--reliance` job): per camera and for the prompt, the explained score's drop and the action
+  chunk's change without it (`cam.reliance`), averaged like the other figures.
+* **Outcomes** (rows of a source with outcomes, `episode_success`): failed and successful episodes side by side
+  (the group summary of each outcome's frames), and how well each episode figure finds the failures
+  (`outcome_views`).
 
 Reading needs pyarrow and numpy only (no JAX): the maps are read an episode at a time, twice (once for the prior,
 once for each frame's distance to it), so memory holds the rows but never every map.
@@ -41,18 +52,37 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.datasets.maps_dataset import CHECK_RANDOM, MapsDataset, MapsInfo, check_column, map_column
+from openpi_cam.cam.faithfulness import client_box_cells, nuisance_mass_ratio
+from openpi_cam.cam.outcomes import finding
+from openpi_cam.cam.run_format import RELIANCE_PROMPT
+from openpi_cam.datasets.maps_dataset import (
+    CHECK_RANDOM,
+    EPISODE_LENGTH,
+    EPISODE_SUCCESS,
+    OUTCOME_COLUMNS,
+    MapsDataset,
+    MapsInfo,
+    check_column,
+    map_column,
+    reliance_columns,
+)
 from openpi_cam.viz.overlay import reduce_tokens
 from openpi_cam.viz.stats import camera_stats, mean_score
 from openpi_cam.viz.text import finite_mean
 
 FRAME_COLUMNS = ("index", "episode_index", "frame_index", "timestamp", "task", "target", "score", "malformed")
+# The carried feature (`--extra FEATURE=target_box`) holding the task region: a box (x0, y0, x1, y1) in the client
+# image of the dataset's first camera, as the demo records `observation.target_box`.
+TARGET_BOX = "target_box"
 
 
 @dataclasses.dataclass(frozen=True)
 class ViewOptions:
     top_fraction: float = 0.05  # k = ceil(top_fraction * patches), at least 1: a frame's hottest patches
     hot_threshold: float = 0.5  # a patch in the top-k of more than this share of frames is flagged
+    # The early-warning figures read each episode's first this many explained frames. 1: the first request alone,
+    # which every episode has, so the figures cannot tell a short episode from a long one.
+    early_frames: int = 1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,10 +105,15 @@ def displayable(maps: np.ndarray) -> np.ndarray:
     return np.stack([reduce_tokens(m) for m in maps])
 
 
+def _rows(maps: np.ndarray) -> np.ndarray:
+    """[N, Hp, Wp] -> [N, Hp * Wp], also for N = 0 (a camera the model masked in every frame)."""
+    return maps.reshape(len(maps), int(np.prod(maps.shape[1:])))
+
+
 def normalised(maps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """[N, Hp, Wp] non-negative maps -> (each divided by its sum, [N] whether it has positive mass; zeros if not)."""
     maps = np.asarray(maps, np.float64)
-    total = maps.reshape(len(maps), -1).sum(axis=1)
+    total = _rows(maps).sum(axis=1)
     has_mass = total > 0
     p = np.zeros_like(maps)
     p[has_mass] = maps[has_mass] / total[has_mass, None, None]
@@ -88,7 +123,7 @@ def normalised(maps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def in_top_k(maps: np.ndarray, k: int) -> np.ndarray:
     """bool [N, Hp, Wp]: the patches of each map that are positive and at least its k-th largest value."""
     maps = np.asarray(maps, np.float64)
-    flat = maps.reshape(len(maps), int(np.prod(maps.shape[1:])))  # -1 cannot be inferred with no frame
+    flat = _rows(maps)
     k = min(k, flat.shape[1])
     kth = -np.partition(-flat, k - 1, axis=1)[:, k - 1 : k] if len(flat) else np.zeros((0, 1))
     return ((flat >= kth) & (flat > 0)).reshape(maps.shape)
@@ -113,7 +148,7 @@ def flag_hot(camera: str, rates: np.ndarray, threshold: float) -> list[HotPatch]
 def prior_fit(p: np.ndarray, prior: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """For normalised maps p [N, Hp, Wp] against the prior [Hp, Wp]: (cosine, R^2, total-variation distance, residual
     sum of squares, variation sum of squares), each [N]."""
-    flat = np.asarray(p, np.float64).reshape(len(p), -1)
+    flat = _rows(np.asarray(p, np.float64))
     ref = np.asarray(prior, np.float64).reshape(-1)
     norms = np.linalg.norm(flat, axis=1) * np.linalg.norm(ref)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -125,13 +160,13 @@ def prior_fit(p: np.ndarray, prior: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     return cosine, r2, distance, sse, sst
 
 
-def episode_ranking(distances: Mapping[int, float]) -> list[tuple[int, float, float]]:
-    """(episode, distance, z-score) ranked by distance, largest first; NaN distances (no map with mass) last."""
-    finite = np.array([d for d in distances.values() if math.isfinite(d)])
+def episode_ranking(values: Mapping[int, float]) -> list[tuple[int, float, float]]:
+    """(episode, value, z-score) ranked by value, largest first; NaN values (no map with mass) last."""
+    finite = np.array([d for d in values.values() if math.isfinite(d)])
     mean = float(finite.mean()) if finite.size else math.nan
     std = float(finite.std()) if finite.size else math.nan
     ranked = []
-    for episode, d in distances.items():
+    for episode, d in values.items():
         z = (d - mean) / std if math.isfinite(d) and std > 0 else (0.0 if math.isfinite(d) else math.nan)
         ranked.append((episode, d, z))
     return sorted(ranked, key=lambda t: (not math.isfinite(t[1]), -t[1] if math.isfinite(t[1]) else 0.0, t[0]))
@@ -159,10 +194,11 @@ class DatasetViews:
     hot_rate: dict[str, np.ndarray]  # camera -> [Hp, Wp] share of frames whose top-k holds the patch
     hot: dict[str, list[HotPatch]]
     fit: dict[str, dict[str, Any]]  # camera -> dataset-level prior fit
-    episodes: list[dict[str, Any]]  # ranked, oddest first
+    episodes: list[dict[str, Any]]  # ranked, most diffuse maps first
     tasks: list[dict[str, Any]]
     checks: list[dict[str, Any]]  # per kind and camera: the spot checks' summary
     info: MapsInfo
+    outcomes: dict[str, Any] | None = None  # `outcome_views`, when the source records outcomes
 
     def summary(self) -> dict[str, Any]:
         """The dataset-level views as plain JSON data."""
@@ -196,6 +232,7 @@ class DatasetViews:
             "episode_ranking": self.episodes,
             "tasks": self.tasks,
             "spot_checks": self.checks,
+            **({} if self.outcomes is None else {"outcomes": self.outcomes}),
         }
 
 
@@ -235,13 +272,15 @@ def _frame_row(
     valid: Mapping[str, bool],
     checks: Mapping[str, Any],
     kind: str,
+    nuisance: Mapping[str, float | None],
 ) -> dict[str, Any]:
-    """One frame's row: its dataset columns and, per camera, the run statistics' figures of its map and its spot
-    check (the prior's columns stay None until pass two fills them)."""
+    """One frame's row: its dataset columns and, per camera, the run statistics' figures of its map, its nuisance
+    mass (None without a task region) and its spot check (the prior's columns stay None until pass two fills
+    them)."""
     total = sum(float(m.sum()) for c, m in maps.items() if valid[c])
     per_camera = {c: camera_stats(m, valid[c], total) for c, m in maps.items()}
     best = max(per_camera.items(), key=lambda kv: kv[1].share, default=None)
-    row: dict[str, Any] = {key: meta[key] for key in FRAME_COLUMNS}
+    row: dict[str, Any] = dict(meta)
     row["dominant"] = best[0] if best is not None and best[1].share > 0 else None
     for c, cs in per_camera.items():
         top, rand_median, rand_max = _check_figures(
@@ -258,6 +297,7 @@ def _frame_row(
             f"{c}/check_top_drop": _finite_or_none(top),
             f"{c}/check_random_median": _finite_or_none(rand_median),
             f"{c}/check_random_max": _finite_or_none(rand_max),
+            f"{c}/nuisance_mass": _finite_or_none(nuisance.get(c)),
             f"{c}/prior_cosine": None,
             f"{c}/prior_r2": None,
             f"{c}/prior_distance": None,
@@ -279,16 +319,22 @@ def compute_views(
     k = {c: top_k(grids[c][0] * grids[c][1], options.top_fraction) for c in cameras}
     check_cols = [check_column(kd, c) for kd in ds.kinds for c in cameras]
     check_cols += [check_column(CHECK_RANDOM, c) for c in cameras]
-    columns = [*FRAME_COLUMNS, "cameras", *(map_column(kind, c) for c in cameras), *check_cols]
+    row_columns = [*FRAME_COLUMNS, *(OUTCOME_COLUMNS if ds.info.outcome is not None else ())]
+    row_columns += reliance_columns(ds.info) if ds.info.reliance else []
+    box_column = f"extra/{TARGET_BOX}" if TARGET_BOX in ds.info.extra.values() else None
+    columns = [*row_columns, "cameras", *(map_column(kind, c) for c in cameras), *check_cols]
+    columns += [box_column] if box_column else []
     rows: list[dict[str, Any]] = []
     check_acc: dict[tuple[str, str], list[tuple[float, float, float, int]]] = {}
     # Pass one: the run statistics' per-map figures per frame, the prior's sums and the top-k counts.
     for episode in episodes:
         table = ds.table(episode, columns)
         maps = _frame_maps(table, kind, cameras, grids)
-        valid = _validity(table.column("cameras").to_pylist(), cameras)
-        meta = table.select(list(FRAME_COLUMNS)).to_pylist()
+        cameras_json = table.column("cameras").to_pylist()
+        valid = _validity(cameras_json, cameras)
+        meta = table.select(row_columns).to_pylist()
         checks = {col: table.column(col).to_pylist() for col in check_cols}
+        boxes = table.column(box_column).to_pylist() if box_column else [None] * table.num_rows
         for c in cameras:
             p, has_mass = normalised(maps[c])
             use = valid[c] & has_mass
@@ -303,6 +349,7 @@ def compute_views(
                     {c: bool(valid[c][i]) for c in cameras},
                     {col: values[i] for col, values in checks.items()},
                     kind,
+                    _nuisance(boxes[i], cameras_json[i], cameras[0], maps[cameras[0]][i], grids[cameras[0]]),
                 )
             )
             for kd in ds.kinds:
@@ -318,13 +365,11 @@ def compute_views(
     hot_cells = {c: {(h.row, h.col) for h in hot[c]} for c in cameras}
     # Pass two: each frame against the prior.
     sums = {c: {"sse": 0.0, "sst": 0.0} for c in cameras}
-    distances: dict[int, float] = {}
     first = 0
     for episode in episodes:
         table = ds.table(episode, ["cameras", *(map_column(kind, c) for c in cameras)])
         maps = _frame_maps(table, kind, cameras, grids)
         valid = _validity(table.column("cameras").to_pylist(), cameras)
-        frame_distances: list[list[float]] = [[] for _ in range(table.num_rows)]
         for c in cameras:
             p, has_mass = normalised(maps[c])
             use = valid[c] & has_mass
@@ -337,9 +382,6 @@ def compute_views(
                 row[f"{c}/prior_r2"] = _finite_or_none(float(r2[i]))
                 row[f"{c}/prior_distance"] = float(distance[i])
                 row[f"{c}/peak_on_hot"] = (row[f"{c}/peak_row"], row[f"{c}/peak_col"]) in hot_cells[c]
-                frame_distances[i].append(float(distance[i]))
-        per_frame = [float(np.mean(d)) for d in frame_distances if d]
-        distances[episode] = float(np.mean(per_frame)) if per_frame else math.nan
         first += table.num_rows
     fit = {}
     for c in cameras:
@@ -359,8 +401,9 @@ def compute_views(
     for row in rows:
         by_episode.setdefault(int(row["episode_index"]), []).append(row)
         by_task.setdefault(str(row["task"]), []).append(row)
+    entropies = {e: episode_entropy(by_episode.get(e, []), cameras) for e in episodes}
     ranked = []
-    for rank, (episode, d, z) in enumerate(episode_ranking(distances), start=1):
+    for rank, (episode, entropy, z) in enumerate(episode_ranking(entropies), start=1):
         group = by_episode.get(episode, [])
         tasks = Counter(str(row["task"]) for row in group)
         ranked.append(
@@ -368,8 +411,10 @@ def compute_views(
                 "rank": rank,
                 "episode_index": episode,
                 "task": tasks.most_common(1)[0][0] if tasks else None,
-                "distance": _finite_or_none(d),
+                "entropy": _finite_or_none(entropy),
                 "z": _finite_or_none(z),
+                "distance": _finite_or_none(episode_distance(group, cameras)),
+                **episode_outcome(group),
                 **group_summary(group, cameras),
             }
         )
@@ -391,13 +436,121 @@ def compute_views(
         tasks=task_rows,
         checks=check_summary(check_acc),
         info=ds.info,
+        outcomes=outcome_views(by_episode, cameras, options) if ds.info.outcome is not None else None,
     )
 
 
+def _nuisance(
+    box: Sequence[float] | None, cameras_json: str | None, camera: str, m: np.ndarray, grid: tuple[int, int]
+) -> dict[str, float | None]:
+    """{camera: the nuisance mass ratio of its map} for the camera the task region's box is given in."""
+    if box is None:
+        return {}
+    geometry = (json.loads(cameras_json) if cameras_json else {}).get(camera, {}).get("geometry")
+    cells = client_box_cells(box, geometry, grid, None)
+    return {} if cells is None else {camera: nuisance_mass_ratio(m, cells)}
+
+
+def _frames_mean(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str], field: str) -> float:
+    """The mean over frames of the mean of a per-camera field over the frame's cameras that have it (valid, with
+    mass); NaN when no frame has it."""
+    per_frame = []
+    for row in rows:
+        values = [row[f"{c}/{field}"] for c in cameras if row.get(f"{c}/{field}") is not None]
+        if values:
+            per_frame.append(float(np.mean(values)))
+    return float(np.mean(per_frame)) if per_frame else math.nan
+
+
+def episode_entropy(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str]) -> float:
+    """How diffuse an episode's maps are: the mean over its frames of the mean normalised entropy over the frame's
+    cameras. What the episode ranking sorts by."""
+    return _frames_mean(rows, cameras, "entropy_norm")
+
+
+def episode_distance(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str]) -> float:
+    """How far an episode's maps lie from the prior: the mean over its frames of the mean `prior_distance` over the
+    frame's cameras."""
+    return _frames_mean(rows, cameras, "prior_distance")
+
+
+def episode_outcome(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """An episode's length and success from its rows (the `episode_*` columns; nothing without outcomes)."""
+    if not rows or EPISODE_SUCCESS not in rows[0]:
+        return {}
+    return {"success": rows[0][EPISODE_SUCCESS], "length": rows[0][EPISODE_LENGTH]}
+
+
+# The per-camera means of `group_summary` that `outcome_views` tries as failure detectors.
+CAMERA_FIGURES = (
+    "mean_share",
+    "mean_entropy_norm",
+    "mean_prior_distance",
+    "mean_nuisance_mass",
+    "mean_reliance_score",
+    "mean_reliance_actions",
+)
+PROMPT_FIGURES = ("mean_reliance_score", "mean_reliance_actions")
+
+
+def episode_figures(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str]) -> dict[str, float]:
+    """The single figures of an episode (or of its first frames) that `outcome_views` tries as failure detectors:
+    the ranking's entropy, the distance to the prior, the mean explained score, per camera `CAMERA_FIGURES` and the
+    prompt's `PROMPT_FIGURES`. NaN: not measured."""
+    summary = group_summary(rows, cameras)
+    figures = {
+        "entropy": episode_entropy(rows, cameras),
+        "distance": episode_distance(rows, cameras),
+        "mean_score": summary["mean_score"],
+    }
+    figures |= {f"{c}/{key}": summary["cameras"][c][key] for c in cameras for key in CAMERA_FIGURES}
+    figures |= {f"{RELIANCE_PROMPT}/{key}": summary[RELIANCE_PROMPT][key] for key in PROMPT_FIGURES}
+    return {k: math.nan if v is None else float(v) for k, v in figures.items()}
+
+
+def _findings(failed: np.ndarray, figures: Sequence[Mapping[str, float]]) -> dict[str, dict[str, Any]]:
+    """`cam.outcomes.finding` of each figure some episode has."""
+    names = [n for n in (figures[0] if figures else {}) if any(math.isfinite(f[n]) for f in figures)]
+    return {name: finding(failed, [f[name] for f in figures]) for name in names}
+
+
+def outcome_views(
+    by_episode: Mapping[int, Sequence[Mapping[str, Any]]], cameras: Sequence[str], options: ViewOptions
+) -> dict[str, Any]:
+    """Failed and successful episodes side by side (the group summary of each outcome's frames), and how well each
+    episode figure finds the failures (`cam.outcomes.finding`: ROC AUC, larger = failure, with its interval, and
+    precision at the number of failures, next to chance): over whole episodes, with the episode's length as the
+    baseline every figure must beat (failures run to the step limit, successes stop early), and from each episode's
+    first `early_frames` explained frames only (what a user watching a live robot has; length cannot help there)."""
+    episodes = sorted(by_episode)
+    failed = np.array([not by_episode[e][0][EPISODE_SUCCESS] for e in episodes], bool)
+    groups = {
+        name: [row for e, f in zip(episodes, failed, strict=True) if f == (name == "failure") for row in by_episode[e]]
+        for name in ("success", "failure")
+    }
+    whole = [
+        episode_figures(by_episode[e], cameras) | {"length": float(by_episode[e][0][EPISODE_LENGTH])} for e in episodes
+    ]
+    early = [
+        episode_figures(sorted(by_episode[e], key=lambda r: r["frame_index"])[: options.early_frames], cameras)
+        for e in episodes
+    ]
+    return {
+        "episodes": len(episodes),
+        "failures": int(failed.sum()),
+        "by_outcome": {
+            name: {"episodes": int((failed == (name == "failure")).sum()), **group_summary(group, cameras)}
+            for name, group in groups.items()
+        },
+        "failure_finding": _findings(failed, whole),
+        "early_warning": {"frames": options.early_frames, "figures": _findings(failed, early)},
+    }
+
+
 def group_summary(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str]) -> dict[str, Any]:
-    """A group of frames (an episode, a task): frames, mean score, malformed generations, and per camera the mean
-    share, normalised entropy, the most frequent peak cell (with its rate), the mean peak cell and the fit to the
-    prior."""
+    """A group of frames (an episode, a task, an outcome): frames, mean score, malformed generations, per camera the
+    mean share, normalised entropy, the most frequent peak cell (with its rate), the mean peak cell, the fit to the
+    prior, the mean nuisance mass and reliance, and the prompt's mean reliance (None where not measured)."""
     out: dict[str, Any] = {
         "frames": len(rows),
         "mean_score": finite_mean(mean_score(row["score"]) for row in rows),
@@ -424,8 +577,15 @@ def group_summary(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str]) -> 
             ],
             "mean_prior_cosine": finite_mean(row.get(f"{c}/prior_cosine") for row in valid),
             "mean_prior_distance": finite_mean(row.get(f"{c}/prior_distance") for row in valid),
+            "mean_nuisance_mass": finite_mean(row.get(f"{c}/nuisance_mass") for row in valid),
+            "mean_reliance_score": finite_mean(row.get(f"{c}/reliance_score") for row in valid),
+            "mean_reliance_actions": finite_mean(row.get(f"{c}/reliance_actions") for row in valid),
         }
     out["cameras"] = per_camera
+    out[RELIANCE_PROMPT] = {
+        "mean_reliance_score": finite_mean(row.get(f"{RELIANCE_PROMPT}/reliance_score") for row in rows),
+        "mean_reliance_actions": finite_mean(row.get(f"{RELIANCE_PROMPT}/reliance_actions") for row in rows),
+    }
     return out
 
 

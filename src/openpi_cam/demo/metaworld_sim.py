@@ -12,7 +12,8 @@ camera gives the pixels of the box's bodies (`Frame.target_mask`, occlusion by t
 box (`Frame.target_box`), the ground truth the pointing figures and the nuisance mass are scored against.
 
 Perturbations (`Perturbation`) change the scene at construction, each at a stated strength: the box's colour, the
-light, the fixed camera's position and field of view, distractor cubes added with `MjSpec`, and the prompt.
+light, the fixed camera's position, distractor cubes added with `MjSpec`, and the prompt; the kinds the reaching task
+shares are spelled as its perturbations are (`demo.perturb`).
 MuJoCo renders headless through EGL (or OSMesa); `MUJOCO_GL` is set to `egl` unless the environment names another.
 Shadows are off: the 4096-pixel shadow map makes a render about four times slower and adds nothing the policy needs.
 """
@@ -35,7 +36,7 @@ IMAGE_SIZE = 64
 STATE_DIM = 4  # hand x, y, z and the gripper's opening: Meta-World's observation without the object and goal
 ACTION_DIM = 4  # hand displacement (x, y, z) and grip effort, each in [-1, 1]
 MAX_STEPS = 150  # the expert needs 61-73 steps (docs/DEMO_NOTES.md)
-PERTURBATION_KINDS = ("clean", "colour", "light", "shift", "distractors", "prompt")
+PERTURBATION_KINDS = ("clean", "hue", "dim", "shift", "distractors", "prompt")
 # MuJoCo picks its GL backend when it is first imported, by whoever imports it (metaworld does): set it first.
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -45,8 +46,8 @@ class Perturbation:
     """One change to the scene, `kind=strength` on the command line:
 
     - `clean`: none;
-    - `colour=DEGREES`: the box's colour turned around the hue circle;
-    - `light=FACTOR`: every light's diffuse and ambient intensity times the factor;
+    - `hue=DEGREES`: the box's colours turned around the hue circle;
+    - `dim=FACTOR`: every light's diffuse and ambient intensity (the head light's too) times the factor;
     - `shift=METRES`: the fixed camera moved that far sideways (along its image's x axis), still pointing the same way;
     - `distractors=N`: N cubes of unseen colours placed on the table, clear of the box's area;
     - `prompt=TEXT`: the prompt replaced (`prompt=` empties it).
@@ -60,15 +61,15 @@ class Perturbation:
         kind, _, strength = text.partition("=")
         if kind not in PERTURBATION_KINDS:
             raise ValueError(f"unknown perturbation {text!r}: one of {', '.join(PERTURBATION_KINDS)} (kind=strength)")
-        if kind in ("colour", "light", "shift", "distractors"):
+        if kind in ("hue", "dim", "shift", "distractors"):
             try:
                 float(strength)
             except ValueError:
                 raise ValueError(f"perturbation {text!r} needs a number: {kind}=VALUE") from None
         if kind == "distractors" and (not strength.isdigit() or int(strength) < 1):
             raise ValueError(f"perturbation {text!r}: distractors=N with N a positive whole number")
-        if kind == "light" and float(strength) < 0:
-            raise ValueError(f"perturbation {text!r}: light=FACTOR with FACTOR >= 0")
+        if kind == "dim" and float(strength) < 0:
+            raise ValueError(f"perturbation {text!r}: dim=FACTOR with FACTOR >= 0")
         if kind == "clean" and strength:
             raise ValueError(f"perturbation {text!r}: clean takes no strength")
         return cls(kind, strength)
@@ -205,7 +206,7 @@ class MetaWorldSim:
 
     def _perturb_model(self, model: Any, mujoco: Any) -> None:
         kind = self.perturbation.kind
-        if kind == "colour":
+        if kind == "hue":
             geoms = [g for g in range(model.ngeom) if model.body(model.geom_bodyid[g]).name in TARGET_BODIES]
             rgba = model.geom_rgba[geoms]
             rgba[:, :3] = _hue_turn(rgba[:, :3], self.perturbation.value)
@@ -214,7 +215,7 @@ class MetaWorldSim:
             materials = sorted({int(model.geom_matid[g]) for g in geoms if model.geom_matid[g] >= 0})
             for m in materials:
                 model.mat_rgba[m, :3] = _hue_turn(model.mat_rgba[m, :3], self.perturbation.value)
-        elif kind == "light":
+        elif kind == "dim":
             model.light_diffuse[:] *= self.perturbation.value
             model.light_ambient[:] *= self.perturbation.value
             model.vis.headlight.diffuse[:] *= self.perturbation.value

@@ -106,10 +106,14 @@ def run_figures(run_dir: Path, image_size: int = task.TaskConfig().image_size) -
     episodes = json.loads(episodes_path.read_text()) if episodes_path.exists() else []
     return {
         "episodes": len(episodes),
-        "success_rate": _mean([e["success"] for e in episodes]),
+        "success_rate": success_rate(episodes),
         "steps": len(labelled),
         "maps": per_kind,
     }
+
+
+def success_rate(episodes: list[dict[str, Any]]) -> float:
+    return _mean([e["success"] for e in episodes])
 
 
 def _mean(values: list[Any]) -> float:

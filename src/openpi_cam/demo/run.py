@@ -9,38 +9,85 @@ import dataclasses
 import json
 import pathlib
 import time
+from collections.abc import Sequence
 from typing import Any, Literal
+
+import numpy as np
 
 from openpi_cam.cam.faithfulness_run import FaithfulnessOptions, evaluate_run
 from openpi_cam.cam.run_evidence import REPORT_FILE
 from openpi_cam.cam.run_format import dumps, load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
-from openpi_cam.demo import bundled, metaworld_loop, quality, sim
-from openpi_cam.demo.client import PolicyClient
-from openpi_cam.demo.metaworld_sim import Perturbation
+from openpi_cam.demo import bundled, metaworld_data, metaworld_loop, metaworld_sim, quality, task
+from openpi_cam.demo.client import PolicyClient, RolloutSink
+from openpi_cam.demo.perturb import CLEAN, Perturbation
+from openpi_cam.policies import demo_reach
 from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.serving.server import start_server_in_thread
 from openpi_cam.viz.render import RenderOptions, default_render_dir, render_run
 from openpi_cam.vocabulary import MAP_KINDS, Baseline, IgSpace, MapKind, MapOptions, Target
 
 
-def run_episodes(url: str, episodes: int, *, seed: int, max_calls: int, execute: int) -> list[dict[str, Any]]:
-    """Closed loop over the server: observe, infer a chunk, execute its first `execute` actions, repeat."""
+def rollout_frame(sample: task.Sample, action: np.ndarray, perturbation: int) -> dict[str, Any]:
+    """A recorded step by LeRobot feature name (`demo_reach.LEROBOT_KEYS`): the cameras, the state, the executed action,
+    the named block's box as the base camera shows it and the index of the episode's perturbation."""
+    keys = demo_reach.LEROBOT_KEYS
+    return {
+        keys[demo_reach.IMAGE_KEY]: sample.base_image,
+        keys[demo_reach.WRIST_KEY]: sample.wrist_image,
+        keys[demo_reach.STATE_KEY]: np.asarray(sample.state, np.float32),
+        keys["actions"]: np.asarray(action, np.float32),
+        demo_reach.LEROBOT_TARGET_BOX: np.asarray(sample.target_box, np.float32),
+        PERTURBATION_FEATURE: np.array([perturbation], np.int64),
+    }
+
+
+def run_episodes(
+    url: str,
+    episodes: int,
+    *,
+    seed: int,
+    max_calls: int,
+    execute: int,
+    perturbations: Sequence[Perturbation] = (CLEAN,),
+    sink: RolloutSink | None = None,
+) -> list[dict[str, Any]]:
+    """Closed loop over the server: observe, infer a chunk, execute its first `execute` actions one step at a time,
+    repeat until the block is reached or `max_calls` chunks are spent. Episode i is the scene of seed + i // P under
+    perturbation i % P (P perturbations): every perturbation meets the same scenes. Each step goes to `sink`."""
     results = []
     with PolicyClient(url) as client:
         for e in range(episodes):
-            episode = sim.new_episode(seed + e)
+            which = e % len(perturbations)
+            episode_seed = seed + e // len(perturbations)
+            episode = perturbations[which].episode(episode_seed)
             calls = 0
             while calls < max_calls and not episode.success:
-                reply = client.infer(bundled.client_observation(episode.observe(), episode.scene))
+                sample = episode.observe()
+                reply = client.infer(bundled.client_observation(sample, episode.scene))
                 calls += 1
-                episode.execute(reply["actions"], execute)
+                chunk = np.asarray(reply["actions"])[:execute]
+                for j, action in enumerate(chunk):
+                    success = episode.execute(action[None])
+                    last = calls == max_calls and j == len(chunk) - 1
+                    if sink is not None:
+                        frame = rollout_frame(sample, action, which)
+                        sink.step(
+                            frame, task=sample.prompt, reward=float(success), success=success, done=success or last
+                        )
+                    if success:
+                        break
+                    sample = episode.observe()
+            if sink is not None:
+                sink.end_episode()
             results.append(
                 {
-                    "seed": seed + e,
+                    "seed": episode_seed,
+                    "perturbation": perturbations[which].name,
                     "prompt": episode.observe().prompt,
                     "success": bool(episode.success),
                     "calls": calls,
+                    "steps": episode.steps,
                     "final_distance": float(((episode.state - episode.goal) ** 2).sum() ** 0.5),
                 }
             )
@@ -54,11 +101,11 @@ def run_metaworld_episodes(
     seed: int,
     max_calls: int,
     execute: int,
-    perturbations: tuple[Perturbation, ...],
-    sink: metaworld_loop.RolloutSink | None = None,
+    perturbations: Sequence[metaworld_sim.Perturbation],
+    sink: RolloutSink | None = None,
 ) -> list[dict[str, Any]]:
-    """Meta-World episodes over the server: episode i is the scene of seed + i // P under the (i mod P)-th of the P
-    perturbations, so every perturbation meets the same scenes."""
+    """Meta-World episodes over the server, laid out as `run_episodes` lays out the reaching task's: episode i is the
+    scene of seed + i // P under the (i mod P)-th of the P perturbations."""
     with PolicyClient(url) as client:
         return [
             metaworld_loop.run_episode(
@@ -68,11 +115,16 @@ def run_metaworld_episodes(
                 max_calls=max_calls,
                 execute=execute,
                 sink=sink,
+                perturbation_index=e % len(perturbations),
             )
             for e in range(episodes)
         ]
 
 
+ROLLOUT_FPS = 10  # the frame rate recorded rollouts declare (the simulator has no clock: one frame per action)
+ROLLOUT_FPS_METAWORLD = metaworld_data.FPS  # Meta-World's control rate
+PERTURBATION_FEATURE = metaworld_loop.PERTURBATION_FEATURE  # a recorded frame's index into the run's perturbations
+MAX_CALLS = {"reach": 6, "metaworld": metaworld_loop.MAX_CALLS}
 DRAIN_S = 3600.0  # how long the end of a demo run may spend explaining requests still queued
 
 
@@ -91,19 +143,24 @@ class DemoOptions:
     max_calls: int | None = None
     # actions of each returned chunk the robot executes before asking again.
     execute: int = 5
-    # the first episode's seed (episode i uses seed + i).
+    # the first episode's seed (episode i uses seed + i // P for P perturbations).
     seed: int = 0
+    # what the episodes are run under, in turn (`kind=strength`; reach: clean, distractors=N, hue=DEGREES,
+    # shift=PIXELS, dim=FACTOR, absent (`openpi_cam.demo.perturb`); metaworld: clean, hue=DEGREES, dim=FACTOR,
+    # shift=METRES, distractors=N, prompt=TEXT (`openpi_cam.demo.metaworld_sim`)): episode i under the (i mod P)-th,
+    # so each meets the same scenes.
+    perturb: tuple[str, ...] = ("clean",)
+    # serve with the explanation side channel on (every request explained and logged, then faithfulness and reports);
+    # off, the episodes are only driven (and recorded with `--record`).
+    explain: bool = True
     # what the maps explain for each inference.
     target: Target = "chunk"
     # write overlays and the HTML report of each map kind after the run.
     render: bool = True
     # with `render`, also write an MP4 and a GIF per episode.
     videos: bool = True
-    # which bundled model serves the reaching task: the tiny pi0-FAST or the tiny pi0.5 (metaworld has its pi0.5).
+    # which bundled model serves the reaching task: the tiny pi0-FAST or the tiny pi0.5 (metaworld has its own pi0.5).
     model: Literal["pi0_fast", "pi05"] = "pi0_fast"
-    # metaworld: what the episodes run under, in turn (`kind=strength`: clean, colour=DEGREES, light=FACTOR,
-    # shift=METRES, distractors=N, prompt=TEXT; `demo.metaworld_sim.Perturbation`): episode i under the (i mod P)-th.
-    perturb: tuple[str, ...] = ("clean",)
     # the folder holding the model (checkpoint/) and its tokenizers; default: the bundled ones of `model`.
     assets: pathlib.Path | None = None
     # which map kinds the side channel computes (all four, so that the faithfulness table compares them).
@@ -117,24 +174,28 @@ class DemoOptions:
     ig_space: IgSpace = MapOptions.ig_space
 
     @property
-    def calls(self) -> int:
-        return self.max_calls or (metaworld_loop.MAX_CALLS if self.sim == "metaworld" else 6)
+    def perturbations(self) -> tuple[Perturbation, ...] | tuple[metaworld_sim.Perturbation, ...]:
+        parse = metaworld_sim.Perturbation.parse if self.sim == "metaworld" else Perturbation.parse
+        return tuple(parse(p) for p in self.perturb)
 
     @property
-    def perturbations(self) -> tuple[Perturbation, ...]:
-        return tuple(Perturbation.parse(p) for p in self.perturb)
+    def calls(self) -> int:
+        return MAX_CALLS[self.sim] if self.max_calls is None else self.max_calls
+
+    @property
+    def bundled_model(self) -> str:
+        """The bundled model that serves (`model_spec.BUNDLED_CONFIGS`)."""
+        return "metaworld" if self.sim == "metaworld" else self.model
 
     def __post_init__(self) -> None:
         if not self.perturb:
             raise ValueError("--perturb needs at least one perturbation (clean: none)")
-        if self.sim == "reach" and self.perturb != ("clean",):
-            raise ValueError("--perturb is for --sim metaworld")
         self.perturbations  # noqa: B018  (refused as the flags are parsed)
 
 
 @dataclasses.dataclass
 class DemoResult:
-    run_dir: pathlib.Path
+    run_dir: pathlib.Path | None  # None: the side channel was off
     episodes: list[dict[str, Any]]
     figures: dict[str, Any]
     reports: dict[str, pathlib.Path]
@@ -142,11 +203,11 @@ class DemoResult:
     faithfulness: dict[str, Any] | None = None  # `cam.faithfulness_run.evaluate_run`'s report
 
 
-def run_demo(opts: DemoOptions, sink: metaworld_loop.RolloutSink | None = None) -> DemoResult:
-    """Serves, drives (recording every Meta-World step into `sink`), renders and scores; raises OSError when the side
-    channel cannot create its run directory."""
+def run_demo(opts: DemoOptions, sink: RolloutSink | None = None) -> DemoResult:
+    """Serves, drives (recording every step into `sink`), renders and scores; raises OSError when the side channel
+    cannot create its run directory."""
     t0 = time.time()
-    model = ModelSpec.demo("metaworld" if opts.sim == "metaworld" else opts.model, opts.assets)
+    model = ModelSpec.demo(opts.bundled_model, opts.assets)
     policy = model.create()
     options = CAMOptions(
         every_k=1,
@@ -157,30 +218,37 @@ def run_demo(opts: DemoOptions, sink: metaworld_loop.RolloutSink | None = None) 
         map_options=MapOptions(baseline=opts.baseline, ig_space=opts.ig_space),
         queue_size=max(64, opts.num_episodes * opts.calls),  # room for every request: the demo logs each one
     )
-    demo = {"episodes": opts.num_episodes, "seed": opts.seed, "model": opts.model, "sim": opts.sim}
-    if opts.sim == "metaworld":
-        demo |= {"perturb": list(opts.perturb)}
+    demo = {
+        "episodes": opts.num_episodes,
+        "seed": opts.seed,
+        "model": opts.bundled_model,
+        "perturb": list(opts.perturb),
+    }
+    demo |= {"sim": opts.sim}
     run_config = {**model.resolved().to_json(), "demo": demo}
-    cam = wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=str(model.checkpoint))
+    cam = (
+        wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=str(model.checkpoint))
+        if (opts.explain)
+        else None
+    )
     # The demo explains every request: the drain at the end is the rest of the run's work, not a shutdown grace.
-    server = start_server_in_thread(cam, metadata=policy.metadata, close_timeout=DRAIN_S)
+    server = start_server_in_thread(cam or policy, metadata=policy.metadata, close_timeout=DRAIN_S)
+    drive = run_metaworld_episodes if opts.sim == "metaworld" else run_episodes
     try:
-        if opts.sim == "metaworld":
-            episodes = run_metaworld_episodes(
-                server.url,
-                opts.num_episodes,
-                seed=opts.seed,
-                max_calls=opts.calls,
-                execute=opts.execute,
-                perturbations=opts.perturbations,
-                sink=sink,
-            )
-        else:
-            episodes = run_episodes(
-                server.url, opts.num_episodes, seed=opts.seed, max_calls=opts.calls, execute=opts.execute
-            )
+        episodes = drive(
+            server.url,
+            opts.num_episodes,
+            seed=opts.seed,
+            max_calls=opts.calls,
+            execute=opts.execute,
+            perturbations=opts.perturbations,  # type: ignore[arg-type]
+            sink=sink,
+        )
     finally:
         server.stop(timeout=DRAIN_S + 60)  # closes the side channel too, which drains its queue
+    if cam is None:
+        figures = {"episodes": len(episodes), "success_rate": quality.success_rate(episodes), "steps": 0, "maps": {}}
+        return DemoResult(None, episodes, figures, {}, time.time() - t0)
     if cam.run_dir is None:
         raise OSError(f"the side channel could not create a run directory under {opts.out}; see the log")
     run_dir = cam.run_dir

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import numpy as np
 
@@ -15,6 +16,8 @@ class ReachSim:
     state: np.ndarray
     cfg: task.TaskConfig = dataclasses.field(default_factory=task.TaskConfig)
     steps: int = 0
+    # what the robot's cameras and prompt make of the scene, when not what the task renders (`demo.perturb`)
+    view: Callable[[task.Sample], task.Sample] | None = None
 
     @property
     def goal(self) -> np.ndarray:
@@ -25,7 +28,8 @@ class ReachSim:
         return float(np.linalg.norm(self.state - self.goal)) <= self.cfg.success_radius
 
     def observe(self) -> task.Sample:
-        return task.observe(self.scene, self.state, self.cfg)
+        sample = task.observe(self.scene, self.state, self.cfg)
+        return sample if self.view is None else self.view(sample)
 
     def execute(self, actions: np.ndarray, n: int | None = None) -> bool:
         """Apply the first `n` actions of a chunk (all by default); stop early on success. Returns success."""

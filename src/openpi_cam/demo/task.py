@@ -19,6 +19,14 @@ COLORS: dict[str, tuple[int, int, int]] = {
     "blue": (50, 90, 235),
     "yellow": (230, 210, 40),
 }
+# Colours no training scene shows: what `demo.perturb`'s distractor blocks are painted with.
+UNSEEN_COLORS: dict[str, tuple[int, int, int]] = {
+    "orange": (245, 130, 20),
+    "purple": (150, 60, 200),
+    "cyan": (40, 215, 225),
+    "pink": (250, 125, 195),
+}
+PALETTE = {**COLORS, **UNSEEN_COLORS}
 BACKGROUND = (70, 62, 55)
 OUTSIDE = (0, 0, 0)
 MARKER = (255, 255, 255)
@@ -86,17 +94,28 @@ def block_center(block: Block, size: int) -> np.ndarray:
     return pixel_to_state(np.array([(x0 + x1) / 2.0, (y0 + y1) / 2.0]), size).astype(np.float32)
 
 
-def random_scene(rng: np.random.Generator, cfg: TaskConfig = TaskConfig()) -> Scene:
-    n = int(rng.integers(cfg.min_blocks, cfg.max_blocks + 1))
-    colors = rng.choice(list(COLORS), size=n, replace=False)
+def place_boxes(
+    rng: np.random.Generator, n: int, cfg: TaskConfig = TaskConfig(), taken: tuple[tuple[int, int, int, int], ...] = ()
+) -> list[tuple[int, int, int, int]]:
+    """`n` block boxes at random places on the table, apart from each other and from the `taken` ones."""
     margin, size, gap = 2, cfg.block_size, 3
     boxes: list[tuple[int, int, int, int]] = []
     while len(boxes) < n:
         x0, y0 = (int(v) for v in rng.integers(margin, cfg.image_size - margin - size + 1, size=2))
         box = (x0, y0, x0 + size, y0 + size)
         # Keep a gap between blocks so each one is a separate blob on the patch grid.
-        if all(x0 >= b[2] + gap or b[0] >= box[2] + gap or y0 >= b[3] + gap or b[1] >= box[3] + gap for b in boxes):
+        if all(
+            x0 >= b[2] + gap or b[0] >= box[2] + gap or y0 >= b[3] + gap or b[1] >= box[3] + gap
+            for b in (*taken, *boxes)
+        ):
             boxes.append(box)
+    return boxes
+
+
+def random_scene(rng: np.random.Generator, cfg: TaskConfig = TaskConfig()) -> Scene:
+    n = int(rng.integers(cfg.min_blocks, cfg.max_blocks + 1))
+    colors = rng.choice(list(COLORS), size=n, replace=False)
+    boxes = place_boxes(rng, n, cfg)
     blocks = tuple(Block(str(c), b) for c, b in zip(colors, boxes, strict=True))
     return Scene(blocks=blocks, target=int(rng.integers(n)))
 
@@ -106,7 +125,7 @@ def render_scene(scene: Scene, cfg: TaskConfig = TaskConfig()) -> np.ndarray:
     img[:] = BACKGROUND
     for block in scene.blocks:
         x0, y0, x1, y1 = block.box
-        img[y0:y1, x0:x1] = COLORS[block.color]
+        img[y0:y1, x0:x1] = PALETTE[block.color]
     return img
 
 

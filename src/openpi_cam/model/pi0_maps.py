@@ -70,12 +70,15 @@ def _flow_gradient_maps(params, obs, noise, *, cfg: Pi0Config, targets: tuple[tu
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "targets", "kinds", "options", "base_outputs"))
-def _flow_baseline_kinds(params, obs, noise, inputs, *, cfg: Pi0Config, targets, kinds, options, base_outputs):
+def _flow_baseline_kinds(
+    params, obs, noise, inputs, explained=None, *, cfg: Pi0Config, targets, kinds, options, base_outputs
+):
     """IG / occlusion of the targets' scores, each a fixed weighting of x_0 from the same noise (see
-    `baseline_maps.baseline_kinds`); with `base_outputs` also "score" [T, B] and "actions" [B, H, A]."""
+    `baseline_maps.baseline_kinds`); the CHUNK weighting is the `explained` chunk [B, H, A] when given, else this
+    observation's x_0. With `base_outputs` also "score" [T, B] and "actions" [B, H, A]."""
     E = embed_images(params, obs, cfg)
     x_0 = denoise(params, E, obs, noise, cfg)
-    weights = _weights(x_0, targets)
+    weights = _weights(x_0 if explained is None else explained, targets)
 
     def score_fn(image_tokens):
         return jnp.einsum("tbha,bha->tb", weights, denoise(params, image_tokens, obs, noise, cfg).astype(jnp.float32))
@@ -176,9 +179,11 @@ def rescore_masks(
     targets: Sequence[tuple[int, int]],
     *,
     options: MapOptions | None = None,
+    explained: ArrayLike | None = None,
 ) -> dict[str, np.ndarray]:
     """The targets' scores with patches painted by the baseline frame, one camera at a time, the whole denoising
-    re-run from the same noise; the weighting stays that of the unpainted call (CHUNK: its x_0). masks: camera ->
+    re-run from the same noise; the weighting stays that of the explained call (CHUNK: `explained`, its chunk x_0
+    [B, H, A]; by default this observation's unpainted x_0, the same for the served observation). masks: camera ->
     bool [M, Hp, Wp] (an all-False mask gives the unmodified score). -> camera -> [M, B, T]."""
     cfg = model.config
     targets = _checked_targets(cfg, targets)
@@ -192,6 +197,7 @@ def rescore_masks(
         obs,
         jnp.asarray(noise, jnp.float32),
         inputs,
+        None if explained is None else jnp.asarray(explained, jnp.float32),
         cfg=cfg,
         targets=targets,
         kinds=("occlusion",),

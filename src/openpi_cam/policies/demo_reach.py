@@ -29,6 +29,7 @@ LEROBOT_KEYS = {
     STATE_KEY: "observation.state",
     "actions": "action",
 }
+LEROBOT_TARGET_BOX = "observation.target_box"  # the named block's box in the base camera (x0, y0, x1, y1), float32
 ACTION_HORIZON = 10
 # An expert postfix is 27 tokens (`Action: ` in 5, 20 FAST ids, `|`, EOS); a short cap keeps a broken model cheap.
 MAX_DECODING_STEPS = 32

@@ -102,7 +102,10 @@ class FlowExplainer(ModelExplainer):
         index = explained.get("action_index")
         target = CHUNK if explained["target"] == "chunk" else tuple(index)
         noise = np.asarray(sample_inputs["noise"], np.float32)
-        scores = rescore_masks(self.model, observation, noise, masks, [target], options=options)
+        # the logged chunk weighs the chunk target, so an observation other than the served one (another prompt)
+        # is scored by the explained score itself
+        chunk = np.asarray(outputs, np.float32)
+        scores = rescore_masks(self.model, observation, noise, masks, [target], options=options, explained=chunk)
         return {c: s[:, 0, 0] for c, s in scores.items()}
 
 

@@ -64,6 +64,12 @@ class InferenceTrace:
     # the client's numeric observation values other than its images and prompt, at their `a/b` keys (e.g. the state):
     # with the raw images and the prompt, what the client sent
     client_inputs: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    # the client's observation as it was sent (its arrays shared, not copied): what `Policy.with_prompt` prepares
+    # again with another prompt
+    request: Mapping[str, Any] | None = None
+    # what the input transforms left for the output transforms (`OUTPUT_CONTEXT`): with the state, what turns the
+    # raw output into the robot's actions again (`Policy.resample`)
+    output_context: Mapping[str, Any] = dataclasses.field(default_factory=dict)
 
     @property
     def camera_names(self) -> tuple[str, ...]:
@@ -89,6 +95,7 @@ class _Prepared:
     camera_sources: Mapping[str, str | None]
     client_inputs: dict[str, np.ndarray]
     context: Mapping[str, Any]  # what the input transforms left for the output transforms (`OUTPUT_CONTEXT`)
+    request: Mapping[str, Any]  # the client's observation as it was sent
 
     @property
     def signature(self) -> tuple:
@@ -274,7 +281,7 @@ class Policy:
         observation = Observation.from_dict(batched)
         client = _client_inputs(obs, set(camera_sources.values()))
         state = np.asarray(batched["state"][0])
-        return _Prepared(observation, state, pre_resize_images, prompt, camera_sources, client, context)
+        return _Prepared(observation, state, pre_resize_images, prompt, camera_sources, client, context, obs)
 
     def _serve(
         self,
@@ -330,8 +337,39 @@ class Policy:
             prompt=request.prompt,
             malformed_reason=reason,
             client_inputs=request.client_inputs,
+            request=request.request,
+            output_context=request.context,
         )
         return outputs, trace
+
+    def resample(self, trace: InferenceTrace, observation: Observation) -> np.ndarray:
+        """The actions `infer` returns when the model sees `observation` (B = 1; e.g. the traced input with a camera
+        replaced, or `with_prompt`'s) in place of the traced call's input: the traced call's noise (pi0 / pi0.5),
+        state and output context through the same sampler, decoder and output transforms. The policy's rng and
+        counters are untouched. -> actions [horizon, action dim] in the robot's units."""
+        noise = trace.sample_inputs.get("noise")
+        with self._lock:
+            _, rng = jax.random.split(self._rng)  # unused by the families' samplers given the noise (pi0-FAST greedy)
+        raw, _ = self._sample([rng], observation, None if noise is None else np.asarray(noise))
+        return self._robot_actions(trace, raw[0])
+
+    def served_actions(self, trace: InferenceTrace) -> np.ndarray:
+        """The actions `infer` returned for the traced call, from its raw output (decoder and output transforms)."""
+        return self._robot_actions(trace, trace.output)
+
+    def _robot_actions(self, trace: InferenceTrace, raw: np.ndarray) -> np.ndarray:
+        actions, _ = self._decoder.extract(np.asarray(raw))
+        state = np.asarray(trace.observation.state)[0]
+        outputs = self._output_transform({**trace.output_context, "state": state, "actions": actions})
+        return np.asarray(outputs["actions"])
+
+    def with_prompt(self, trace: InferenceTrace, prompt: str) -> Observation:
+        """The traced call's model input with `prompt` in place of its prompt: the client's observation prepared
+        again (every input transform, so the prompt is tokenised as served, with the state where the family puts
+        it), its images and state unchanged."""
+        if trace.request is None:
+            raise ValueError("the trace does not hold the client's observation to prepare again")
+        return self._prepare({**trace.request, "prompt": prompt}).observation
 
     def training_inputs(self, obs: Mapping[str, Any], actions: np.ndarray) -> DataDict:
         """The model inputs training builds from an observation and a recorded action chunk [horizon, action dim]:

@@ -115,8 +115,9 @@ class PolicyServer:
 
     `policy` needs `infer(obs, context)`, and `infer_batch(observations, contexts)` with `batch_window_ms` (requests
     from all connections arriving within that many ms share one call of up to `max_batch`: `serving.batching`).
-    `stats()` (merged into `/stats`), `begin_close(timeout)` (called as soon as a stop is requested, must not block)
-    and `close(timeout)` (called once in-flight requests are answered) are used when present.
+    `stats()` (merged into `/stats`), `begin_close(timeout)` (called as soon as a stop is requested, must not block),
+    `close(timeout)` (called once in-flight requests are answered) and `connection_closed(connection_id)` (called when
+    a connection ends, after its last answer; must not block) are used when present.
     """
 
     def __init__(
@@ -323,6 +324,12 @@ class PolicyServer:
         finally:
             del self._connections[conn.id]
             logger.info("%s closed", conn.id)
+            closed = getattr(self._policy, "connection_closed", None)
+            if callable(closed):
+                try:
+                    closed(conn.id)
+                except Exception:  # a broken hook must not take the connection handling down
+                    logger.exception("policy.connection_closed(%s) failed", conn.id)
 
     async def _admit(self, websocket: ws_server.ServerConnection) -> _Connection | None:
         """Registers a new connection, or closes it (None) when `max_connections` are open."""

@@ -9,7 +9,7 @@ from collections import Counter
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from openpi_cam.cam.run_format import StepMeta
+from openpi_cam.cam.run_format import RELIANCE_PROMPT, StepMeta
 from openpi_cam.viz.evidence import CHECK_COLUMNS, SUMMARY_COLUMNS, MapEvidence, check_rows, summary_rows
 from openpi_cam.viz.stats import StepStats, aggregate, camera_names
 from openpi_cam.viz.text import escape, html_table, number, percent
@@ -308,8 +308,12 @@ def _step_section(
         rows.append(
             f"<tr><td>{name}</td><td>{'yes' if cs.valid else 'no'}</td><td>{100 * cs.share:.1f}%</td>"
             f"<td>{entropy}</td><td>{peak}</td><td>{shift}</td>"
-            f'<td class="evidence">{escape(evidence.step_line(st.seq, c)) if evidence else "-"}</td></tr>'
+            f'<td class="evidence">{escape(evidence.step_line(st.seq, c)) if evidence else "-"}</td>'
+            + (f"<td>{_reliance(st, c)}</td>" if st.reliance else "")
+            + "</tr>"
         )
+    if st.reliance:
+        rows.append(f"<tr><td>prompt (emptied)</td>{'<td></td>' * 6}<td>{_reliance(st, RELIANCE_PROMPT)}</td></tr>")
     nav = " ".join(
         f'<a href="#step-{s.seq}">{label}</a>' for s, label in zip(prev_next, ("prev", "next"), strict=True) if s
     )
@@ -322,10 +326,19 @@ def _step_section(
         f"score {st.score:.4g} <small>{nav}</small></h3>{warn}"
         f'<a href="{escape(assets.panel)}"><img class="panel" src="{escape(assets.panel)}" alt="seq {st.seq}"></a>'
         "<table><tr><th>camera</th><th>valid</th><th>share</th><th>entropy (norm.)</th><th>peak (row, col)</th>"
-        "<th>peak shift</th><th>top patch's drop / best patch's</th></tr>"
+        "<th>peak shift</th><th>top patch's drop / best patch's</th>"
+        + ("<th>reliance: score drop / action change without it</th>" if st.reliance else "")
+        + "</tr>"
         f"{''.join(rows)}</table>"
         f"<p class='dim'>tokens {escape(' '.join(map(str, st.token_ids)))}</p></section>"
     )
+
+
+def _reliance(st: StepStats, name: str) -> str:
+    """The step's reliance on a camera or its prompt: the explained score's drop and the action chunk's change (root
+    mean square, robot units) when it is replaced by the baseline frame (the prompt: emptied)."""
+    score, actions = st.reliance.get(f"{name}/reliance_score"), st.reliance.get(f"{name}/reliance_actions")
+    return f"{number(score)} / {number(actions)}"
 
 
 REPORT_STYLE = """

@@ -68,8 +68,9 @@ def write_rrd(
     alpha: float = 0.5,
     map_kind: str = DEFAULT_MAP_KIND,
 ) -> pathlib.Path:
-    """Writes the run's frames, overlays (of `map_kind` maps), per-camera attention shares and, when the run has a
-    faithfulness report, each step's figure for the drawn kind to `out_path`."""
+    """Writes the run's frames, overlays (of `map_kind` maps), per-camera attention shares, each step's reliance
+    when it was measured and, when the run has a faithfulness report, each step's figure for the drawn kind to
+    `out_path`."""
     rr = import_rerun()
     run = load_run(run_dir, load_arrays=False)
     steps = view_steps(run.steps, map_kind)
@@ -93,6 +94,10 @@ def write_rrd(
             scale = run_max if norm == "run" else step_scale(st)
             if math.isfinite(st.score):
                 rec.log(f"/{conn}/score", rr.Scalars(st.score))
+            for name, value in st.reliance.items():  # `<camera or prompt>/reliance_<score or actions>`
+                if value is not None:
+                    what, figure = name.rsplit("/", 1)
+                    rec.log(f"/{conn}/{figure}/{rr.escape_entity_path_part(what)}", rr.Scalars(value))
             for camera in list(step.meta.cameras) or list(step.maps):
                 cam = rr.escape_entity_path_part(camera)
                 image, _ = camera_image(step, camera)

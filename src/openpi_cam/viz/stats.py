@@ -128,6 +128,8 @@ class StepStats:
     score: float  # mean over tokens for multi-token targets
     token_ids: tuple[int, ...]
     cameras: dict[str, CameraStats]
+    # the step's reliance on each camera and its prompt (`run_format.Reliance.figures`); {} when not measured
+    reliance: dict[str, float | None] = dataclasses.field(default_factory=dict)
 
     @property
     def dominant(self) -> str | None:
@@ -221,6 +223,7 @@ def compute_stats(steps: Iterable[MapView]) -> list[StepStats]:
                 score=mean_score(meta.score),
                 token_ids=meta.token_ids,
                 cameras=cameras,
+                reliance={} if meta.reliance is None else meta.reliance.figures(),
             )
         )
     return out
@@ -239,8 +242,10 @@ def _nan_to_none(x: float) -> float | None:
 
 
 def to_rows(stats: Sequence[StepStats]) -> list[dict[str, Any]]:
-    """One flat row per step with `<camera>/<field>` columns; missing values are None."""
+    """One flat row per step with `<camera>/<field>` columns, and the reliance figures where any step has them;
+    missing values are None."""
     cams = camera_names(stats)
+    reliance_names = list(dict.fromkeys(name for st in stats for name in st.reliance))
     rows = []
     for st in stats:
         row: dict[str, Any] = {
@@ -270,12 +275,13 @@ def to_rows(stats: Sequence[StepStats]) -> list[dict[str, Any]]:
                 f"{c}/check_top_drop": _nan_to_none(cs.check_top_drop) if cs is not None else None,
                 f"{c}/check_random_max": _nan_to_none(cs.check_random_max) if cs is not None else None,
             }
-        rows.append(row)
+        rows.append(row | {name: st.reliance.get(name) for name in reliance_names})
     return rows
 
 
 def aggregate(stats: Sequence[StepStats]) -> dict[str, Any]:
-    """Run-level summary: per camera mean share/entropy, peak-stay rate, mean shift, and dominance counts."""
+    """Run-level summary: per camera mean share/entropy, peak-stay rate, mean shift, and dominance counts; the mean
+    reliance figures where steps have them."""
     cams = camera_names(stats)
     dominant = [st.dominant for st in stats]
     per_camera: dict[str, Any] = {}
@@ -291,11 +297,17 @@ def aggregate(stats: Sequence[StepStats]) -> dict[str, Any]:
             "peak_stay_rate": float(np.mean(stayed)) if stayed else None,
             "dominant_steps": dominant.count(c),
         }
+    reliance_names = list(dict.fromkeys(name for st in stats for name in st.reliance))
     return {
         "steps": len(stats),
         "connections": len({st.connection for st in stats}),
         "mean_score": finite_mean(st.score for st in stats),
         "cameras": per_camera,
+        **(
+            {"mean_reliance": {n: finite_mean(st.reliance.get(n) for st in stats) for n in reliance_names}}
+            if reliance_names
+            else {}
+        ),
     }
 
 
