@@ -145,6 +145,19 @@ def _distractor_spots(rng: np.random.Generator, n: int, box_xy: np.ndarray) -> l
     return spots
 
 
+def set_scene(env: Any, rand_vec: np.ndarray) -> None:
+    """What Meta-World's `set_task` does with a task of its benchmark, for a scene drawn here (the episode's own draw
+    keeps seeds exact): the object and goal placement frozen to `rand_vec`, the goal in the observation (the scripted
+    experts of tasks with a goal read it there; the observation space is recomputed, or the observation is clipped to
+    the partially observable one's zeros)."""
+    env._last_rand_vec = np.asarray(rand_vec, np.float64)
+    env._freeze_rand_vec = True
+    env._set_task_called = True
+    if env._partially_observable:
+        env._partially_observable = False
+        env.__dict__.pop("sawyer_observation_space", None)
+
+
 class MetaWorldSim:
     """One episode of the task under a perturbation: `frame()` observes, `step(action)` acts, `success` says whether
     the button is pressed (Meta-World's `info["success"]`). Episode `seed` fixes the box's place (drawn from the task's
@@ -161,12 +174,7 @@ class MetaWorldSim:
         mujoco = _mujoco()
         env = _environment_class(task)()
         rng = np.random.default_rng(seed)
-        space = env._random_reset_space
-        # Meta-World draws the scene from its task list unless unfrozen; the episode's own draw keeps seeds exact.
-        env._last_rand_vec = rng.uniform(space.low, space.high)
-        env._freeze_rand_vec = True
-        env._set_task_called = True
-        env._partially_observable = False
+        set_scene(env, rng.uniform(env._random_reset_space.low, env._random_reset_space.high))
         self.task, self.perturbation, self.seed, self.image_size = task, perturbation, seed, image_size
         if perturbation.kind == "distractors":
             self._add_distractors(env, mujoco, rng, int(perturbation.value), env._last_rand_vec[:2])
