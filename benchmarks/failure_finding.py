@@ -32,11 +32,12 @@ import time
 
 import numpy as np
 from bench_serving import machine_line
+from PIL import Image
 
 from openpi_cam import cli
 from openpi_cam.cam.outcomes import roc_auc, wilson_interval
-from openpi_cam.datasets.maps_dataset import is_maps_dataset, open_maps_dataset
-from openpi_cam.datasets.views import DatasetViews, compute_views
+from openpi_cam.datasets.maps_dataset import EPISODE_SUCCESS, MapsDataset, is_maps_dataset, open_maps_dataset
+from openpi_cam.datasets.views import DatasetViews, compute_views, displayable, normalised
 from openpi_cam.demo.quality import EPISODES_FILE
 from openpi_cam.policies.model_spec import BUNDLED_CONFIGS
 
@@ -175,6 +176,36 @@ def nuisance_lines(views: dict[str, DatasetViews], perturbation_of: dict[str, di
     return lines
 
 
+def outcome_maps(ds: MapsDataset, kind: str, perturbation_of: dict[int, int], png: pathlib.Path) -> list[str]:
+    """Per perturbation, each camera's mean map (every frame's map normalised to sum 1, as the views' prior) over the
+    frames of failed and of successful episodes, side by side: a PNG (a row per perturbation; per camera, failures
+    then successes, each map scaled to its own maximum) and the frames behind each mean."""
+    table = ds.table(columns=["episode_index", EPISODE_SUCCESS]).to_pydict()
+    episode, success = np.array(table["episode_index"]), np.array(table[EPISODE_SUCCESS], bool)
+    which = np.array([perturbation_of[e] for e in episode])
+    cameras = [c for c in ds.cameras if ds.maps(kind, c).any()]
+    maps = {c: normalised(displayable(ds.maps(kind, c)))[0] for c in cameras}
+    lines = ["| perturbation | " + " | ".join(f"{c}: failed / successful frames" for c in cameras) + " |"]
+    lines.append("|---" * (len(cameras) + 1) + "|")
+    cell, gap = 64, 8
+    rows = []
+    for p, name in enumerate(PERTURB):
+        row, counts = [], []
+        for c in cameras:
+            for failed in (True, False):
+                use = (which == p) & (success != failed)
+                mean = maps[c][use].mean(axis=0) if use.any() else np.zeros(ds.grid(c))
+                scaled = mean / mean.max() if mean.max() > 0 else mean
+                up = np.kron(scaled, np.ones((cell // scaled.shape[0], cell // scaled.shape[1])))
+                row += [(up * 255).astype(np.uint8), np.full((cell, gap), 128, np.uint8)]
+                counts.append(int(use.sum()))
+        rows += [np.concatenate(row, axis=1), np.full((gap, sum(r.shape[1] for r in row)), 128, np.uint8)]
+        cells = [f"{counts[2 * i]} / {counts[2 * i + 1]}" for i in range(len(cameras))]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    Image.fromarray(np.concatenate(rows, axis=0)).save(png)
+    return [f"mean {kind} maps of failed / successful episodes per perturbation: {png}", *lines]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=pathlib.Path, required=True)
@@ -187,7 +218,7 @@ def main() -> None:
         PERTURB = METAWORLD_PERTURB
     models = ["metaworld"] if args.sim == "metaworld" else ["pi0_fast", "pi05"]
     load_before = os.getloadavg()
-    rollouts, views, perturbation_of, seconds = {}, {}, {}, {}
+    rollouts, views, perturbation_of, seconds, outcome_lines = {}, {}, {}, {}, {}
     for model in models:
         source, maps = args.out / f"{model}.lerobot", args.out / f"{model}.maps"
         record(model, source, args.per_perturbation)
@@ -200,6 +231,9 @@ def main() -> None:
         }
         for kind in KINDS:
             views[(model, kind)] = compute_views(ds, kind)
+            outcome_lines[(model, kind)] = outcome_maps(
+                ds, kind, perturbation_of[model], args.out / f"{model}_{kind}_outcome_maps.png"
+            )
     print(machine_line(load_before, os.getloadavg()))
     print("explain-dataset seconds: " + ", ".join(f"{LABELS[m]} {_f(s, 0)}" for m, s in seconds.items()))
     for lines in (
@@ -208,6 +242,7 @@ def main() -> None:
         within_table(views, perturbation_of),
         reliance_table(views),
         nuisance_lines(views, perturbation_of),
+        *outcome_lines.values(),
     ):
         print()
         print("\n".join(lines))
