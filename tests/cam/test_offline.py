@@ -376,10 +376,8 @@ _DATA_PARALLEL = textwrap.dedent(
     from cam_support import demo_obs, policy_part
     from openpi_cam.cam.batching import data_mesh, explain_traces, shard_batch
     from openpi_cam.model.observation import stack_observations
-    from openpi_cam.cli.options import ExplainFlags
-from openpi_cam.policies import demo_reach
-from openpi_cam.policies.libero import make_libero_example
-    from openpi_cam.policies.family import ExplainOptions
+    from openpi_cam.policies import model_spec
+    from openpi_cam.vocabulary import ExplainOptions
 
     policy = model_spec.create_demo_policy()
     traces = [policy.infer_traced(policy_part(demo_obs(50 + i)))[1] for i in range(3)]  # 3 rows on 2 devices

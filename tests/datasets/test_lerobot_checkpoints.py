@@ -100,3 +100,11 @@ def test_views_of_a_policy_with_a_blank_camera(explained):
     assert cameras["observation.images.empty_camera_0"]["prior_fit"]["frames"] == 0
     assert cameras["observation.images.empty_camera_0"]["hot_patches"] == []
     assert cameras["observation.images.base"]["prior_fit"]["frames"] == summary["frames"]
+
+
+def test_render_draws_a_lerobot_folders_maps(explained, tmp_path):
+    from openpi_cam.cli import render
+
+    out = tmp_path / "render"
+    assert render.main(explained["lerobot"].root, out=out, videos=False, progress=False) == 0
+    assert "observation.images.base" in (out / "index.html").read_text()

@@ -197,3 +197,22 @@ def test_a_bad_episode_stops_the_job_or_is_skipped_with_keep_going(ray_instance,
     maps = fmt.open_maps_dataset(job.out)
     assert maps.episodes == [1] and maps.summary()["episodes_skipped"].keys() == {"2"}
     assert maps.table().column("frame_index").to_pylist() == list(range(open_dataset(source).episode_length(1)))
+
+
+@pytest.mark.slow
+def test_the_ray_engine_runs_a_lerobot_policy_folder(ray_instance, demo_pi05_lerobot, tmp_path):
+    """A LeRobot folder on the Ray engine: the driver plans info.json from the folder's files alone (no config, its
+    own feature names), the actors load the folder, and the shards are the local engine's."""
+    model = ModelSpec(demo_pi05_lerobot)
+    keys, nested = dataset_keys(model, {})
+    options = ExplainOptions(maps=("gradnorm",), check_patches=0)
+
+    def job(out):
+        return DatasetJob(SOURCE, out, model, options, keys, batch_size=4, episodes=(0, 1), nested_keys=nested)
+
+    run_local(job(tmp_path / "local"))
+    run_ray(job(tmp_path / "ray"), workers=1)
+    local, remote = fmt.open_maps_dataset(tmp_path / "local"), fmt.open_maps_dataset(tmp_path / "ray")
+    assert remote.info == local.info and remote.info.model["config"] is None
+    ours, theirs = remote.maps("gradnorm", "observation.images.base"), local.maps("gradnorm", "observation.images.base")
+    np.testing.assert_allclose(ours, theirs, rtol=0, atol=RTOL * float(np.abs(theirs).max()))
