@@ -3,11 +3,14 @@ The tests that step the simulator are in the slow tier."""
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 
 from openpi_cam.cam.run_format import load_run
 from openpi_cam.cli import train_demo
+from openpi_cam.cli.demo import main as demo_main
 from openpi_cam.cli.train_demo import RecordArgs, read_demonstrations, record_expert
 from openpi_cam.demo import metaworld_data, metaworld_loop, metaworld_sim, train
 from openpi_cam.demo.metaworld_sim import MetaWorldSim, Perturbation
@@ -158,3 +161,17 @@ def test_the_training_command_records_the_expert_as_lerobot_and_trains_a_servabl
         obs = metaworld_loop.policy_input(metaworld_loop.client_observation(sim.frame()))
     actions = policy.infer(obs)["actions"]
     assert actions.shape == (demo_metaworld.ACTION_HORIZON, metaworld_sim.ACTION_DIM) and np.isfinite(actions).all()
+
+
+def test_the_demo_refuses_in_one_line_without_the_extra_or_with_an_empty_prompt_to_record(
+    tmp_path, monkeypatch, capsys
+):
+    perturbed = DemoOptions(out=tmp_path, sim="metaworld", perturb=("clean", "prompt="))
+    assert demo_main(perturbed, record=tmp_path / "rec") == 1
+    out = capsys.readouterr().out.strip()
+    assert "cannot record an empty prompt" in out and "\n" not in out
+    monkeypatch.setitem(sys.modules, "metaworld.env_dict", None)  # as if the extra were not installed
+    assert demo_main(DemoOptions(out=tmp_path, sim="metaworld")) == 1
+    out = capsys.readouterr().out.strip()
+    assert 'pip install -e ".[metaworld]"' in out and "\n" not in out
+    assert not any(tmp_path.iterdir()), "refused before any run directory or dataset was made"

@@ -36,13 +36,16 @@ def main(opts: tyro.conf.OmitArgPrefixes[DemoOptions] = DEFAULT, record: pathlib
     if record is not None and record.exists() and (not record.is_dir() or any(record.iterdir())):
         print(f"openpi-cam demo: --record {record} exists and is not an empty folder")
         return 1
+    if record is not None and any(p.kind == "prompt" and not p.strength for p in opts.perturbations):
+        print("openpi-cam demo: --record cannot record an empty prompt (a LeRobot task is non-empty): prompt=TEXT")
+        return 1
     metaworld = opts.sim == "metaworld"
     fps, robot = (ROLLOUT_FPS_METAWORLD, demo_metaworld.ASSET_ID) if metaworld else (ROLLOUT_FPS, demo_reach.ASSET_ID)
     recorder = None if record is None else RolloutRecorder(record, fps=fps, robot_type=robot)
     try:
         with recorder or contextlib.nullcontext():
             result = run_demo(opts, sink=recorder)
-    except (OSError, DatasetError) as e:
+    except (OSError, DatasetError, ImportError) as e:
         print(f"openpi-cam demo: {e}")
         return 1
     if record is not None:

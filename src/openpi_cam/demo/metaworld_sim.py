@@ -105,12 +105,18 @@ def _mujoco() -> Any:
 
 
 def _environment_class(task: str) -> Any:
-    _mujoco()
+    """Meta-World's environment class of `task`; an ImportError naming the extra where it is not installed."""
     try:
+        _mujoco()
         from metaworld.env_dict import ALL_V3_ENVIRONMENTS  # optional: the `metaworld` extra
     except ImportError as e:
         raise ImportError(f'the Meta-World demo needs the metaworld extra: pip install -e ".[metaworld]" ({e})') from e
     return ALL_V3_ENVIRONMENTS[task]
+
+
+def require_simulator(task: str = TASK) -> None:
+    """Raises the `_environment_class` ImportError before anything is loaded, where the extra is missing."""
+    _environment_class(task)
 
 
 def expert_policy(task: str = TASK) -> Any:

@@ -205,8 +205,10 @@ class DemoResult:
 
 def run_demo(opts: DemoOptions, sink: RolloutSink | None = None) -> DemoResult:
     """Serves, drives (recording every step into `sink`), renders and scores; raises OSError when the side channel
-    cannot create its run directory."""
+    cannot create its run directory, ImportError when `--sim metaworld` lacks its extra."""
     t0 = time.time()
+    if opts.sim == "metaworld":
+        metaworld_sim.require_simulator()
     model = ModelSpec.demo(opts.bundled_model, opts.assets)
     policy = model.create()
     options = CAMOptions(

@@ -1,4 +1,5 @@
-"""Train a bundled tiny model on the reaching task: `python -m openpi_cam.demo.train --out DIR [--model pi05]`.
+"""Train a bundled tiny model on the reaching task: `python -m openpi_cam.demo.train --out DIR [--model pi05]`
+(the Meta-World model trains on recorded demonstrations through `python -m openpi_cam.cli.train_demo --sim metaworld`).
 
 One reproducible command (fixed seeds, CPU): norm stats from task data (upstream's quantile format) -> the tokenizers
 -> the family's training format -> AdamW on the family's loss (`TrainArgs`) ->
