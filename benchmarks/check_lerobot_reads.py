@@ -3,7 +3,7 @@ returns, frame by frame, what was written. Not a test: LeRobot needs torch, whic
 
 Two steps, two environments:
 
-    .venv/bin/python benchmarks/check_lerobot_reads.py write /tmp/lerobot_check
+    .venv/bin/python benchmarks/check_lerobot_reads.py write /tmp/lerobot_check [--sim metaworld]
     HF_HUB_OFFLINE=1 /work/lerobot-env/bin/python benchmarks/check_lerobot_reads.py check /tmp/lerobot_check
 
 `write` (the project's environment) records rollouts of the demo reaching task, the way `lerobot-eval
@@ -14,7 +14,10 @@ frame by frame with a scripted controller, every other episode of which heads fo
 fail and run to the step limit): `mixed` (base camera as AV1 video, wrist camera as PNG images, one file each) and
 `split` (both cameras as video, file limits so small that every episode has its own files, two files a chunk). Beside
 each it stores `<name>.expected.npz`: every column as given to the writer, the camera frames as given, and the video
-frames as our reader decodes them.
+frames as our reader decodes them. With `--sim metaworld` (the `metaworld` extra) it writes one dataset instead,
+`metaworld`: the bundled Meta-World pi0.5 driven closed loop through the server under perturbations, recorded as
+`openpi-cam demo --sim metaworld --record` records it (80 fps, the button box's bounding box, the perturbation's
+index).
 
 `check` (a LeRobot 0.6.1 environment, e.g. /work/lerobot-env, see its README.txt; it imports nothing of openpi_cam)
 opens each dataset with `LeRobotDataset(repo_id, root=..., video_backend="pyav")`, reads every frame through
@@ -120,16 +123,20 @@ class _Capture:
         return self.recorder.end_episode()
 
 
-def _record_rollouts(root: Path) -> dict[str, np.ndarray]:
+def _record_rollouts(root: Path, sim: str = "reach") -> dict[str, np.ndarray]:
     """Closed-loop demo rollouts under perturbations, served through the real websocket server and client and
     recorded as `openpi-cam demo --record` records them."""
     from openpi_cam.datasets.lerobot import open_dataset
     from openpi_cam.datasets.rollouts import RolloutRecorder
-    from openpi_cam.demo.run import ROLLOUT_FPS, DemoOptions, run_demo
+    from openpi_cam.demo.run import ROLLOUT_FPS, ROLLOUT_FPS_METAWORLD, DemoOptions, run_demo
 
     assert ROLLOUT_FPS == FPS
-    options = DemoOptions(num_episodes=EPISODES, perturb=("clean", "hue=45", "shift=32", "absent"), explain=False)
-    with RolloutRecorder(root, fps=ROLLOUT_FPS, robot_type="demo_reach") as recorder:
+    if sim == "metaworld":
+        perturb, episodes, fps = ("clean", "hue=45", "dim=0.75", "distractors=5"), 4, ROLLOUT_FPS_METAWORLD
+    else:
+        perturb, episodes, fps = ("clean", "hue=45", "shift=32", "absent"), EPISODES, ROLLOUT_FPS
+    options = DemoOptions(sim=sim, num_episodes=episodes, perturb=perturb, explain=False)
+    with RolloutRecorder(root, fps=fps, robot_type=f"demo_{sim}") as recorder:
         capture = _Capture(recorder)
         run_demo(options, sink=capture)
     expected = {name: np.stack(values) for name, values in capture.expected.items()}
@@ -141,17 +148,20 @@ def _record_rollouts(root: Path) -> dict[str, np.ndarray]:
     return expected
 
 
-def write(out: Path) -> None:
+def write(out: Path, sim: str = "reach") -> None:
     out.mkdir(parents=True, exist_ok=True)
-    expected = _record_rollouts(out / "rollouts")
-    np.savez_compressed(out / "rollouts.expected.npz", **expected)
+    name = "metaworld" if sim == "metaworld" else "rollouts"
+    expected = _record_rollouts(out / name, sim)
+    np.savez_compressed(out / f"{name}.expected.npz", **expected)
     ends = expected["next.done"][:, 0]
     summary = {
         "frames": len(ends),
         "successes": int(expected["next.success"][ends, 0].sum()),
         "episodes": int(ends.sum()),
     }
-    print(json.dumps({"dataset": str(out / "rollouts"), **summary}))
+    print(json.dumps({"dataset": str(out / name), **summary}))
+    if sim == "metaworld":
+        return
     datasets = {
         "mixed": {"base": "video", "wrist": "image"},
         "split": {
@@ -220,7 +230,7 @@ def check(out: Path) -> bool:
             episode = int(item["episode_index"])
             frame_index = frame_index + 1 if episode == last_episode else 0
             last_episode = episode
-            derived = {"index": i, "frame_index": frame_index, "timestamp": np.float32(frame_index / FPS)}
+            derived = {"index": i, "frame_index": frame_index, "timestamp": np.float32(frame_index / ds.meta.fps)}
             for key, value in derived.items():
                 if item[key].numpy() != value:
                     report["mismatched_columns"][key] = report["mismatched_columns"].get(key, 0) + 1
@@ -254,9 +264,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("step", choices=["write", "check"])
     parser.add_argument("out", type=Path)
+    parser.add_argument("--sim", choices=["reach", "metaworld"], default="reach", help="write: which demo's rollouts")
     args = parser.parse_args()
     if args.step == "write":
-        write(args.out)
+        write(args.out, args.sim)
     elif not check(args.out):
         print("MISMATCH: LeRobot does not return what was written", file=sys.stderr)
         sys.exit(1)

@@ -1,8 +1,10 @@
 """Do the maps find the failures? The demo's failing rollouts, explained and measured, per model family.
 
-    python benchmarks/failure_finding.py --out /tmp/failures [--per-perturbation 40]
+    python benchmarks/failure_finding.py --out /tmp/failures [--per-perturbation 40] [--sim metaworld]
 
-For each bundled model (pi0-FAST, pi0.5), with the commands a user runs:
+For each bundled model of the reaching task (pi0-FAST, pi0.5), or the Meta-World pi0.5 with `--sim metaworld`
+(perturbed by `METAWORLD_PERTURB` instead, with `--sim metaworld` in the first command and its config in the
+second), with the commands a user runs:
 
 1. `openpi-cam demo --model M --no-explain --num-episodes 6N --perturb clean distractors=2 hue=45 shift=32 dim=0.3
    absent --record OUT/M.lerobot`: N closed-loop episodes per perturbation through the websocket server, recorded
@@ -30,23 +32,28 @@ import time
 
 import numpy as np
 from bench_serving import machine_line
+from PIL import Image
 
 from openpi_cam import cli
 from openpi_cam.cam.outcomes import roc_auc, wilson_interval
-from openpi_cam.datasets.maps_dataset import is_maps_dataset, open_maps_dataset
-from openpi_cam.datasets.views import DatasetViews, compute_views
+from openpi_cam.datasets.maps_dataset import EPISODE_SUCCESS, MapsDataset, is_maps_dataset, open_maps_dataset
+from openpi_cam.datasets.views import DatasetViews, compute_views, displayable, normalised
 from openpi_cam.demo.quality import EPISODES_FILE
-from openpi_cam.policies.demo_reach import DEMO_CONFIGS
+from openpi_cam.policies.model_spec import BUNDLED_CONFIGS
 
 PERTURB = ("clean", "distractors=2", "hue=45", "shift=32", "dim=0.3", "absent")
+# Meta-World's strengths, chosen (8 episodes each) so that the policy fails some of the time: hue 30 and 60 gave 8/8
+# and 0/8, dim 0.8 and 0.7 gave 7/8 and 2/8, a 5 cm camera shift 3/8; five distractor cubes 8/8.
+METAWORLD_PERTURB = ("clean", "hue=45", "dim=0.75", "shift=0.05", "distractors=5", "prompt=open the drawer")
 KINDS = ("gradnorm", "occlusion")
-LABELS = {"pi0_fast": "pi0-FAST", "pi05": "pi0.5"}
+LABELS = {"pi0_fast": "pi0-FAST", "pi05": "pi0.5", "metaworld": "Meta-World pi0.5"}
 
 
 def record(model: str, out: pathlib.Path, per: int) -> None:
     if out.exists():
         return
-    argv = ["demo", "--model", model, "--no-explain", "--num-episodes", str(per * len(PERTURB))]
+    sim = ["--sim", "metaworld"] if model == "metaworld" else ["--model", model]
+    argv = ["demo", *sim, "--no-explain", "--num-episodes", str(per * len(PERTURB))]
     cli.main([*argv, "--perturb", *PERTURB, "--record", str(out)])
 
 
@@ -54,7 +61,7 @@ def explain(model: str, source: pathlib.Path, out: pathlib.Path) -> float:
     if is_maps_dataset(out) and (out / "meta" / "summary.json").is_file():
         return math.nan
     t0 = time.perf_counter()
-    argv = ["explain-dataset", str(source), "--out", str(out), "--config", DEMO_CONFIGS[model].name]
+    argv = ["explain-dataset", str(source), "--out", str(out), "--config", BUNDLED_CONFIGS[model].name]
     argv += ["--maps", *KINDS, "--check-patches", "0", "--every-k", "5", "--reliance", "--no-progress"]
     cli.main([*argv, "--extra", "observation.target_box=target_box", "perturbation=perturbation"])
     return time.perf_counter() - t0
@@ -169,15 +176,50 @@ def nuisance_lines(views: dict[str, DatasetViews], perturbation_of: dict[str, di
     return lines
 
 
+def outcome_maps(ds: MapsDataset, kind: str, perturbation_of: dict[int, int], png: pathlib.Path) -> list[str]:
+    """Per perturbation, each camera's mean map (every frame's map normalised to sum 1, as the views' prior) over the
+    frames of failed and of successful episodes, side by side: a PNG (a row per perturbation; per camera, failures
+    then successes, each map scaled to its own maximum) and the frames behind each mean."""
+    table = ds.table(columns=["episode_index", EPISODE_SUCCESS]).to_pydict()
+    episode, success = np.array(table["episode_index"]), np.array(table[EPISODE_SUCCESS], bool)
+    which = np.array([perturbation_of[e] for e in episode])
+    cameras = [c for c in ds.cameras if ds.maps(kind, c).any()]
+    maps = {c: normalised(displayable(ds.maps(kind, c)))[0] for c in cameras}
+    lines = ["| perturbation | " + " | ".join(f"{c}: failed / successful frames" for c in cameras) + " |"]
+    lines.append("|---" * (len(cameras) + 1) + "|")
+    cell, gap = 64, 8
+    rows = []
+    for p, name in enumerate(PERTURB):
+        row, counts = [], []
+        for c in cameras:
+            for failed in (True, False):
+                use = (which == p) & (success != failed)
+                mean = maps[c][use].mean(axis=0) if use.any() else np.zeros(ds.grid(c))
+                scaled = mean / mean.max() if mean.max() > 0 else mean
+                up = np.kron(scaled, np.ones((cell // scaled.shape[0], cell // scaled.shape[1])))
+                row += [(up * 255).astype(np.uint8), np.full((cell, gap), 128, np.uint8)]
+                counts.append(int(use.sum()))
+        rows += [np.concatenate(row, axis=1), np.full((gap, sum(r.shape[1] for r in row)), 128, np.uint8)]
+        cells = [f"{counts[2 * i]} / {counts[2 * i + 1]}" for i in range(len(cameras))]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    Image.fromarray(np.concatenate(rows, axis=0)).save(png)
+    return [f"mean {kind} maps of failed / successful episodes per perturbation: {png}", *lines]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=pathlib.Path, required=True)
     parser.add_argument("--per-perturbation", type=int, default=40)
+    parser.add_argument("--sim", choices=["reach", "metaworld"], default="reach")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.sim == "metaworld":
+        global PERTURB
+        PERTURB = METAWORLD_PERTURB
+    models = ["metaworld"] if args.sim == "metaworld" else ["pi0_fast", "pi05"]
     load_before = os.getloadavg()
-    rollouts, views, perturbation_of, seconds = {}, {}, {}, {}
-    for model in LABELS:
+    rollouts, views, perturbation_of, seconds, outcome_lines = {}, {}, {}, {}, {}
+    for model in models:
         source, maps = args.out / f"{model}.lerobot", args.out / f"{model}.maps"
         record(model, source, args.per_perturbation)
         seconds[model] = explain(model, source, maps)
@@ -189,6 +231,9 @@ def main() -> None:
         }
         for kind in KINDS:
             views[(model, kind)] = compute_views(ds, kind)
+            outcome_lines[(model, kind)] = outcome_maps(
+                ds, kind, perturbation_of[model], args.out / f"{model}_{kind}_outcome_maps.png"
+            )
     print(machine_line(load_before, os.getloadavg()))
     print("explain-dataset seconds: " + ", ".join(f"{LABELS[m]} {_f(s, 0)}" for m, s in seconds.items()))
     for lines in (
@@ -197,6 +242,7 @@ def main() -> None:
         within_table(views, perturbation_of),
         reliance_table(views),
         nuisance_lines(views, perturbation_of),
+        *outcome_lines.values(),
     ):
         print()
         print("\n".join(lines))

@@ -67,8 +67,8 @@ def pytest_make_collect_report(collector: pytest.Collector) -> Any:
 # batched rows, larger occlusion regions, re-scoring, other side-channel targets, pi0 beside pi0.5, the batch-of-two
 # golden case, the golden pi0's replay), and the long runs of extra processes (hostile clients, stalled peers at
 # SIGTERM, the training script, `explain` in a fresh process, Ray's retries, every README command as written) or of
-# compilation counting. The fast tier leaves it out unless tests are named by node id, `-m` selects, or `--full` asks
-# for everything.
+# compilation counting, and the tests that step the Meta-World simulator. The fast tier leaves it out unless tests
+# are named by node id, `-m` selects, or `--full` asks for everything.
 SLOW = "slow"
 
 

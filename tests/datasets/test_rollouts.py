@@ -16,9 +16,9 @@ from openpi_cam.datasets.explain import DatasetJob, dataset_keys, run_local
 from openpi_cam.datasets.lerobot import DatasetError, open_dataset
 from openpi_cam.datasets.maps_dataset import open_maps_dataset
 from openpi_cam.datasets.rollouts import RolloutRecorder
-from openpi_cam.datasets.views import TARGET_BOX, compute_views
+from openpi_cam.datasets.views import GROUP, GROUP_NAMES_FILE, TARGET_BOX, compute_views, group_names, normalised
 from openpi_cam.demo import perturb, quality
-from openpi_cam.demo.run import ROLLOUT_FPS, DemoOptions, run_demo
+from openpi_cam.demo.run import PERTURBATION_FEATURE, ROLLOUT_FPS, DemoOptions, run_demo
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.vocabulary import ExplainOptions
@@ -100,13 +100,14 @@ def test_steps_with_and_without_an_outcome_do_not_mix(tmp_path):
 
 @pytest.fixture(scope="module")
 def explained(recorded, tmp_path_factory):
-    """The recorded rollouts explained into a maps dataset, carrying the named block's box (every 5th frame: where
-    the robot asked the server). The options of tests/datasets' other jobs, so compiled programs are shared."""
+    """The recorded rollouts explained into a maps dataset, carrying the named block's box and each episode's
+    perturbation (every 5th frame: where the robot asked the server). The options of tests/datasets' other jobs, so
+    compiled programs are shared."""
     root, _ = recorded
     out = tmp_path_factory.mktemp("maps") / "rollouts.maps"
     keys, nested = dataset_keys(ModelSpec(), {})
     options = ExplainOptions(target="action-token", maps=("gradcam", "gradnorm"), check_patches=2)
-    extra = {demo_reach.LEROBOT_TARGET_BOX: TARGET_BOX}
+    extra = {demo_reach.LEROBOT_TARGET_BOX: TARGET_BOX, PERTURBATION_FEATURE: GROUP}
     job = DatasetJob(root, out, ModelSpec(), options, keys, batch_size=4, every=5, extra=extra, nested_keys=nested)
     run_local(job)
     return out
@@ -167,6 +168,37 @@ def test_stats_show_failures_beside_successes_and_how_well_each_figure_finds_the
     nuisance = {e: np.mean([r["base_0_rgb/nuisance_mass"] for r in rows]) for e, rows in firsts.items()}
     auc = _pair_auc(failed, nuisance)
     assert early["figures"]["base_0_rgb/mean_nuisance_mass"]["auroc"] == pytest.approx(auc)
+
+
+def test_each_perturbation_sets_its_failures_beside_its_successes_with_their_mean_maps(recorded, explained, tmp_path):
+    _, result = recorded
+    ds = open_maps_dataset(explained)
+    views = compute_views(ds, "gradnorm")
+    table = ds.table(columns=["episode_index", "episode_success"]).to_pydict()
+    episode, success = np.array(table["episode_index"]), np.array(table["episode_success"])
+    maps = normalised(ds.maps("gradnorm", "base_0_rgb"))[0]
+    assert [g[GROUP] for g in views.groups] == list(range(len(PERTURB)))
+    for g in views.groups:
+        mine = [i for i, e in enumerate(result.episodes) if e["perturbation"] == PERTURB[g[GROUP]]]  # episode i
+        assert g["episodes"] == len(mine) and g["successes"] == sum(result.episodes[i]["success"] for i in mine)
+        assert g["name"] is None  # recorded without `openpi-cam demo --record`'s episode list
+        for name, group in g["by_outcome"].items():
+            frames = np.isin(episode, mine) & (success == (name == "success"))
+            assert group["frames"] == frames.sum()
+            mean = g["mean_maps"][name]["base_0_rgb"]
+            if frames.any():  # float32 maps summed in another order: a few float32 ulps of values near 1/16
+                np.testing.assert_allclose(mean, maps[frames].mean(axis=0), rtol=1e-5, atol=1e-7)
+            else:
+                assert mean is None
+    out = tmp_path / "render"
+    cli.main(["render", str(explained), "--out", str(out), "--no-progress", "--no-videos", "--kind", "gradnorm"])
+    html = (out / "index.html").read_text()
+    for g in views.groups:
+        assert f"{GROUP} {g[GROUP]}: {g['successes']}/{g['episodes']} episodes succeeded" in html
+    listed = tmp_path / "listed"
+    (listed / GROUP_NAMES_FILE).parent.mkdir(parents=True)
+    (listed / GROUP_NAMES_FILE).write_text(json.dumps({"perturbations": list(PERTURB)}))
+    assert group_names(str(listed)) == list(PERTURB) and group_names(str(tmp_path / "absent")) == []
 
 
 def _pair_auc(failed: dict[int, bool], values: dict[int, float]) -> float:

@@ -1,4 +1,5 @@
-"""`openpi-cam demo`: the whole system on the bundled tiny model, on CPU, in about a minute."""
+"""`openpi-cam demo`: the whole system on a bundled tiny model, on CPU, in about a minute (the reaching task) or a
+few (Meta-World, `--sim metaworld`)."""
 
 from __future__ import annotations
 
@@ -13,32 +14,38 @@ from openpi_cam.cam.outcomes import wilson_interval
 from openpi_cam.datasets.lerobot import DatasetError
 from openpi_cam.datasets.rollouts import RolloutRecorder
 from openpi_cam.demo.quality import EPISODES_FILE
-from openpi_cam.demo.run import ROLLOUT_FPS, DemoOptions, run_demo
-from openpi_cam.policies.demo_reach import ASSET_ID
+from openpi_cam.demo.run import ROLLOUT_FPS, ROLLOUT_FPS_METAWORLD, DemoOptions, run_demo
+from openpi_cam.policies import demo_metaworld, demo_reach
 from openpi_cam.vocabulary import MAP_KIND_INFO
 
 DEFAULT = DemoOptions()
 
 
 def main(opts: tyro.conf.OmitArgPrefixes[DemoOptions] = DEFAULT, record: pathlib.Path | None = None) -> int:
-    """Run the bundled model end to end: server + side channel + simulated robot + rendered reports + figures.
+    """Run a bundled model end to end: server + side channel + simulated robot + rendered reports + figures.
 
     Args:
         opts: what to run (every flag below).
         record: also record every episode as a LeRobot v3.0 dataset in this new folder, as `lerobot-eval
             --eval.recording=true` records evaluation rollouts: per executed action the cameras (AV1 video), the
-            state, the action, the named block's box (`observation.target_box`), the perturbation's index
+            state, the action, the target's box in the base camera (`observation.target_box`: the named block, or
+            Meta-World's button box), the perturbation's index
             (`perturbation`) and `next.reward` / `next.success` / `next.done`; `meta/demo_episodes.json` names each
             episode's perturbation, seed and outcome.
     """
     if record is not None and record.exists() and (not record.is_dir() or any(record.iterdir())):
         print(f"openpi-cam demo: --record {record} exists and is not an empty folder")
         return 1
-    recorder = None if record is None else RolloutRecorder(record, fps=ROLLOUT_FPS, robot_type=ASSET_ID)
+    if record is not None and any(p.kind == "prompt" and not p.strength for p in opts.perturbations):
+        print("openpi-cam demo: --record cannot record an empty prompt (a LeRobot task is non-empty): prompt=TEXT")
+        return 1
+    metaworld = opts.sim == "metaworld"
+    fps, robot = (ROLLOUT_FPS_METAWORLD, demo_metaworld.ASSET_ID) if metaworld else (ROLLOUT_FPS, demo_reach.ASSET_ID)
+    recorder = None if record is None else RolloutRecorder(record, fps=fps, robot_type=robot)
     try:
         with recorder or contextlib.nullcontext():
             result = run_demo(opts, sink=recorder)
-    except (OSError, DatasetError) as e:
+    except (OSError, DatasetError, ImportError) as e:
         print(f"openpi-cam demo: {e}")
         return 1
     if record is not None:
@@ -46,15 +53,17 @@ def main(opts: tyro.conf.OmitArgPrefixes[DemoOptions] = DEFAULT, record: pathlib
         rollouts = {"perturbations": list(opts.perturb), "episodes": episodes}
         (record / "meta" / EPISODES_FILE).write_text(json.dumps(rollouts, indent=2))
     wins = sum(r["success"] for r in result.episodes)
-    print(f"\nopenpi-cam demo: {wins}/{len(result.episodes)} episodes reached their block in {result.seconds:.0f}s")
-    if len(opts.perturb) > 1 or opts.perturbations[0].kind != "clean":
+    goal = "pressed the button" if metaworld else "reached their block"
+    print(f"\nopenpi-cam demo: {wins}/{len(result.episodes)} episodes {goal} in {result.seconds:.0f}s")
+    if metaworld or len(opts.perturb) > 1 or opts.perturbations[0].kind != "clean":
         for name in opts.perturb:
             outcomes = [r["success"] for r in result.episodes if r["perturbation"] == name]
             low, high = wilson_interval(sum(outcomes), len(outcomes))
-            print(f"  {name:>16}: {sum(outcomes)}/{len(outcomes)} (95% interval {low:.0%}-{high:.0%})")
+            print(f"  {name:>20}: {sum(outcomes)}/{len(outcomes)} (95% interval {low:.0%}-{high:.0%})")
     figures = result.figures
     if figures["steps"]:
-        print(f"pointing game over {figures['steps']} steps (the base camera's map peaks on the named block):")
+        target = "the button's box" if metaworld else "the named block"
+        print(f"pointing game over {figures['steps']} steps (the base camera's map peaks on {target}):")
     for kind, f in figures["maps"].items():
         if not f["steps"]:
             continue

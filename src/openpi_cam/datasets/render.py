@@ -38,7 +38,7 @@ from openpi_cam.datasets.frames import (
 )
 from openpi_cam.datasets.lerobot import LeRobotDataset
 from openpi_cam.datasets.maps_dataset import MapsDataset
-from openpi_cam.datasets.views import DatasetViews, compute_views
+from openpi_cam.datasets.views import GROUP, GROUP_NAMES_FILE, DatasetViews, compute_views
 from openpi_cam.viz.colormap import colorize
 from openpi_cam.viz.overlay import blend, upsample
 from openpi_cam.viz.progress import progress
@@ -364,12 +364,8 @@ def _auroc(f: Mapping[str, Any]) -> str:
     return "-" if f["auroc"] is None else f"{f['auroc']:.2f} ({number(low, 2)}-{number(high, 2)})"
 
 
-def _outcomes_section(views: DatasetViews) -> str:
-    """Failed and successful episodes side by side, and how well each episode figure finds the failures."""
-    o = views.outcomes
-    if o is None:
-        return ""
-    groups = o["by_outcome"]
+def _outcome_table(views: DatasetViews, groups: Mapping[str, Mapping[str, Any]]) -> str:
+    """Failed and successful episodes side by side: a row per outcome of `groups` (`outcome_views`' `by_outcome`)."""
     relied = views.info.reliance
     what = ("share", "entropy (norm.)", "distance", "nuisance") + (("reliance: score", "actions") if relied else ())
     keys = ("mean_share", "mean_entropy_norm", "mean_prior_distance", "mean_nuisance_mass")
@@ -388,6 +384,14 @@ def _outcomes_section(views: DatasetViews) -> str:
             prompt = g[RELIANCE_PROMPT]
             cells += [number(prompt["mean_reliance_score"]), number(prompt["mean_reliance_actions"])]
         rows.append(cells)
+    return html_table(head, rows)
+
+
+def _outcomes_section(views: DatasetViews) -> str:
+    """Failed and successful episodes side by side, and how well each episode figure finds the failures."""
+    o = views.outcomes
+    if o is None:
+        return ""
     early = o["early_warning"]["figures"]
     found = [
         (
@@ -403,13 +407,45 @@ def _outcomes_section(views: DatasetViews) -> str:
     return (
         f"<section id='outcomes'><h2>failed and successful episodes</h2><p>{o['failures']} of {o['episodes']} "
         "episodes failed (an episode succeeds when any frame's outcome is true, as lerobot-eval counts it)</p>"
-        f"{html_table(head, rows)}<h3>which figure finds the failures?</h3><p class='dim'>ROC AUC of each episode "
-        "figure as a failure score (larger = failure; 0.5 is chance, below 0.5 the figure finds successes), with its "
-        f"95% bootstrap interval; precision among the {o['failures']} highest-scoring episodes (chance "
-        f"{number(chance, 2)}); early warning: the same figure from each episode's first "
+        f"{_outcome_table(views, o['by_outcome'])}<h3>which figure finds the failures?</h3><p class='dim'>ROC AUC of "
+        "each episode figure as a failure score (larger = failure; 0.5 is chance, below 0.5 the figure finds "
+        f"successes), with its 95% bootstrap interval; precision among the {o['failures']} highest-scoring episodes "
+        f"(chance {number(chance, 2)}); early warning: the same figure from each episode's first "
         f"{o['early_warning']['frames']} explained frames only. Failed episodes run to the step limit, so length "
         "alone finds them: a figure is worth reading where it beats length, or early.</p>"
         f"{html_table(['figure', 'AUROC (95%)', 'precision at #failures', 'early warning AUROC'], found)}</section>"
+    )
+
+
+def _groups_section(views: DatasetViews, out_dir: pathlib.Path, opts: DatasetRenderOptions) -> str:
+    """Per condition (`views.GROUP`, e.g. the demo's perturbation): its success, failed and successful episodes side by
+    side, and each camera's mean map over the failed and over the successful episodes' frames."""
+    if not views.groups:
+        return ""
+    (out_dir / "groups").mkdir(parents=True, exist_ok=True)
+    parts = []
+    for g in views.groups:
+        value, name = g[GROUP], g["name"]
+        label = f"{GROUP} {value}" + (f": {name}" if name else "")
+        figures = []
+        for c in views.cameras:
+            for outcome in ("failure", "success"):
+                mean = g["mean_maps"][outcome][c]
+                if mean is None:
+                    continue
+                rel = f"groups/{value}-{slug(c)}-{outcome}.png"
+                prior_image(np.asarray(mean), [], opts.prior_height).save(out_dir / rel)
+                caption = f"{escape(c)}, {'failed' if outcome == 'failure' else 'successful'} episodes"
+                figures.append(f"<figure><img src='{rel}' alt='{caption}'><figcaption>{caption}</figcaption></figure>")
+        parts.append(
+            f"<div class='prior' data-group='{value}'><h3>{escape(label)}: {g['successes']}/{g['episodes']} episodes "
+            f"succeeded</h3>{_outcome_table(views, g['by_outcome'])}{''.join(figures)}</div>"
+        )
+    return (
+        f"<section id='groups'><h2>per {GROUP}</h2><p class='dim'>each condition's failed and successful episodes side "
+        "by side, and each camera's mean map (each frame's map normalised to sum 1) over their frames, scaled to its "
+        f"own maximum; the condition is the carried feature named {GROUP} (`--extra FEATURE={GROUP}`), named from "
+        f"the source's {GROUP_NAMES_FILE} where the demo wrote one</p>{''.join(parts)}</section>"
     )
 
 
@@ -494,6 +530,7 @@ def write_dataset_report(ds: MapsDataset, result: DatasetRenderResult, opts: Dat
     body = (
         f"<h1>maps dataset {escape(ds.root.name)}: {escape(MAP_KIND_INFO[views.kind].label)} maps</h1><dl>{dl}</dl>"
         f"{_checks_section(views)}{_prior_section(views, result.out_dir, opts)}{_outcomes_section(views)}"
+        f"{_groups_section(views, result.out_dir, opts)}"
         f"{_ranking_section(views, result)}"
         f"{_tasks_section(views)}<h2>episodes</h2>{episodes}"
     )

@@ -46,6 +46,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import pathlib
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -74,6 +75,11 @@ FRAME_COLUMNS = ("index", "episode_index", "frame_index", "timestamp", "task", "
 # The carried feature (`--extra FEATURE=target_box`) holding the task region: a box (x0, y0, x1, y1) in the client
 # image of the dataset's first camera, as the demo records `observation.target_box`.
 TARGET_BOX = "target_box"
+# The carried feature (`--extra FEATURE=perturbation`) naming the condition each episode ran under, as the demo records
+# its perturbation's index: with outcomes, failed and successful episodes are also set side by side per condition.
+GROUP = "perturbation"
+# Where the demo names its perturbations, beside the recorded dataset (`openpi-cam demo --record`).
+GROUP_NAMES_FILE = "meta/demo_episodes.json"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -199,6 +205,7 @@ class DatasetViews:
     checks: list[dict[str, Any]]  # per kind and camera: the spot checks' summary
     info: MapsInfo
     outcomes: dict[str, Any] | None = None  # `outcome_views`, when the source records outcomes
+    groups: list[dict[str, Any]] | None = None  # `group_views`, when the source records outcomes and carries GROUP
 
     def summary(self) -> dict[str, Any]:
         """The dataset-level views as plain JSON data."""
@@ -233,6 +240,7 @@ class DatasetViews:
             "tasks": self.tasks,
             "spot_checks": self.checks,
             **({} if self.outcomes is None else {"outcomes": self.outcomes}),
+            **({} if self.groups is None else {"groups": self.groups}),
         }
 
 
@@ -322,8 +330,13 @@ def compute_views(
     row_columns = [*FRAME_COLUMNS, *(OUTCOME_COLUMNS if ds.info.outcome is not None else ())]
     row_columns += reliance_columns(ds.info) if ds.info.reliance else []
     box_column = f"extra/{TARGET_BOX}" if TARGET_BOX in ds.info.extra.values() else None
+    grouped = ds.info.outcome is not None and GROUP in ds.info.extra.values()
     columns = [*row_columns, "cameras", *(map_column(kind, c) for c in cameras), *check_cols]
     columns += [box_column] if box_column else []
+    columns += [f"extra/{GROUP}"] if grouped else []
+    episode_group: dict[int, int] = {}
+    # (group, failed, camera) -> [sum of normalised maps, frames]
+    group_maps: dict[tuple[int, bool, str], list[Any]] = {}
     rows: list[dict[str, Any]] = []
     check_acc: dict[tuple[str, str], list[tuple[float, float, float, int]]] = {}
     # Pass one: the run statistics' per-map figures per frame, the prior's sums and the top-k counts.
@@ -335,12 +348,19 @@ def compute_views(
         meta = table.select(row_columns).to_pylist()
         checks = {col: table.column(col).to_pylist() for col in check_cols}
         boxes = table.column(box_column).to_pylist() if box_column else [None] * table.num_rows
+        if grouped and table.num_rows:
+            episode_group[episode] = int(np.asarray(table.column(f"extra/{GROUP}")[0].as_py()).reshape(-1)[0])
         for c in cameras:
             p, has_mass = normalised(maps[c])
             use = valid[c] & has_mass
             acc[c].prior_sum += p[use].sum(axis=0)
             acc[c].frames += int(use.sum())
             acc[c].hot_counts += in_top_k(maps[c][use], k[c]).sum(axis=0)
+            if episode in episode_group:
+                key = (episode_group[episode], not meta[0][EPISODE_SUCCESS], c)
+                total = group_maps.setdefault(key, [np.zeros(grids[c]), 0])
+                total[0] = total[0] + p[use].sum(axis=0)
+                total[1] += int(use.sum())
         for i, m in enumerate(meta):
             rows.append(
                 _frame_row(
@@ -437,7 +457,55 @@ def compute_views(
         checks=check_summary(check_acc),
         info=ds.info,
         outcomes=outcome_views(by_episode, cameras, options) if ds.info.outcome is not None else None,
+        groups=group_views(by_episode, episode_group, group_maps, cameras, group_names(ds.info.source))
+        if grouped
+        else None,
     )
+
+
+def group_names(source: str) -> list[str]:
+    """The demo's perturbation names of a recorded dataset (its GROUP_NAMES_FILE), or none where it has no such file."""
+    try:
+        listed = json.loads((pathlib.Path(source) / GROUP_NAMES_FILE).read_text())
+        return [str(name) for name in listed["perturbations"]]
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
+
+
+def group_views(
+    by_episode: Mapping[int, Sequence[Mapping[str, Any]]],
+    episode_group: Mapping[int, int],
+    group_maps: Mapping[tuple[int, bool, str], Sequence[Any]],
+    cameras: Sequence[str],
+    names: Sequence[str],
+) -> list[dict[str, Any]]:
+    """Per condition (the GROUP value of an episode, named by `names` where it indexes them): its episodes and
+    successes, failed and successful episodes side by side (the group summary of each outcome's frames) and each
+    camera's mean normalised map over each outcome's frames (None where the outcome has no frame with mass)."""
+    out = []
+    for group in sorted(set(episode_group.values())):
+        episodes = [e for e in sorted(by_episode) if episode_group.get(e) == group]
+        failed = {e: not by_episode[e][0][EPISODE_SUCCESS] for e in episodes}
+        by_outcome, mean_maps = {}, {}
+        for name in ("success", "failure"):
+            chosen = [e for e in episodes if failed[e] == (name == "failure")]
+            rows = [row for e in chosen for row in by_episode[e]]
+            by_outcome[name] = {"episodes": len(chosen), **group_summary(rows, cameras)}
+            mean_maps[name] = {}
+            for c in cameras:
+                total, frames = group_maps.get((group, name == "failure", c), (None, 0))
+                mean_maps[name][c] = (total / frames).tolist() if frames else None
+        out.append(
+            {
+                GROUP: group,
+                "name": names[group] if 0 <= group < len(names) else None,
+                "episodes": len(episodes),
+                "successes": sum(not f for f in failed.values()),
+                "by_outcome": by_outcome,
+                "mean_maps": mean_maps,
+            }
+        )
+    return out
 
 
 def _nuisance(

@@ -1,9 +1,11 @@
-"""A minimal robot-side client of the policy server (the openpi-client protocol: msgpack-numpy over websockets)."""
+"""The robot's side: a minimal client of the policy server (the openpi-client protocol: msgpack-numpy over
+websockets), and where a robot records its rollouts (`RolloutSink`)."""
 
 from __future__ import annotations
 
 import contextlib
-from typing import Any
+from collections.abc import Mapping
+from typing import Any, Protocol
 
 from websockets.sync.client import ClientConnection, connect
 
@@ -35,3 +37,13 @@ class PolicyClient:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class RolloutSink(Protocol):
+    """Where a recorded rollout goes, a step at a time (`datasets.rollouts.RolloutRecorder`, composed by the command
+    line): per executed action, the frame the robot saw before it (by LeRobot feature name, the action included) and
+    what followed it, as lerobot-eval records evaluation episodes."""
+
+    def step(self, frame: Mapping[str, Any], *, task: str, reward: float, success: bool, done: bool) -> None: ...
+
+    def end_episode(self) -> int | None: ...

@@ -1,4 +1,5 @@
-"""The demo task as training data: norm stats of a model directory and batches in the policy's model format."""
+"""The demo tasks as training data: norm stats of a model directory and batches in the policy's model format, from
+the reaching task's procedural samples or from recorded demonstrations (`metaworld_data.Demonstrations`)."""
 
 from __future__ import annotations
 
@@ -9,29 +10,43 @@ import jax
 import numpy as np
 
 from openpi_cam.demo import task
+from openpi_cam.demo.metaworld_data import Demonstrations
 from openpi_cam.model.observation import Observation
 from openpi_cam.normalize import compute_norm_stats, load_norm_stats, save_norm_stats
 from openpi_cam.policies import demo_reach
+from openpi_cam.policies.config import PolicyConfig
 from openpi_cam.tokenizers.paligemma import load_paligemma_tokenizer
 from openpi_cam.tokenizers.pi0 import Pi0PromptTokenizer
 from openpi_cam.tokenizers.pi0_fast import Pi0FastTokenizer
 from openpi_cam.transforms import Normalize, pad_to_dim
 
 
-def norm_stats_dir(out: Path) -> Path:
-    return out / demo_reach.CHECKPOINT.name / "assets" / demo_reach.ASSET_ID
+def norm_stats_dir(out: Path, asset_id: str = demo_reach.ASSET_ID) -> Path:
+    return out / demo_reach.CHECKPOINT.name / "assets" / asset_id
 
 
-def load_normalize(out: Path) -> Normalize:
+def load_normalize(out: Path, asset_id: str = demo_reach.ASSET_ID) -> Normalize:
     """The checkpoint's normalisation, as the policy applies it (quantiles, like upstream's pi0-FAST configs)."""
-    return Normalize(load_norm_stats(norm_stats_dir(out)), use_quantiles=True)
+    return Normalize(load_norm_stats(norm_stats_dir(out, asset_id)), use_quantiles=True)
 
 
-def write_norm_stats(out: Path, *, seed: int = 2, n: int = 20000) -> Normalize:
-    data = task.make_dataset(seed, n)
-    stats = {"state": compute_norm_stats(data["state"]), "actions": compute_norm_stats(data["actions"])}
-    save_norm_stats(norm_stats_dir(out), stats)
-    return load_normalize(out)
+def write_norm_stats(
+    out: Path,
+    *,
+    seed: int = 2,
+    n: int = 20000,
+    demonstrations: Demonstrations | None = None,
+    asset_id: str = demo_reach.ASSET_ID,
+) -> Normalize:
+    """From `n` samples of the reaching task, or from every frame of recorded demonstrations."""
+    if demonstrations is None:
+        data = task.make_dataset(seed, n)
+        state, actions = data["state"], data["actions"]
+    else:
+        state, actions = demonstrations.state, demonstrations.actions
+    stats = {"state": compute_norm_stats(state), "actions": compute_norm_stats(actions)}
+    save_norm_stats(norm_stats_dir(out, asset_id), stats)
+    return load_normalize(out, asset_id)
 
 
 @jax.tree_util.register_dataclass
@@ -45,7 +60,8 @@ class TrainingBatch:
 
 
 class Batches:
-    """Fresh procedural samples every step, in the format the policy's input transforms produce for the family."""
+    """Fresh procedural samples every step (or frames drawn from `demonstrations`, with the action chunk that follows
+    each), in the format the policy's input transforms produce for the family."""
 
     def __init__(
         self,
@@ -56,9 +72,13 @@ class Batches:
         *,
         contrast_pairs: bool = False,
         family: str = "pi0_fast",
+        demonstrations: Demonstrations | None = None,
+        config: PolicyConfig | None = None,
     ):
         self.family = family
-        config = demo_reach.DEMO_CONFIGS[family]
+        config = config or demo_reach.DEMO_CONFIGS[family]
+        self.demonstrations = demonstrations
+        self.horizon = config.action_horizon
         if family == "pi0_fast":
             self.tokenizer: Pi0FastTokenizer | Pi0PromptTokenizer = Pi0FastTokenizer.from_files(
                 out / demo_reach.PALIGEMMA_TOKENIZER.name,
@@ -75,6 +95,8 @@ class Batches:
         self.contrast_pairs = contrast_pairs
 
     def samples(self) -> list[task.Sample]:
+        if self.demonstrations is not None:
+            return self.demonstrations.samples(self.rng, self.batch_size, self.horizon)
         if self.contrast_pairs:
             pairs = [task.contrast_pair(self.rng) for _ in range((self.batch_size + 1) // 2)]
             return [s for pair in pairs for s in pair][: self.batch_size]

@@ -32,20 +32,23 @@ VOCAB_SIZE = TEXT_VOCAB + FAST_VOCAB + SEG_PIECES  # the model's embedding rows
 FAST_SCALE = 10.0
 
 
-def _corpus(rng: np.random.Generator, n: int) -> list[str]:
+REACH_PROMPTS = tuple(task.prompt_for(color) for color in task.COLORS)
+
+
+def _corpus(rng: np.random.Generator, n: int, prompts: tuple[str, ...], state_dim: int) -> list[str]:
     lines = []
     for _ in range(n):
-        color = str(rng.choice(list(task.COLORS)))
-        state = " ".join(str(int(v)) for v in rng.integers(0, 256, size=2))
-        lines.append(f"Task: {task.prompt_for(color)}, State: {state};")
+        state = " ".join(str(int(v)) for v in rng.integers(0, 256, size=state_dim))
+        lines.append(f"Task: {rng.choice(prompts)}, State: {state};")
     # The postfix markers occur once per training example, so give them the same weight as the prompts.
     return lines + ["Action: ", "Action: |", "|"] * (n // 3)
 
 
-def sentencepiece_model(seed: int = 0) -> bytes:
+def sentencepiece_model(seed: int = 0, prompts: tuple[str, ...] = REACH_PROMPTS, state_dim: int = 2) -> bytes:
+    """Trained on the task's prompts with discretised states of `state_dim` values, as the models' prompts read."""
     buffer = io.BytesIO()
     spm.SentencePieceTrainer.train(
-        sentence_iterator=iter(_corpus(np.random.default_rng(seed), 2000)),
+        sentence_iterator=iter(_corpus(np.random.default_rng(seed), 2000, prompts, state_dim)),
         model_writer=buffer,
         model_type="bpe",
         vocab_size=TEXT_VOCAB,
@@ -75,10 +78,12 @@ def sentencepiece_model(seed: int = 0) -> bytes:
     return proto.SerializeToString()
 
 
-def train_sentencepiece(out: Path, *, seed: int = 0) -> Path:
+def train_sentencepiece(
+    out: Path, *, seed: int = 0, prompts: tuple[str, ...] = REACH_PROMPTS, state_dim: int = 2
+) -> Path:
     path = out / demo_reach.PALIGEMMA_TOKENIZER.name
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(sentencepiece_model(seed))
+    path.write_bytes(sentencepiece_model(seed, prompts, state_dim))
     return path
 
 

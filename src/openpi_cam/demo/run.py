@@ -1,6 +1,7 @@
-"""The whole system on the bundled tiny model: serve it on loopback with the side channel explaining every
-inference, drive simulated reaching episodes through a websocket client exactly as a robot would, render the maps
-and score them against the ground-truth boxes the client sent along (`cam_extra/target_box`)."""
+"""The whole system on a bundled tiny model: serve it on loopback with the side channel explaining every
+inference, drive simulated episodes (the reaching task, or Meta-World's button press) through a websocket client
+exactly as a robot would, render the maps and score them against the ground-truth boxes the client sent along
+(`cam_extra/target_box`)."""
 
 from __future__ import annotations
 
@@ -8,8 +9,8 @@ import dataclasses
 import json
 import pathlib
 import time
-from collections.abc import Mapping, Sequence
-from typing import Any, Literal, Protocol
+from collections.abc import Sequence
+from typing import Any, Literal
 
 import numpy as np
 
@@ -17,24 +18,14 @@ from openpi_cam.cam.faithfulness_run import FaithfulnessOptions, evaluate_run
 from openpi_cam.cam.run_evidence import REPORT_FILE
 from openpi_cam.cam.run_format import dumps, load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
-from openpi_cam.demo import bundled, quality, task
-from openpi_cam.demo.client import PolicyClient
+from openpi_cam.demo import bundled, metaworld_data, metaworld_loop, metaworld_sim, quality, task
+from openpi_cam.demo.client import PolicyClient, RolloutSink
 from openpi_cam.demo.perturb import CLEAN, Perturbation
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.serving.server import start_server_in_thread
 from openpi_cam.viz.render import RenderOptions, default_render_dir, render_run
 from openpi_cam.vocabulary import MAP_KINDS, Baseline, IgSpace, MapKind, MapOptions, Target
-
-
-class RolloutSink(Protocol):
-    """Where a recorded rollout goes, a step at a time (`datasets.rollouts.RolloutRecorder`, composed by the command
-    line): per executed action, the frame the robot saw before it (by LeRobot feature name, the action included) and
-    what followed it, as lerobot-eval records evaluation episodes."""
-
-    def step(self, frame: Mapping[str, Any], *, task: str, reward: float, success: bool, done: bool) -> None: ...
-
-    def end_episode(self) -> int | None: ...
 
 
 def rollout_frame(sample: task.Sample, action: np.ndarray, perturbation: int) -> dict[str, Any]:
@@ -103,8 +94,37 @@ def run_episodes(
     return results
 
 
+def run_metaworld_episodes(
+    url: str,
+    episodes: int,
+    *,
+    seed: int,
+    max_calls: int,
+    execute: int,
+    perturbations: Sequence[metaworld_sim.Perturbation],
+    sink: RolloutSink | None = None,
+) -> list[dict[str, Any]]:
+    """Meta-World episodes over the server, laid out as `run_episodes` lays out the reaching task's: episode i is the
+    scene of seed + i // P under the (i mod P)-th of the P perturbations."""
+    with PolicyClient(url) as client:
+        return [
+            metaworld_loop.run_episode(
+                client.infer,
+                seed + e // len(perturbations),
+                perturbations[e % len(perturbations)],
+                max_calls=max_calls,
+                execute=execute,
+                sink=sink,
+                perturbation_index=e % len(perturbations),
+            )
+            for e in range(episodes)
+        ]
+
+
 ROLLOUT_FPS = 10  # the frame rate recorded rollouts declare (the simulator has no clock: one frame per action)
-PERTURBATION_FEATURE = "perturbation"  # a recorded frame's index into the run's perturbations
+ROLLOUT_FPS_METAWORLD = metaworld_data.FPS  # Meta-World's control rate
+PERTURBATION_FEATURE = metaworld_loop.PERTURBATION_FEATURE  # a recorded frame's index into the run's perturbations
+MAX_CALLS = {"reach": 6, "metaworld": metaworld_loop.MAX_CALLS}
 DRAIN_S = 3600.0  # how long the end of a demo run may spend explaining requests still queued
 
 
@@ -114,16 +134,21 @@ class DemoOptions:
 
     # the folder in which the CAM run directory is created.
     out: pathlib.Path = pathlib.Path("demo_runs")
-    # simulated reaching episodes to drive.
+    # which simulator the robot lives in: the synthetic reaching task, or Meta-World's button press (MuJoCo; needs
+    # `pip install -e ".[metaworld]"`), served by its own bundled pi0.5.
+    sim: Literal["reach", "metaworld"] = "reach"
+    # simulated episodes to drive.
     num_episodes: int = 3
-    # inference calls per episode at most.
-    max_calls: int = 6
+    # inference calls per episode at most (default: 6 for reach, 30 for metaworld).
+    max_calls: int | None = None
     # actions of each returned chunk the robot executes before asking again.
     execute: int = 5
     # the first episode's seed (episode i uses seed + i // P for P perturbations).
     seed: int = 0
-    # what the episodes are run under, in turn (`kind=strength`: clean, distractors=N, hue=DEGREES, shift=PIXELS,
-    # dim=FACTOR, absent; `openpi_cam.demo.perturb`): episode i under the (i mod P)-th, so each meets the same scenes.
+    # what the episodes are run under, in turn (`kind=strength`; reach: clean, distractors=N, hue=DEGREES,
+    # shift=PIXELS, dim=FACTOR, absent (`openpi_cam.demo.perturb`); metaworld: clean, hue=DEGREES, dim=FACTOR,
+    # shift=METRES, distractors=N, prompt=TEXT (`openpi_cam.demo.metaworld_sim`)): episode i under the (i mod P)-th,
+    # so each meets the same scenes.
     perturb: tuple[str, ...] = ("clean",)
     # serve with the explanation side channel on (every request explained and logged, then faithfulness and reports);
     # off, the episodes are only driven (and recorded with `--record`).
@@ -134,7 +159,7 @@ class DemoOptions:
     render: bool = True
     # with `render`, also write an MP4 and a GIF per episode.
     videos: bool = True
-    # which bundled model serves: the tiny pi0-FAST or the tiny pi0.5 trained on the same task.
+    # which bundled model serves the reaching task: the tiny pi0-FAST or the tiny pi0.5 (metaworld has its own pi0.5).
     model: Literal["pi0_fast", "pi05"] = "pi0_fast"
     # the folder holding the model (checkpoint/) and its tokenizers; default: the bundled ones of `model`.
     assets: pathlib.Path | None = None
@@ -149,8 +174,18 @@ class DemoOptions:
     ig_space: IgSpace = MapOptions.ig_space
 
     @property
-    def perturbations(self) -> tuple[Perturbation, ...]:
-        return tuple(Perturbation.parse(p) for p in self.perturb)
+    def perturbations(self) -> tuple[Perturbation, ...] | tuple[metaworld_sim.Perturbation, ...]:
+        parse = metaworld_sim.Perturbation.parse if self.sim == "metaworld" else Perturbation.parse
+        return tuple(parse(p) for p in self.perturb)
+
+    @property
+    def calls(self) -> int:
+        return MAX_CALLS[self.sim] if self.max_calls is None else self.max_calls
+
+    @property
+    def bundled_model(self) -> str:
+        """The bundled model that serves (`model_spec.BUNDLED_CONFIGS`)."""
+        return "metaworld" if self.sim == "metaworld" else self.model
 
     def __post_init__(self) -> None:
         if not self.perturb:
@@ -170,9 +205,11 @@ class DemoResult:
 
 def run_demo(opts: DemoOptions, sink: RolloutSink | None = None) -> DemoResult:
     """Serves, drives (recording every step into `sink`), renders and scores; raises OSError when the side channel
-    cannot create its run directory."""
+    cannot create its run directory, ImportError when `--sim metaworld` lacks its extra."""
     t0 = time.time()
-    model = ModelSpec.demo(opts.model, opts.assets)
+    if opts.sim == "metaworld":
+        metaworld_sim.require_simulator()
+    model = ModelSpec.demo(opts.bundled_model, opts.assets)
     policy = model.create()
     options = CAMOptions(
         every_k=1,
@@ -181,9 +218,15 @@ def run_demo(opts: DemoOptions, sink: RolloutSink | None = None) -> DemoResult:
         target=opts.target,
         maps=opts.maps,
         map_options=MapOptions(baseline=opts.baseline, ig_space=opts.ig_space),
-        queue_size=max(64, opts.num_episodes * opts.max_calls),  # room for every request: the demo logs each one
+        queue_size=max(64, opts.num_episodes * opts.calls),  # room for every request: the demo logs each one
     )
-    demo = {"episodes": opts.num_episodes, "seed": opts.seed, "model": opts.model, "perturb": list(opts.perturb)}
+    demo = {
+        "episodes": opts.num_episodes,
+        "seed": opts.seed,
+        "model": opts.bundled_model,
+        "perturb": list(opts.perturb),
+    }
+    demo |= {"sim": opts.sim}
     run_config = {**model.resolved().to_json(), "demo": demo}
     cam = (
         wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=str(model.checkpoint))
@@ -192,14 +235,15 @@ def run_demo(opts: DemoOptions, sink: RolloutSink | None = None) -> DemoResult:
     )
     # The demo explains every request: the drain at the end is the rest of the run's work, not a shutdown grace.
     server = start_server_in_thread(cam or policy, metadata=policy.metadata, close_timeout=DRAIN_S)
+    drive = run_metaworld_episodes if opts.sim == "metaworld" else run_episodes
     try:
-        episodes = run_episodes(
+        episodes = drive(
             server.url,
             opts.num_episodes,
             seed=opts.seed,
-            max_calls=opts.max_calls,
+            max_calls=opts.calls,
             execute=opts.execute,
-            perturbations=opts.perturbations,
+            perturbations=opts.perturbations,  # type: ignore[arg-type]
             sink=sink,
         )
     finally:

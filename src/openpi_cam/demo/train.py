@@ -1,4 +1,5 @@
-"""Train a bundled tiny model on the reaching task: `python -m openpi_cam.demo.train --out DIR [--model pi05]`.
+"""Train a bundled tiny model on the reaching task: `python -m openpi_cam.demo.train --out DIR [--model pi05]`
+(the Meta-World model trains on recorded demonstrations through `python -m openpi_cam.cli.train_demo --sim metaworld`).
 
 One reproducible command (fixed seeds, CPU): norm stats from task data (upstream's quantile format) -> the tokenizers
 -> the family's training format -> AdamW on the family's loss (`TrainArgs`) ->
@@ -24,14 +25,16 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from openpi_cam.demo import bundled, make_tokenizers, sim
+from openpi_cam.demo import bundled, make_tokenizers, metaworld_loop, metaworld_sim, sim
 from openpi_cam.demo.data import Batches, write_norm_stats
+from openpi_cam.demo.metaworld_data import Demonstrations
 from openpi_cam.demo.quality import binding_probe
 from openpi_cam.model import pi0
 from openpi_cam.model.checkpoint import load_params, save_params
 from openpi_cam.model.config import Pi0Config, Pi0FASTConfig
 from openpi_cam.model.pi0_fast import compute_loss, init_params
 from openpi_cam.policies import demo_reach, model_spec
+from openpi_cam.policies.config import PolicyConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,7 +92,11 @@ def run_episode(policy, seed: int, *, max_calls: int = 8, execute: int = 5) -> t
 
 
 def evaluate(out: Path, episodes: int, model: str, seed: int = 10_000) -> float:
+    """Closed-loop success rate of the model trained into `out` over fresh episodes of its task."""
     policy = model_spec.create_demo_policy(model=model, assets=out)
+    if model == "metaworld":
+        infer = lambda obs: policy.infer(metaworld_loop.policy_input(obs))  # noqa: E731
+        return float(np.mean([metaworld_loop.run_episode(infer, seed + e)["success"] for e in range(episodes)]))
     return float(np.mean([run_episode(policy, seed + e)[0] for e in range(episodes)]))
 
 
@@ -124,18 +131,35 @@ def example_losses(cfg: ModelConfig, decode_offset: int) -> Callable:
     return flow_losses
 
 
-def train(args: TrainArgs) -> dict:
-    out = demo_reach.DEFAULT_ASSETS[args.model] if args.out is None else args.out
+def train(args: TrainArgs, demonstrations: Demonstrations | None = None, config: PolicyConfig | None = None) -> dict:
+    """Trains on the reaching task, or on recorded `demonstrations` for the bundled robot `config` names (its assets
+    are the default `--out`; the binding probe is the reaching task's and is skipped)."""
+    bundled_name = args.model if config is None else model_spec.BUNDLED_MODELS[config.name]
+    out = model_spec.BUNDLED_ASSETS[bundled_name] if args.out is None else args.out
     out.mkdir(parents=True, exist_ok=True)
-    normalize = write_norm_stats(out)
-    make_tokenizers.train_sentencepiece(out, seed=args.seed)
+    if demonstrations is None:
+        normalize = write_norm_stats(out)
+        make_tokenizers.train_sentencepiece(out, seed=args.seed)
+    else:
+        asset_id = config.asset_id if config is not None else demo_reach.ASSET_ID
+        normalize = write_norm_stats(out, demonstrations=demonstrations, asset_id=asset_id)
+        prompts = tuple(sorted(set(demonstrations.prompt.tolist())))
+        make_tokenizers.train_sentencepiece(out, seed=args.seed, prompts=prompts, state_dim=metaworld_sim.STATE_DIM)
+        args = dataclasses.replace(args, probe_every=0)
     if args.model == "pi0_fast":
         make_tokenizers.fit_fast(out, lambda chunks: normalize({"actions": chunks})["actions"])
     cfg = model_config(args)
     init = init_params if args.model == "pi0_fast" else pi0.init_params
     params = init(cfg, jax.random.key(args.seed)) if args.init_from is None else load_params(args.init_from)
     batches = Batches(
-        out, normalize, args.batch_size, args.seed + 1, contrast_pairs=args.contrast_pairs, family=args.model
+        out,
+        normalize,
+        args.batch_size,
+        args.seed + 1,
+        contrast_pairs=args.contrast_pairs,
+        family=args.model,
+        demonstrations=demonstrations,
+        config=config,
     )
     t0, summary = time.time(), {}
     for phase in phases(args):
@@ -145,7 +169,7 @@ def train(args: TrainArgs) -> dict:
     save_params(params_dir, params)
     summary["train_seconds"] = round(time.time() - t0)
     if args.eval_episodes:
-        summary["success_rate"] = evaluate(out, args.eval_episodes, args.model)
+        summary["success_rate"] = evaluate(out, args.eval_episodes, bundled_name)
     print(json.dumps(summary), flush=True)
     return summary
 

@@ -20,7 +20,7 @@ import jax
 from openpi_cam.model.checkpoint import read_param_shapes
 from openpi_cam.model.config import MAX_DECODING_STEPS, architecture_from_params, family_of
 from openpi_cam.model.safetensors_weights import pi0_config_from_tensors, read_tensor_infos
-from openpi_cam.policies import demo_reach
+from openpi_cam.policies import demo_metaworld, demo_reach
 from openpi_cam.policies.checkpoint_format import PARAMS_DIR, WEIGHTS_FILE, CheckpointFormat, checkpoint_format
 from openpi_cam.policies.config import resolve_config
 from openpi_cam.policies.lerobot import RequestLayout, read_head_counts
@@ -33,6 +33,10 @@ DEMO_DTYPE: Dtype = "float32"  # the bundled models were trained and are measure
 CHECKPOINT_DTYPE: Dtype = "bfloat16"  # upstream's `create_trained_policy`
 LEROBOT_DTYPE: Dtype = "float32"  # a LeRobot config's default `dtype`
 DTYPES: tuple[Dtype, ...] = ("bfloat16", "float32")
+# The bundled models by name (`openpi-cam demo --model`), their configs and where they ship.
+BUNDLED_CONFIGS = {**demo_reach.DEMO_CONFIGS, "metaworld": demo_metaworld.DEMO_METAWORLD_CONFIG}
+BUNDLED_ASSETS = {**demo_reach.DEFAULT_ASSETS, "metaworld": demo_metaworld.ASSETS_METAWORLD}
+BUNDLED_MODELS = {config.name: model for model, config in BUNDLED_CONFIGS.items()}  # config name -> bundled model
 # What must be the same for new steps to join a run or maps dataset (tokenizer files may move between machines).
 _OUTPUT_FIELDS = ("checkpoint_dir", "config", "dtype")
 
@@ -40,7 +44,7 @@ _OUTPUT_FIELDS = ("checkpoint_dir", "config", "dtype")
 def _is_demo(config: str | None) -> bool:
     """Whether a config is a demo model's: its tokenizers ship beside its checkpoint, it decodes few steps and was
     trained in float32, wherever its checkpoint lies."""
-    return config in demo_reach.DEMO_MODELS
+    return config in BUNDLED_MODELS
 
 
 def _path(value: str | pathlib.Path | None) -> pathlib.Path | None:
@@ -79,22 +83,23 @@ class ModelSpec:
 
     @classmethod
     def demo(cls, model: str = "pi0_fast", assets: pathlib.Path | None = None, dtype: Dtype | None = None) -> ModelSpec:
-        """A demo model: the bundled one of a family ("pi0_fast" or "pi05"), or one `python -m openpi_cam.demo.train`
-        wrote into `assets` (its checkpoint/ and tokenizers)."""
-        config = demo_reach.DEMO_CONFIGS[model].name
+        """A demo model: a bundled one ("pi0_fast" or "pi05" on the reaching task, "metaworld"), or one trained into
+        `assets` by `python -m openpi_cam.demo.train` or `python -m openpi_cam.cli.train_demo` (its checkpoint/ and
+        tokenizers)."""
+        config = BUNDLED_CONFIGS[model].name
         return cls(None if assets is None else assets / demo_reach.CHECKPOINT.name, config, dtype=dtype)
 
     @property
     def bundled(self) -> str | None:
-        """The bundled model this names ("pi0_fast" or "pi05"), or None for a checkpoint folder."""
+        """The bundled model this names ("pi0_fast", "pi05" or "metaworld"), or None for a checkpoint folder."""
         if self.checkpoint_dir is not None:
             return None
         config = self.config or demo_reach.DEMO_CONFIG.name
-        if config not in demo_reach.DEMO_MODELS:
+        if config not in BUNDLED_MODELS:
             raise ValueError(
-                f"config {config!r} needs --checkpoint-dir (the bundled models serve {sorted(demo_reach.DEMO_MODELS)})"
+                f"config {config!r} needs --checkpoint-dir (the bundled models serve {sorted(BUNDLED_MODELS)})"
             )
-        return demo_reach.DEMO_MODELS[config]
+        return BUNDLED_MODELS[config]
 
     @property
     def format(self) -> CheckpointFormat:
@@ -108,7 +113,7 @@ class ModelSpec:
         demo = self.bundled is not None or _is_demo(self.config)
         checkpoint = None if self.checkpoint_dir is None else self.checkpoint
         if _is_demo(self.config):
-            assets = demo_reach.DEFAULT_ASSETS[demo_reach.DEMO_MODELS[self.config]]  # type: ignore[index]
+            assets = BUNDLED_ASSETS[BUNDLED_MODELS[self.config]]  # type: ignore[index]
             checkpoint = None if checkpoint == assets / demo_reach.CHECKPOINT.name else checkpoint
         if checkpoint is not None and not demo and self.format == "lerobot":
             saved = RequestLayout.read(checkpoint).config.dtype
@@ -129,7 +134,7 @@ class ModelSpec:
     def checkpoint(self) -> pathlib.Path:
         """The folder the weights are read from (the bundled model's own for no `checkpoint_dir`)."""
         if (model := self.bundled) is not None:
-            return demo_reach.DEFAULT_ASSETS[model] / demo_reach.CHECKPOINT.name
+            return BUNDLED_ASSETS[model] / demo_reach.CHECKPOINT.name
         return pathlib.Path(self.checkpoint_dir).expanduser().resolve()  # type: ignore[arg-type]
 
     def tokenizers(self) -> tuple[pathlib.Path | None, pathlib.Path | None]:

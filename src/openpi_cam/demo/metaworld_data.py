@@ -1,0 +1,107 @@
+"""The Meta-World demo's training data: the scripted expert's episodes, step by step as a LeRobot dataset records
+them, and those episodes back in memory as training samples (action chunks cut from each episode's actions).
+
+The expert drives with noise added to the actions it executes (DART: the recorded action is the expert's own, at a
+state the noise pushed it to), so the demonstrations cover the states a policy that drifts off the expert's path
+reaches and say how to get back. Episodes stop a few steps after the button is pressed, so chunks near the end show
+the press held rather than a cut-off.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+
+from openpi_cam.demo import metaworld_sim, task
+from openpi_cam.policies.demo_reach import IMAGE_KEY, LEROBOT_KEYS, STATE_KEY, WRIST_KEY
+
+BASE_FEATURE = LEROBOT_KEYS[IMAGE_KEY]
+WRIST_FEATURE = LEROBOT_KEYS[WRIST_KEY]
+STATE_FEATURE = LEROBOT_KEYS[STATE_KEY]
+ACTION_FEATURE = LEROBOT_KEYS["actions"]
+FPS = 80  # Meta-World's control rate: 5 physics steps of 2.5 ms per action
+HOLD_STEPS = 5  # steps recorded after the press succeeds
+
+
+@dataclasses.dataclass(frozen=True)
+class ExpertStep:
+    frame: dict[str, np.ndarray]  # by LeRobot feature name: both cameras, the state and the expert's action
+    prompt: str
+    success: bool  # after this step's action
+
+
+def expert_episode(seed: int, noise: float, *, max_steps: int = metaworld_sim.MAX_STEPS) -> Iterator[ExpertStep]:
+    """One expert episode of `seed`; the executed action is the expert's plus Gaussian noise of std `noise` (the
+    recorded one is the expert's). Ends `HOLD_STEPS` after success, or at `max_steps`."""
+    rng = np.random.default_rng([seed, 1])
+    with metaworld_sim.MetaWorldSim(seed) as sim:
+        hold = 0
+        while sim.steps < max_steps and hold < HOLD_STEPS:
+            frame = sim.frame()
+            action = sim.expert_action()
+            success = sim.step(action + noise * rng.standard_normal(action.shape))
+            hold += success
+            yield ExpertStep(
+                {
+                    BASE_FEATURE: frame.base_image,
+                    WRIST_FEATURE: frame.wrist_image,
+                    STATE_FEATURE: frame.state,
+                    ACTION_FEATURE: action,
+                },
+                frame.prompt,
+                success,
+            )
+
+
+@dataclasses.dataclass(frozen=True)
+class Demonstrations:
+    """Recorded episodes in memory, one row per frame, rows of an episode consecutive and in order."""
+
+    base_image: np.ndarray  # [N, S, S, 3] uint8
+    wrist_image: np.ndarray  # [N, S, S, 3] uint8
+    state: np.ndarray  # [N, STATE_DIM] float32
+    actions: np.ndarray  # [N, ACTION_DIM] float32
+    episode_index: np.ndarray  # [N] int
+    prompt: np.ndarray  # [N] str
+
+    @classmethod
+    def from_frames(cls, frames: list[dict[str, Any]], prompts: list[str]) -> Demonstrations:
+        """From frames by LeRobot feature name (as the dataset reader yields them) and each frame's task."""
+
+        def stack(name: str, dtype: Any) -> np.ndarray:
+            return np.stack([np.asarray(f[name]) for f in frames]).astype(dtype)
+
+        return cls(
+            base_image=stack(BASE_FEATURE, np.uint8),
+            wrist_image=stack(WRIST_FEATURE, np.uint8),
+            state=stack(STATE_FEATURE, np.float32),
+            actions=stack(ACTION_FEATURE, np.float32),
+            episode_index=np.array([int(f["episode_index"]) for f in frames]),
+            prompt=np.array(prompts),
+        )
+
+    def __len__(self) -> int:
+        return len(self.state)
+
+    def chunk(self, row: int, horizon: int) -> np.ndarray:
+        """The actions of `horizon` frames from `row` on; past the episode's end its last action repeats (LeRobot's
+        loader clamps the frame index at the episode's end the same way)."""
+        episode = self.episode_index[row]
+        last = row + int(np.searchsorted(self.episode_index[row:], episode, side="right")) - 1
+        return self.actions[np.minimum(np.arange(row, row + horizon), last)]
+
+    def sample(self, row: int, horizon: int) -> task.Sample:
+        return task.Sample(
+            base_image=self.base_image[row],
+            wrist_image=self.wrist_image[row],
+            state=self.state[row],
+            prompt=str(self.prompt[row]),
+            actions=self.chunk(row, horizon),
+            target_box=(0, 0, 0, 0),  # not needed for training
+        )
+
+    def samples(self, rng: np.random.Generator, n: int, horizon: int) -> list[task.Sample]:
+        return [self.sample(int(r), horizon) for r in rng.integers(len(self), size=n)]

@@ -1,0 +1,177 @@
+"""The Meta-World demo's simulator, data and perturbations (MuJoCo through the `metaworld` extra, rendered headless).
+The tests that step the simulator are in the slow tier."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+
+from openpi_cam.cam.run_format import load_run
+from openpi_cam.cli import train_demo
+from openpi_cam.cli.demo import main as demo_main
+from openpi_cam.cli.train_demo import RecordArgs, read_demonstrations, record_expert
+from openpi_cam.demo import metaworld_data, metaworld_loop, metaworld_sim, train
+from openpi_cam.demo.metaworld_sim import MetaWorldSim, Perturbation
+from openpi_cam.demo.run import DemoOptions, run_demo
+from openpi_cam.policies import demo_metaworld
+from openpi_cam.policies.model_spec import create_demo_policy
+
+pytest.importorskip("metaworld", reason='the Meta-World demo needs pip install -e ".[metaworld]"')
+
+
+def _grown(mask: np.ndarray, pixels: int = 1) -> np.ndarray:
+    """The mask and its neighbours within `pixels`: anti-aliasing blends a geom's edge into the pixels around it."""
+    out = mask.copy()
+    for dy in range(-pixels, pixels + 1):
+        for dx in range(-pixels, pixels + 1):
+            out |= np.roll(np.roll(mask, dy, axis=0), dx, axis=1)
+    return out
+
+
+def test_perturbations_parse_and_refuse_in_one_line():
+    assert Perturbation.parse("clean") == metaworld_sim.CLEAN
+    assert Perturbation.parse("distractors=3").value == 3
+    assert Perturbation.parse("prompt=").strength == ""
+    assert Perturbation.parse("hue=90").name == "hue=90"
+    for bad, says in [
+        ("blur=2", "unknown perturbation"),
+        ("dim=dark", "needs a number"),
+        ("distractors=1.5", "whole number"),
+        ("dim=-1", ">= 0"),
+        ("clean=1", "no strength"),
+    ]:
+        with pytest.raises(ValueError, match=says) as e:
+            Perturbation.parse(bad)
+        assert "\n" not in str(e.value)
+
+
+def test_a_chunk_repeats_its_episodes_last_action_past_the_end():
+    actions = np.arange(10, dtype=np.float32).reshape(5, 2)
+    demos = metaworld_data.Demonstrations(
+        base_image=np.zeros((5, 2, 2, 3), np.uint8),
+        wrist_image=np.zeros((5, 2, 2, 3), np.uint8),
+        state=np.zeros((5, 4), np.float32),
+        actions=actions,
+        episode_index=np.array([0, 0, 0, 1, 1]),
+        prompt=np.array(["a"] * 5),
+    )
+    np.testing.assert_array_equal(demos.chunk(1, 4), actions[[1, 2, 2, 2]])
+    np.testing.assert_array_equal(demos.chunk(3, 3), actions[[3, 4, 4]])
+
+
+@pytest.mark.slow
+def test_the_expert_presses_the_button_and_the_state_hides_it():
+    with MetaWorldSim(3) as sim:
+        first = sim.frame()
+        while not sim.success and sim.steps < metaworld_sim.MAX_STEPS:
+            sim.step(sim.expert_action())
+        assert sim.success, "the scripted expert solves the task (61-73 steps in docs/DEMO_NOTES.md)"
+        assert sim.steps <= 100
+    size = metaworld_sim.IMAGE_SIZE
+    assert first.base_image.shape == first.wrist_image.shape == (size, size, 3)
+    assert first.state.shape == (metaworld_sim.STATE_DIM,)
+    assert first.prompt == "press the button"
+    # The box is in view at the size the model reads: at least 8 x 8 pixels of the fixed camera.
+    x0, y0, x1, y1 = first.target_box
+    assert x1 - x0 >= 8 and y1 - y0 >= 8 and first.target_mask.sum() >= 64
+    assert first.target_mask[y0:y1, x0:x1].sum() == first.target_mask.sum()
+
+
+@pytest.mark.slow
+def test_scenes_follow_the_seed():
+    with MetaWorldSim(1) as a, MetaWorldSim(1) as b, MetaWorldSim(2) as c:
+        np.testing.assert_array_equal(a.frame().base_image, b.frame().base_image)
+        assert a.frame().target_box != c.frame().target_box
+
+
+@pytest.mark.slow
+def test_a_hue_turn_touches_only_the_box_and_the_mask_is_where_it_is():
+    with MetaWorldSim(4) as clean, MetaWorldSim(4, Perturbation.parse("hue=120")) as turned:
+        before, after = clean.frame(), turned.frame()
+    np.testing.assert_array_equal(before.target_mask, after.target_mask)
+    changed = np.any(before.base_image != after.base_image, axis=-1)
+    # The yellow top and the red button turn; the black base (about half of the box's pixels in this view) cannot.
+    assert changed[before.target_mask].mean() > 0.25
+    assert not changed[~_grown(before.target_mask)].any()
+
+
+@pytest.mark.slow
+def test_dim_shift_and_distractors_change_the_scene_as_stated():
+    with MetaWorldSim(5) as sim:
+        clean = sim.frame()
+    with MetaWorldSim(5, Perturbation.parse("dim=0.3")) as sim:
+        dim = sim.frame()
+    # Lit surfaces scale with the light; the emissive and ambient-free parts keep some brightness.
+    assert dim.base_image.mean() < 0.7 * clean.base_image.mean()
+    with MetaWorldSim(5, Perturbation.parse("shift=0.15")) as sim:
+        shifted = sim.frame()
+    # Moving the camera along its image's x axis moves the scene the other way in the image.
+    assert shifted.target_box[0] < clean.target_box[0] - 3
+    with MetaWorldSim(5, Perturbation.parse("distractors=3")) as sim:
+        crowded = sim.frame()
+        while not sim.success and sim.steps < metaworld_sim.MAX_STEPS:
+            sim.step(sim.expert_action())
+        assert sim.success, "distractors leave the task's own state and the expert's solution as they were"
+    np.testing.assert_array_equal(crowded.state, clean.state)
+    changed = np.any(crowded.base_image != clean.base_image, axis=-1)
+    assert changed[~_grown(clean.target_mask)].sum() >= 3 * 4  # three cubes of at least a few pixels each
+    with MetaWorldSim(5, Perturbation.parse("prompt=")) as sim:
+        assert sim.frame().prompt == ""
+
+
+@pytest.mark.slow
+def test_the_bundled_model_presses_the_button_served_with_the_side_channel(tmp_path):
+    """`openpi-cam demo --sim metaworld` at toy length: the bundled pi0.5 served over the websocket, every call
+    explained and logged with the box the simulator sees, and the episode solved (the model succeeds in most clean
+    episodes: docs/DEMO_NOTES.md; this seed is one it solves)."""
+    result = run_demo(
+        DemoOptions(out=tmp_path, sim="metaworld", num_episodes=1, seed=0, render=False, faithfulness=False)
+    )
+    (episode,) = result.episodes
+    assert episode["success"] and episode["perturbation"] == "clean"
+    run = load_run(result.run_dir)
+    assert len(run.steps) == episode["calls"] and not run.problems
+    for step in run.steps:
+        assert step.meta.target == "chunk"
+        for cam in ("base_0_rgb", "left_wrist_0_rgb"):
+            assert step.maps_of("gradnorm")[cam].shape == (4, 4)
+        x0, y0, x1, y1 = step.extra["target_box"]
+        assert 0 <= x0 < x1 <= metaworld_sim.IMAGE_SIZE and 0 <= y0 < y1 <= metaworld_sim.IMAGE_SIZE
+    assert result.figures["steps"] == len(run.steps)
+
+
+@pytest.mark.slow
+def test_the_training_command_records_the_expert_as_lerobot_and_trains_a_servable_model(tmp_path):
+    """`python -m openpi_cam.cli.train_demo --sim metaworld` at toy size: the expert's episodes recorded as a LeRobot
+    v3.0 dataset, read back frame for frame as the expert produced them, and a model trained on them that serves."""
+    data, out = tmp_path / "expert", tmp_path / "model"
+    record_expert(data, RecordArgs(episodes=2, seed=7, clean_every=2))
+    steps = [s for e in range(2) for s in metaworld_data.expert_episode(7 + e, 0.3 * (e % 2))]
+    demos = read_demonstrations(data)
+    assert len(demos) == len(steps) and list(np.unique(demos.episode_index)) == [0, 1]
+    np.testing.assert_array_equal(demos.actions, np.stack([s.frame[metaworld_data.ACTION_FEATURE] for s in steps]))
+    np.testing.assert_array_equal(demos.base_image, np.stack([s.frame[metaworld_data.BASE_FEATURE] for s in steps]))
+    assert set(demos.prompt) == {"press the button"}
+    args = train.TrainArgs(out=out, steps=2, batch_size=4, log_every=1, eval_episodes=0)
+    assert train_demo.main(args, sim="metaworld", data=data) == 0
+    policy = create_demo_policy("metaworld", assets=out)
+    with MetaWorldSim(0) as sim:
+        obs = metaworld_loop.policy_input(metaworld_loop.client_observation(sim.frame()))
+    actions = policy.infer(obs)["actions"]
+    assert actions.shape == (demo_metaworld.ACTION_HORIZON, metaworld_sim.ACTION_DIM) and np.isfinite(actions).all()
+
+
+def test_the_demo_refuses_in_one_line_without_the_extra_or_with_an_empty_prompt_to_record(
+    tmp_path, monkeypatch, capsys
+):
+    perturbed = DemoOptions(out=tmp_path, sim="metaworld", perturb=("clean", "prompt="))
+    assert demo_main(perturbed, record=tmp_path / "rec") == 1
+    out = capsys.readouterr().out.strip()
+    assert "cannot record an empty prompt" in out and "\n" not in out
+    monkeypatch.setitem(sys.modules, "metaworld.env_dict", None)  # as if the extra were not installed
+    assert demo_main(DemoOptions(out=tmp_path, sim="metaworld")) == 1
+    out = capsys.readouterr().out.strip()
+    assert 'pip install -e ".[metaworld]"' in out and "\n" not in out
+    assert not any(tmp_path.iterdir()), "refused before any run directory or dataset was made"
