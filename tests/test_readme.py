@@ -129,6 +129,17 @@ def _first_command(ctx: Context, command: str) -> None:
     assert list(run_dir.glob("render-*/**/*.mp4")), "the demo writes its videos by default"
 
 
+def _metaworld_demo(ctx: Context, command: str) -> None:
+    # The extra is installed by .ci/run (`.[dev,metaworld]`); the rest runs here.
+    install, run = command.split(" && ", 1)
+    assert install == '.venv/bin/pip install -e ".[metaworld]"'
+    assert '.[dev,metaworld]"' in (REPO_ROOT / ".ci" / "run").read_text()
+    shell(ctx, run)
+    (run_dir,) = (ctx.workdir / "metaworld_runs").iterdir()
+    assert (run_dir / "faithfulness.json").is_file() and list(run_dir.glob("render-*/index.html"))
+    assert len(list((run_dir / "steps").glob("*.npz"))) > 6  # several requests per episode, each explained
+
+
 def _test_command(ctx: Context, command: str) -> None:
     install, run = command.rsplit(" && ", 1)
     assert install == 'python3 -m venv .venv && .venv/bin/pip install -e ".[dev]"'
@@ -309,6 +320,7 @@ STEPS = (
     Step(r"\.venv/bin/openpi-cam stats \w+\.maps --format json > \w+\.json", _dataset_views),
     Step(r"\.venv/bin/openpi-cam golden \.\./shared/golden/lerobot_pi05_tiny", _golden),
     Step(r"\.venv/bin/openpi-cam demo --no-explain .* --record rollouts", _record_rollouts),
+    Step(r'\.venv/bin/pip install -e "\.\[metaworld\]" && .* demo --sim metaworld .*', _metaworld_demo),
     Step(r"\.venv/bin/openpi-cam explain-dataset rollouts .*", _explain_rollouts),
     Step(r"\.venv/bin/openpi-cam export --to lerobot --config demo_reach_pi05 --out demo_pi05_lerobot", _export),
     Step(r"\.venv/bin/openpi-cam serve --checkpoint-dir demo_pi05_lerobot --port 8000", _serving),
