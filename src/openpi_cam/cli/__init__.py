@@ -13,15 +13,15 @@ import tyro
 
 # name -> (module, one-line help). Each module defines `main`, a function with tyro-parsable arguments.
 COMMANDS: dict[str, tuple[str, str]] = {
-    "serve": ("openpi_cam.cli.serve", "serve an OpenPI checkpoint (pi0-FAST, pi0, pi0.5) over websockets"),
-    "demo": ("openpi_cam.cli.demo", "run the bundled tiny model end to end with the side channel on"),
-    "golden": ("openpi_cam.cli.golden", "check the model against an upstream golden folder"),
+    "serve": ("openpi_cam.cli.serve", "serve a pi0-FAST, pi0 or pi0.5 checkpoint (OpenPI or LeRobot) over websockets"),
+    "demo": ("openpi_cam.cli.demo", "a bundled tiny model end to end (reaching task or Meta-World), side channel on"),
+    "golden": ("openpi_cam.cli.golden", "check the model against an upstream or LeRobot golden folder"),
     "explain": ("openpi_cam.cli.explain", "explain-dataset or explain-run, whichever SOURCE is"),
     "explain-run": ("openpi_cam.cli.explain_run", "maps for a recorded run (CAM run, PolicyRecorder records)"),
     "explain-dataset": ("openpi_cam.cli.explain_dataset", "a LeRobot dataset into a maps dataset (local or Ray)"),
-    "faithfulness": ("openpi_cam.cli.faithfulness", "how faithful a run's maps are, re-scored by the model"),
-    "render": ("openpi_cam.cli.render", "overlays, videos and an HTML report for a CAM run"),
-    "stats": ("openpi_cam.cli.stats", "per-step, per-camera map statistics of a CAM run"),
+    "faithfulness": ("openpi_cam.cli.faithfulness", "how faithful a run's or maps dataset's maps are, re-scored"),
+    "render": ("openpi_cam.cli.render", "overlays, videos and an HTML report of a run or maps dataset"),
+    "stats": ("openpi_cam.cli.stats", "per-step (per-frame) map statistics and views of a run or maps dataset"),
     "rebuild-manifest": ("openpi_cam.cli.rebuild_manifest", "rebuild a CAM run's manifest from its step files"),
     "export": ("openpi_cam.cli.export", "write an OpenPI pi0 / pi0.5 checkpoint as a LeRobot policy folder"),
 }
@@ -31,7 +31,8 @@ ALIASES: dict[str, str] = {"cam-index": "rebuild-manifest"}
 
 def _usage() -> str:
     lines = ["usage: openpi-cam COMMAND [--help] [ARGS...]", "", "commands:"]
-    lines += [f"  {name:<13} {help_}" for name, (_, help_) in COMMANDS.items()]
+    width = max(map(len, COMMANDS)) + 2
+    lines += [f"  {name:<{width}}{help_}" for name, (_, help_) in COMMANDS.items()]
     return "\n".join(lines)
 
 
