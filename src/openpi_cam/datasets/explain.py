@@ -1,10 +1,10 @@
 """Explaining a LeRobot dataset into a maps dataset (`openpi-cam explain DATASET_DIR`).
 
-An episode is the unit of work: its frames are decoded forward once (`data.lerobot`), every selected frame is served
-to the policy as a robot would send it (one `infer_traced` call each, exactly as served), the traced calls are
+An episode is the unit of work: its frames are decoded forward once (`datasets.lerobot`), every selected frame is
+served to the policy as a robot would send it (one `infer_traced` call each, exactly as served), the traced calls are
 explained `batch_size` at a time, each explanation gets its spot check, and the episode's rows are written as one
-shard (`cam.maps_dataset`). The local engine runs episodes in a loop; the Ray engine (`cam.ray_engine`) runs the same
-`EpisodeExplainer` in an actor per worker, so both write the same rows.
+shard (`datasets.maps_dataset`). The local engine runs episodes in a loop; the Ray engine (`datasets.ray_engine`) runs
+the same `EpisodeExplainer` in an actor per worker, so both write the same rows.
 """
 
 from __future__ import annotations
@@ -202,7 +202,7 @@ def frame_row(
     job: DatasetJob,
     explain_ms: float,
 ) -> dict[str, Any]:
-    """The maps-dataset row of one explained frame (`cam.maps_dataset` lists the columns)."""
+    """The maps-dataset row of one explained frame (`datasets.maps_dataset` lists the columns)."""
     score = explanation.score
     row: dict[str, Any] = {
         "index": int(frame["index"]),

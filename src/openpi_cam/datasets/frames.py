@@ -2,7 +2,7 @@
 recording (`datasets.rerun`) both draw from.
 
 The frames are decoded again from the LeRobot dataset the maps were computed from (`MapsInfo.source`, read with
-`data.lerobot`), only those the maps dataset lists, and each row's `index` and `frame_index` are checked against
+`datasets.lerobot`), only those the maps dataset lists, and each row's `index` and `frame_index` are checked against
 the source's, so a map is never drawn over another frame.
 """
 

@@ -1,5 +1,5 @@
 """Write a LeRobot dataset in layout v3.0 with pyarrow and PyAV, as LeRobot 0.6.1's recorder lays it out, so that
-LeRobot's own `LeRobotDataset` (and `data.lerobot.open_dataset`) opens it.
+LeRobot's own `LeRobotDataset` (and `datasets.lerobot.open_dataset`) opens it.
 
     writer = create_dataset(root, fps=10, features={**cameras, **numeric, **OUTCOME_FEATURES}, robot_type="...")
     writer.add_frame({...})                      # one per step: every declared feature, nothing else

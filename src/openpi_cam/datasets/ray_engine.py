@@ -6,9 +6,9 @@ and writes its shard itself, and hands back a small summary row. The driver only
 dataset's info.json), gathers the rows and writes meta/summary.json. Rows, shards and info.json are the local engine's
 (`datasets.explain.run_local`): the same `EpisodeExplainer` makes them.
 
-Exactly once: an episode's shard has a fixed path and is written atomically (`cam.maps_dataset`), so an episode that
-is done again (a retried task after its actor died, a resumed job) replaces its shard instead of adding rows, and a
-worker killed while writing leaves only a hidden temporary file that readers never list.
+Exactly once: an episode's shard has a fixed path and is written atomically (`datasets.maps_dataset`), so an episode
+that is done again (a retried task after its actor died, a resumed job) replaces its shard instead of adding rows, and
+a worker killed while writing leaves only a hidden temporary file that readers never list.
 
 Retries: Ray Data's actor pools restart a dead actor (`max_restarts=-1`) and resubmit the tasks it held
 (`max_task_retries=-1`) unless told otherwise; the engine relies on those defaults, since Ray 2.60 deprecates passing
