@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from openpi_cam.datasets.lerobot import LeRobotDataset, open_dataset
-from openpi_cam.datasets.maps_dataset import MapsDataset, map_column
+from openpi_cam.datasets.maps_dataset import MapsDataset, map_array, map_column
 from openpi_cam.datasets.views import displayable
 
 
@@ -74,13 +74,7 @@ def episode_rows(ds: MapsDataset, episode: int, kind: str) -> EpisodeRows:
     for text in cols["cameras"]:
         parsed = json.loads(text) if text else {}
         valid.append({c: bool(parsed.get(c, {}).get("valid", True)) for c in ds.cameras})
-    maps = {}
-    for c in ds.cameras:
-        flat = np.asarray(table.column(map_column(kind, c)).combine_chunks().flatten(), np.float32)
-        hp, wp = ds.grid(c)
-        per_row = flat.size // max(table.num_rows, 1)
-        shape = (table.num_rows, hp, wp) if per_row == hp * wp else (table.num_rows, per_row // (hp * wp), hp, wp)
-        maps[c] = displayable(flat.reshape(shape))
+    maps = {c: displayable(map_array(table.column(map_column(kind, c)), ds.grid(c))) for c in ds.cameras}
     return EpisodeRows(
         episode=episode,
         index=[int(i) for i in cols["index"]],

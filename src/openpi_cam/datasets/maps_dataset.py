@@ -133,6 +133,15 @@ def check_column(kind: str, camera: str) -> str:
     return f"check/{kind}/{camera}"
 
 
+def map_array(column: pa.ChunkedArray, grid: tuple[int, int]) -> np.ndarray:
+    """A `<kind>/<camera>` column as float32 [rows, Hp, Wp], or [rows, T, Hp, Wp] for per-token targets."""
+    hp, wp = grid
+    flat = np.asarray(column.combine_chunks().flatten(), np.float32)
+    rows = len(column)
+    per_row = flat.size // max(rows, 1)
+    return flat.reshape((rows, hp, wp) if per_row == hp * wp else (rows, per_row // (hp * wp), hp, wp))
+
+
 def is_maps_dataset(path: pathlib.Path) -> bool:
     info = pathlib.Path(path) / INFO_JSON
     if not info.is_file():
@@ -255,13 +264,7 @@ class MapsDataset:
 
     def maps(self, kind: str, camera: str, episode: int | None = None) -> np.ndarray:
         """float32 [frames, Hp, Wp] (or [frames, T, Hp, Wp] for per-token targets) of one kind and camera."""
-        column = self.table(episode, [map_column(kind, camera)]).column(0)
-        hp, wp = self.grid(camera)
-        flat = np.asarray(column.combine_chunks().flatten(), np.float32)
-        rows = len(column)
-        per_row = flat.size // max(rows, 1)
-        shape = (rows, hp, wp) if per_row == hp * wp else (rows, per_row // (hp * wp), hp, wp)
-        return flat.reshape(shape)
+        return map_array(self.table(episode, [map_column(kind, camera)]).column(0), self.grid(camera))
 
     def rows(self, episode: int | None = None) -> Iterator[dict[str, Any]]:
         yield from self.table(episode).to_pylist()
