@@ -50,7 +50,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from PIL import Image
 
-from openpi_cam.datasets.lerobot import DatasetError, dataset_error
+from openpi_cam.datasets.lerobot import CAMERA_DTYPES, DatasetError, dataset_error
 
 CODEBASE_VERSION = "v3.0"
 DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
@@ -80,7 +80,7 @@ class Feature:
 
     @property
     def is_camera(self) -> bool:
-        return self.dtype in ("video", "image")
+        return self.dtype in CAMERA_DTYPES
 
     def info(self) -> dict[str, Any]:
         return {
@@ -740,14 +740,15 @@ def create_dataset(
         raise dataset_error("exists and is not an empty folder: a new dataset needs its own root", file=root)
     if not isinstance(fps, int) or fps <= 0:
         raise dataset_error(f"fps must be a positive int, got {fps!r}", file=root)
-    for key, value in (("chunks_size", chunks_size), ("data_files_size_in_mb", data_files_size_in_mb)):
+    sizes = {
+        "chunks_size": chunks_size,
+        "data_files_size_in_mb": data_files_size_in_mb,
+        "video_files_size_in_mb": video_files_size_in_mb,
+    }
+    for key, value in sizes.items():
         if value <= 0:
             raise dataset_error(f"{key} must be positive, got {value!r}", file=root)
-    if video_files_size_in_mb <= 0:
-        raise dataset_error(f"video_files_size_in_mb must be positive, got {video_files_size_in_mb!r}", file=root)
-    checked: dict[str, Feature] = {}
-    for name, feature in features.items():
-        checked[name] = _checked_feature(root, name, feature)
+    checked = {name: _checked_feature(root, name, feature) for name, feature in features.items()}
     video = video or VideoOptions()
     if any(f.dtype == "video" for f in checked.values()):
         try:
