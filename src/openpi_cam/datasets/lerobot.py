@@ -161,9 +161,9 @@ class LeRobotDataset:
         if n == 0:
             return
 
+        dtypes = {name: self.features.get(name, {}).get("dtype") for name in names}
         columns: dict[str, Any] = {}
-        for name in names:
-            dtype = self.features.get(name, {}).get("dtype")
+        for name, dtype in dtypes.items():
             if dtype == "video":
                 continue
             if dtype == "image":
@@ -187,7 +187,7 @@ class LeRobotDataset:
             )
         readers: dict[str, Generator[np.ndarray, None, None]] = {}
         for name in names:
-            if self.features.get(name, {}).get("dtype") != "video":
+            if dtypes[name] != "video":
                 continue
             video = info.videos.get(name)
             if video is None:
@@ -202,7 +202,7 @@ class LeRobotDataset:
                 for name in names:
                     if name in readers:
                         frame[name] = next(readers[name])
-                    elif self.features.get(name, {}).get("dtype") == "image":
+                    elif dtypes[name] == "image":
                         frame[name] = self._decode_image(columns[name], row, info.data_path, episode, name)
                     else:
                         frame[name] = columns[name][row]
