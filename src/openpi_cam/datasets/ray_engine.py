@@ -93,21 +93,16 @@ class _ExplainEpisodes:
         except DatasetError as e:
             # Bad data is the driver's call (skip with --keep-going, else stop the job): hand it back, don't raise,
             # so that Ray neither retries it nor wraps the message.
-            return {
-                EPISODE: episode,
-                "worker": self.name,
-                "error": str(e),
-                "counts": "{}",
-                "seconds": "{}",
-                "finished_at": time.time(),
-            }
-        self.worker.write(result)
+            error, counts, seconds = str(e), {}, {}
+        else:
+            self.worker.write(result)
+            error, counts, seconds = "", dict(result.counts), result.seconds
         return {
             EPISODE: episode,
             "worker": self.name,
-            "error": "",
-            "counts": json.dumps(dict(result.counts)),
-            "seconds": json.dumps(result.seconds),
+            "error": error,
+            "counts": json.dumps(counts),
+            "seconds": json.dumps(seconds),
             "finished_at": time.time(),  # the worker's clock: compare only with the same worker's times
         }
 
@@ -190,7 +185,12 @@ def _gather(summary: JobSummary, row: Mapping[str, Any], job: DatasetJob) -> int
     summary.add(result)
     # Which worker did an episode and what it cost, as the episode arrives (for debugging a cluster, and for
     # benchmarks/bench_dataset.py, which leaves each worker's compiling first episode out of its steady figures).
-    record = {EPISODE: episode, "worker": str(row["worker"]), "counts": dict(result.counts), "seconds": result.seconds}
-    record["finished_at"] = float(row["finished_at"])
+    record = {
+        EPISODE: episode,
+        "worker": str(row["worker"]),
+        "counts": dict(result.counts),
+        "seconds": result.seconds,
+        "finished_at": float(row["finished_at"]),
+    }
     log.debug("explain: episode %d by %s", episode, row["worker"], extra={EPISODE_RECORD: record})
     return episode
