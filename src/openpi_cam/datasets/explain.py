@@ -36,6 +36,7 @@ log = logging.getLogger(__name__)
 PROMPT_KEY = "prompt"
 ACTIONS_KEY = "actions"  # in a LeRobot mapping: the feature holding the recorded actions, not an observation key
 NOISE_SEED = 0  # with the frame's index, seeds a flow-matching policy's noise for that frame
+STAGES = ("decode", "inference", "explanation", "writing")  # where an episode's seconds go
 
 
 @dataclasses.dataclass(frozen=True)
@@ -251,7 +252,7 @@ class EpisodeResult:
     episode: int
     rows: list[dict[str, Any]]
     counts: collections.Counter[str]
-    seconds: dict[str, float]  # decode, inference, explanation, writing
+    seconds: dict[str, float]  # per STAGES
 
 
 class EpisodeExplainer:
@@ -288,7 +289,7 @@ class EpisodeExplainer:
         """The rows of one episode (raises `DatasetError` for bad data: nothing of the episode is written)."""
         job, options = self.job, self.job.options
         counts: collections.Counter[str] = collections.Counter()
-        seconds = dict.fromkeys(("decode", "inference", "explanation", "writing"), 0.0)
+        seconds = dict.fromkeys(STAGES, 0.0)
         length = self.dataset.episode_length(episode)
         wanted = set(range(0, length, job.every))
         outcome = {}
@@ -418,9 +419,7 @@ class JobSummary:
     episodes_already_written: int = 0
     episodes_skipped: dict[int, str] = dataclasses.field(default_factory=dict)
     counts: collections.Counter[str] = dataclasses.field(default_factory=collections.Counter)
-    seconds: dict[str, float] = dataclasses.field(
-        default_factory=lambda: dict.fromkeys(("decode", "inference", "explanation", "writing"), 0.0)
-    )
+    seconds: dict[str, float] = dataclasses.field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
     engine: str = "local"
     workers: int = 1
 
