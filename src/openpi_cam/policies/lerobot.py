@@ -38,7 +38,8 @@ from openpi_cam.policies.checkpoint_format import CONFIG_FILE, POSTPROCESSOR_FIL
 from openpi_cam.policies.family import Sampler
 from openpi_cam.policies.pi0_family import FlowExplainer, flow_sampler
 from openpi_cam.policies.robot import GenericOutputs, lookup
-from openpi_cam.tokenizers.paligemma import PALIGEMMA_HUB_ID, hf_cached_file, hf_hub_cache, load_paligemma_tokenizer
+from openpi_cam.tokenizers.fast import huggingface_hub_cache
+from openpi_cam.tokenizers.paligemma import PALIGEMMA_HUB_ID, hf_cached_file, load_paligemma_tokenizer
 from openpi_cam.tokenizers.pi0 import pad_tokens, pi05_prompt
 from openpi_cam.transforms import (
     OUTPUT_CONTEXT,
@@ -575,8 +576,8 @@ def resolve_tokenizer(
         return load_paligemma_tokenizer(cached)
     raise FileNotFoundError(
         f"{folder}: tokenizer {name!r} not found: looked at {candidates[0]}, {candidates[1]} and the Hugging Face "
-        f"cache {hf_hub_cache()}; pass a SentencePiece model (paligemma_tokenizer=) or copy {PALIGEMMA_HUB_ID}'s "
-        "tokenizer.model to one of those places (nothing is downloaded)"
+        f"cache {huggingface_hub_cache()}; pass a SentencePiece model (paligemma_tokenizer=) or copy "
+        f"{PALIGEMMA_HUB_ID}'s tokenizer.model to one of those places (nothing is downloaded)"
     )
 
 
