@@ -667,8 +667,11 @@ class RequestLayout:
     @classmethod
     def read(cls, folder: str | Path) -> RequestLayout:
         folder = Path(folder)
-        cfg = LeRobotConfig.read(folder / CONFIG_FILE)
-        specs = read_pipeline(folder / PREPROCESSOR_FILE)
+        return cls.of(LeRobotConfig.read(folder / CONFIG_FILE), read_pipeline(folder / PREPROCESSOR_FILE))
+
+    @classmethod
+    def of(cls, cfg: LeRobotConfig, specs: Sequence[StepSpec]) -> RequestLayout:
+        """The layout of a folder's config and preprocessor entries."""
         renames = [dict(s.config.get("rename_map") or {}) for s in specs if s.name == "rename_observations_processor"]
         sources = {c: _request_key(c, renames) for c in cfg.real_cameras} | {c: None for c in cfg.empty_camera_names}
         return cls(cfg, sources, _request_key(OBS_STATE, renames))
@@ -735,10 +738,9 @@ def build_lerobot(
                          f"weights' projections take {model.config.action_dim}")  # fmt: skip
     if cfg.action_dim > cfg.max_action_dim or cfg.state_dim > cfg.max_state_dim:
         raise ValueError(f"{where}: state {cfg.state_dim} / action {cfg.action_dim} dims exceed the model's 32")
-    renames = [s.rename_map for s in pre if isinstance(s, Rename)]
-    sources = {c: _request_key(c, renames) for c in cfg.real_cameras} | {c: None for c in cfg.empty_camera_names}
+    layout = RequestLayout.of(cfg, pre_specs)
     shapes = {c: cfg.input_features[c].shape for c in cfg.real_cameras}
-    inputs = LeRobotInputs(sources, _request_key(OBS_STATE, renames), cfg.state_dim, shapes, default_prompt)
+    inputs = LeRobotInputs(layout.camera_sources, layout.state_key, cfg.state_dim, shapes, default_prompt)
     preprocessor = (inputs, *pre)
     transforms = (
         *preprocessor,
@@ -751,7 +753,7 @@ def build_lerobot(
         "lerobot": {
             "type": cfg.type,
             "cameras": list(cfg.real_cameras),
-            "state": _request_key(OBS_STATE, renames),
+            "state": layout.state_key,
             "state_dim": cfg.state_dim,
             "action_dim": cfg.action_dim,
             "chunk_size": cfg.chunk_size,
