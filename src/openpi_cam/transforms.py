@@ -284,6 +284,10 @@ class ResizeImages:
         """An image this transform receives as the uint8 ``[H, W, 3]`` frame a trace records (here: itself)."""
         return image
 
+    def resize(self, image: np.ndarray) -> np.ndarray:
+        """One camera's image, its letterbox geometry already checked, as the model reads it."""
+        return resize_with_pad_pil(image, self.height, self.width)
+
     def __call__(self, data: DataDict) -> DataDict:
         images = data["image"]
         for name, img in images.items():
@@ -291,7 +295,7 @@ class ResizeImages:
                 letterbox_geometry(img.shape[-3], img.shape[-2], self.height, self.width)
             except ValueError as e:
                 raise InvalidRequest(f"image for camera '{name}': {e}") from e
-        data["image"] = {k: resize_with_pad_pil(v, self.height, self.width) for k, v in images.items()}
+        data["image"] = {k: self.resize(v) for k, v in images.items()}
         return data
 
 

@@ -30,7 +30,6 @@ from safetensors.numpy import load_file
 
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.image_tools import resize_with_pad_torch_bilinear
-from openpi_cam.letterbox import letterbox_geometry
 from openpi_cam.model.config import Pi0Config
 from openpi_cam.model.pi0 import MAX_PERIOD, MIN_PERIOD, Pi0
 from openpi_cam.model.safetensors_weights import LEROBOT_HEADS, HeadCounts
@@ -532,15 +531,8 @@ class LeRobotResizeImages(ResizeImages):
     def client_frame(self, image: np.ndarray) -> np.ndarray:
         return np.clip(np.round(np.asarray(image, np.float32) * 255), 0, 255).astype(np.uint8)
 
-    def __call__(self, data: DataDict) -> DataDict:
-        resized = {}
-        for name, image in data["image"].items():
-            try:
-                letterbox_geometry(image.shape[-3], image.shape[-2], self.height, self.width)
-            except ValueError as e:
-                raise InvalidRequest(f"image for camera '{name}': {e}") from e
-            resized[name] = resize_with_pad_torch_bilinear(image, self.height, self.width) * np.float32(2) - 1
-        return {**data, "image": resized}
+    def resize(self, image: np.ndarray) -> np.ndarray:
+        return resize_with_pad_torch_bilinear(image, self.height, self.width) * np.float32(2) - 1
 
 
 @dataclasses.dataclass(frozen=True)
