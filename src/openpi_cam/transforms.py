@@ -46,6 +46,16 @@ def _as_array(value: Any, key: str) -> np.ndarray:
     return arr
 
 
+def _check_unit_range(img: np.ndarray, key: str) -> None:
+    """A float image's values are finite and in ``[0, 1]``, or `InvalidRequest` says which is not."""
+    if not np.all(np.isfinite(img)):
+        raise InvalidRequest(f"'{key}': float image contains NaN or inf")
+    if img.size and (img.min() < 0.0 or img.max() > 1.0):
+        raise InvalidRequest(
+            f"'{key}': float image values must lie in [0, 1], got [{float(img.min())}, {float(img.max())}]"
+        )
+
+
 def parse_image(value: Any, key: str, *, channels_first: bool | None = None) -> np.ndarray:
     """A client image as uint8 ``[H, W, 3]``, converted the way upstream's robot policies convert it.
 
@@ -59,12 +69,7 @@ def parse_image(value: Any, key: str, *, channels_first: bool | None = None) -> 
     if img.ndim != 3:
         raise InvalidRequest(f"'{key}': expected a 3-D image [H, W, 3] or [3, H, W], got shape {img.shape}")
     if np.issubdtype(img.dtype, np.floating):
-        if not np.all(np.isfinite(img)):
-            raise InvalidRequest(f"'{key}': float image contains NaN or inf")
-        if img.size and (img.min() < 0.0 or img.max() > 1.0):
-            raise InvalidRequest(
-                f"'{key}': float image values must lie in [0, 1], got [{float(img.min())}, {float(img.max())}]"
-            )
+        _check_unit_range(img, key)
         img = (255 * img).astype(np.uint8)
     transpose = img.shape[0] == 3 if channels_first is None else channels_first
     if transpose:
@@ -89,12 +94,7 @@ def parse_lerobot_image(value: Any, key: str) -> np.ndarray:
     elif np.issubdtype(img.dtype, np.floating):
         if img.ndim != 3 or img.shape[0] != 3:
             raise InvalidRequest(f"'{key}': a float image must be [3, H, W] in [0, 1], got shape {img.shape}")
-        if not np.all(np.isfinite(img)):
-            raise InvalidRequest(f"'{key}': float image contains NaN or inf")
-        if img.size and (img.min() < 0.0 or img.max() > 1.0):
-            raise InvalidRequest(
-                f"'{key}': float image values must lie in [0, 1], got [{float(img.min())}, {float(img.max())}]"
-            )
+        _check_unit_range(img, key)
         img = img.astype(np.float32)
     else:
         raise InvalidRequest(
@@ -284,6 +284,10 @@ class ResizeImages:
         """An image this transform receives as the uint8 ``[H, W, 3]`` frame a trace records (here: itself)."""
         return image
 
+    def resize(self, image: np.ndarray) -> np.ndarray:
+        """One camera's image, its letterbox geometry already checked, as the model reads it."""
+        return resize_with_pad_pil(image, self.height, self.width)
+
     def __call__(self, data: DataDict) -> DataDict:
         images = data["image"]
         for name, img in images.items():
@@ -291,7 +295,7 @@ class ResizeImages:
                 letterbox_geometry(img.shape[-3], img.shape[-2], self.height, self.width)
             except ValueError as e:
                 raise InvalidRequest(f"image for camera '{name}': {e}") from e
-        data["image"] = {k: resize_with_pad_pil(v, self.height, self.width) for k, v in images.items()}
+        data["image"] = {k: self.resize(v) for k, v in images.items()}
         return data
 
 

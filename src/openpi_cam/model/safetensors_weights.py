@@ -87,19 +87,15 @@ def _q_heads(n: int, h: int) -> _Conv:
     return _Conv(lambda x: x.reshape(n, h, -1).transpose(0, 2, 1), lambda y: y.transpose(0, 2, 1).reshape(n * h, -1))
 
 
-def _o_heads(n: int, h: int) -> _Conv:
-    """Gemma o_proj [D, n*h] <-> attn_vec_einsum [n, h, D]."""
+def _out_heads(n: int, h: int) -> _Conv:
+    """An attention output projection [D, n*h] <-> [n, h, D]: Gemma's o_proj as attn_vec_einsum, SigLIP's out_proj
+    as its out kernel."""
     return _Conv(lambda x: x.T.reshape(n, h, -1), lambda y: y.reshape(n * h, -1).T)
 
 
 def _in_heads(n: int, h: int) -> _Conv:
     """SigLIP q/k/v [n*h, w] <-> kernel [w, n, h]."""
     return _Conv(lambda x: x.T.reshape(-1, n, h), lambda y: y.reshape(-1, n * h).T)
-
-
-def _out_heads(n: int, h: int) -> _Conv:
-    """SigLIP out_proj [w, n*h] <-> kernel [n, h, w]."""
-    return _Conv(lambda x: x.T.reshape(n, h, -1), lambda y: y.reshape(n * h, -1).T)
 
 
 def _bias_heads(n: int, h: int) -> _Conv:
@@ -127,7 +123,7 @@ def _gemma_entries(cfg: GemmaConfig, torch_root: str, sfx: str, *, adarms: bool)
             _Entry(layer + "self_attn.k_proj.weight", (K * H, D), attn + f"kv_einsum{sfx}/w", (i, 0), _q_heads(K, H)),
             _Entry(layer + "self_attn.v_proj.weight", (K * H, D), attn + f"kv_einsum{sfx}/w", (i, 1), _q_heads(K, H)),
             _Entry(
-                layer + "self_attn.o_proj.weight", (D, N * H), attn + f"attn_vec_einsum{sfx}/w", (i,), _o_heads(N, H)
+                layer + "self_attn.o_proj.weight", (D, N * H), attn + f"attn_vec_einsum{sfx}/w", (i,), _out_heads(N, H)
             ),
             _Entry(layer + "mlp.gate_proj.weight", (M, D), mlp + "gating_einsum", (i, 0), LINEAR),
             _Entry(layer + "mlp.up_proj.weight", (M, D), mlp + "gating_einsum", (i, 1), LINEAR),
@@ -263,6 +259,10 @@ def _divide(total: int, parts: int, what: str) -> int:
     return total // parts
 
 
+def _embedding_key(keys: set[str]) -> str:
+    return LM + "embed_tokens.weight" if LM + "embed_tokens.weight" in keys else PG + "lm_head.weight"
+
+
 def pi0_config_from_tensors(
     infos: Mapping[str, TensorInfo], heads: HeadCounts = LEROBOT_HEADS, *, where: str = "model.safetensors"
 ) -> tuple[Pi0Config, str]:
@@ -278,8 +278,7 @@ def pi0_config_from_tensors(
 
     stripped = [k[len(prefix) :] for k in keys]
     pi05 = torch_family(infos, where=where) == "pi05"
-    embedding = LM + "embed_tokens.weight" if LM + "embed_tokens.weight" in stripped else PG + "lm_head.weight"
-    vocab, width = shape(embedding)
+    vocab, width = shape(_embedding_key(set(stripped)))
 
     def gemma(root: str, vocab_size: int) -> GemmaConfig:
         depth = _layer_count(stripped, root + "layers.")
@@ -327,10 +326,6 @@ def pi0_config_from_tensors(
     )
     action_dim = shape("action_in_proj.weight")[1]
     return Pi0Config(llm, expert, siglip, pi05, action_dim), prefix
-
-
-def _embedding_key(keys: set[str]) -> str:
-    return LM + "embed_tokens.weight" if LM + "embed_tokens.weight" in keys else PG + "lm_head.weight"
 
 
 def check_tensors(infos: Mapping[str, TensorInfo], cfg: Pi0Config, prefix: str, *, where: str) -> list[_Entry]:

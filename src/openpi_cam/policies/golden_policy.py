@@ -12,7 +12,7 @@ import numpy as np
 
 from openpi_cam import golden
 from openpi_cam.policies.checkpoint_format import CONFIG_FILE
-from openpi_cam.policies.lerobot import TASK, TOKEN_MASK, TOKENS, LeRobotParts, build_lerobot
+from openpi_cam.policies.lerobot import OBS_STATE, TASK, TOKEN_MASK, TOKENS, LeRobotParts, build_lerobot
 from openpi_cam.policies.policy import Policy, create_policy, lerobot_policy
 
 LEROBOT_CASES = "cases.npz"
@@ -68,6 +68,13 @@ def _text(case: str, name: str, got: str, want: str) -> golden.Comparison:
     return golden.Comparison(case, name, max_abs=0.0 if ok else 1.0, scale=1.0, bound=0.0, ok=ok, note="(exact text)")
 
 
+def _request(d: dict[str, np.ndarray], cameras: tuple[str, ...], prefix: str = "input/") -> dict[str, object]:
+    """The request a LeRobot golden frame's input arrays (under `prefix`) make: its cameras, state and task."""
+    obs: dict[str, object] = {c: d[prefix + c] for c in (*cameras, OBS_STATE)}
+    obs[TASK] = str(d[prefix + TASK])
+    return obs
+
+
 def check_lerobot_case(
     parts: LeRobotParts, policy: Policy, name: str, d: dict[str, np.ndarray], rel: float
 ) -> list[golden.Comparison]:
@@ -75,15 +82,14 @@ def check_lerobot_case(
     model's inputs and the normalised and post-processed chunks for the frame's noise; the frame also served as the
     uint8 [H, W, 3] it was made from gives the same model images."""
     cameras = parts.config.real_cameras
-    obs = {c: d[f"input/{c}"] for c in cameras} | {"observation.state": d["input/observation.state"]}
-    obs[TASK] = str(d["input/task"])
+    obs = _request(d, cameras)
     pre = obs
     for transform in parts.preprocessor:
         pre = transform(pre)
     response, trace = policy.infer_traced(obs, noise=d["noise"])
     o = trace.observation
     exact = {
-        "pre/observation.state": pre["observation.state"],
+        f"pre/{OBS_STATE}": pre[OBS_STATE],
         f"pre/{TOKENS}": np.asarray(o.tokenized_prompt)[0],
         f"pre/{TOKEN_MASK}": np.asarray(o.tokenized_prompt_mask)[0],
         "model/image_masks": [bool(np.asarray(o.image_masks[c])[0]) for c in cameras],
@@ -124,7 +130,7 @@ def run_lerobot_golden(folder: pathlib.Path, verbose: bool = True) -> list[golde
     for case in cases:
         d = {k[len(case) + 1 :]: v for k, v in arrays.items() if k.startswith(case + "/")}
         rows = d["noise"].shape[0]
-        batched_inputs = d["input/observation.state"].ndim == 2  # single frames' inputs have no batch axis
+        batched_inputs = d[f"input/{OBS_STATE}"].ndim == 2  # single frames' inputs have no batch axis
         for row in range(rows):
             frame = {k: v[row] if batched_inputs or not k.startswith("input") else v for k, v in d.items()}
             name = case if rows == 1 else f"{case}[{row}]"
@@ -137,10 +143,7 @@ def _check_gradient(
     parts: LeRobotParts, policy: Policy, arrays: dict[str, np.ndarray], rel: float
 ) -> list[golden.Comparison]:
     cameras = parts.config.real_cameras
-    obs = {c: arrays[f"case0/input/{c}"] for c in cameras} | {
-        "observation.state": arrays["case0/input/observation.state"]
-    }
-    obs[TASK] = str(arrays["case0/input/task"])
+    obs = _request(arrays, cameras, "case0/input/")
     noise = arrays["case0/noise"][0]
     trace = policy.infer_traced(obs, noise=noise)[1]
     value, grad = golden.flow_image_gradient(parts.model, trace.observation, noise[None], arrays["grad/W"], cameras[0])

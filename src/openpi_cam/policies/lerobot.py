@@ -30,7 +30,6 @@ from safetensors.numpy import load_file
 
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.image_tools import resize_with_pad_torch_bilinear
-from openpi_cam.letterbox import letterbox_geometry
 from openpi_cam.model.config import Pi0Config
 from openpi_cam.model.pi0 import MAX_PERIOD, MIN_PERIOD, Pi0
 from openpi_cam.model.safetensors_weights import LEROBOT_HEADS, HeadCounts
@@ -38,7 +37,8 @@ from openpi_cam.policies.checkpoint_format import CONFIG_FILE, POSTPROCESSOR_FIL
 from openpi_cam.policies.family import Sampler
 from openpi_cam.policies.pi0_family import FlowExplainer, flow_sampler
 from openpi_cam.policies.robot import GenericOutputs, lookup
-from openpi_cam.tokenizers.paligemma import PALIGEMMA_HUB_ID, hf_cached_file, hf_hub_cache, load_paligemma_tokenizer
+from openpi_cam.tokenizers.fast import huggingface_hub_cache
+from openpi_cam.tokenizers.paligemma import PALIGEMMA_HUB_ID, hf_cached_file, load_paligemma_tokenizer
 from openpi_cam.tokenizers.pi0 import pad_tokens, pi05_prompt
 from openpi_cam.transforms import (
     OUTPUT_CONTEXT,
@@ -531,15 +531,8 @@ class LeRobotResizeImages(ResizeImages):
     def client_frame(self, image: np.ndarray) -> np.ndarray:
         return np.clip(np.round(np.asarray(image, np.float32) * 255), 0, 255).astype(np.uint8)
 
-    def __call__(self, data: DataDict) -> DataDict:
-        resized = {}
-        for name, image in data["image"].items():
-            try:
-                letterbox_geometry(image.shape[-3], image.shape[-2], self.height, self.width)
-            except ValueError as e:
-                raise InvalidRequest(f"image for camera '{name}': {e}") from e
-            resized[name] = resize_with_pad_torch_bilinear(image, self.height, self.width) * np.float32(2) - 1
-        return {**data, "image": resized}
+    def resize(self, image: np.ndarray) -> np.ndarray:
+        return resize_with_pad_torch_bilinear(image, self.height, self.width) * np.float32(2) - 1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -575,8 +568,8 @@ def resolve_tokenizer(
         return load_paligemma_tokenizer(cached)
     raise FileNotFoundError(
         f"{folder}: tokenizer {name!r} not found: looked at {candidates[0]}, {candidates[1]} and the Hugging Face "
-        f"cache {hf_hub_cache()}; pass a SentencePiece model (paligemma_tokenizer=) or copy {PALIGEMMA_HUB_ID}'s "
-        "tokenizer.model to one of those places (nothing is downloaded)"
+        f"cache {huggingface_hub_cache()}; pass a SentencePiece model (paligemma_tokenizer=) or copy "
+        f"{PALIGEMMA_HUB_ID}'s tokenizer.model to one of those places (nothing is downloaded)"
     )
 
 
@@ -666,8 +659,11 @@ class RequestLayout:
     @classmethod
     def read(cls, folder: str | Path) -> RequestLayout:
         folder = Path(folder)
-        cfg = LeRobotConfig.read(folder / CONFIG_FILE)
-        specs = read_pipeline(folder / PREPROCESSOR_FILE)
+        return cls.of(LeRobotConfig.read(folder / CONFIG_FILE), read_pipeline(folder / PREPROCESSOR_FILE))
+
+    @classmethod
+    def of(cls, cfg: LeRobotConfig, specs: Sequence[StepSpec]) -> RequestLayout:
+        """The layout of a folder's config and preprocessor entries."""
         renames = [dict(s.config.get("rename_map") or {}) for s in specs if s.name == "rename_observations_processor"]
         sources = {c: _request_key(c, renames) for c in cfg.real_cameras} | {c: None for c in cfg.empty_camera_names}
         return cls(cfg, sources, _request_key(OBS_STATE, renames))
@@ -734,10 +730,9 @@ def build_lerobot(
                          f"weights' projections take {model.config.action_dim}")  # fmt: skip
     if cfg.action_dim > cfg.max_action_dim or cfg.state_dim > cfg.max_state_dim:
         raise ValueError(f"{where}: state {cfg.state_dim} / action {cfg.action_dim} dims exceed the model's 32")
-    renames = [s.rename_map for s in pre if isinstance(s, Rename)]
-    sources = {c: _request_key(c, renames) for c in cfg.real_cameras} | {c: None for c in cfg.empty_camera_names}
+    layout = RequestLayout.of(cfg, pre_specs)
     shapes = {c: cfg.input_features[c].shape for c in cfg.real_cameras}
-    inputs = LeRobotInputs(sources, _request_key(OBS_STATE, renames), cfg.state_dim, shapes, default_prompt)
+    inputs = LeRobotInputs(layout.camera_sources, layout.state_key, cfg.state_dim, shapes, default_prompt)
     preprocessor = (inputs, *pre)
     transforms = (
         *preprocessor,
@@ -750,7 +745,7 @@ def build_lerobot(
         "lerobot": {
             "type": cfg.type,
             "cameras": list(cfg.real_cameras),
-            "state": _request_key(OBS_STATE, renames),
+            "state": layout.state_key,
             "state_dim": cfg.state_dim,
             "action_dim": cfg.action_dim,
             "chunk_size": cfg.chunk_size,

@@ -32,6 +32,7 @@ from openpi_cam.model.pi0 import MAX_PERIOD, MIN_PERIOD, Pi0
 from openpi_cam.model.safetensors_weights import save_safetensors_params
 from openpi_cam.normalize import NormStats, load_checkpoint_norm_stats
 from openpi_cam.policies.checkpoint_format import (
+    ASSETS_DIR,
     CONFIG_FILE,
     PARAMS_DIR,
     POSTPROCESSOR_FILE,
@@ -185,8 +186,7 @@ def _pipelines(cfg: PolicyConfig, config: dict[str, Any], tokenizer_name: str) -
                  normalizer]  # fmt: skip
     unnormalizer = {"registry_name": "unnormalizer_processor",
                     "config": {**norm, "features": config["output_features"]}}  # fmt: skip
-    post = [unnormalizer, {"registry_name": "absolute_actions_processor", "config": {"enabled": False}},
-            {"registry_name": "device_processor", "config": {"device": "cpu", "float_dtype": None}}]  # fmt: skip
+    post = [unnormalizer, {"registry_name": "absolute_actions_processor", "config": {"enabled": False}}, device]
     for name, pipeline in (("policy_preprocessor", steps), ("policy_postprocessor", post)):
         for i, step in enumerate(pipeline):
             if step["registry_name"] in ("normalizer_processor", "unnormalizer_processor"):
@@ -212,7 +212,7 @@ def export_lerobot(
         raise FileExistsError(f"{out} is not empty: export writes a new LeRobot folder")
     plan = plan_export(cfg)
     norm_stats = load_checkpoint_norm_stats(checkpoint_dir, cfg.asset_id)
-    where = f"{checkpoint_dir}/assets/{cfg.asset_id}"
+    where = f"{checkpoint_dir}/{ASSETS_DIR}/{cfg.asset_id}"
     stats = _stats_tensors(norm_stats, plan, where)
     model = Pi0.from_checkpoint(
         checkpoint_dir / PARAMS_DIR, dtype="float32", action_horizon=cfg.action_horizon, max_token_len=cfg.max_token_len

@@ -18,12 +18,18 @@ from typing import Any, Literal
 import jax
 
 from openpi_cam.model.checkpoint import read_param_shapes
-from openpi_cam.model.config import MAX_DECODING_STEPS, architecture_from_params, family_of
+from openpi_cam.model.config import MAX_DECODING_STEPS, Pi0Config, architecture_from_params, family_of
 from openpi_cam.model.safetensors_weights import pi0_config_from_tensors, read_tensor_infos
 from openpi_cam.policies import demo_metaworld, demo_reach
-from openpi_cam.policies.checkpoint_format import PARAMS_DIR, WEIGHTS_FILE, CheckpointFormat, checkpoint_format
+from openpi_cam.policies.checkpoint_format import (
+    CONFIG_FILE,
+    PARAMS_DIR,
+    WEIGHTS_FILE,
+    CheckpointFormat,
+    checkpoint_format,
+)
 from openpi_cam.policies.config import resolve_config
-from openpi_cam.policies.lerobot import RequestLayout, read_head_counts
+from openpi_cam.policies.lerobot import LeRobotConfig, RequestLayout, read_head_counts
 from openpi_cam.policies.policy import Policy, create_policy
 
 Dtype = Literal["bfloat16", "float32"]
@@ -116,7 +122,7 @@ class ModelSpec:
             assets = BUNDLED_ASSETS[BUNDLED_MODELS[self.config]]  # type: ignore[index]
             checkpoint = None if checkpoint == assets / demo_reach.CHECKPOINT.name else checkpoint
         if checkpoint is not None and not demo and self.format == "lerobot":
-            saved = RequestLayout.read(checkpoint).config.dtype
+            saved = LeRobotConfig.read(checkpoint / CONFIG_FILE).dtype
             config, dtype = self.config, self.dtype or (saved if saved in DTYPES else LEROBOT_DTYPE)
         else:
             config = self.config or (demo_reach.DEMO_CONFIG.name if self.bundled else DEFAULT_CHECKPOINT_CONFIG)
@@ -179,13 +185,12 @@ class ModelSpec:
         folder = spec.checkpoint
         if spec.config is None:
             layout = RequestLayout.read(folder)
-            cfg, _ = pi0_config_from_tensors(read_tensor_infos(folder / WEIGHTS_FILE), read_head_counts(folder))
-            return ModelFacts(layout.config.type, cfg.siglip.grid, layout.camera_sources)
+            return ModelFacts(layout.config.type, _torch_architecture(folder).siglip.grid, layout.camera_sources)
         sources = dict(resolve_config(spec.config).camera_sources)
         if spec.format == "orbax":
             shapes = read_param_shapes(folder / PARAMS_DIR)
             return ModelFacts(family_of(shapes), architecture_from_params(shapes)[1].grid, sources)
-        cfg, _ = pi0_config_from_tensors(read_tensor_infos(folder / WEIGHTS_FILE), read_head_counts(folder))
+        cfg = _torch_architecture(folder)
         return ModelFacts("pi05" if cfg.pi05 else "pi0", cfg.siglip.grid, sources)
 
     def to_json(self) -> dict[str, Any]:
@@ -218,6 +223,11 @@ class ModelSpec:
             f.name: getattr(flags, f.name) for f in dataclasses.fields(flags) if getattr(flags, f.name) is not None
         }
         return dataclasses.replace(self, **values)
+
+
+def _torch_architecture(folder: pathlib.Path) -> Pi0Config:
+    """The architecture of a folder's `model.safetensors`, from its header and the folder's head counts."""
+    return pi0_config_from_tensors(read_tensor_infos(folder / WEIGHTS_FILE), read_head_counts(folder))[0]
 
 
 def _jsonable(value: Any) -> Any:

@@ -198,11 +198,12 @@ class FastActionTokenizer:
 
 
 def huggingface_hub_cache() -> Path:
-    """The HF hub cache the `huggingface_hub` client uses by default."""
-    if "HF_HUB_CACHE" in os.environ:
-        return Path(os.environ["HF_HUB_CACHE"]).expanduser()
-    hf_home = Path(os.environ.get("HF_HOME", "~/.cache/huggingface")).expanduser()
-    return hf_home / "hub"
+    """The Hugging Face hub cache: `$HF_HUB_CACHE`, else `$HF_HOME/hub`, else `$XDG_CACHE_HOME/huggingface/hub`, else
+    `~/.cache/huggingface/hub` (huggingface_hub's own order)."""
+    if hub := os.environ.get("HF_HUB_CACHE"):
+        return Path(hub).expanduser()
+    home = os.environ.get("HF_HOME") or Path(os.environ.get("XDG_CACHE_HOME", "~/.cache")) / "huggingface"
+    return Path(home).expanduser() / "hub"
 
 
 def resolve_fast_tokenizer_dir(path: str | Path | None = None, *, repo_id: str = FAST_HF_REPO_ID) -> Path:

@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import sentencepiece
 
+from openpi_cam.tokenizers.fast import huggingface_hub_cache
+
 OPENPI_DATA_HOME_ENV = "OPENPI_DATA_HOME"
 DEFAULT_OPENPI_DATA_HOME = "~/.cache/openpi"
 # Where upstream's `maybe_download("gs://big_vision/paligemma_tokenizer.model")` leaves the file inside its cache.
@@ -48,18 +50,9 @@ def resolve_paligemma_tokenizer_path(path: str | Path | None = None) -> Path:
     )
 
 
-def hf_hub_cache() -> Path:
-    """The Hugging Face hub cache: `$HF_HUB_CACHE`, else `$HF_HOME/hub`, else `$XDG_CACHE_HOME/huggingface/hub`, else
-    `~/.cache/huggingface/hub` (huggingface_hub's own order)."""
-    if hub := os.environ.get("HF_HUB_CACHE"):
-        return Path(hub).expanduser()
-    home = os.environ.get("HF_HOME") or Path(os.environ.get("XDG_CACHE_HOME", "~/.cache")) / "huggingface"
-    return Path(home).expanduser() / "hub"
-
-
 def hf_cached_file(repo_id: str, filename: str) -> Path | None:
     """`filename` of a model repository's snapshot in the hub cache (the one `refs/main` names, else any), or None."""
-    repo = hf_hub_cache() / f"models--{repo_id.replace('/', '--')}"
+    repo = huggingface_hub_cache() / f"models--{repo_id.replace('/', '--')}"
     ref = repo / "refs" / "main"
     if ref.is_file() and (candidate := repo / "snapshots" / ref.read_text().strip() / filename).is_file():
         return candidate
