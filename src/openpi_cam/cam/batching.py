@@ -120,9 +120,8 @@ def explain_batch(
         if isinstance(result, ExplainSkipped):
             continue
         if options.check_patches:
-            patches = options.check_patches
             checks[i] = check_trace(
-                explainer, trace, result, options.map_options, patches=patches, seed=seeds[i], mesh=mesh
+                explainer, trace, result, options.map_options, patches=options.check_patches, seed=seeds[i], mesh=mesh
             )
         if policy is not None and options.reliance:
             relied[i] = reliance(policy, explainer, trace, result, options.map_options, mesh=mesh)

@@ -44,6 +44,11 @@ def roc_auc(failed: Sequence[bool], scores: Sequence[float]) -> float:
     pos, neg = s[y], s[~y]
     if pos.size == 0 or neg.size == 0:
         return math.nan
+    return _auc(pos, neg)
+
+
+def _auc(pos: np.ndarray, neg: np.ndarray) -> float:
+    """Mann-Whitney's U / (failures x successes) of the failures' and the successes' scores, ties counting one half."""
     greater = (pos[:, None] > neg[None, :]).sum()
     ties = (pos[:, None] == neg[None, :]).sum()
     return float((greater + 0.5 * ties) / (pos.size * neg.size))
@@ -77,9 +82,7 @@ def bootstrap_auc(
     rng = np.random.default_rng(seed)
     values = np.empty(resamples)
     for i in range(resamples):
-        p = pos[rng.integers(0, pos.size, pos.size)]
-        n = neg[rng.integers(0, neg.size, neg.size)]
-        values[i] = ((p[:, None] > n[None, :]).sum() + 0.5 * (p[:, None] == n[None, :]).sum()) / (p.size * n.size)
+        values[i] = _auc(pos[rng.integers(0, pos.size, pos.size)], neg[rng.integers(0, neg.size, neg.size)])
     tail = (1 - level) / 2 * 100
     return float(np.percentile(values, tail)), float(np.percentile(values, 100 - tail))
 

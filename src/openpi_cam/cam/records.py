@@ -100,9 +100,10 @@ def client_frame_uint8(image: Any) -> np.ndarray:
     return np.ascontiguousarray(x)
 
 
-def model_inputs(trace: InferenceTrace) -> dict[str, np.ndarray]:
-    """The explained call's non-image model inputs and raw output (batch row 0): with the model frames they are what
-    re-running the explained score needs (`openpi-cam faithfulness`)."""
+def model_inputs(trace: InferenceTrace, frames: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The explained call's non-image model inputs and raw output (batch row 0): with the model frames (`frames`,
+    `model_frame_uint8` of each camera) they are what re-running the explained score needs (`openpi-cam
+    faithfulness`)."""
     obs = trace.observation
     inputs = {"output": np.asarray(trace.output), **{k: np.asarray(v) for k, v in trace.sample_inputs.items()}}
     for name in ("state", "tokenized_prompt", "tokenized_prompt_mask", "token_ar_mask"):
@@ -112,7 +113,7 @@ def model_inputs(trace: InferenceTrace) -> dict[str, np.ndarray]:
     for camera, image in obs.images.items():
         # A model image the uint8 model frame does not hold exactly (LeRobot resizes in float) is kept as it is.
         x = np.asarray(image, np.float32)[0]
-        if not np.array_equal(np.asarray(uint8_to_model(model_frame_uint8(x))), x):
+        if not np.array_equal(np.asarray(uint8_to_model(frames[camera])), x):
             inputs[IMAGE_INPUT + camera] = x
     return inputs
 
@@ -138,9 +139,7 @@ def step_record(
     if save_frames in ("raw", "both"):  # what replaying the step needs: the client's frames and its other values
         frames = {c: client_frame_uint8(im) for c, im in trace.raw_images.items() if im is not None}
         client_inputs = {k: v for k, v in trace.client_inputs.items() if is_extra_array(k, v)}
-    model_frames = {}
-    if save_frames in ("model", "both"):
-        model_frames = {c: model_frame_uint8(im) for c, im in trace.observation.images.items()}
+    model_frames = {c: model_frame_uint8(im) for c, im in trace.observation.images.items()}
     cameras = {
         c: CameraMeta.from_json(
             {
@@ -171,8 +170,8 @@ def step_record(
         timestamp,
         explanation.maps,
         frames=frames,
-        model_frames=model_frames,
-        inputs=model_inputs(trace),
+        model_frames=model_frames if save_frames in ("model", "both") else {},
+        inputs=model_inputs(trace, model_frames),
         meta=meta.to_json(),
         extra_arrays=extra_arrays,
         client_inputs=client_inputs,

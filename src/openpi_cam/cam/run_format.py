@@ -558,7 +558,7 @@ class StepArrays:
 
 def _split_arrays(npz: Any) -> StepArrays:
     arrays = StepArrays({}, {}, {}, {}, {}, {})
-    prefixes = [(p, arrays.maps.setdefault(k, {})) for k, p in ((k, i.prefix) for k, i in MAP_KIND_INFO.items())]
+    prefixes = [(info.prefix, arrays.maps.setdefault(k, {})) for k, info in MAP_KIND_INFO.items()]
     prefixes += [
         (FRAME_PREFIX, arrays.frames),
         (MODEL_FRAME_PREFIX, arrays.model_frames),

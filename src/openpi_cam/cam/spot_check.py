@@ -67,9 +67,9 @@ def check_trace(
     mesh: Mesh | None = None,
 ) -> SpotCheck:
     """`meta.check` of one traced, explained inference: per valid camera, the unpainted score, each kind's top patch
-    and its drop, the random patches and their drops. {"skipped": why} when the target has one score per token
-    (one number cannot check it), and best effort like the rest of the side channel: a failure is recorded as
-    {"skipped": "failed_<Error>"} and the step keeps its maps. With a `mesh`, `explainer` is placed on it."""
+    and its drop, the random patches and their drops. `SpotCheck(skipped=why)` when the target has one score per
+    token (one number cannot check it), and best effort like the rest of the side channel: a failure is recorded as
+    `SpotCheck(skipped="failed_<Error>")` and the step keeps its maps. With a `mesh`, `explainer` is placed on it."""
     try:
         masks, layout = _camera_masks(explanation, patches, seed)
         if not masks:

@@ -17,7 +17,6 @@ section per rendered episode (its video and a strip of its frames). Figures: `da
 from __future__ import annotations
 
 import dataclasses
-import math
 import pathlib
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -38,7 +37,7 @@ from openpi_cam.datasets.frames import (
 )
 from openpi_cam.datasets.lerobot import LeRobotDataset
 from openpi_cam.datasets.maps_dataset import MapsDataset
-from openpi_cam.datasets.views import GROUP, GROUP_NAMES_FILE, DatasetViews, compute_views
+from openpi_cam.datasets.views import GROUP, GROUP_NAMES_FILE, DatasetViews, compute_views, top_k
 from openpi_cam.viz.colormap import colorize
 from openpi_cam.viz.overlay import blend, upsample
 from openpi_cam.viz.progress import progress
@@ -296,7 +295,7 @@ def _prior_section(views: DatasetViews, out_dir: pathlib.Path, opts: DatasetRend
         prior_image(views.hot_rate[c], hot, opts.prior_height, vmax=1.0).save(out_dir / rate_rel)
         fit = views.fit[c]
         patches = int(np.prod(views.prior[c].shape))
-        k = max(1, math.ceil(views.options.top_fraction * patches))
+        k = top_k(patches, views.options.top_fraction)
         flagged = "".join(
             f"<li class='warn hot' data-row='{h.row}' data-col='{h.col}'>patch row {h.row}, col {h.col}: in the "
             f"top-{k} of {_pct(h.rate)} of frames (chance {_pct(k / patches)})</li>"

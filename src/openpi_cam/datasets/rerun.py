@@ -42,7 +42,7 @@ from openpi_cam.datasets.maps_dataset import MapsDataset, reliance_columns
 from openpi_cam.datasets.views import DatasetViews, compute_views
 from openpi_cam.viz.colormap import colorize
 from openpi_cam.viz.overlay import upsample
-from openpi_cam.viz.rerun_sink import import_rerun
+from openpi_cam.viz.rerun_sink import import_rerun, log_reliance
 from openpi_cam.viz.stats import mean_score
 from openpi_cam.vocabulary import DEFAULT_MAP_KIND, MAP_KIND_INFO
 
@@ -140,11 +140,7 @@ def write_dataset_rrd(
                     rec.log("openpi_cam/score", rr.Scalars(score))
                 if outcome.get(episode) is not None:
                     rec.log("openpi_cam/success", rr.Scalars(float(outcome[episode])))
-                for name in reliance:  # `<camera or prompt>/reliance_<score or actions>`
-                    value = relied[rows.index[i]].get(name)
-                    if value is not None:
-                        what, figure = name.rsplit("/", 1)
-                        rec.log(f"openpi_cam/{figure}/{rr.escape_entity_path_part(what)}", rr.Scalars(value))
+                log_reliance(rec, rr, "openpi_cam", {name: relied[rows.index[i]].get(name) for name in reliance})
                 for camera, m in maps.items():
                     share = float(m.sum()) / total if total > 0 and valid.get(camera, True) else 0.0
                     rec.log(f"openpi_cam/{map_kind}/share/{rr.escape_entity_path_part(camera)}", rr.Scalars(share))

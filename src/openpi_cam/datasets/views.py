@@ -80,6 +80,7 @@ TARGET_BOX = "target_box"
 GROUP = "perturbation"
 # Where the demo names its perturbations, beside the recorded dataset (`openpi-cam demo --record`).
 GROUP_NAMES_FILE = "meta/demo_episodes.json"
+OUTCOMES = ("success", "failure")  # the order failed and successful episodes are set side by side in
 
 
 @dataclasses.dataclass(frozen=True)
@@ -357,7 +358,7 @@ def compute_views(
             acc[c].frames += int(use.sum())
             acc[c].hot_counts += in_top_k(maps[c][use], k[c]).sum(axis=0)
             if episode in episode_group:
-                key = (episode_group[episode], not meta[0][EPISODE_SUCCESS], c)
+                key = (episode_group[episode], _failed(meta), c)
                 total = group_maps.setdefault(key, [np.zeros(grids[c]), 0])
                 total[0] = total[0] + p[use].sum(axis=0)
                 total[1] += int(use.sum())
@@ -485,12 +486,8 @@ def group_views(
     out = []
     for group in sorted(set(episode_group.values())):
         episodes = [e for e in sorted(by_episode) if episode_group.get(e) == group]
-        failed = {e: not by_episode[e][0][EPISODE_SUCCESS] for e in episodes}
-        by_outcome, mean_maps = {}, {}
-        for name in ("success", "failure"):
-            chosen = [e for e in episodes if failed[e] == (name == "failure")]
-            rows = [row for e in chosen for row in by_episode[e]]
-            by_outcome[name] = {"episodes": len(chosen), **group_summary(rows, cameras)}
+        mean_maps = {}
+        for name in OUTCOMES:
             mean_maps[name] = {}
             for c in cameras:
                 total, frames = group_maps.get((group, name == "failure", c), (None, 0))
@@ -500,11 +497,28 @@ def group_views(
                 GROUP: group,
                 "name": names[group] if 0 <= group < len(names) else None,
                 "episodes": len(episodes),
-                "successes": sum(not f for f in failed.values()),
-                "by_outcome": by_outcome,
+                "successes": sum(not _failed(by_episode[e]) for e in episodes),
+                "by_outcome": by_outcome(by_episode, episodes, cameras),
                 "mean_maps": mean_maps,
             }
         )
+    return out
+
+
+def _failed(rows: Sequence[Mapping[str, Any]]) -> bool:
+    """Whether an episode (its rows, which carry the `episode_*` columns) failed."""
+    return not rows[0][EPISODE_SUCCESS]
+
+
+def by_outcome(
+    by_episode: Mapping[int, Sequence[Mapping[str, Any]]], episodes: Sequence[int], cameras: Sequence[str]
+) -> dict[str, dict[str, Any]]:
+    """The successful and the failed ones of `episodes` side by side: per outcome, its episodes and the group summary
+    of their frames."""
+    out = {}
+    for name in OUTCOMES:
+        chosen = [e for e in episodes if _failed(by_episode[e]) == (name == "failure")]
+        out[name] = {"episodes": len(chosen), **group_summary([row for e in chosen for row in by_episode[e]], cameras)}
     return out
 
 
@@ -591,11 +605,7 @@ def outcome_views(
     baseline every figure must beat (failures run to the step limit, successes stop early), and from each episode's
     first `early_frames` explained frames only (what a user watching a live robot has; length cannot help there)."""
     episodes = sorted(by_episode)
-    failed = np.array([not by_episode[e][0][EPISODE_SUCCESS] for e in episodes], bool)
-    groups = {
-        name: [row for e, f in zip(episodes, failed, strict=True) if f == (name == "failure") for row in by_episode[e]]
-        for name in ("success", "failure")
-    }
+    failed = np.array([_failed(by_episode[e]) for e in episodes], bool)
     whole = [
         episode_figures(by_episode[e], cameras) | {"length": float(by_episode[e][0][EPISODE_LENGTH])} for e in episodes
     ]
@@ -606,10 +616,7 @@ def outcome_views(
     return {
         "episodes": len(episodes),
         "failures": int(failed.sum()),
-        "by_outcome": {
-            name: {"episodes": int((failed == (name == "failure")).sum()), **group_summary(group, cameras)}
-            for name, group in groups.items()
-        },
+        "by_outcome": by_outcome(by_episode, episodes, cameras),
         "failure_finding": _findings(failed, whole),
         "early_warning": {"frames": options.early_frames, "figures": _findings(failed, early)},
     }

@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 import os
 import pathlib
+from collections.abc import Mapping
 from typing import Any, Literal
 
 from openpi_cam.cam.run_format import load_run
@@ -60,6 +61,15 @@ def _evidence_text(evidence: MapEvidence) -> str:
     return "\n".join(lines)
 
 
+def log_reliance(rec: Any, rr: Any, root: str, figures: Mapping[str, float | None]) -> None:
+    """Logs a step's reliance figures (`<camera or prompt>/reliance_<score or actions>`, `Reliance.figures`) as
+    scalars at `<root>/reliance_<score or actions>/<camera or prompt>`; figures not measured (None) are left out."""
+    for name, value in figures.items():
+        if value is not None:
+            what, figure = name.rsplit("/", 1)
+            rec.log(f"{root}/{figure}/{rr.escape_entity_path_part(what)}", rr.Scalars(value))
+
+
 def write_rrd(
     run_dir: str | os.PathLike[str],
     out_path: str | os.PathLike[str],
@@ -94,10 +104,7 @@ def write_rrd(
             scale = run_max if norm == "run" else step_scale(st)
             if math.isfinite(st.score):
                 rec.log(f"/{conn}/score", rr.Scalars(st.score))
-            for name, value in st.reliance.items():  # `<camera or prompt>/reliance_<score or actions>`
-                if value is not None:
-                    what, figure = name.rsplit("/", 1)
-                    rec.log(f"/{conn}/{figure}/{rr.escape_entity_path_part(what)}", rr.Scalars(value))
+            log_reliance(rec, rr, f"/{conn}", st.reliance)
             for camera in list(step.meta.cameras) or list(step.maps):
                 cam = rr.escape_entity_path_part(camera)
                 image, _ = camera_image(step, camera)

@@ -241,11 +241,16 @@ def _nan_to_none(x: float) -> float | None:
     return None if isinstance(x, float) and math.isnan(x) else x
 
 
+def _reliance_names(stats: Sequence[StepStats]) -> list[str]:
+    """The reliance figures any step has, in the order the steps first give them."""
+    return list(dict.fromkeys(name for st in stats for name in st.reliance))
+
+
 def to_rows(stats: Sequence[StepStats]) -> list[dict[str, Any]]:
     """One flat row per step with `<camera>/<field>` columns, and the reliance figures where any step has them;
     missing values are None."""
     cams = camera_names(stats)
-    reliance_names = list(dict.fromkeys(name for st in stats for name in st.reliance))
+    reliance_names = _reliance_names(stats)
     rows = []
     for st in stats:
         row: dict[str, Any] = {
@@ -297,7 +302,7 @@ def aggregate(stats: Sequence[StepStats]) -> dict[str, Any]:
             "peak_stay_rate": float(np.mean(stayed)) if stayed else None,
             "dominant_steps": dominant.count(c),
         }
-    reliance_names = list(dict.fromkeys(name for st in stats for name in st.reliance))
+    reliance_names = _reliance_names(stats)
     return {
         "steps": len(stats),
         "connections": len({st.connection for st in stats}),

@@ -31,6 +31,7 @@ def number(x: Any, digits: int = 3) -> str:
 
 
 def finite_mean(values: Iterable[Any]) -> float | None:
-    """The mean of the finite numbers among `values` (None and NaN skipped); None when there is none."""
-    v = [float(x) for x in values if isinstance(x, numbers.Real) and not isinstance(x, bool) and math.isfinite(x)]
+    """The mean of the finite numbers among `values` (None and NaN skipped; a bool counts as 0 or 1, so a flag's mean
+    is its rate); None when there is none."""
+    v = [float(x) for x in values if isinstance(x, numbers.Real) and math.isfinite(x)]
     return float(np.mean(v)) if v else None
