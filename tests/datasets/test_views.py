@@ -108,6 +108,17 @@ def test_prior_is_the_mean_normalised_map_and_fits_each_frame(maps_root):
                 assert row[f"{camera}/prior_distance"] == pytest.approx(0.5 * np.abs(q - prior).sum(), rel=1e-9)
 
 
+def test_the_fit_gives_the_rate_of_frames_whose_peak_sits_on_a_hot_patch(maps_root):
+    """`fit[c]["peak_on_hot"]` is the mean of the per-frame flags (a mean that skipped bools left it None)."""
+    for kind in KINDS:
+        views = compute_views(open_maps_dataset(maps_root), kind)
+        for camera in CAMERA_FEATURES:
+            flags = [r[f"{camera}/peak_on_hot"] for r in views.rows if r[f"{camera}/peak_on_hot"] is not None]
+            assert flags and all(isinstance(f, bool) for f in flags)
+            # a mean of 0s and 1s: exact but for the last bit of the division
+            assert views.fit[camera]["peak_on_hot"] == pytest.approx(np.mean(flags), rel=1e-12)
+
+
 def test_hot_patch_rule_flags_a_patch_hot_in_every_frame_and_nothing_else():
     rng = np.random.default_rng(0)
     maps = rng.random((400, 16, 16))
