@@ -16,9 +16,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from one_line import assert_one_line
 from paths import GOLDEN_DIR
 from safetensors import safe_open
 from safetensors_edit import edit_safetensors
+from shared_copies import edit_json, writable_copy
 
 from openpi_cam import golden
 from openpi_cam.cli import golden as cli_golden
@@ -56,24 +58,7 @@ def policy_of(folder: Path, **kwargs):
 
 
 def copy_folder(tmp_path: Path, folder: Path = PI05) -> Path:
-    target = tmp_path / folder.name
-    shutil.copytree(folder, target)
-    for path in [target, *target.rglob("*")]:
-        path.chmod(0o755 if path.is_dir() else 0o644)  # ../shared is read-only; the copy is edited
-    return target
-
-
-def edit_json(path: Path, change) -> None:
-    data = json.loads(path.read_text())
-    change(data)
-    path.write_text(json.dumps(data))
-
-
-def assert_one_line(error: BaseException, *names: str) -> None:
-    message = str(error)
-    assert "\n" not in message, message
-    for name in names:
-        assert name in message, f"{name!r} not in: {message}"
+    return writable_copy(folder, tmp_path / folder.name)
 
 
 # ------------------------------------------------------------------------------------------- parity with LeRobot
