@@ -18,8 +18,7 @@ import numpy as np
 import pytest
 from one_line import assert_one_line
 from paths import GOLDEN_DIR
-from safetensors import safe_open
-from safetensors_edit import edit_safetensors
+from safetensors_edit import edit_safetensors, read_tensor
 from shared_copies import edit_json, writable_copy
 
 from openpi_cam import golden
@@ -343,8 +342,7 @@ def test_a_renamed_camera_is_requested_under_its_old_name(tmp_path):
 def test_the_weights_read_are_lerobots_tensors():
     """The q projection of LeRobot's first layer is the model's (a mapping slip would show here before the chunks)."""
     policy = policy_of(PI05)
-    with safe_open(str(PI05 / "model.safetensors"), framework="np") as f:
-        q = f.get_tensor(Q_PROJ)
+    q = read_tensor(PI05 / "model.safetensors", Q_PROJ)
     ours = np.asarray(policy.model.params["PaliGemma"]["llm"]["layers"]["attn"]["q_einsum"]["w"])[1]
     np.testing.assert_array_equal(ours, q.reshape(8, 16, 64).transpose(0, 2, 1))
 
