@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from lerobot_cases import CAMERAS, cases, request
 from one_line import assert_one_line
 from paths import GOLDEN_DIR
 from safetensors_edit import edit_safetensors, read_tensor
@@ -35,21 +36,9 @@ from openpi_cam.vocabulary import ExplainOptions
 
 FOLDERS = {"pi05": GOLDEN_DIR / "lerobot_pi05_tiny", "pi0": GOLDEN_DIR / "lerobot_pi0_tiny"}
 PI05 = FOLDERS["pi05"]
-CAMERAS = ("observation.images.base", "observation.images.wrist")
 # Layer 1's: layer 0's projections are the anchors the architecture is read from, so another tensor disagrees with
 # a misshapen one of them.
 Q_PROJ = "model.paligemma_with_expert.paligemma.model.language_model.layers.1.self_attn.q_proj.weight"
-
-
-def cases(folder: Path) -> dict[str, np.ndarray]:
-    with np.load(folder / "cases.npz", allow_pickle=False) as npz:
-        return {k: npz[k] for k in npz.files}
-
-
-def request(d: dict[str, np.ndarray], case: str = "case0", *, uint8: bool = False) -> dict:
-    """A frame as a LeRobot dataset gives it (float [3, H, W]) or as a robot sends it (uint8 [H, W, 3])."""
-    images = {c: d[f"{case}/input_uint8_hwc/{c}" if uint8 else f"{case}/input/{c}"] for c in CAMERAS}
-    return images | {"observation.state": d[f"{case}/input/observation.state"], "task": str(d[f"{case}/input/task"])}
 
 
 def policy_of(folder: Path, **kwargs):
