@@ -11,6 +11,8 @@ model's compiled programs) are built once per session:
 - `demo_policy`: the bundled demo model (float32), whose actions depend on the observation: use it wherever actions
   must differ between observations.
 - `demo_observations`: distinct demo-robot observations, each with its own actions under `demo_policy`.
+- `demo_pi05_policy`: the bundled pi0.5 (float32), one per module (its noise stream starts afresh in each).
+- `demo_pi05_lerobot`: the bundled pi0.5 exported as a LeRobot policy folder.
 
 Under `CI=true` a skipped test fails (see `pytest_runtest_makereport`), so a missing dependency cannot pass silently.
 
@@ -228,6 +230,15 @@ def demo_policy():
     from openpi_cam.policies.model_spec import create_demo_policy
 
     return create_demo_policy()
+
+
+@pytest.fixture(scope="module")
+def demo_pi05_policy():
+    """The bundled pi0.5 (float32), one per test module: it draws its noise from the policy's own rng stream, which
+    each module then starts afresh."""
+    from openpi_cam.policies.model_spec import create_demo_policy
+
+    return create_demo_policy(model="pi05")
 
 
 @pytest.fixture(scope="session")

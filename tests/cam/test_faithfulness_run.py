@@ -22,7 +22,7 @@ from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.offline import Replay, ReplayOptions, explain_replays
 from openpi_cam.cam.run_format import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
-from openpi_cam.policies import demo_reach, model_spec
+from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import ExplainSkipped
 from openpi_cam.viz.render import RenderOptions, render_run
 from openpi_cam.viz.stats import compute_stats, to_rows, view_steps
@@ -58,11 +58,6 @@ def _logged_run(tmp_path, policy, target, save_frames="model", seeds=SEEDS, maps
 
 
 @pytest.fixture(scope="module")
-def pi05_policy():
-    return model_spec.create_demo_policy(model="pi05")
-
-
-@pytest.fixture(scope="module")
 def chunk_run(tmp_path_factory, demo_policy):
     """The demo (pi0-FAST) run most tests read: chunk target, every kind, model frames. Logged once: the tests only
     read it (the faithfulness command, which writes its report into the run, gets a copy)."""
@@ -74,7 +69,7 @@ def test_steps_rescore_exactly_and_occlusion_is_its_own_optimum(request, tmp_pat
     if family == "pi0_fast":
         policy, run = request.getfixturevalue("demo_policy"), request.getfixturevalue("chunk_run")
     else:
-        policy = request.getfixturevalue("pi05_policy")
+        policy = request.getfixturevalue("demo_pi05_policy")
         run = _logged_run(tmp_path, policy, "action", action_index=3, action_dim_index=1)
     assert len(run.steps) == len(SEEDS) and all(set(s.map_kinds) == set(MAP_KINDS) for s in run.steps)
     # One step per call of the randomised model: the programs the side channel compiled for the logged steps (batch
@@ -234,7 +229,7 @@ def test_nuisance_mass_ratio_in_stats_uses_the_clients_box(chunk_run):
 
 
 @pytest.mark.slow
-def test_offline_explain_render_stats_and_faithfulness_on_a_pi05_run(tmp_path, pi05_policy):
+def test_offline_explain_render_stats_and_faithfulness_on_a_pi05_run(tmp_path, demo_pi05_policy):
     """The run tools know no family: a pi0.5 policy explained offline (action target, all four kinds) gives a run that
     renders, has statistics and re-scores exactly, with maps of the very chunks the replays returned."""
     observations = [demo_obs(s) for s in SEEDS[:3]]
@@ -245,7 +240,7 @@ def test_offline_explain_render_stats_and_faithfulness_on_a_pi05_run(tmp_path, p
     # The live pi0.5 test's target, so that the re-scoring below reuses that test's program.
     options = ReplayOptions(target="action", action_index=3, action_dim_index=1, maps=MAP_KINDS, batch_size=2)
     with CAMLogger(tmp_path / "cam", run_config={"config": "demo_reach_pi05"}, checkpoint="demo", options={}) as log:
-        summary = explain_replays(pi05_policy, replays, options, log, mesh=None)
+        summary = explain_replays(demo_pi05_policy, replays, options, log, mesh=None)
     assert summary["completed"] == 3
     run = load_run(log.run_dir)
     for step in run.steps:
@@ -258,7 +253,7 @@ def test_offline_explain_render_stats_and_faithfulness_on_a_pi05_run(tmp_path, p
     assert [r["seq"] for r in rows] == [0, 1, 2] and all(r["base_0_rgb/nuisance_mass"] is not None for r in rows)
     # Depth 4 is the deepest k reported; pi0.5 re-runs its whole denoising loop per painted variant.
     opts = FaithfulnessOptions(randomize="none", random_orders=RANDOM_ORDERS, max_k=4)
-    report = evaluate_run(run, pi05_policy.explainer, opts)
+    report = evaluate_run(run, demo_pi05_policy.explainer, opts)
     assert report["steps_evaluated"] == 3 and report["score_replay_max_abs_diff"] < REPLAY_ATOL
     occlusion = report["cameras"]["base_0_rgb"]["kinds"]["occlusion"]["deletion_k1"]
     assert occlusion["median"] == pytest.approx(1.0, abs=1e-4)

@@ -19,6 +19,7 @@ import sys
 import textwrap
 from typing import Any
 
+import lerobot_cases
 import numpy as np
 import pytest
 from cam_support import assert_pairwise_different, demo_obs, policy_part
@@ -466,7 +467,9 @@ def test_a_served_run_replays_through_explain_run_with_its_own_actions(family, d
     elif family == "lerobot":  # LeRobot's own tiny pi0.5 folder, its cases' 120 x 160 and 96 x 96 frames resized
         model = ModelSpec(golden_dir / "lerobot_pi05_tiny")
         policy = model.create()
-        observations = _lerobot_cases(golden_dir / "lerobot_pi05_tiny" / "cases.npz")
+        golden = lerobot_cases.cases(golden_dir / "lerobot_pi05_tiny")
+        # its three single frames as a LeRobot client sends them (uint8 [H, W, 3] frames, its feature names)
+        observations = [lerobot_cases.request(golden, case, uint8=True) for case in ("case0", "case1", "case2")]
     else:
         model = ModelSpec.demo(family)
         policy = demo_policy if family == "pi0_fast" else model.create()
@@ -488,20 +491,6 @@ def test_a_served_run_replays_through_explain_run_with_its_own_actions(family, d
     (replayed,) = (tmp_path / "replayed").iterdir()
     counters = load_run(replayed).manifest["counters"]["external"]
     assert counters["actions_compared"] == len(observations) and counters["actions_mismatched"] == 0
-
-
-def _lerobot_cases(path: pathlib.Path) -> list[dict]:
-    """The golden's three single frames as a LeRobot client sends them (uint8 [H, W, 3] frames, its feature names)."""
-    with np.load(path) as z:
-        return [
-            {
-                "observation.images.base": z[f"{case}/input_uint8_hwc/observation.images.base"],
-                "observation.images.wrist": z[f"{case}/input_uint8_hwc/observation.images.wrist"],
-                "observation.state": z[f"{case}/input/observation.state"],
-                "task": str(z[f"{case}/input/task"]),
-            }
-            for case in ("case0", "case1", "case2")
-        ]
 
 
 def _numeric_keys(obs: dict) -> list[str]:

@@ -16,18 +16,12 @@ from openpi_cam.cam.batching import explain_batch
 from openpi_cam.cam.reliance import EMPTY_PROMPT, reliance, without_camera
 from openpi_cam.cam.run_format import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
-from openpi_cam.policies.model_spec import create_demo_policy
 from openpi_cam.vocabulary import ExplainOptions, MapOptions
 
 # The score drops are differences of two float32 scores of magnitude 5-20 computed by different programs (the
 # re-scoring program vs the gradient-map program or the sampler): measured within 8e-6 of each other.
 SCORE_ATOL = 5e-5
 OPTIONS = ExplainOptions(maps=("gradnorm",), check_patches=0)
-
-
-@pytest.fixture(scope="module")
-def pi05_policy():
-    return create_demo_policy("pi05")
 
 
 def _direct_score(policy, trace, observation) -> float:
@@ -43,8 +37,8 @@ def _direct_score(policy, trace, observation) -> float:
 
 
 @pytest.mark.parametrize("family", ["pi0_fast", "pi05"])
-def test_reliance_equals_the_change_a_direct_rerun_measures(family, demo_policy, pi05_policy):
-    policy = demo_policy if family == "pi0_fast" else pi05_policy
+def test_reliance_equals_the_change_a_direct_rerun_measures(family, demo_policy, demo_pi05_policy):
+    policy = demo_policy if family == "pi0_fast" else demo_pi05_policy
     for seed in (3, 4):
         obs = policy_part(demo_obs(seed))
         response, trace = policy.infer_traced(obs)

@@ -21,10 +21,11 @@ import time
 import numpy as np
 import pyarrow as pa
 import pytest
+from datasets_support import model_job, pointing, truncated_video_copy
 from paths import LEROBOT_DIR, REPO_ROOT
+from shared_copies import edit_json, writable_copy
 
 from openpi_cam import cli
-from openpi_cam.cam.faithfulness import box_cells, pointing_chance, pointing_hit
 from openpi_cam.datasets import maps_dataset as fmt
 from openpi_cam.datasets.explain import DatasetJob, dataset_keys, run_local
 from openpi_cam.datasets.lerobot import DatasetError, open_dataset, parse_episodes
@@ -41,8 +42,7 @@ BOX = {"observation.target_box": "target_box"}
 
 
 def _job(source, out, **kw) -> DatasetJob:
-    keys, nested = dataset_keys(ModelSpec(), {})
-    return DatasetJob(source, out, ModelSpec(), OPTIONS, keys, batch_size=BATCH, extra=BOX, nested_keys=nested, **kw)
+    return model_job(source, out, OPTIONS, batch_size=BATCH, extra=BOX, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -85,24 +85,11 @@ def test_every_frame_is_explained_once_and_joins_the_source(explained, name):
     assert all(len(v) == OPTIONS.check_patches for v in table[fmt.check_column(fmt.CHECK_RANDOM, "base_0_rgb")])
 
 
-def _pointing(maps: fmt.MapsDataset) -> tuple[float, float]:
-    """(share of frames whose base-camera gradient-norm peak lies in the named block, chance of a random peak)."""
-    table = maps.table(columns=["extra/target_box"]).to_pydict()
-    stack = maps.maps("gradnorm", "base_0_rgb")
-    grid = maps.grid("base_0_rgb")
-    hits, chances = [], []
-    for box, m in zip(table["extra/target_box"], stack, strict=True):
-        cells = box_cells([round(v) for v in box], grid, 64)
-        hits.append(pointing_hit(m, cells))
-        chances.append(pointing_chance(cells))
-    return float(np.mean(hits)), float(np.mean(chances))
-
-
 def test_gradient_norm_maps_point_at_the_named_block(explained):
     # Live demo runs (docs/MAP_KINDS.md) point at the named block on most steps against a chance of ~0.2; the
     # AV1-compressed frames (mean error 2.7 of 255) must not change that: each dataset at least 3x chance and the
     # video datasets within 10 points of the lossless image dataset (one frame in 55 is ~2 points).
-    rates = {name: _pointing(explained[name][0]) for name in DATASETS}
+    rates = {name: pointing(explained[name][0], "base_0_rgb") for name in DATASETS}
     for name, (hit, chance) in rates.items():
         assert hit >= 3 * chance, f"{name}: pointing {hit:.2f} vs chance {chance:.2f}"
     lossless = rates["demo_reach_v30_image"][0]
@@ -161,18 +148,8 @@ def test_a_killed_job_resumes_without_writing_a_frame_twice(explained, tmp_path)
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-5 * float(np.abs(b).max()))
 
 
-def _copy_dataset(name: str, tmp_path):
-    dst = tmp_path / name
-    shutil.copytree(LEROBOT_DIR / name, dst)
-    for path in dst.rglob("*"):
-        path.chmod(0o755 if path.is_dir() else 0o644)
-    return dst
-
-
 def test_bad_episode_is_skipped_with_keep_going_and_nothing_written_is_lost(tmp_path, demo_policy):
-    source = _copy_dataset("demo_reach_v21_video", tmp_path)
-    broken = source / "videos/chunk-000/observation.images.base/episode_000002.mp4"
-    broken.write_bytes(broken.read_bytes()[: broken.stat().st_size // 3])
+    source = truncated_video_copy(tmp_path / "demo_reach_v21_video")
     out = tmp_path / "out"
     job = _job(source, out, episodes=parse_episodes("0-3"))
     with pytest.raises(DatasetError) as err:
@@ -211,9 +188,8 @@ def test_bad_arguments_get_one_line_naming_the_problem(tmp_path, capsys, change,
 
 
 def test_unknown_codebase_version_is_refused_by_name(tmp_path, capsys):
-    source = _copy_dataset("demo_reach_v30_image", tmp_path)
-    info = json.loads((source / "meta/info.json").read_text())
-    (source / "meta/info.json").write_text(json.dumps({**info, "codebase_version": "v9.9"}))
+    source = writable_copy(LEROBOT_DIR / "demo_reach_v30_image", tmp_path / "demo_reach_v30_image")
+    edit_json(source / "meta/info.json", lambda info: info.update(codebase_version="v9.9"))
     with pytest.raises(SystemExit) as exit_:
         cli.main(["explain", str(source), "--out", str(tmp_path / "o")])
     assert exit_.value.code == 1
@@ -225,7 +201,7 @@ def _negated_actions_copy(tmp_path):
     """The image dataset with every recorded action negated: demonstrations of moving away from the named block."""
     import pyarrow.parquet as pq
 
-    source = _copy_dataset("demo_reach_v30_image", tmp_path)
+    source = writable_copy(LEROBOT_DIR / "demo_reach_v30_image", tmp_path / "demo_reach_v30_image")
     for path in source.glob("data/*/*.parquet"):
         table = pq.read_table(path)
         column = table.column("action").combine_chunks()
@@ -309,17 +285,9 @@ def test_faithfulness_of_a_maps_dataset_serves_its_frames_again(explained, tmp_p
 def test_flow_matching_families_refuse_dataset_actions(tmp_path):
     from openpi_cam.datasets.explain import EpisodeExplainer
 
-    keys, nested = dataset_keys(ModelSpec(config="demo_reach_pi05"), {})
     options = ExplainOptions(target="chunk", maps=KINDS)
-    job = DatasetJob(
-        LEROBOT_DIR / "demo_reach_v30_image",
-        tmp_path / "o",
-        ModelSpec(config="demo_reach_pi05"),
-        options,
-        keys,
-        nested_keys=nested,
-        recorded_actions="action",
-    )
+    model = ModelSpec(config="demo_reach_pi05")
+    job = model_job(LEROBOT_DIR / "demo_reach_v30_image", tmp_path / "o", options, model, recorded_actions="action")
     with pytest.raises(ValueError, match="pi05 has no likelihood of a given chunk"):
         EpisodeExplainer(job, model_spec.create_demo_policy(model="pi05"))
     assert not (tmp_path / "o").exists(), "refused before anything is written"

@@ -4,14 +4,12 @@ demo dataset, and a dataset whose features do not fit the policy refused in one 
 
 from __future__ import annotations
 
-import json
-import shutil
-
 import numpy as np
 import pytest
+from datasets_support import pointing
 from paths import LEROBOT_DIR
+from shared_copies import edit_json, writable_copy
 
-from openpi_cam.cam.faithfulness import box_cells, pointing_chance, pointing_hit
 from openpi_cam.cli import explain_dataset
 from openpi_cam.cli.options import ExplainFlags
 from openpi_cam.datasets import maps_dataset as fmt
@@ -20,19 +18,6 @@ from openpi_cam.policies.model_spec import ModelSpec
 SOURCE = LEROBOT_DIR / "demo_reach_v30_image"  # lossless frames: the two models see the same pixels
 FLAGS = ExplainFlags(maps=("gradnorm",), check_patches=0)
 BOX = ("observation.target_box=target_box",)
-
-
-def _pointing(maps: fmt.MapsDataset) -> tuple[float, float]:
-    """(share of frames whose base-camera gradient-norm peak lies in the named block, chance of a random peak)."""
-    boxes = maps.table(columns=["extra/target_box"]).to_pydict()["extra/target_box"]
-    camera = maps.cameras[0]
-    grid, size = maps.grid(camera), 64
-    cells = [box_cells([round(v) for v in box], grid, size) for box in boxes]
-    stack = maps.maps("gradnorm", camera)
-    return (
-        float(np.mean([pointing_hit(m, c) for m, c in zip(stack, cells, strict=True)])),
-        float(np.mean([pointing_chance(c) for c in cells])),
-    )
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +43,8 @@ def test_a_lerobot_folder_reads_the_dataset_by_its_own_feature_names(explained, 
 def test_its_maps_point_at_the_named_block_as_the_jax_originals_do(explained):
     """The exported folder is the same model: at the demo's own resolution (no resize) its maps equal the JAX
     original's up to float32 rounding, so the pointing figures agree to a frame (1 of 55 is 2 points)."""
-    (hit, chance), (jax_hit, jax_chance) = _pointing(explained["lerobot"]), _pointing(explained["jax"])
+    folder, original = explained["lerobot"], explained["jax"]
+    (hit, chance), (jax_hit, jax_chance) = pointing(folder, folder.cameras[0]), pointing(original, original.cameras[0])
     assert chance == jax_chance and hit >= 3 * chance, (hit, chance)
     assert abs(hit - jax_hit) <= 0.02, (hit, jax_hit)
     ours, theirs = (
@@ -70,11 +56,12 @@ def test_its_maps_point_at_the_named_block_as_the_jax_originals_do(explained):
 
 def test_a_dataset_that_does_not_fit_the_policy_is_refused_naming_the_feature(demo_pi05_lerobot, tmp_path, capsys):
     wrong = tmp_path / "wrong"
-    shutil.copytree(SOURCE, wrong)
-    info_path = wrong / "meta" / "info.json"
-    info = json.loads(info_path.read_text())
-    info["features"]["observation.images.top"] = info["features"].pop("observation.images.wrist")
-    info_path.write_text(json.dumps(info))
+    writable_copy(SOURCE, wrong)
+
+    def rename_wrist(info: dict) -> None:
+        info["features"]["observation.images.top"] = info["features"].pop("observation.images.wrist")
+
+    edit_json(wrong / "meta" / "info.json", rename_wrist)
     model = ModelSpec(demo_pi05_lerobot)
     assert explain_dataset.main(wrong, model=model, out=tmp_path / "o", explanation=FLAGS, progress=False) == 1
     line = capsys.readouterr().err.strip()

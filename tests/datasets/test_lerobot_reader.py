@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import stat
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -15,7 +14,9 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import pytest
+from one_line import assert_one_line
 from paths import LEROBOT_DIR
+from shared_copies import edit_json, writable_copy
 
 from openpi_cam.datasets.lerobot import DatasetError, LeRobotDataset, open_dataset
 
@@ -28,16 +29,8 @@ NUMERIC = ("observation.state", "observation.target_box")
 TASKS = {0: "reach the yellow block", 1: "reach the blue block", 2: "reach the green block", 3: "reach the red block"}
 
 
-def _copytree(src: Path, dst: Path) -> Path:
-    """A writable copy (the shared files are read-only and copytree keeps their modes)."""
-    shutil.copytree(src, dst)
-    for path in [dst, *dst.rglob("*")]:
-        path.chmod(path.stat().st_mode | stat.S_IWUSR)
-    return dst
-
-
 def _copy(name: str, tmp_path: Path) -> Path:
-    return _copytree(LEROBOT_DIR / name, tmp_path / name)
+    return writable_copy(LEROBOT_DIR / name, tmp_path / name)
 
 
 def _same_frames(a: dict, b: dict) -> None:
@@ -57,13 +50,6 @@ def _assert_same_dataset(ds: LeRobotDataset, reference: LeRobotDataset) -> None:
         assert len(ours) == len(theirs) == reference.episode_length(episode)
         for a, b in zip(ours, theirs, strict=True):
             _same_frames(a, b)
-
-
-def _one_line_naming(error: pytest.ExceptionInfo, *parts: str) -> None:
-    message = str(error.value)
-    assert "\n" not in message, message
-    for part in parts:
-        assert part in message, (part, message)
 
 
 # --- every frame against LeRobot's own -------------------------------------------------------------------------
@@ -214,7 +200,7 @@ def test_v30_over_several_files_and_chunks_reads_the_same(name, tmp_path):
 def test_v21_over_several_chunks_reads_the_same(tmp_path):
     src, dst = LEROBOT_DIR / V21_VIDEO, tmp_path / V21_VIDEO
     info = json.loads((src / "meta" / "info.json").read_text())
-    _copytree(src / "meta", dst / "meta")
+    writable_copy(src / "meta", dst / "meta")
     old_size, info["chunks_size"] = info["chunks_size"], 3
     (dst / "meta" / "info.json").write_text(json.dumps(info, indent=2))
     cameras = [key for key, spec in info["features"].items() if spec["dtype"] == "video"]
@@ -281,12 +267,12 @@ def test_missing_and_truncated_videos_name_file_episode_and_feature(name, video,
     ds = open_dataset(root)
     with pytest.raises(DatasetError) as error:
         list(ds.frames(3))
-    _one_line_naming(error, path.name, "episode 3", "'observation.images.wrist'", "missing")
+    assert_one_line(error.value, path.name, "episode 3", "'observation.images.wrist'", "missing")
 
     path.write_bytes(data[:cut])  # in the middle of the episode's third frame
     with pytest.raises(DatasetError) as error:
         list(ds.frames(3))
-    _one_line_naming(error, path.name, "episode 3", "'observation.images.wrist'")
+    assert_one_line(error.value, path.name, "episode 3", "'observation.images.wrist'")
     assert len(list(ds.frames(3, features=["observation.images.base"]))) == 8
 
 
@@ -298,14 +284,14 @@ def test_a_missing_column_names_file_episode_and_feature(tmp_path):
     ds = open_dataset(root)
     with pytest.raises(DatasetError) as error:
         list(ds.frames(2))
-    _one_line_naming(error, "file-000.parquet", "episode 2", "'observation.state'")
+    assert_one_line(error.value, "file-000.parquet", "episode 2", "'observation.state'")
     assert len(list(ds.frames(2, features=["action"]))) == 4  # a column nobody asked for is not needed
 
     path = root / "meta" / "episodes" / "chunk-000" / "file-000.parquet"
     pq.write_table(pq.read_table(path).drop_columns(["videos/observation.images.base/from_timestamp"]), path)
     with pytest.raises(DatasetError) as error:
         open_dataset(root)
-    _one_line_naming(error, str(path), "'observation.images.base'", "from_timestamp")
+    assert_one_line(error.value, str(path), "'observation.images.base'", "from_timestamp")
 
 
 def _edit_column(path: Path, name: str, edit) -> None:
@@ -325,7 +311,7 @@ def test_a_timestamp_outside_its_video_names_file_episode_feature_and_timestamp(
     _edit_column(episodes, "videos/observation.images.base/from_timestamp", lambda v: v.__setitem__(7, 5.0))
     with pytest.raises(DatasetError) as error:
         list(open_dataset(root).frames(7))
-    _one_line_naming(error, "file-000.mp4", "episode 7", "'observation.images.base'", "5.500000")
+    assert_one_line(error.value, "file-000.mp4", "episode 7", "'observation.images.base'", "5.500000")
 
     # v3.0: episode 0's last frame stamped where episode 1's first frame sits in the shared file
     root = _copy(V30_VIDEO, tmp_path / "second")
@@ -333,7 +319,7 @@ def test_a_timestamp_outside_its_video_names_file_episode_feature_and_timestamp(
     _edit_column(data, "timestamp", lambda v: v.__setitem__(4, 0.5))
     with pytest.raises(DatasetError) as error:
         list(open_dataset(root).frames(0))
-    _one_line_naming(error, "file-000.mp4", "episode 0", "'observation.images.", "0.500000", "segment")
+    assert_one_line(error.value, "file-000.mp4", "episode 0", "'observation.images.", "0.500000", "segment")
     assert len(list(open_dataset(root).frames(1))) == 4
 
     # v2.1: a timestamp beyond the episode's own video
@@ -342,26 +328,25 @@ def test_a_timestamp_outside_its_video_names_file_episode_feature_and_timestamp(
     _edit_column(data, "timestamp", lambda v: v.__setitem__(4, 9.0))
     with pytest.raises(DatasetError) as error:
         list(open_dataset(root).frames(0))
-    _one_line_naming(error, "episode_000000.mp4", "episode 0", "'observation.images.", "9.000000")
+    assert_one_line(error.value, "episode_000000.mp4", "episode 0", "'observation.images.", "9.000000")
 
 
 def test_unknown_features_episodes_versions_and_roots_are_named():
     ds = open_dataset(LEROBOT_DIR / V30_IMAGE)
     with pytest.raises(DatasetError) as error:
         ds.frames(0, features=["observation.images.top"])
-    _one_line_naming(error, "info.json", "episode 0", "'observation.images.top'")
+    assert_one_line(error.value, "info.json", "episode 0", "'observation.images.top'")
     with pytest.raises(DatasetError) as error:
         ds.frames(99)
-    _one_line_naming(error, "info.json", "episode 99")
+    assert_one_line(error.value, "info.json", "episode 99")
     with pytest.raises(DatasetError) as error:
         open_dataset(LEROBOT_DIR)
-    _one_line_naming(error, str(LEROBOT_DIR / "meta" / "info.json"), "missing")
+    assert_one_line(error.value, str(LEROBOT_DIR / "meta" / "info.json"), "missing")
 
 
 def test_v20_reads_as_the_v2_layout(tmp_path):
     root = _copy(V21_VIDEO, tmp_path)
-    info = json.loads((root / "meta" / "info.json").read_text())
-    (root / "meta" / "info.json").write_text(json.dumps({**info, "codebase_version": "v2.0"}))
+    edit_json(root / "meta" / "info.json", lambda info: info.update(codebase_version="v2.0"))
     ds = open_dataset(root)
     assert ds.version == "v2.0"
     for a, b in zip(ds.frames(2), open_dataset(LEROBOT_DIR / V21_VIDEO).frames(2), strict=True):
@@ -377,4 +362,4 @@ def test_an_unknown_codebase_version_is_named(version, tmp_path):
     (root / "meta" / "info.json").write_text(json.dumps(info))
     with pytest.raises(DatasetError) as error:
         open_dataset(root)
-    _one_line_naming(error, str(root / "meta" / "info.json"), repr(version))
+    assert_one_line(error.value, str(root / "meta" / "info.json"), repr(version))

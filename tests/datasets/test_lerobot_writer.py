@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+from one_line import assert_one_line
 from paths import LEROBOT_DIR
 from PIL import Image
 
@@ -27,13 +28,6 @@ DEFAULTS = ("timestamp", "frame_index", "episode_index", "index", "task_index")
 # halved chroma. 8 leaves room for another SVT-AV1 build; a frame from the wrong episode or a channel swap is off by
 # tens.
 VIDEO_MEAN_ERROR = 8.0
-
-
-def _one_line_naming(error: pytest.ExceptionInfo, *parts: str) -> None:
-    message = str(error.value)
-    assert "\n" not in message, message
-    for part in parts:
-        assert part in message, (part, message)
 
 
 def _features_of(root: Path, *, video: bool) -> dict[str, Feature]:
@@ -428,7 +422,7 @@ def test_a_bad_frame_is_one_line_naming_root_episode_frame_and_feature(change, f
     change(frame)
     with pytest.raises(DatasetError) as error:
         writer.add_frame(frame, task="t")
-    _one_line_naming(error, str(tmp_path / "d"), "episode 0", f"'{feature}'", "frame 1", problem)
+    assert_one_line(error.value, str(tmp_path / "d"), "episode 0", f"'{feature}'", "frame 1", problem)
     assert writer.pending_frames == 1  # the bad frame was not taken
 
 
@@ -437,23 +431,23 @@ def test_episodes_and_writers_refuse_what_they_cannot_write(tmp_path):
     writer = create_dataset(root, fps=FPS, features=MIXED)
     with pytest.raises(DatasetError) as error:
         writer.save_episode(task="t")
-    _one_line_naming(error, str(root), "episode 0", "no frames")
+    assert_one_line(error.value, str(root), "episode 0", "no frames")
     writer.add_frame(_frame(0, 0, 1, False))
     with pytest.raises(DatasetError) as error:
         writer.save_episode()
-    _one_line_naming(error, str(root), "episode 0", "frame 0 has no task")
+    assert_one_line(error.value, str(root), "episode 0", "frame 0 has no task")
     with pytest.raises(DatasetError) as error:
         writer.finalize()
-    _one_line_naming(error, str(root), "1 frames added but not saved")
+    assert_one_line(error.value, str(root), "1 frames added but not saved")
     writer.clear_episode()
     writer.finalize()
     with pytest.raises(DatasetError) as error:
         writer.add_frame(_frame(0, 0, 1, False), task="t")
-    _one_line_naming(error, str(root), "finalized")
+    assert_one_line(error.value, str(root), "finalized")
 
     with pytest.raises(DatasetError) as error:
         create_dataset(root, fps=FPS, features=MIXED)
-    _one_line_naming(error, str(root), "not an empty folder")
+    assert_one_line(error.value, str(root), "not an empty folder")
     bad = [
         ({"a/b": Feature("float32", (1,))}, "'a/b'", "no '/'"),
         ({"index": Feature("int64", (1,))}, "'index'", "written by the writer"),
@@ -464,9 +458,9 @@ def test_episodes_and_writers_refuse_what_they_cannot_write(tmp_path):
     for i, (features, *parts) in enumerate(bad):
         with pytest.raises(DatasetError) as error:
             create_dataset(tmp_path / f"bad{i}", fps=FPS, features=features)
-        _one_line_naming(error, str(tmp_path / f"bad{i}"), *parts)
+        assert_one_line(error.value, str(tmp_path / f"bad{i}"), *parts)
     with pytest.raises(DatasetError) as error:
         create_dataset(
             tmp_path / "codec", fps=FPS, features=MIXED, video=lerobot_writer.VideoOptions(codec="no-such-codec")
         )
-    _one_line_naming(error, "'no-such-codec'")
+    assert_one_line(error.value, "'no-such-codec'")

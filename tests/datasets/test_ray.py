@@ -16,17 +16,17 @@ import concurrent.futures
 import dataclasses
 import logging
 import os
-import shutil
 import signal
 import time
 
 import numpy as np
 import psutil
 import pytest
+from datasets_support import model_job, truncated_video_copy
 from paths import LEROBOT_DIR
 
 from openpi_cam.datasets import maps_dataset as fmt
-from openpi_cam.datasets.explain import DatasetJob, dataset_keys, run_local
+from openpi_cam.datasets.explain import DatasetJob, run_local
 from openpi_cam.datasets.lerobot import DatasetError, open_dataset
 from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.vocabulary import ExplainOptions
@@ -53,10 +53,7 @@ ENGINE_LOG = "openpi_cam.datasets.ray_engine"
 
 
 def _job(out, source=SOURCE, episodes=EPISODES) -> DatasetJob:
-    keys, nested = dataset_keys(ModelSpec(), {})
-    return DatasetJob(
-        source, out, ModelSpec(), OPTIONS, keys, batch_size=4, extra=BOX, episodes=episodes, nested_keys=nested
-    )
+    return model_job(source, out, OPTIONS, batch_size=4, extra=BOX, episodes=episodes)
 
 
 @pytest.fixture(scope="module")
@@ -180,12 +177,7 @@ def test_a_killed_worker_is_retried_and_every_frame_written_once(ray_instance, r
 
 @pytest.mark.slow
 def test_a_bad_episode_stops_the_job_or_is_skipped_with_keep_going(ray_instance, tmp_path):
-    source = tmp_path / "source"
-    shutil.copytree(LEROBOT_DIR / "demo_reach_v21_video", source)
-    for path in source.rglob("*"):
-        path.chmod(0o755 if path.is_dir() else 0o644)
-    broken = source / "videos/chunk-000/observation.images.base/episode_000002.mp4"
-    broken.write_bytes(broken.read_bytes()[: broken.stat().st_size // 3])
+    source = truncated_video_copy(tmp_path / "source")
     job = _job(tmp_path / "maps", source, episodes=(1, 2))
     # One actor per job: where an error goes does not depend on the pool's size, and each actor loads a model.
     # The worker's error reaches the caller as the reader's one line, not as a Ray traceback.
@@ -204,11 +196,10 @@ def test_the_ray_engine_runs_a_lerobot_policy_folder(ray_instance, demo_pi05_ler
     """A LeRobot folder on the Ray engine: the driver plans info.json from the folder's files alone (no config, its
     own feature names), the actors load the folder, and the shards are the local engine's."""
     model = ModelSpec(demo_pi05_lerobot)
-    keys, nested = dataset_keys(model, {})
     options = ExplainOptions(maps=("gradnorm",), check_patches=0)
 
     def job(out):
-        return DatasetJob(SOURCE, out, model, options, keys, batch_size=4, episodes=(0, 1), nested_keys=nested)
+        return model_job(SOURCE, out, options, model, batch_size=4, episodes=(0, 1))
 
     run_local(job(tmp_path / "local"))
     run_ray(job(tmp_path / "ray"), workers=1)

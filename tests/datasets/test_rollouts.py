@@ -8,11 +8,12 @@ import json
 
 import numpy as np
 import pytest
+from datasets_support import model_job
 
 from openpi_cam import cli
 from openpi_cam.cam.run_format import Reliance
 from openpi_cam.datasets import maps_dataset as fmt
-from openpi_cam.datasets.explain import DatasetJob, dataset_keys, run_local
+from openpi_cam.datasets.explain import run_local
 from openpi_cam.datasets.lerobot import DatasetError, open_dataset
 from openpi_cam.datasets.maps_dataset import open_maps_dataset
 from openpi_cam.datasets.rollouts import RolloutRecorder
@@ -20,7 +21,6 @@ from openpi_cam.datasets.views import GROUP, GROUP_NAMES_FILE, TARGET_BOX, compu
 from openpi_cam.demo import perturb, quality
 from openpi_cam.demo.run import PERTURBATION_FEATURE, ROLLOUT_FPS, DemoOptions, run_demo
 from openpi_cam.policies import demo_reach
-from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.vocabulary import ExplainOptions
 
 PERTURB = ("clean", "absent")
@@ -105,11 +105,9 @@ def explained(recorded, tmp_path_factory):
     compiled programs are shared."""
     root, _ = recorded
     out = tmp_path_factory.mktemp("maps") / "rollouts.maps"
-    keys, nested = dataset_keys(ModelSpec(), {})
     options = ExplainOptions(target="action-token", maps=("gradcam", "gradnorm"), check_patches=2)
     extra = {demo_reach.LEROBOT_TARGET_BOX: TARGET_BOX, PERTURBATION_FEATURE: GROUP}
-    job = DatasetJob(root, out, ModelSpec(), options, keys, batch_size=4, every=5, extra=extra, nested_keys=nested)
-    run_local(job)
+    run_local(model_job(root, out, options, batch_size=4, every=5, extra=extra))
     return out
 
 

@@ -14,17 +14,17 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+from datasets_support import model_job
 from paths import LEROBOT_DIR
 
 from openpi_cam import cli
 from openpi_cam.datasets import maps_dataset as fmt
-from openpi_cam.datasets.explain import DatasetJob, dataset_keys, run_local
+from openpi_cam.datasets.explain import run_local
 from openpi_cam.datasets.frames import aligned_frames, episode_rows
 from openpi_cam.datasets.lerobot import open_dataset
 from openpi_cam.datasets.maps_dataset import open_maps_dataset
 from openpi_cam.datasets.render import DatasetRenderOptions, episode_frame
 from openpi_cam.datasets.views import compute_views, flag_hot, hot_rates, in_top_k, prior_fit, top_k
-from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.viz.colormap import colorize
 from openpi_cam.viz.overlay import upsample
 from openpi_cam.vocabulary import ExplainOptions
@@ -38,12 +38,10 @@ CAMERA_FEATURES = {"base_0_rgb": "observation.images.base", "wrist_0_rgb": "obse
 @pytest.fixture(scope="module")
 def maps_root(tmp_path_factory):
     out = tmp_path_factory.mktemp("maps") / "demo_maps"
-    keys, nested = dataset_keys(ModelSpec(), {})
     # The options of tests/cam's dataset jobs (batches of 4 included): the same compiled programs, which a process of
     # the test run may then load from JAX's compilation cache instead of compiling.
     options = ExplainOptions(target="action-token", maps=KINDS, check_patches=2)
-    job = DatasetJob(SOURCE, out, ModelSpec(), options, keys, batch_size=4, episodes=EPISODES, nested_keys=nested)
-    summary = run_local(job)
+    summary = run_local(model_job(SOURCE, out, options, batch_size=4, episodes=EPISODES))
     assert summary.as_json()["episodes_written"] == len(EPISODES)
     return out
 

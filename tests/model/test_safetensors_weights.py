@@ -16,8 +16,7 @@ import ml_dtypes
 import numpy as np
 import pytest
 from paths import GOLDEN_DIR, REPO_ROOT
-from safetensors import safe_open
-from safetensors_edit import edit_safetensors
+from safetensors_edit import edit_safetensors, read_tensor
 
 from openpi_cam.model.pi0 import Pi0
 from openpi_cam.model.safetensors_weights import (
@@ -39,11 +38,6 @@ Q_PROJ = "model.paligemma_with_expert.gemma_expert.model.layers.1.self_attn.q_pr
 def golden_heads() -> HeadCounts:
     tiny = json.loads((LEROBOT / "golden_meta.json").read_text())["tiny"]
     return HeadCounts(gemma=tiny["vlm"]["num_heads"], siglip=tiny["siglip"]["num_attention_heads"])
-
-
-def tensor(path, key: str) -> np.ndarray:
-    with safe_open(str(path), framework="np") as f:
-        return f.get_tensor(key)
 
 
 @pytest.mark.parametrize("family", ["tiny_pi0", "tiny_pi05"])
@@ -89,7 +83,7 @@ def test_lerobots_file_reads_its_architecture_and_every_tensor():
     assert {k: infos[k].shape for k in expected} == expected
     assert set(infos) - set(expected) == {LM_HEAD, "model.paligemma_with_expert.gemma_expert.lm_head.weight"}
     flat = flatten_dict(params)
-    q = tensor(WEIGHTS, Q_PROJ)  # [heads x head_dim, width] -> [heads, width, head_dim]
+    q = read_tensor(WEIGHTS, Q_PROJ)  # [heads x head_dim, width] -> [heads, width, head_dim]
     expert_q = np.asarray(flat["PaliGemma/llm/layers/attn/q_einsum_1/w"])[1]
     np.testing.assert_array_equal(expert_q, q.reshape(cfg.expert.num_heads, cfg.expert.head_dim, -1).transpose(0, 2, 1))
 
@@ -108,7 +102,7 @@ def test_bfloat16_files_load_as_stored_or_cast(tmp_path):
 
 
 def test_lm_head_stands_in_for_a_missing_embedding_and_embed_tokens_wins_otherwise(tmp_path):
-    embedding = tensor(WEIGHTS, EMBED)
+    embedding = read_tensor(WEIGHTS, EMBED)
     only_head = edit_safetensors(WEIGHTS, tmp_path / "head.safetensors", drop=(EMBED,))
     params, _ = load_safetensors_params(only_head, heads=golden_heads())
     np.testing.assert_array_equal(np.asarray(params["PaliGemma"]["llm"]["embedder"]["input_embedding"]), embedding)

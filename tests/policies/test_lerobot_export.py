@@ -18,12 +18,12 @@ import shutil
 
 import numpy as np
 import pytest
+from demo_inputs import demo_observation
 from paths import GOLDEN_DIR
 from safetensors.numpy import load_file
 
 from openpi_cam import golden
 from openpi_cam.cli import export as export_cli
-from openpi_cam.demo import bundled, task
 from openpi_cam.normalize import load_checkpoint_norm_stats, save_norm_stats
 from openpi_cam.policies import demo_reach, model_spec
 from openpi_cam.policies.checkpoint_format import checkpoint_format
@@ -71,10 +71,8 @@ def demo_frames(count: int) -> list[tuple[dict, np.ndarray]]:
     rng = np.random.default_rng(0)
     frames = []
     for i in range(count):
-        scene_rng = np.random.default_rng(100 + i)
-        scene = task.random_scene(scene_rng)
-        obs = bundled.policy_input(bundled.client_observation(task.observe(scene, task.random_start(scene_rng, scene))))
-        frames.append((obs, rng.standard_normal((demo_reach.ACTION_HORIZON, 32)).astype(np.float32)))
+        noise = rng.standard_normal((demo_reach.ACTION_HORIZON, 32)).astype(np.float32)
+        frames.append((demo_observation(100 + i), noise))
     return frames
 
 

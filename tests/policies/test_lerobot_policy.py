@@ -16,9 +16,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from lerobot_cases import CAMERAS, cases, request
+from one_line import assert_one_line
 from paths import GOLDEN_DIR
-from safetensors import safe_open
-from safetensors_edit import edit_safetensors
+from safetensors_edit import edit_safetensors, read_tensor
+from shared_copies import edit_json, writable_copy
 
 from openpi_cam import golden
 from openpi_cam.cli import golden as cli_golden
@@ -34,21 +36,9 @@ from openpi_cam.vocabulary import ExplainOptions
 
 FOLDERS = {"pi05": GOLDEN_DIR / "lerobot_pi05_tiny", "pi0": GOLDEN_DIR / "lerobot_pi0_tiny"}
 PI05 = FOLDERS["pi05"]
-CAMERAS = ("observation.images.base", "observation.images.wrist")
 # Layer 1's: layer 0's projections are the anchors the architecture is read from, so another tensor disagrees with
 # a misshapen one of them.
 Q_PROJ = "model.paligemma_with_expert.paligemma.model.language_model.layers.1.self_attn.q_proj.weight"
-
-
-def cases(folder: Path) -> dict[str, np.ndarray]:
-    with np.load(folder / "cases.npz", allow_pickle=False) as npz:
-        return {k: npz[k] for k in npz.files}
-
-
-def request(d: dict[str, np.ndarray], case: str = "case0", *, uint8: bool = False) -> dict:
-    """A frame as a LeRobot dataset gives it (float [3, H, W]) or as a robot sends it (uint8 [H, W, 3])."""
-    images = {c: d[f"{case}/input_uint8_hwc/{c}" if uint8 else f"{case}/input/{c}"] for c in CAMERAS}
-    return images | {"observation.state": d[f"{case}/input/observation.state"], "task": str(d[f"{case}/input/task"])}
 
 
 def policy_of(folder: Path, **kwargs):
@@ -56,24 +46,7 @@ def policy_of(folder: Path, **kwargs):
 
 
 def copy_folder(tmp_path: Path, folder: Path = PI05) -> Path:
-    target = tmp_path / folder.name
-    shutil.copytree(folder, target)
-    for path in [target, *target.rglob("*")]:
-        path.chmod(0o755 if path.is_dir() else 0o644)  # ../shared is read-only; the copy is edited
-    return target
-
-
-def edit_json(path: Path, change) -> None:
-    data = json.loads(path.read_text())
-    change(data)
-    path.write_text(json.dumps(data))
-
-
-def assert_one_line(error: BaseException, *names: str) -> None:
-    message = str(error)
-    assert "\n" not in message, message
-    for name in names:
-        assert name in message, f"{name!r} not in: {message}"
+    return writable_copy(folder, tmp_path / folder.name)
 
 
 # ------------------------------------------------------------------------------------------- parity with LeRobot
@@ -358,8 +331,7 @@ def test_a_renamed_camera_is_requested_under_its_old_name(tmp_path):
 def test_the_weights_read_are_lerobots_tensors():
     """The q projection of LeRobot's first layer is the model's (a mapping slip would show here before the chunks)."""
     policy = policy_of(PI05)
-    with safe_open(str(PI05 / "model.safetensors"), framework="np") as f:
-        q = f.get_tensor(Q_PROJ)
+    q = read_tensor(PI05 / "model.safetensors", Q_PROJ)
     ours = np.asarray(policy.model.params["PaliGemma"]["llm"]["layers"]["attn"]["q_einsum"]["w"])[1]
     np.testing.assert_array_equal(ours, q.reshape(8, 16, 64).transpose(0, 2, 1))
 

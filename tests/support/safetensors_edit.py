@@ -1,5 +1,5 @@
 """Copies of a safetensors file with tensors dropped, added, reshaped or recast (the bad-checkpoint tests), written
-through the package's streaming writer and read back through safetensors' NumPy API."""
+through the package's streaming writer, and single tensors read back through safetensors' NumPy API."""
 
 from __future__ import annotations
 
@@ -10,6 +10,12 @@ import numpy as np
 from safetensors import safe_open
 
 from openpi_cam.model.safetensors_weights import read_tensor_infos, write_safetensors
+
+
+def read_tensor(path: Path, key: str) -> np.ndarray:
+    """One tensor of a safetensors file, as stored."""
+    with safe_open(str(path), framework="np") as f:
+        return f.get_tensor(key)
 
 
 def edit_safetensors(
@@ -29,9 +35,6 @@ def edit_safetensors(
     shapes = {k: np.shape(arrays[k]) if k in arrays else infos[originals[k]].shape for k in {**originals, **arrays}}
 
     def tensor(key: str) -> np.ndarray:
-        if key in arrays:
-            return arrays[key]
-        with safe_open(str(src), framework="np") as f:
-            return f.get_tensor(originals[key])
+        return arrays[key] if key in arrays else read_tensor(src, originals[key])
 
     return write_safetensors(dst, shapes, dtype, tensor)
