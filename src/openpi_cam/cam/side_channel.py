@@ -302,10 +302,14 @@ class CAMPolicy:
     def _enqueue(self, trace: InferenceTrace, connection: str, step: int, extra: dict[str, Any], ended: float) -> None:
         """Queues the explanation of one served inference; never raises (the side channel never reaches a client)."""
         self.count("scheduled")
+        # A pending job holds the client's frames (up to the message limit each) only for what will use them: the
+        # raw frames when they are written, the whole observation when prompt reliance prepares it again.
+        unused: dict[str, Any] = {}
         if self._options.save_frames not in ("raw", "both"):
-            # A pending job keeps only model-size inputs: client frames (up to the message limit each) are not held
-            # while the job waits when they will not be written.
-            trace = dataclasses.replace(trace, raw_images=dict.fromkeys(trace.raw_images))
+            unused["raw_images"] = dict.fromkeys(trace.raw_images)
+        if not self._options.reliance:
+            unused["request"] = None
+        trace = dataclasses.replace(trace, **unused)
         try:
             kept, dropped = bounded_extra(extra, self._options.max_extra_value_bytes, self._options.max_extra_bytes)
             if dropped:
