@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import fractions
-import json
 import pathlib
 from collections.abc import Iterator, Mapping, Sequence
 from typing import Any
@@ -19,7 +18,7 @@ import numpy as np
 
 from openpi_cam.datasets.lerobot import LeRobotDataset, open_dataset
 from openpi_cam.datasets.maps_dataset import MapsDataset, map_array, map_column
-from openpi_cam.datasets.views import displayable
+from openpi_cam.datasets.views import camera_validity, displayable
 
 
 def select_episodes(ds: MapsDataset, episodes: Sequence[int] | None) -> list[int]:
@@ -70,10 +69,8 @@ def episode_rows(ds: MapsDataset, episode: int, kind: str) -> EpisodeRows:
     columns = ["index", "frame_index", "timestamp", "task", "score", "cameras"]
     table = ds.table(episode, [*columns, *(map_column(kind, c) for c in ds.cameras)])
     cols = {name: table.column(name).to_pylist() for name in columns}
-    valid = []
-    for text in cols["cameras"]:
-        parsed = json.loads(text) if text else {}
-        valid.append({c: bool(parsed.get(c, {}).get("valid", True)) for c in ds.cameras})
+    validity = camera_validity(cols["cameras"], ds.cameras)
+    valid = [{c: bool(v[i]) for c, v in validity.items()} for i in range(table.num_rows)]
     maps = {c: displayable(map_array(table.column(map_column(kind, c)), ds.grid(c))) for c in ds.cameras}
     return EpisodeRows(
         episode=episode,

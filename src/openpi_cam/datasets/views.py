@@ -64,6 +64,7 @@ from openpi_cam.datasets.maps_dataset import (
     MapsDataset,
     MapsInfo,
     check_column,
+    map_array,
     map_column,
     reliance_columns,
 )
@@ -246,17 +247,10 @@ class DatasetViews:
 
 
 def _frame_maps(table: Any, kind: str, cameras: Sequence[str], grids: Mapping[str, tuple[int, int]]) -> dict:
-    out = {}
-    for c in cameras:
-        flat = np.asarray(table.column(map_column(kind, c)).combine_chunks().flatten(), np.float32)
-        rows, (hp, wp) = table.num_rows, grids[c]
-        per_row = flat.size // max(rows, 1)
-        shape = (rows, hp, wp) if per_row == hp * wp else (rows, per_row // (hp * wp), hp, wp)
-        out[c] = displayable(flat.reshape(shape))
-    return out
+    return {c: displayable(map_array(table.column(map_column(kind, c)), grids[c])) for c in cameras}
 
 
-def _validity(cameras_json: Sequence[str | None], cameras: Sequence[str]) -> dict[str, np.ndarray]:
+def camera_validity(cameras_json: Sequence[str | None], cameras: Sequence[str]) -> dict[str, np.ndarray]:
     """camera -> bool [N]: whether the model saw the camera in each frame (`cameras` column; absent: it did)."""
     parsed = [json.loads(text) if text else {} for text in cameras_json]
     return {c: np.array([bool(p.get(c, {}).get("valid", True)) for p in parsed], bool) for c in cameras}
@@ -345,7 +339,7 @@ def compute_views(
         table = ds.table(episode, columns)
         maps = _frame_maps(table, kind, cameras, grids)
         cameras_json = table.column("cameras").to_pylist()
-        valid = _validity(cameras_json, cameras)
+        valid = camera_validity(cameras_json, cameras)
         meta = table.select(row_columns).to_pylist()
         checks = {col: table.column(col).to_pylist() for col in check_cols}
         boxes = table.column(box_column).to_pylist() if box_column else [None] * table.num_rows
@@ -390,7 +384,7 @@ def compute_views(
     for episode in episodes:
         table = ds.table(episode, ["cameras", *(map_column(kind, c) for c in cameras)])
         maps = _frame_maps(table, kind, cameras, grids)
-        valid = _validity(table.column("cameras").to_pylist(), cameras)
+        valid = camera_validity(table.column("cameras").to_pylist(), cameras)
         for c in cameras:
             p, has_mass = normalised(maps[c])
             use = valid[c] & has_mass
