@@ -65,7 +65,9 @@ class ExplainFlags:
     reliance: bool = False
 
     def __post_init__(self) -> None:
-        self.options()  # what the options would refuse later is refused as the command line is parsed
+        # What the options would refuse later is refused as the command line is parsed (a subclass's `options`
+        # included: `serve`'s flags build CAMOptions here).
+        self.options()
 
     def options(self, target: Target | None = None) -> ExplainOptions:
         """The options these flags name; `target`, when given, stands for the flag's (a family's resolved one)."""
