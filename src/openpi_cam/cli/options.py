@@ -12,6 +12,7 @@ from openpi_cam.vocabulary import (
     BASELINES,
     DEFAULT_KINDS,
     DEFAULT_PATCHES,
+    MAP_KINDS,
     Baseline,
     ExplainOptions,
     IgSpace,
@@ -88,5 +89,7 @@ class ExplainFlags:
         )
 
 
+# The explain commands' default: every kind, since offline there is no robot to keep waiting.
+EVERY_KIND = ExplainFlags(maps=MAP_KINDS)
 # No model flags: the bundled demo model (`ModelSpec`'s defaults).
 BUNDLED_MODEL = ModelSpec()
