@@ -10,8 +10,7 @@ from typing import Annotated, Literal
 
 import tyro
 
-from openpi_cam.cli.explain_run import EVERY_KIND
-from openpi_cam.cli.options import BUNDLED_MODEL, ExplainFlags
+from openpi_cam.cli.options import BUNDLED_MODEL, EVERY_KIND, ExplainFlags
 from openpi_cam.datasets.explain import (
     DatasetJob,
     JobSummary,

@@ -13,17 +13,16 @@ from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.offline import ReplayOptions, explain_replays, open_source
 from openpi_cam.cam.records import resume_mismatch
 from openpi_cam.cam.run_format import RUN_JSON, load_run
-from openpi_cam.cli.options import BUNDLED_MODEL, ExplainFlags
+from openpi_cam.cli.options import BUNDLED_MODEL, EVERY_KIND, ExplainFlags
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.policies.family import resolve_target
 from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.viz.progress import progress as progress_bar
 from openpi_cam.viz.rerun_sink import write_rrd
-from openpi_cam.vocabulary import MAP_KINDS, SaveFrames
+from openpi_cam.vocabulary import SaveFrames
 
 COMMAND = "explain-run"
 DEFAULT_OUT = pathlib.Path("cam_runs")
-EVERY_KIND = ExplainFlags(maps=MAP_KINDS)  # offline, every kind by default: there is no robot to keep waiting
 # Exit status when a replayed inference returned other actions than the recorded ones.
 ACTIONS_DIFFER = 3
 

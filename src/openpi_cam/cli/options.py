@@ -12,6 +12,7 @@ from openpi_cam.vocabulary import (
     BASELINES,
     DEFAULT_KINDS,
     DEFAULT_PATCHES,
+    MAP_KINDS,
     Baseline,
     ExplainOptions,
     IgSpace,
@@ -65,7 +66,9 @@ class ExplainFlags:
     reliance: bool = False
 
     def __post_init__(self) -> None:
-        self.options()  # what the options would refuse later is refused as the command line is parsed
+        # What the options would refuse later is refused as the command line is parsed (a subclass's `options`
+        # included: `serve`'s flags build CAMOptions here).
+        self.options()
 
     def options(self, target: Target | None = None) -> ExplainOptions:
         """The options these flags name; `target`, when given, stands for the flag's (a family's resolved one)."""
@@ -86,5 +89,7 @@ class ExplainFlags:
         )
 
 
+# The explain commands' default: every kind, since offline there is no robot to keep waiting.
+EVERY_KIND = ExplainFlags(maps=MAP_KINDS)
 # No model flags: the bundled demo model (`ModelSpec`'s defaults).
 BUNDLED_MODEL = ModelSpec()

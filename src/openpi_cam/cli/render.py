@@ -105,7 +105,7 @@ def _render_dataset(
 ) -> int:
     """A maps dataset's videos and report, and with `rerun` its Rerun recording."""
     ds = open_maps_dataset(root)
-    out_dir = pathlib.Path(out) if out is not None else pathlib.Path(root) / f"render-{opts.map}"
+    out_dir = pathlib.Path(out) if out is not None else default_render_dir(root, opts.map)
     try:
         chosen = parse_episodes(episodes)
         result = render_dataset(ds, out_dir, opts, chosen)

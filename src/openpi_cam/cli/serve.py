@@ -66,10 +66,6 @@ class SideChannelFlags(ExplainFlags):
     # all `cam_extra/` values a step stores together.
     max_extra_kb: float = CAMOptions.max_extra_bytes / 1024
 
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        self.options()  # CAMOptions refuses what it would refuse later, as the flags are parsed
-
     def options(self, target: Target | None = None) -> CAMOptions:
         """The side channel's options; `target`, when given, stands for the flag's (the served family's resolved
         target)."""

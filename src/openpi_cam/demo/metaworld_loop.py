@@ -9,11 +9,11 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.cam.records import EXTRA_PREFIX, split_extra
+from openpi_cam.cam.records import EXTRA_PREFIX
 from openpi_cam.demo import metaworld_data
 from openpi_cam.demo.client import RolloutSink
 from openpi_cam.demo.metaworld_sim import CLEAN, Frame, MetaWorldSim, Perturbation
-from openpi_cam.policies.demo_reach import IMAGE_KEY, STATE_KEY, WRIST_KEY
+from openpi_cam.policies.demo_reach import IMAGE_KEY, LEROBOT_TARGET_BOX, STATE_KEY, WRIST_KEY
 
 MAX_CALLS = 30  # 150 steps at 5 executed actions per call: about twice what the expert needs
 EXECUTE = 5
@@ -30,10 +30,6 @@ def client_observation(frame: Frame) -> dict[str, Any]:
     }
 
 
-def policy_input(obs: dict[str, Any]) -> dict[str, Any]:
-    return split_extra(obs)[0]
-
-
 def recorded_frame(frame: Frame, action: np.ndarray, perturbation: int = 0) -> dict[str, np.ndarray]:
     """A recorded step by LeRobot feature name, with the box's bounding box in the fixed camera and the index of the
     episode's perturbation."""
@@ -42,12 +38,11 @@ def recorded_frame(frame: Frame, action: np.ndarray, perturbation: int = 0) -> d
         metaworld_data.WRIST_FEATURE: frame.wrist_image,
         metaworld_data.STATE_FEATURE: frame.state,
         metaworld_data.ACTION_FEATURE: np.asarray(action, np.float32),
-        TARGET_BOX_FEATURE: np.asarray(frame.target_box, np.float32),
+        LEROBOT_TARGET_BOX: np.asarray(frame.target_box, np.float32),
         PERTURBATION_FEATURE: np.array([perturbation], np.int64),
     }
 
 
-TARGET_BOX_FEATURE = "observation.target_box"  # as the reaching demo records its named block's box
 PERTURBATION_FEATURE = "perturbation"  # a recorded frame's index into the run's perturbations
 
 

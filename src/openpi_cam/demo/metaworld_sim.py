@@ -151,6 +151,11 @@ def _distractor_spots(rng: np.random.Generator, n: int, box_xy: np.ndarray) -> l
     return spots
 
 
+def _target_geoms(model: Any) -> list[int]:
+    """The geoms of the box's bodies (`TARGET_BODIES`)."""
+    return [g for g in range(model.ngeom) if model.body(model.geom_bodyid[g]).name in TARGET_BODIES]
+
+
 def set_scene(env: Any, rand_vec: np.ndarray) -> None:
     """What Meta-World's `set_task` does with a task of its benchmark, for a scene drawn here (the episode's own draw
     keeps seeds exact): the object and goal placement frozen to `rand_vec`, the goal in the observation (the scripted
@@ -191,9 +196,7 @@ class MetaWorldSim:
         self._renderer = mujoco.Renderer(env.model, image_size, image_size)
         self._segmenter = mujoco.Renderer(env.model, image_size, image_size)
         self._segmenter.enable_segmentation_rendering()
-        self._target_geoms = np.array(
-            [g for g in range(env.model.ngeom) if env.model.body(env.model.geom_bodyid[g]).name in TARGET_BODIES]
-        )
+        self._target_geoms = np.array(_target_geoms(env.model))
         self.steps = 0
         self.success = False
         self._expert = expert_policy(task)
@@ -221,7 +224,7 @@ class MetaWorldSim:
     def _perturb_model(self, model: Any, mujoco: Any) -> None:
         kind = self.perturbation.kind
         if kind == "hue":
-            geoms = [g for g in range(model.ngeom) if model.body(model.geom_bodyid[g]).name in TARGET_BODIES]
+            geoms = _target_geoms(model)
             rgba = model.geom_rgba[geoms]
             rgba[:, :3] = _hue_turn(rgba[:, :3], self.perturbation.value)
             model.geom_rgba[geoms] = rgba

@@ -225,14 +225,11 @@ def run_demo(opts: DemoOptions, sink: RolloutSink | None = None) -> DemoResult:
         "seed": opts.seed,
         "model": opts.bundled_model,
         "perturb": list(opts.perturb),
+        "sim": opts.sim,
     }
-    demo |= {"sim": opts.sim}
     run_config = {**model.resolved().to_json(), "demo": demo}
-    cam = (
-        wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=str(model.checkpoint))
-        if (opts.explain)
-        else None
-    )
+    checkpoint = str(model.checkpoint)
+    cam = wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=checkpoint) if opts.explain else None
     # The demo explains every request: the drain at the end is the rest of the run's work, not a shutdown grace.
     server = start_server_in_thread(cam or policy, metadata=policy.metadata, close_timeout=DRAIN_S)
     drive = run_metaworld_episodes if opts.sim == "metaworld" else run_episodes

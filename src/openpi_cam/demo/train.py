@@ -95,7 +95,7 @@ def evaluate(out: Path, episodes: int, model: str, seed: int = 10_000) -> float:
     """Closed-loop success rate of the model trained into `out` over fresh episodes of its task."""
     policy = model_spec.create_demo_policy(model=model, assets=out)
     if model == "metaworld":
-        infer = lambda obs: policy.infer(metaworld_loop.policy_input(obs))  # noqa: E731
+        infer = lambda obs: policy.infer(bundled.policy_input(obs))  # noqa: E731
         return float(np.mean([metaworld_loop.run_episode(infer, seed + e)["success"] for e in range(episodes)]))
     return float(np.mean([run_episode(policy, seed + e)[0] for e in range(episodes)]))
 
