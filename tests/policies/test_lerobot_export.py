@@ -95,7 +95,7 @@ def assert_round_trip(original, back, frames, keys: dict[str, str]) -> None:
 
 def test_the_demo_pi05_round_trips_through_a_lerobot_folder(tmp_path):
     out = tmp_path / "demo_lerobot"
-    code = export_cli.main(out, ModelSpec(config="demo_reach_pi05"))  # the bundled model, its own tokenizer shipped
+    code = export_cli.main(out)  # the default: the bundled pi0.5, its own tokenizer shipped
     assert code == 0 and checkpoint_format(out) == "lerobot"
     config = json.loads((out / "config.json").read_text())
     assert (config["type"], config["empty_cameras"], config["chunk_size"]) == ("pi05", 1, demo_reach.ACTION_HORIZON)

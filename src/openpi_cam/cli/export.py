@@ -4,6 +4,7 @@ and `golden` take like any LeRobot folder."""
 
 from __future__ import annotations
 
+import dataclasses
 import pathlib
 import sys
 from typing import Literal
@@ -11,6 +12,7 @@ from typing import Literal
 import tyro
 
 from openpi_cam.cli.options import BUNDLED_MODEL
+from openpi_cam.policies.demo_reach import DEMO_PI05_CONFIG
 from openpi_cam.policies.lerobot_export import export_lerobot
 from openpi_cam.policies.model_spec import ModelSpec
 
@@ -27,10 +29,13 @@ def main(
         model: the checkpoint and the named config that serves it (its robot must map onto LeRobot features); the
             PaliGemma tokenizer given, or a demo model's own, is shipped in the folder's tokenizer/ (else the folder
             names PaliGemma's Hub tokenizer, as LeRobot's own folders do). No --checkpoint-dir: the bundled model of
-            the config (`--config demo_reach_pi05`).
+            the config; neither flag: the bundled pi0.5 (`--config demo_reach_pi05`; the bundled default,
+            pi0-FAST, has no LeRobot layout here).
         to: the layout: `lerobot` (a LeRobot 0.6 pi0 / pi0.5 policy folder, statistics from the checkpoint's own
             assets/).
     """
+    if model.checkpoint_dir is None and model.config is None:
+        model = dataclasses.replace(model, config=DEMO_PI05_CONFIG.name)
     try:
         spec = model.resolved()
         if spec.config is None:
