@@ -23,7 +23,7 @@ from openpi_cam.datasets.lerobot import DatasetError, parse_episodes
 from openpi_cam.datasets.ray_engine import run_ray
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.policies.model_spec import ModelSpec
-from openpi_cam.viz.progress import progress as progress_bar
+from openpi_cam.viz.progress import Reporter
 from openpi_cam.vocabulary import DATASET_ACTIONS
 
 COMMAND = "explain-dataset"
@@ -105,14 +105,12 @@ def main(
             outcome=outcome,
         )
 
-        def show(items: object, n: int) -> object:
-            return progress_bar(items, n, "episodes", progress)  # type: ignore[arg-type]
-
+        show = Reporter("episodes", progress)
         summary: JobSummary
         if engine == "ray":
-            summary = run_ray(job, workers=workers, address=ray_address, progress=show)  # type: ignore[arg-type]
+            summary = run_ray(job, workers=workers, address=ray_address, progress=show)
         else:
-            summary = run_local(job, progress=show)  # type: ignore[arg-type]
+            summary = run_local(job, progress=show)
     except (DatasetError, FileNotFoundError, KeyError, ValueError, InvalidRequest, OSError, ImportError) as e:
         print(f"openpi-cam {COMMAND}: {e}", file=sys.stderr)
         return 1

@@ -17,7 +17,7 @@ from openpi_cam.cli.options import BUNDLED_MODEL, EVERY_KIND, ExplainFlags
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.policies.family import resolve_target
 from openpi_cam.policies.model_spec import ModelSpec
-from openpi_cam.viz.progress import progress as progress_bar
+from openpi_cam.viz.progress import Reporter
 from openpi_cam.viz.rerun_sink import write_rrd
 from openpi_cam.vocabulary import SaveFrames
 
@@ -95,11 +95,10 @@ def main(
         else:
             cam_logger = CAMLogger(out, run_config=run_config, checkpoint=str(model.checkpoint), options=run_options)
 
-        def show(items: object, n: int) -> object:
-            return progress_bar(items, n, COMMAND, progress)  # type: ignore[arg-type]
-
         try:
-            summary = explain_replays(policy, replays, options, cam_logger, total=total, progress=show)  # type: ignore[arg-type]
+            summary = explain_replays(
+                policy, replays, options, cam_logger, total=total, progress=Reporter(COMMAND, progress)
+            )
         finally:
             cam_logger.close()
         if rerun is not None:

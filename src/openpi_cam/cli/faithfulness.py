@@ -19,7 +19,7 @@ from openpi_cam.datasets.faithfulness import build_run
 from openpi_cam.datasets.maps_dataset import is_maps_dataset, open_maps_dataset
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.policies.model_spec import ModelSpec
-from openpi_cam.viz.progress import progress as progress_bar
+from openpi_cam.viz.progress import Reporter
 
 # Frames of a maps dataset evaluated unless --max-steps says otherwise: each is served again and re-scored.
 DEFAULT_DATASET_STEPS = 64
@@ -67,8 +67,7 @@ def main(
         randomize=randomize, baseline=baseline, max_steps=None, random_orders=random_orders, batch_size=batch_size
     )
 
-    def show(items, n):
-        return progress_bar(items, n, "faithfulness", progress)
+    show = Reporter("faithfulness", progress)
 
     mismatched = 0
     try:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 from collections.abc import Iterable, Iterator
@@ -29,3 +30,14 @@ def progress(items: Iterable[T], total: int, desc: str, enabled: bool = True) ->
         if now - last > 2.0 or i == total:
             print(f"{desc}: {i}/{total}", file=sys.stderr, flush=True)
             last = now
+
+
+@dataclasses.dataclass(frozen=True)
+class Reporter:
+    """`progress` with its description and switch fixed: what a long job takes as its `progress` argument."""
+
+    desc: str
+    enabled: bool = True
+
+    def __call__(self, items: Iterable[T], total: int) -> Iterator[T]:
+        return progress(items, total, self.desc, self.enabled)
