@@ -3,7 +3,6 @@ JSON or parquet."""
 
 from __future__ import annotations
 
-import json
 import pathlib
 import sys
 from typing import Annotated, Literal
@@ -59,10 +58,7 @@ def _dataset_stats(root: pathlib.Path, format: Format, out: pathlib.Path | None,
     except ValueError as e:
         print(f"openpi-cam stats: {e}", file=sys.stderr)
         return 2
-    if format == "json":
-        data = (json.dumps({"summary": views.summary(), "frames": views.rows}, indent=1) + "\n").encode()
-    else:
-        data = write_table(views.rows, format, views.summary())
+    data = write_table(views.rows, format, views.summary(), rows_key="frames")
     if out is None and format == "parquet":
         out = pathlib.Path(root) / f"stats-{kind}.parquet"
     emit_table(data, out, f"{len(views.rows)} frames")

@@ -316,10 +316,13 @@ def aggregate(stats: Sequence[StepStats]) -> dict[str, Any]:
     }
 
 
-def write_table(rows: list[dict[str, Any]], fmt: Literal["csv", "json", "parquet"], summary: dict[str, Any]) -> bytes:
-    """The rows serialised as `fmt`; JSON also carries the run summary, parquet keeps it in the file metadata."""
+def write_table(
+    rows: list[dict[str, Any]], fmt: Literal["csv", "json", "parquet"], summary: dict[str, Any], rows_key: str = "steps"
+) -> bytes:
+    """The rows serialised as `fmt`; JSON also carries the summary (the rows under `rows_key`: a run's steps, a maps
+    dataset's frames), parquet keeps it in the file metadata."""
     if fmt == "json":
-        return (json.dumps({"summary": summary, "steps": rows}, indent=1) + "\n").encode()
+        return (json.dumps({"summary": summary, rows_key: rows}, indent=1) + "\n").encode()
     if fmt == "csv":
         buf = io.StringIO()
         writer = csv.DictWriter(buf, fieldnames=list(rows[0]) if rows else ["seq"], lineterminator="\n")
