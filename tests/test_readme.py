@@ -17,7 +17,6 @@ import shlex
 import shutil
 import subprocess
 import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -26,8 +25,7 @@ import pyarrow.parquet as pq
 import pytest
 from client_env import run_client
 from paths import GOLDEN_DIR, REPO_ROOT, SHARED_DIR
-from real_clients import http_get
-from serve_process import START_TIMEOUT_S, free_port, stop
+from serve_process import free_port, stop, wait_healthy
 
 from openpi_cam.datasets.lerobot import open_dataset
 
@@ -58,7 +56,7 @@ def readme_items() -> list[tuple[str, str]]:
     for offset, block in _blocks("bash"):
         joined = re.sub(r"\\\n\s*", "", block)
         for i, line in enumerate(joined.splitlines()):
-            command = re.sub(r"\s+#.*$", "", line).strip()
+            command = re.sub(r"(^|\s+)#.*$", "", line).strip()
             if command:
                 items.append((offset + i, "bash", command))
     items += [(offset, "python", source) for offset, source in _blocks("python")]
@@ -159,7 +157,7 @@ def _serving(ctx: Context, command: str, requests: int = 1) -> None:
     with log_path.open("w") as log:
         proc = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT, cwd=ctx.workdir)
         try:
-            _wait_healthy(proc, port, log_path)
+            wait_healthy(proc, port, log_path)
             lerobot = LEROBOT_FOLDER in command
             client = ctx.clients["lerobot" if lerobot else "droid"]
             script = substituted(ctx, client, port) + "\nimport json; print(json.dumps(list(actions.shape)))\n"
@@ -171,19 +169,6 @@ def _serving(ctx: Context, command: str, requests: int = 1) -> None:
         finally:
             if proc.poll() is None:
                 proc.kill()
-
-
-def _wait_healthy(proc: subprocess.Popen, port: int, log_path: Path) -> None:
-    deadline = time.monotonic() + START_TIMEOUT_S
-    while True:
-        assert proc.poll() is None, log_path.read_text()
-        try:
-            if http_get(f"http://127.0.0.1:{port}/healthz", timeout=1)[0] == 200:
-                return
-        except OSError:
-            pass
-        assert time.monotonic() < deadline, log_path.read_text()
-        time.sleep(0.2)
 
 
 def _client_snippet(ctx: Context, source: str) -> None:
@@ -341,6 +326,9 @@ def test_every_readme_command_is_run_here():
     items = readme_items()
     used = {id(_step_of(kind, text)) for kind, text in items}
     assert not [step.pattern for step in STEPS if id(step) not in used]
+    # Only bash and python blocks are read above: a command in a block of another language would go unchecked.
+    openings = re.findall(r"^```(.*)$", README.read_text(), re.M)[::2]
+    assert set(openings) <= {"bash", "python"}, openings
 
 
 @pytest.mark.slow

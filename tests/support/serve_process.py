@@ -37,25 +37,28 @@ def serve_subprocess(tmp_path: Path, *args: str) -> Iterator[tuple[subprocess.Po
         cmd = serve_cmd("--host", "127.0.0.1", "--port", str(port), *args)
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=REPO_ROOT)
         try:
-            deadline = time.monotonic() + START_TIMEOUT_S
-            while True:
-                if proc.poll() is not None:
-                    raise AssertionError(f"serve exited with {proc.returncode}:\n{log_path.read_text()}")
-                try:
-                    if http_get(f"http://127.0.0.1:{port}/healthz", timeout=1)[0] == 200:
-                        break
-                except OSError:
-                    pass
-                if time.monotonic() > deadline:
-                    raise AssertionError(
-                        f"serve did not answer /healthz within {START_TIMEOUT_S} s:\n{log_path.read_text()}"
-                    )
-                time.sleep(0.2)
+            wait_healthy(proc, port, log_path)
             yield proc, port, log_path
         finally:
             if proc.poll() is None:
                 proc.kill()
                 proc.wait()
+
+
+def wait_healthy(proc: subprocess.Popen, port: int, log_path: Path) -> None:
+    """Returns once `serve` on `port` answers /healthz; fails with its log if it exits or takes too long."""
+    deadline = time.monotonic() + START_TIMEOUT_S
+    while True:
+        if proc.poll() is not None:
+            raise AssertionError(f"serve exited with {proc.returncode}:\n{log_path.read_text()}")
+        try:
+            if http_get(f"http://127.0.0.1:{port}/healthz", timeout=1)[0] == 200:
+                return
+        except OSError:
+            pass
+        if time.monotonic() > deadline:
+            raise AssertionError(f"serve did not answer /healthz within {START_TIMEOUT_S} s:\n{log_path.read_text()}")
+        time.sleep(0.2)
 
 
 def stop(proc: subprocess.Popen, log_path: Path) -> None:
