@@ -19,7 +19,8 @@ from openpi_cam.datasets.maps_dataset import open_maps_dataset
 from openpi_cam.datasets.rollouts import RolloutRecorder
 from openpi_cam.datasets.views import GROUP, GROUP_NAMES_FILE, TARGET_BOX, compute_views, group_names, normalised
 from openpi_cam.demo import perturb, quality
-from openpi_cam.demo.run import PERTURBATION_FEATURE, ROLLOUT_FPS, DemoOptions, run_demo
+from openpi_cam.demo.bundled import PERTURBATION_FEATURE
+from openpi_cam.demo.run import ROLLOUT_FPS, DemoOptions, run_demo
 from openpi_cam.policies import demo_reach
 from openpi_cam.vocabulary import ExplainOptions
 

@@ -12,7 +12,7 @@ from openpi_cam.cam.run_format import load_run
 from openpi_cam.cli import train_demo
 from openpi_cam.cli.demo import main as demo_main
 from openpi_cam.cli.train_demo import RecordArgs, read_demonstrations, record_expert
-from openpi_cam.demo import bundled, metaworld_data, metaworld_loop, metaworld_sim, train
+from openpi_cam.demo import bundled, metaworld_data, metaworld_sim, train
 from openpi_cam.demo.metaworld_sim import MetaWorldSim, Perturbation
 from openpi_cam.demo.run import DemoOptions, run_demo
 from openpi_cam.policies import demo_metaworld
@@ -158,7 +158,7 @@ def test_the_training_command_records_the_expert_as_lerobot_and_trains_a_servabl
     assert train_demo.main(args, sim="metaworld", data=data) == 0
     policy = create_demo_policy("metaworld", assets=out)
     with MetaWorldSim(0) as sim:
-        obs = bundled.policy_input(metaworld_loop.client_observation(sim.frame()))
+        obs = bundled.policy_input(bundled.client_observation(sim.frame()))
     actions = policy.infer(obs)["actions"]
     assert actions.shape == (demo_metaworld.ACTION_HORIZON, metaworld_sim.ACTION_DIM) and np.isfinite(actions).all()
 

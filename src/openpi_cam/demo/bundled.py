@@ -4,14 +4,22 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from openpi_cam.cam.records import EXTRA_PREFIX, split_extra
 from openpi_cam.demo import task
 from openpi_cam.model.config import GemmaConfig, Pi0Config, Pi0FASTConfig, SiglipConfig, scan_by_default
-from openpi_cam.policies.demo_reach import DEMO_CONFIG, DEMO_PI05_CONFIG, IMAGE_KEY, STATE_KEY, WRIST_KEY
+from openpi_cam.policies.demo_reach import (
+    DEMO_CONFIG,
+    DEMO_PI05_CONFIG,
+    IMAGE_KEY,
+    LEROBOT_KEYS,
+    LEROBOT_TARGET_BOX,
+    STATE_KEY,
+    WRIST_KEY,
+)
 
 PATCH_SIZE = 16  # 64 px images -> a 4 x 4 map grid per camera
 
@@ -87,8 +95,22 @@ def pi05_model_config(
     )
 
 
-def client_observation(sample: task.Sample, scene: task.Scene | None = None) -> dict[str, Any]:
-    """What the demo robot sends; the `cam_extra/` entries are ground truth for judging the maps."""
+class Observed(Protocol):
+    """What a demo robot observes at a step: a reaching-task `task.Sample` or a Meta-World `metaworld_sim.Frame`."""
+
+    base_image: np.ndarray  # [S, S, 3] uint8
+    wrist_image: np.ndarray  # [S, S, 3] uint8
+    state: np.ndarray  # float32
+    prompt: str
+    target_box: tuple[int, int, int, int]  # the target in the base camera (x0, y0, x1, y1)
+
+
+PERTURBATION_FEATURE = "perturbation"  # a recorded frame's index into the run's perturbations
+
+
+def client_observation(sample: Observed, scene: task.Scene | None = None) -> dict[str, Any]:
+    """What a demo robot sends; the `cam_extra/` entries are ground truth for judging the maps (the reaching task's
+    `scene` adds every block's box and colour)."""
     obs: dict[str, Any] = {
         IMAGE_KEY: sample.base_image,
         WRIST_KEY: sample.wrist_image,
@@ -100,6 +122,20 @@ def client_observation(sample: task.Sample, scene: task.Scene | None = None) -> 
         obs[EXTRA_PREFIX + "block_boxes"] = np.asarray([b.box for b in scene.blocks], np.int32)
         obs[EXTRA_PREFIX + "block_colors"] = [b.color for b in scene.blocks]
     return obs
+
+
+def recorded_frame(sample: Observed, action: np.ndarray, perturbation: int = 0) -> dict[str, np.ndarray]:
+    """A recorded step by LeRobot feature name (`demo_reach.LEROBOT_KEYS`, which both demos' datasets use): the
+    cameras, the state, the executed action, the target's box as the base camera shows it and the index of the
+    episode's perturbation."""
+    return {
+        LEROBOT_KEYS[IMAGE_KEY]: sample.base_image,
+        LEROBOT_KEYS[WRIST_KEY]: sample.wrist_image,
+        LEROBOT_KEYS[STATE_KEY]: np.asarray(sample.state, np.float32),
+        LEROBOT_KEYS["actions"]: np.asarray(action, np.float32),
+        LEROBOT_TARGET_BOX: np.asarray(sample.target_box, np.float32),
+        PERTURBATION_FEATURE: np.array([perturbation], np.int64),
+    }
 
 
 def policy_input(obs: dict[str, Any]) -> dict[str, Any]:

@@ -18,28 +18,13 @@ from openpi_cam.cam.faithfulness_run import FaithfulnessOptions, evaluate_run
 from openpi_cam.cam.run_evidence import REPORT_FILE
 from openpi_cam.cam.run_format import dumps, load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
-from openpi_cam.demo import bundled, metaworld_data, metaworld_loop, metaworld_sim, quality, task
+from openpi_cam.demo import bundled, metaworld_data, metaworld_loop, metaworld_sim, quality
 from openpi_cam.demo.client import PolicyClient, RolloutSink
 from openpi_cam.demo.perturb import CLEAN, Perturbation
-from openpi_cam.policies import demo_reach
 from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.serving.server import start_server_in_thread
 from openpi_cam.viz.render import RenderOptions, default_render_dir, render_run
 from openpi_cam.vocabulary import MAP_KINDS, Baseline, IgSpace, MapKind, MapOptions, Target
-
-
-def rollout_frame(sample: task.Sample, action: np.ndarray, perturbation: int) -> dict[str, Any]:
-    """A recorded step by LeRobot feature name (`demo_reach.LEROBOT_KEYS`): the cameras, the state, the executed action,
-    the named block's box as the base camera shows it and the index of the episode's perturbation."""
-    keys = demo_reach.LEROBOT_KEYS
-    return {
-        keys[demo_reach.IMAGE_KEY]: sample.base_image,
-        keys[demo_reach.WRIST_KEY]: sample.wrist_image,
-        keys[demo_reach.STATE_KEY]: np.asarray(sample.state, np.float32),
-        keys["actions"]: np.asarray(action, np.float32),
-        demo_reach.LEROBOT_TARGET_BOX: np.asarray(sample.target_box, np.float32),
-        PERTURBATION_FEATURE: np.array([perturbation], np.int64),
-    }
 
 
 def run_episodes(
@@ -71,7 +56,7 @@ def run_episodes(
                     success = episode.execute(action[None])
                     last = calls == max_calls and j == len(chunk) - 1
                     if sink is not None:
-                        frame = rollout_frame(sample, action, which)
+                        frame = bundled.recorded_frame(sample, action, which)
                         sink.step(
                             frame, task=sample.prompt, reward=float(success), success=success, done=success or last
                         )
@@ -123,7 +108,6 @@ def run_metaworld_episodes(
 
 ROLLOUT_FPS = 10  # the frame rate recorded rollouts declare (the simulator has no clock: one frame per action)
 ROLLOUT_FPS_METAWORLD = metaworld_data.FPS  # Meta-World's control rate
-PERTURBATION_FEATURE = metaworld_loop.PERTURBATION_FEATURE  # a recorded frame's index into the run's perturbations
 MAX_CALLS = {"reach": 6, "metaworld": metaworld_loop.MAX_CALLS}
 DRAIN_S = 3600.0  # how long the end of a demo run may spend explaining requests still queued
 
