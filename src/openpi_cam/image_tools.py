@@ -25,6 +25,11 @@ from PIL import Image
 from openpi_cam.letterbox import LetterboxGeometry, letterbox_geometry
 
 
+def unit_to_uint8(images: np.ndarray) -> np.ndarray:
+    """Float images in [0, 1] as uint8, rounded to the nearest level (values outside are clipped)."""
+    return np.clip(np.round(np.asarray(images, np.float32) * 255.0), 0, 255).astype(np.uint8)
+
+
 def resize_with_pad(images: jax.Array | np.ndarray, height: int, width: int) -> jax.Array:
     """Letterbox ``[..., H, W, C]`` images to ``[..., height, width, C]`` with ``jax.image.resize`` (linear).
 

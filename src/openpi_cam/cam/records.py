@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from openpi_cam.cam.run_format import IMAGE_INPUT, CameraMeta, Reliance, SpotCheck, StepMeta, StepRecord
+from openpi_cam.image_tools import unit_to_uint8
 from openpi_cam.model.observation import uint8_to_model
 from openpi_cam.policies.family import Explanation
 from openpi_cam.policies.model_spec import ModelSpec
@@ -86,8 +87,7 @@ def bounded_extra(
 def model_frame_uint8(image: Any) -> np.ndarray:
     """The model's input image ([-1, 1] float, batch row 0) back as uint8 RGB (exact for uint8-derived inputs)."""
     x = np.asarray(image, np.float32)
-    x = x[0] if x.ndim == 4 else x
-    return np.clip(np.round((x + 1.0) / 2.0 * 255.0), 0, 255).astype(np.uint8)
+    return unit_to_uint8(((x[0] if x.ndim == 4 else x) + 1.0) / 2.0)
 
 
 def client_frame_uint8(image: Any) -> np.ndarray:
@@ -96,7 +96,7 @@ def client_frame_uint8(image: Any) -> np.ndarray:
     if x.ndim == 3 and x.shape[0] == 3 and x.shape[-1] != 3:
         x = np.moveaxis(x, 0, -1)
     if x.dtype != np.uint8:
-        x = np.clip(np.round(x.astype(np.float32) * 255.0), 0, 255).astype(np.uint8)
+        x = unit_to_uint8(x)
     return np.ascontiguousarray(x)
 
 

@@ -29,7 +29,7 @@ import sentencepiece
 from safetensors.numpy import load_file
 
 from openpi_cam.errors import InvalidRequest
-from openpi_cam.image_tools import resize_with_pad_torch_bilinear
+from openpi_cam.image_tools import resize_with_pad_torch_bilinear, unit_to_uint8
 from openpi_cam.model.config import Pi0Config
 from openpi_cam.model.pi0 import MAX_PERIOD, MIN_PERIOD, Pi0
 from openpi_cam.model.safetensors_weights import LEROBOT_HEADS, HeadCounts
@@ -529,7 +529,7 @@ class LeRobotResizeImages(ResizeImages):
     interpolation (no antialiasing, clamped, centred zero padding), then x * 2 - 1."""
 
     def client_frame(self, image: np.ndarray) -> np.ndarray:
-        return np.clip(np.round(np.asarray(image, np.float32) * 255), 0, 255).astype(np.uint8)
+        return unit_to_uint8(image)
 
     def resize(self, image: np.ndarray) -> np.ndarray:
         return resize_with_pad_torch_bilinear(image, self.height, self.width) * np.float32(2) - 1
