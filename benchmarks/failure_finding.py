@@ -177,8 +177,9 @@ def nuisance_lines(views: dict[str, DatasetViews], perturbation_of: dict[str, di
 
 
 def outcome_maps(ds: MapsDataset, kind: str, perturbation_of: dict[int, int], png: pathlib.Path) -> list[str]:
-    """Per perturbation, each camera's mean map (every frame's map normalised to sum 1, as the views' prior) over the
-    frames of failed and of successful episodes, side by side: a PNG (a row per perturbation; per camera, failures
+    """Per perturbation, each camera's mean map (every frame's map normalised to sum 1, as the views' prior; unlike
+    the prior, a frame without positive mass counts, as zeros) over the frames of failed and of successful episodes,
+    side by side: a PNG (a row per perturbation; per camera, failures
     then successes, each map scaled to its own maximum) and the frames behind each mean."""
     table = ds.table(columns=["episode_index", EPISODE_SUCCESS]).to_pydict()
     episode, success = np.array(table["episode_index"]), np.array(table[EPISODE_SUCCESS], bool)
