@@ -12,6 +12,7 @@ import shutil
 import av
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute
 import pyarrow.parquet as pq
 import pytest
 from datasets_support import model_job
@@ -210,6 +211,40 @@ def test_render_writes_an_aligned_video_per_episode_a_report_and_a_lerobot_shape
     for camera in CAMERA_FEATURES:
         assert (out / "prior" / f"{camera}-prior.png").is_file()
     _check_recording(rrd, ds, lr)
+
+
+def test_render_norm_run_scales_every_frame_by_the_rendered_episodes_largest_value(maps_root, tmp_path):
+    """`--norm run`: one scale, the largest value of any valid camera's map in the rendered episodes (computed here
+    from the parquet alone), instead of each frame's own."""
+    episode, out = EPISODES[1], tmp_path / "render"
+    cli.main(
+        ["render", str(maps_root), "--out", str(out), "--no-progress", "--norm", "run", "--episodes", str(episode)]
+    )
+    table = _parquet(maps_root)
+    table = table.filter(pa.compute.equal(table.column("episode_index"), episode))
+    valid = [json.loads(text or "{}") for text in table.column("cameras").to_pylist()]
+    top = max(
+        float(m.max())
+        for camera in CAMERA_FEATURES
+        for m, v in zip(_maps(table, "gradnorm", camera), valid, strict=True)
+        if v.get(camera, {}).get("valid", True)
+    )
+    ds, lr = open_maps_dataset(maps_root), open_dataset(SOURCE)
+    views = compute_views(ds, "gradnorm")
+    stats = {r["index"]: r for r in views.rows}
+    rows = episode_rows(ds, episode, "gradnorm")
+    images = list(aligned_frames(ds, lr, rows))
+    with av.open(str(out / "videos" / f"episode_{episode:06d}.mp4")) as container:
+        got = [f.to_ndarray(format="rgb24").astype(int) for f in container.decode(container.streams.video[0])]
+    step_errors = []
+    for i, frame in enumerate(got):
+        run = episode_frame(rows, i, images[i], stats[rows.index[i]], views, DatasetRenderOptions(norm="run"), top)
+        step = episode_frame(rows, i, images[i], stats[rows.index[i]], views, DatasetRenderOptions(), 0.0)
+        # H.264's error on these panels: mean near 1.3 of 255 (the test above)
+        assert np.abs(frame - run).mean() < 2.5, i
+        step_errors.append(np.abs(frame - step).mean())
+    assert max(step_errors) > 2.5  # some frame's own maximum is below the episode's: the flag changed the video
+    assert "over the rendered episodes" in (out / "index.html").read_text()
 
 
 def _check_recording(rrd, ds, lr) -> None:
