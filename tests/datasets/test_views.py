@@ -6,6 +6,7 @@ module: the model run is the expensive part."""
 
 from __future__ import annotations
 
+import fractions
 import json
 import shutil
 
@@ -21,7 +22,7 @@ from paths import LEROBOT_DIR
 from openpi_cam import cli
 from openpi_cam.datasets import maps_dataset as fmt
 from openpi_cam.datasets.explain import run_local
-from openpi_cam.datasets.frames import aligned_frames, episode_rows
+from openpi_cam.datasets.frames import aligned_frames, episode_rows, video_fps
 from openpi_cam.datasets.lerobot import open_dataset
 from openpi_cam.datasets.maps_dataset import open_maps_dataset
 from openpi_cam.datasets.render import DatasetRenderOptions, episode_frame
@@ -245,6 +246,21 @@ def test_render_norm_run_scales_every_frame_by_the_rendered_episodes_largest_val
         step_errors.append(np.abs(frame - step).mean())
     assert max(step_errors) > 2.5  # some frame's own maximum is below the episode's: the flag changed the video
     assert "over the rendered episodes" in (out / "index.html").read_text()
+
+
+def test_default_video_rate_and_stats_file_of_a_maps_dataset(maps_root, tmp_path):
+    """Defaults: a video frame per explained frame (the source's rate divided by the job's `every`), and `stats
+    --format parquet` without --out writes `stats-<kind>.parquet` in the maps dataset."""
+    copy = tmp_path / "maps"
+    shutil.copytree(maps_root, copy)
+    lr = open_dataset(SOURCE)
+    assert video_fps(open_maps_dataset(copy), lr) == lr.fps
+    info = json.loads((copy / fmt.INFO_JSON).read_text())
+    (copy / fmt.INFO_JSON).write_text(json.dumps(info | {"every": 2}))
+    assert video_fps(open_maps_dataset(copy), lr) == fractions.Fraction(lr.fps, 2)
+    cli.main(["stats", str(copy), "--format", "parquet"])
+    written = pq.read_table(copy / "stats-gradnorm.parquet")
+    assert written.num_rows == _parquet(maps_root).num_rows
 
 
 def _check_recording(rrd, ds, lr) -> None:
