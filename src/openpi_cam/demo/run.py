@@ -20,7 +20,7 @@ from openpi_cam.cam.run_format import dumps, load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.demo import bundled, metaworld_data, metaworld_loop, metaworld_sim, quality
 from openpi_cam.demo.client import PolicyClient, RolloutSink
-from openpi_cam.demo.perturb import CLEAN, Perturbation
+from openpi_cam.demo.perturb import Perturbation
 from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.serving.server import start_server_in_thread
 from openpi_cam.viz.render import RenderOptions, default_render_dir, render_run
@@ -34,7 +34,7 @@ def run_episodes(
     seed: int,
     max_calls: int,
     execute: int,
-    perturbations: Sequence[Perturbation] = (CLEAN,),
+    perturbations: Sequence[Perturbation],
     sink: RolloutSink | None = None,
 ) -> list[dict[str, Any]]:
     """Closed loop over the server: observe, infer a chunk, execute its first `execute` actions one step at a time,
