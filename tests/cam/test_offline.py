@@ -447,6 +447,7 @@ def _served_run(policy: Any, observations: list[dict], cam_dir: pathlib.Path, ru
 
 REPLAYED_FAMILIES = [
     pytest.param("pi0_fast", id="pi0_fast"),
+    pytest.param("pi0_fast_stop", id="pi0_fast_stop_at_action_end"),
     pytest.param("pi05", id="pi05"),
     pytest.param("pi0", id="pi0", marks=pytest.mark.slow),
     pytest.param("lerobot", id="lerobot_pi05"),
@@ -456,9 +457,9 @@ REPLAYED_FAMILIES = [
 @pytest.mark.parametrize("family", REPLAYED_FAMILIES)
 def test_a_served_run_replays_through_explain_run_with_its_own_actions(family, demo_policy, golden_dir, tmp_path):
     """`explain-run RUN_DIR` of a run `serve` wrote with raw frames: every step is served again with the model the run
-    records, the client's other inputs (the state) and the step's noise, and returns the very output it recorded
-    (exit 0, every step compared). pi0.5 and pi0 draw their noise at random: a replay that drew its own would
-    mismatch."""
+    records (with its decoding flag), the client's other inputs (the state) and the step's noise, and returns the very
+    output it recorded (exit 0, every step compared). pi0.5 and pi0 draw their noise at random: a replay that drew its
+    own would mismatch."""
     if family == "pi0":  # upstream's tiny pi0 LIBERO policy
         root = golden_dir / "tiny_policy_pi0_libero"
         model = ModelSpec(root / "checkpoint", "pi0_libero", root / "paligemma_tokenizer_tiny.model", dtype="float32")
@@ -470,11 +471,16 @@ def test_a_served_run_replays_through_explain_run_with_its_own_actions(family, d
         golden = lerobot_cases.cases(golden_dir / "lerobot_pi05_tiny")
         # its three single frames as a LeRobot client sends them (uint8 [H, W, 3] frames, its feature names)
         observations = [lerobot_cases.request(golden, case, uint8=True) for case in ("case0", "case1", "case2")]
+    elif family == "pi0_fast_stop":  # `serve --stop-at-action-end`: its outputs end at "|", before the EOS
+        model = ModelSpec.demo("pi0_fast")
+        policy = model.create(stop_at_action_end=True)
+        observations = [policy_part(demo_obs(seed)) for seed in (3, 4, 5)]
     else:
         model = ModelSpec.demo(family)
         policy = demo_policy if family == "pi0_fast" else model.create()
         observations = [policy_part(demo_obs(seed)) for seed in (3, 4, 5)]
-    run_dir = _served_run(policy, observations, tmp_path / "served", model.resolved().to_json())
+    run_config = model.resolved().to_json() | {"stop_at_action_end": family == "pi0_fast_stop"}  # as serve records
+    run_dir = _served_run(policy, observations, tmp_path / "served", run_config)
     steps = load_run(run_dir).steps
     assert set(steps[0].client_inputs) == set(_numeric_keys(observations[0]))
     # Only a LeRobot policy's float-resized images need their own copy: an OpenPI image is its uint8 frame exactly.
