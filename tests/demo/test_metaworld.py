@@ -3,19 +3,22 @@ The tests that step the simulator are in the slow tier."""
 
 from __future__ import annotations
 
+import json
 import sys
 
 import numpy as np
 import pytest
 
+from openpi_cam import cli
 from openpi_cam.cam.run_format import load_run
 from openpi_cam.cli import train_demo
 from openpi_cam.cli.demo import main as demo_main
 from openpi_cam.cli.train_demo import RecordArgs, read_demonstrations, record_expert
-from openpi_cam.demo import bundled, metaworld_data, metaworld_sim, train
+from openpi_cam.datasets.lerobot import open_dataset
+from openpi_cam.demo import bundled, metaworld_data, metaworld_sim, quality, train
 from openpi_cam.demo.metaworld_sim import MetaWorldSim, Perturbation
 from openpi_cam.demo.run import DemoOptions, run_demo
-from openpi_cam.policies import demo_metaworld
+from openpi_cam.policies import demo_metaworld, demo_reach
 from openpi_cam.policies.model_spec import create_demo_policy
 
 pytest.importorskip("metaworld", reason='the Meta-World demo needs pip install -e ".[metaworld]"')
@@ -161,6 +164,31 @@ def test_the_training_command_records_the_expert_as_lerobot_and_trains_a_servabl
         obs = bundled.policy_input(bundled.client_observation(sim.frame()))
     actions = policy.infer(obs)["actions"]
     assert actions.shape == (demo_metaworld.ACTION_HORIZON, metaworld_sim.ACTION_DIM) and np.isfinite(actions).all()
+
+
+@pytest.mark.slow
+def test_the_demo_records_its_meta_world_episodes_as_lerobot_eval_does(tmp_path, capsys):
+    """`openpi-cam demo --sim metaworld --record DIR`: every executed action a frame of a LeRobot v3.0 dataset at
+    Meta-World's control rate, the episode's outcome in `next.*` on its last frame, its perturbation's index on every
+    frame, and the box's bounding box the simulator saw."""
+    out = tmp_path / "rec"
+    argv = ["demo", "--sim", "metaworld", "--no-explain", "--num-episodes", "2", "--max-calls", "2"]
+    cli.main([*argv, "--perturb", "clean", "hue=45", "--out", str(tmp_path / "runs"), "--record", str(out)])
+    rollouts = json.loads((out / "meta" / quality.EPISODES_FILE).read_text())
+    assert [e["perturbation"] for e in rollouts["episodes"]] == ["clean", "hue=45"]
+    ds = open_dataset(out)
+    assert ds.fps == metaworld_data.FPS and ds.episodes == [0, 1]
+    assert json.loads(ds.info_path.read_text())["robot_type"] == demo_metaworld.ASSET_ID
+    for i, outcome in enumerate(rollouts["episodes"]):
+        frames = list(ds.frames(i))
+        assert len(frames) == outcome["steps"] <= 2 * DemoOptions.execute
+        assert [bool(f["next.done"]) for f in frames] == [False] * (len(frames) - 1) + [True]
+        assert [bool(f["next.success"]) for f in frames] == [False] * (len(frames) - 1) + [outcome["success"]]
+        assert {int(f["perturbation"]) for f in frames} == {i} and {f["task"] for f in frames} == {outcome["prompt"]}
+        for f in frames:
+            x0, y0, x1, y1 = np.asarray(f[demo_reach.LEROBOT_TARGET_BOX])
+            assert 0 <= x0 < x1 <= metaworld_sim.IMAGE_SIZE and 0 <= y0 < y1 <= metaworld_sim.IMAGE_SIZE
+            assert f[metaworld_data.BASE_FEATURE].shape == (metaworld_sim.IMAGE_SIZE, metaworld_sim.IMAGE_SIZE, 3)
 
 
 def test_the_demo_refuses_in_one_line_without_the_extra_or_with_an_empty_prompt_to_record(
