@@ -7,9 +7,11 @@ what the reaching demo's robot sends (a fixed camera, a wrist camera, a state ve
 
 from __future__ import annotations
 
-from openpi_cam.policies.config import PolicyConfig, register_config
-from openpi_cam.policies.demo_reach import ASSETS, IMAGE_KEY, LEROBOT_KEYS, STATE_KEY, WRIST_KEY
-from openpi_cam.policies.robot import GenericInputs, GenericOutputs
+import dataclasses
+
+from openpi_cam.policies.config import register_config
+from openpi_cam.policies.demo_reach import ASSETS, DEMO_PI05_CONFIG
+from openpi_cam.policies.robot import GenericOutputs
 
 ASSETS_METAWORLD = ASSETS.with_name("demo_metaworld")
 ASSET_ID = "demo_metaworld"
@@ -17,25 +19,15 @@ STATE_DIM = 4  # hand x, y, z and the gripper's opening
 ACTION_DIM = 4  # hand displacement x, y, z and grip effort
 ACTION_HORIZON = 10
 
-# pi0.5 reads upstream's three cameras: the gripper camera is the left wrist, the right wrist a masked blank.
+# The reaching demo's pi0.5 robot (the gripper camera as the left wrist, the right wrist a masked blank, the state in
+# the prompt) with Meta-World's state and action sizes.
 DEMO_METAWORLD_CONFIG = register_config(
-    PolicyConfig(
+    dataclasses.replace(
+        DEMO_PI05_CONFIG,
         name="demo_metaworld_pi05",
-        family="pi05",
-        inputs=(
-            GenericInputs(
-                cameras={"base_0_rgb": IMAGE_KEY, "left_wrist_0_rgb": WRIST_KEY, "right_wrist_0_rgb": None},
-                state_key=STATE_KEY,
-                state_dim=STATE_DIM,
-                mask_blank=True,
-            ),
-        ),
+        inputs=tuple(dataclasses.replace(t, state_dim=STATE_DIM) for t in DEMO_PI05_CONFIG.inputs),
         outputs=(GenericOutputs(action_dim=ACTION_DIM),),
         asset_id=ASSET_ID,
-        action_dim=32,
         action_horizon=ACTION_HORIZON,
-        max_token_len=48,
-        discrete_state_input=True,
-        lerobot_keys=LEROBOT_KEYS,
     )
 )
