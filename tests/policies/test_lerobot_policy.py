@@ -207,6 +207,18 @@ def test_an_unknown_processor_step_or_type_is_named(tmp_path):
         assert_one_line(raised.value, *words)
 
 
+def test_a_tokenizer_length_other_than_the_configs_is_refused_naming_both(tmp_path):
+    """LeRobot builds the tokenizer step from `tokenizer_max_length`: a folder whose two values disagree is refused
+    before its weights are read, naming both values and both files (either file may be the edited one)."""
+    folder = copy_folder(tmp_path)
+    edit_json(folder / "policy_preprocessor.json", lambda p: p["steps"][5]["config"].update(max_length=64))
+    with pytest.raises(ValueError) as raised:
+        policy_of(folder)
+    assert_one_line(
+        raised.value, "config.json", "tokenizer_max_length 200", "policy_preprocessor.json", "max_length 64"
+    )
+
+
 def test_the_tokenizer_is_found_in_the_folder_then_the_hugging_face_cache_and_never_downloaded(tmp_path, monkeypatch):
     d = cases(PI05)
     folder = copy_folder(tmp_path)

@@ -705,6 +705,13 @@ def build_lerobot(
     pre_where, post_where = str(folder / PREPROCESSOR_FILE), str(folder / POSTPROCESSOR_FILE)
     pre_specs, post_specs = read_pipeline(folder / PREPROCESSOR_FILE), read_pipeline(folder / POSTPROCESSOR_FILE)
     pre, max_length = preprocessor_steps(folder, pre_specs, paligemma_tokenizer, pre_where)
+    if max_length != cfg.tokenizer_max_length:
+        # LeRobot builds the tokenizer step from the config's value, so folders that disagree were edited by hand:
+        # which length the model was trained with cannot be told.
+        raise ValueError(
+            f"{folder / CONFIG_FILE}: tokenizer_max_length {cfg.tokenizer_max_length}, but {pre_where}'s "
+            f"tokenizer_processor pads to max_length {max_length}"
+        )
     relative = next((s for s in pre if isinstance(s, RelativeActions)), None)
     post = postprocessor_steps(folder, post_specs, relative, post_where)
     if cfg.image_resolution[0] != cfg.image_resolution[1]:
