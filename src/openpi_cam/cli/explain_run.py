@@ -83,7 +83,7 @@ def main(
         run_config = {"command": COMMAND, **model.resolved().to_json(), "source": str(source.resolve())}
         run_options = {**options.to_json(), "save_frames": save_frames}
         if resume_dir is not None:
-            run_info = load_run(resume_dir, load_arrays=False).run_info
+            run_info = load_run(resume_dir, load_arrays=False, skip_unreadable=True).run_info
             old_config, old_options = run_info.get("config") or {}, run_info.get("options") or {}
             diffs = resume_mismatch(old_config, old_options, model, options)
             if old_config.get("source") != run_config["source"]:

@@ -4,9 +4,10 @@ everywhere and a folder that is none of them is refused in one line naming what 
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Literal
+
+from openpi_cam.errors import load_json
 
 CheckpointFormat = Literal["orbax", "lerobot", "openpi_pytorch"]
 
@@ -21,11 +22,7 @@ LEROBOT_FILES = (CONFIG_FILE, WEIGHTS_FILE, PREPROCESSOR_FILE, POSTPROCESSOR_FIL
 
 def _lerobot_type(config: Path) -> str | None:
     """A LeRobot policy config's `type`; None for another JSON file (OpenPI's export writes a config without one)."""
-    try:
-        data = json.loads(config.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise ValueError(f"{config}: not readable as JSON ({e})") from e
-    kind = data.get("type") if isinstance(data, dict) else None
+    kind = load_json(config).get("type")
     return kind if isinstance(kind, str) else None
 
 

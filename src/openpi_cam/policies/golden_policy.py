@@ -5,12 +5,12 @@ pipelines and policy run on a LeRobot policy folder (`shared/golden/lerobot_pi05
 
 from __future__ import annotations
 
-import json
 import pathlib
 
 import numpy as np
 
 from openpi_cam import golden
+from openpi_cam.errors import load_json
 from openpi_cam.policies.checkpoint_format import CONFIG_FILE
 from openpi_cam.policies.lerobot import OBS_STATE, TASK, TOKEN_MASK, TOKENS, LeRobotParts, build_lerobot
 from openpi_cam.policies.policy import Policy, create_policy, lerobot_policy
@@ -44,7 +44,7 @@ def check_policy_case(policy: Policy, name: str, d: dict, prompt: str) -> list[g
 
 def run_policy_golden(folder: pathlib.Path, verbose: bool = True) -> list[golden.Comparison]:
     """Every case of a policy golden folder, served by the config the folder names, float32 as its reference."""
-    info = json.loads((folder / "case.json").read_text())
+    info = load_json(folder / "case.json")
     policy = create_policy(
         info["config_name"],
         folder / "checkpoint",
@@ -60,7 +60,8 @@ def run_policy_golden(folder: pathlib.Path, verbose: bool = True) -> list[golden
 def is_lerobot_golden(folder: pathlib.Path) -> bool:
     if not (folder / LEROBOT_CASES).is_file() or not (folder / CONFIG_FILE).is_file():
         return False
-    return json.loads((folder / CONFIG_FILE).read_text()).get("type") is not None
+    config = load_json(folder / CONFIG_FILE, object)
+    return isinstance(config, dict) and config.get("type") is not None
 
 
 def _text(case: str, name: str, got: str, want: str) -> golden.Comparison:
@@ -119,8 +120,7 @@ def run_lerobot_golden(folder: pathlib.Path, verbose: bool = True) -> list[golde
     linear function of the first frame's chunk w.r.t. the first camera's model-space image."""
     parts = build_lerobot(folder, dtype="float32")
     policy = lerobot_policy(parts)
-    with np.load(folder / LEROBOT_CASES, allow_pickle=False) as npz:
-        arrays = {k: npz[k] for k in npz.files}
+    arrays = golden.read_npz(folder / LEROBOT_CASES)
     variation = golden.lerobot_variation(
         arrays["meta/batch2_row_vs_single_maxdiff"], arrays["batch2/action_normalized"]
     )

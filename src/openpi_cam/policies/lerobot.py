@@ -28,7 +28,7 @@ import numpy as np
 import sentencepiece
 from safetensors.numpy import load_file
 
-from openpi_cam.errors import InvalidRequest
+from openpi_cam.errors import InvalidRequest, load_json, reading
 from openpi_cam.image_tools import resize_with_pad_torch_bilinear, unit_to_uint8
 from openpi_cam.model.config import Pi0Config
 from openpi_cam.model.pi0 import MAX_PERIOD, MIN_PERIOD, Pi0
@@ -110,10 +110,7 @@ class LeRobotConfig:
     @classmethod
     def read(cls, path: Path) -> LeRobotConfig:
         where = str(path)
-        try:
-            data = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as e:
-            raise ValueError(f"{where}: not readable as JSON ({e})") from e
+        data = load_json(path)
         kind = data.get("type")
         if kind in FAST_TYPES:
             raise ValueError(
@@ -125,11 +122,13 @@ class LeRobotConfig:
         periods = (data.get("min_period", MIN_PERIOD), data.get("max_period", MAX_PERIOD))
         if periods != (MIN_PERIOD, MAX_PERIOD):
             raise ValueError(f"{where}: time embedding periods {periods} differ from pi0's {(MIN_PERIOD, MAX_PERIOD)}")
+        inputs = _features(data.get("input_features", {}), f"{where}: input_features")
+        outputs = _features(data.get("output_features", {}), f"{where}: output_features")
         try:
             return cls(
                 type=kind,
-                input_features=_features(data.get("input_features", {}), f"{where}: input_features"),
-                output_features=_features(data.get("output_features", {}), f"{where}: output_features"),
+                input_features=inputs,
+                output_features=outputs,
                 chunk_size=int(data["chunk_size"]),
                 max_state_dim=int(data.get("max_state_dim", 32)),
                 max_action_dim=int(data.get("max_action_dim", 32)),
@@ -142,6 +141,8 @@ class LeRobotConfig:
             )
         except KeyError as e:
             raise ValueError(f"{where}: missing {e.args[0]!r}") from None
+        except (AttributeError, TypeError, ValueError) as e:  # a field of another JSON type than LeRobot writes
+            raise ValueError(f"{where}: {e}") from None
 
     @property
     def empty_camera_names(self) -> tuple[str, ...]:
@@ -181,11 +182,8 @@ class StepSpec:
 
 def read_pipeline(path: Path) -> list[StepSpec]:
     where = str(path)
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise ValueError(f"{where}: not readable as JSON ({e})") from e
-    steps = data.get("steps") if isinstance(data, dict) else None
+    data = load_json(path)
+    steps = data.get("steps")
     if not isinstance(steps, list):
         raise ValueError(f"{where}: no 'steps' list")
     out = []
@@ -205,7 +203,9 @@ def read_stats(folder: Path, spec: StepSpec, where: str) -> dict[str, dict[str, 
     if not path.is_file():
         raise FileNotFoundError(f"{where}: step {spec.name}'s statistics {path} are missing")
     stats: dict[str, dict[str, np.ndarray]] = {}
-    for key, value in load_file(str(path)).items():
+    with reading(path, "safetensors file"):
+        tensors = load_file(str(path))
+    for key, value in tensors.items():
         feature, _, stat = key.rpartition(".")
         stats.setdefault(feature, {})[stat] = np.asarray(value, np.float32)
     return stats
@@ -217,11 +217,12 @@ def read_head_counts(folder: Path) -> HeadCounts:
     path = folder / SIZES_RECORD
     if not path.is_file():
         return LEROBOT_HEADS
+    record = load_json(path)
     try:
-        tiny = json.loads(path.read_text())["tiny"]
+        tiny = record["tiny"]
         gemma = {int(tiny[stack]["num_heads"]) for stack in ("vlm", "expert")}
         siglip = int(tiny["siglip"]["num_attention_heads"])
-    except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+    except (KeyError, TypeError, ValueError) as e:
         raise ValueError(f"{path}: no readable 'tiny' sizes ({type(e).__name__}: {e})") from e
     if len(gemma) != 1:
         raise ValueError(f"{path}: the language model and the expert attend jointly, but their head counts differ")

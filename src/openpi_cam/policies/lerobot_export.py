@@ -25,7 +25,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import sentencepiece
 from safetensors.numpy import save_file
 
 from openpi_cam.model.pi0 import MAX_PERIOD, MIN_PERIOD, Pi0
@@ -43,7 +42,7 @@ from openpi_cam.policies.checkpoint_format import (
 from openpi_cam.policies.config import PolicyConfig, resolve_config
 from openpi_cam.policies.lerobot import ACTION, OBS_IMAGES, OBS_STATE, write_sizes_record
 from openpi_cam.policies.robot import GenericInputs, GenericOutputs
-from openpi_cam.tokenizers.paligemma import PALIGEMMA_HUB_ID, resolve_paligemma_tokenizer_path
+from openpi_cam.tokenizers.paligemma import PALIGEMMA_HUB_ID, load_paligemma_tokenizer, resolve_paligemma_tokenizer_path
 
 TOKENIZER_DIR = "tokenizer"
 # What LeRobot's converted PaliGemma tokenizer declares; transformers builds it from tokenizer.model.
@@ -222,7 +221,7 @@ def export_lerobot(
     tokenizer_name = PALIGEMMA_HUB_ID
     if paligemma_tokenizer is not None:
         source = resolve_paligemma_tokenizer_path(paligemma_tokenizer)
-        sentencepiece.SentencePieceProcessor(model_file=str(source))  # a readable SentencePiece model
+        load_paligemma_tokenizer(source)  # a readable SentencePiece model
         tokenizer_name = TOKENIZER_DIR
     config_json = lerobot_config(cfg, plan, model)
     pre, post = _pipelines(cfg, config_json, tokenizer_name)
