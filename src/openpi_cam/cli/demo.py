@@ -33,6 +33,9 @@ def main(opts: tyro.conf.OmitArgPrefixes[DemoOptions] = DEFAULT, record: pathlib
             (`perturbation`) and `next.reward` / `next.success` / `next.done`; `meta/demo_episodes.json` names each
             episode's perturbation, seed and outcome.
     """
+    if ignored := opts.ignored():
+        print(f"openpi-cam demo: {', '.join(ignored)}: {'; '.join(dict.fromkeys(ignored.values()))}")
+        return 2
     if record is not None and record.exists() and (not record.is_dir() or any(record.iterdir())):
         print(f"openpi-cam demo: --record {record} exists and is not an empty folder")
         return 1

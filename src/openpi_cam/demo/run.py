@@ -143,8 +143,9 @@ class DemoOptions:
     render: bool = True
     # with `render`, also write an MP4 and a GIF per episode.
     videos: bool = True
-    # which bundled model serves the reaching task: the tiny pi0-FAST or the tiny pi0.5 (metaworld has its own pi0.5).
-    model: Literal["pi0_fast", "pi05"] = "pi0_fast"
+    # which bundled model serves the reaching task: the tiny pi0-FAST (the default) or the tiny pi0.5 (metaworld has
+    # its own pi0.5, and takes no --model).
+    model: Literal["pi0_fast", "pi05"] | None = None
     # the folder holding the model (checkpoint/) and its tokenizers; default: the bundled ones of `model`.
     assets: pathlib.Path | None = None
     # which map kinds the side channel computes (all four, so that the faithfulness table compares them).
@@ -169,12 +170,37 @@ class DemoOptions:
     @property
     def bundled_model(self) -> str:
         """The bundled model that serves (`model_spec.BUNDLED_CONFIGS`)."""
-        return "metaworld" if self.sim == "metaworld" else self.model
+        return "metaworld" if self.sim == "metaworld" else self.model or "pi0_fast"
+
+    def ignored(self) -> dict[str, str]:
+        """The flags given (other than their defaults) that the other flags leave without effect: flag -> why. The
+        command refuses them, so that no flag is accepted and then ignored."""
+        flags = {}
+        if self.sim == "metaworld" and self.model is not None:
+            flags["--model"] = "--sim metaworld serves its own bundled pi0.5"
+        changed = [f.name for f in dataclasses.fields(self) if getattr(self, f.name) != f.default]
+        spelled = {name: _flag(name, getattr(self, name)) for name in changed}
+        if not self.explain:
+            why = "--no-explain explains nothing (no run, maps, renders or faithfulness)"
+            flags |= {spelled[name]: why for name in changed if name in _EXPLAINED}
+        elif not self.render and "videos" in changed:
+            flags[spelled["videos"]] = "--no-render writes no videos"
+        return flags
 
     def __post_init__(self) -> None:
         if not self.perturb:
             raise ValueError("--perturb needs at least one perturbation (clean: none)")
         self.perturbations  # noqa: B018  (refused as the flags are parsed)
+
+
+# What only an explained run uses (the run's folder, the maps, their renders and faithfulness).
+_EXPLAINED = ("out", "target", "render", "videos", "maps", "faithfulness", "baseline", "ig_space")
+
+
+def _flag(field: str, value: object) -> str:
+    """How the command line spells a field set to `value` (`--no-render` for a switch turned off)."""
+    name = field.replace("_", "-")
+    return f"--no-{name}" if value is False else f"--{name}"
 
 
 @dataclasses.dataclass
