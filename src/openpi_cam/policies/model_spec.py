@@ -154,9 +154,10 @@ class ModelSpec:
         return paligemma, fast
 
     def create(self, *, stop_at_action_end: bool = False, rng: jax.Array | None = None) -> Policy:
+        """The policy; a FAST tokenizer named for a model of another family is refused (it would go unread)."""
         spec = self.resolved()
         paligemma, fast = self.tokenizers()
-        return create_policy(
+        policy = create_policy(
             spec.config,
             spec.checkpoint,
             paligemma_tokenizer=paligemma,
@@ -167,6 +168,10 @@ class ModelSpec:
             max_decoding_steps=demo_reach.MAX_DECODING_STEPS if _is_demo(spec.config) else MAX_DECODING_STEPS,
             rng=rng,
         )
+        if self.fast_tokenizer is not None and policy.model.family != "pi0_fast":  # given, and nothing would read it
+            family = policy.model.family
+            raise ValueError(f"--fast-tokenizer {self.fast_tokenizer}: a {family} model has no FAST tokenizer")
+        return policy
 
     def dataset_keys(self) -> tuple[dict[str, str], bool]:
         """How a LeRobot dataset feeds this model: observation key -> dataset feature (with `actions`, the recorded
