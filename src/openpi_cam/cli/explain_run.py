@@ -59,6 +59,9 @@ def main(
         rerun: also write the finished run as a Rerun recording (.rrd; needs the `rerun` extra).
         progress: show progress on stderr.
     """
+    if nested_keys and (source / RUN_JSON).is_file():
+        print(f"openpi-cam {COMMAND}: --nested-keys reads PolicyRecorder records; {source} is a run", file=sys.stderr)
+        return 2
     resume_dir = resume if resume is not None else (out if (out / RUN_JSON).is_file() else None)
     if resume_dir is not None and not (resume_dir / RUN_JSON).is_file():
         print(f"openpi-cam {COMMAND}: --resume {resume_dir} is not a CAM run directory", file=sys.stderr)

@@ -63,6 +63,10 @@ def main(
             figures beside it.
         progress: show progress on stderr.
     """
+    if randomize == "none" and batch_size != FaithfulnessOptions.batch_size:
+        print("openpi-cam faithfulness: --batch-size sizes the randomised model's calls: --randomize none makes none",
+              file=sys.stderr)  # fmt: skip
+        return 2
     opts = FaithfulnessOptions(
         randomize=randomize, baseline=baseline, max_steps=None, random_orders=random_orders, batch_size=batch_size
     )
