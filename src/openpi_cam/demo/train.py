@@ -71,6 +71,19 @@ class TrainArgs:
     log_every: int = 250
     probe_every: int = 500  # log the binding probe (`quality.binding_probe`) every this many steps; 0: never
 
+    def unused(self) -> str | None:
+        """The fields set (other than their defaults) that the others leave without effect, or None: what the
+        training commands refuse rather than ignore."""
+        finetune = [f"--{n.replace('_', '-')}" for n in ("finetune_lr", "finetune_warmup") if self._changed(n)]
+        if finetune and (self.finetune_steps == 0 or self.model == "pi05"):
+            return f"{', '.join(finetune)}: no finetune phase runs (--finetune-steps 0, or pi0.5, which has none)"
+        if self.model == "pi05" and self._changed("decode_offset"):
+            return "--decode-offset: pi0.5 has no action tokens to place"
+        return None
+
+    def _changed(self, name: str) -> bool:
+        return getattr(self, name) != getattr(TrainArgs, name)
+
 
 @dataclasses.dataclass(frozen=True)
 class Phase:
@@ -224,6 +237,12 @@ def train_phase(params: dict, cfg: ModelConfig, batches: Batches, phase: Phase, 
 
 
 if __name__ == "__main__":
+    import sys
+
     import tyro
 
-    train(tyro.cli(TrainArgs))
+    parsed = tyro.cli(TrainArgs)
+    if refused := parsed.unused():
+        print(f"openpi_cam.demo.train: {refused}", file=sys.stderr)
+        raise SystemExit(2)
+    train(parsed)
