@@ -84,7 +84,7 @@ def main(
             ReplayOptions, save_frames=save_frames, batch_size=batch_size, max_steps=max_steps
         )
         run_config = {"command": COMMAND, **model.resolved().to_json(), "source": str(source.resolve())}
-        run_options = {**options.to_json(), "save_frames": save_frames}
+        run_options = {**options.to_json(), "save_frames": save_frames, "batch_size": batch_size}
         if resume_dir is not None:
             run_info = load_run(resume_dir, load_arrays=False, skip_unreadable=True).run_info
             old_config, old_options = run_info.get("config") or {}, run_info.get("options") or {}
@@ -92,7 +92,10 @@ def main(
             if old_config.get("source") != run_config["source"]:
                 diffs.insert(0, f"source: {old_config.get('source')!r} != {run_config['source']!r}")
             if diffs:
-                print(f"openpi-cam {COMMAND}: cannot resume {resume_dir}, settings differ: {diffs}", file=sys.stderr)
+                print(
+                    f"openpi-cam {COMMAND}: --resume {resume_dir}: cannot resume, settings differ: {diffs}",
+                    file=sys.stderr,
+                )
                 return 2
             cam_logger = CAMLogger.resume(resume_dir)
         else:

@@ -67,16 +67,19 @@ DEFAULT_RECORD = RecordArgs()
 
 def _unused(args: train.TrainArgs, sim: str, data: Path | None, record: RecordArgs) -> str | None:
     """What the flags given leave without effect (and the command refuses), or None."""
-    if sim == "reach" and (data is not None or record != DEFAULT_RECORD):
-        return "--data and --record.* are Meta-World's expert episodes: add --sim metaworld"
+    recording = [f"--record.{f.name.replace('_', '-')}" for f in dataclasses.fields(record)
+                 if getattr(record, f.name) != getattr(DEFAULT_RECORD, f.name)]  # fmt: skip
+    if sim == "reach" and (data is not None or recording):
+        given = ", ".join((["--data"] if data is not None else []) + recording)
+        return f"{given}: Meta-World's expert episodes: add --sim metaworld"
     fixed = ("model", "probe_every", "contrast_pairs")  # Meta-World's: its pi0.5, no probe, its recorded frames
     if sim == "metaworld" and any(getattr(args, n) != getattr(DEFAULT_TRAIN, n) for n in fixed):
         return "--args.model, --args.probe-every, --args.contrast-pairs: Meta-World trains its pi0.5 on its frames"
     trained = dataclasses.replace(args, model="pi05") if sim == "metaworld" else args
     if refused := trained.unused():
         return refused.replace("--", "--args.")
-    if sim == "metaworld" and record != DEFAULT_RECORD and data is not None and is_lerobot_dataset(data):
-        return f"--record.*: {data} holds its expert episodes already (a new folder records them)"
+    if sim == "metaworld" and recording and data is not None and is_lerobot_dataset(data):
+        return f"{', '.join(recording)}: {data} holds its expert episodes already (a new folder records them)"
     return None
 
 

@@ -15,8 +15,9 @@ import dataclasses
 import functools
 import json
 import shutil
+import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Literal
 
@@ -24,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+import tyro
 
 from openpi_cam.demo import bundled, make_tokenizers, metaworld_loop, metaworld_sim, sim
 from openpi_cam.demo.data import Batches, write_norm_stats
@@ -236,13 +238,16 @@ def train_phase(params: dict, cfg: ModelConfig, batches: Batches, phase: Phase, 
     return params, float(np.mean(losses[-args.log_every :]))
 
 
-if __name__ == "__main__":
-    import sys
-
-    import tyro
-
-    parsed = tyro.cli(TrainArgs)
-    if refused := parsed.unused():
+def main(argv: Sequence[str] | None = None) -> int:
+    """`python -m openpi_cam.demo.train [FLAGS]`: the flags are `TrainArgs`; ones the others leave without effect are
+    refused in one line."""
+    args = tyro.cli(TrainArgs, args=argv)
+    if refused := args.unused():
         print(f"openpi_cam.demo.train: {refused}", file=sys.stderr)
-        raise SystemExit(2)
-    train(parsed)
+        return 2
+    train(args)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

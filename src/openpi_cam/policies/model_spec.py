@@ -103,7 +103,7 @@ class ModelSpec:
         config = self.config or demo_reach.DEMO_CONFIG.name
         if config not in BUNDLED_MODELS:
             raise ValueError(
-                f"config {config!r} needs --checkpoint-dir (the bundled models serve {sorted(BUNDLED_MODELS)})"
+                f"--config {config} needs --checkpoint-dir (the bundled models serve {sorted(BUNDLED_MODELS)})"
             )
         return BUNDLED_MODELS[config]
 
