@@ -19,6 +19,7 @@ import pytest
 from lerobot_cases import CAMERAS, cases, request
 from one_line import assert_one_line
 from paths import GOLDEN_DIR
+from safetensors.numpy import load_file, save_file
 from safetensors_edit import edit_safetensors, read_tensor
 from shared_copies import edit_json, writable_copy
 
@@ -191,6 +192,19 @@ def test_a_bad_weight_is_named(tmp_path, edit, names):
     with pytest.raises(ValueError) as raised:
         policy_of(folder)
     assert_one_line(raised.value, *names)
+
+
+def test_a_weight_of_no_float_type_is_named(tmp_path):
+    """A tensor stored as integers (a quantised or corrupted export) is refused before any weight is read, naming the
+    tensor and its dtype."""
+    folder = copy_folder(tmp_path)
+    tensors = load_file(str(PI05 / "model.safetensors"))
+    tensors[Q_PROJ] = tensors[Q_PROJ].astype(np.int32)
+    (folder / "model.safetensors").unlink()
+    save_file(tensors, str(folder / "model.safetensors"))
+    with pytest.raises(ValueError) as raised:
+        policy_of(folder)
+    assert_one_line(raised.value, Q_PROJ, "dtype I32", "expected a float type")
 
 
 def test_an_unknown_processor_step_or_type_is_named(tmp_path):
