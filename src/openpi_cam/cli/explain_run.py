@@ -55,7 +55,8 @@ def main(
         save_frames: which camera frames to store next to the maps (`raw`/`both` keep the run replayable).
         batch_size: observations explained per model call, split over all local devices.
         max_steps: explain at most this many observations not yet in the run (resume later for the rest).
-        nested_keys: read PolicyRecorder keys `a/b` as nested dicts (ALOHA's `images/...`) instead of flat keys.
+        nested_keys: read PolicyRecorder keys `a/b` as nested dicts (ALOHA's `images/...`) instead of flat keys;
+            refused for a model whose robot reads flat keys (every config but ALOHA's).
         rerun: also write the finished run as a Rerun recording (.rrd; needs the `rerun` extra).
         progress: show progress on stderr.
     """
@@ -73,6 +74,10 @@ def main(
             recorded = load_run(source, load_arrays=False).run_info.get("config") or {}
             model = ModelSpec.from_json(recorded).overridden_by(model)
             stop_at_action_end = bool(recorded.get("stop_at_action_end", False))
+        if nested_keys and not model.dataset_keys()[1]:  # its robot finds `a/b` keys flat or nested alike
+            name = model.resolved().config or "a LeRobot policy"
+            print(f"openpi-cam {COMMAND}: --nested-keys: {name} reads flat keys (ALOHA's nest)", file=sys.stderr)
+            return 2
         policy = model.create(stop_at_action_end=stop_at_action_end)
         try:
             target = resolve_target(policy.explainer, explanation.target)
