@@ -13,6 +13,8 @@ must have a case here (`test_every_flag_has_a_case`: a new flag without one fail
 - `Fixed`: the parser accepts one value only, its default: nothing given can be ignored.
 - `Covered`: only a failure no real request can cause shows the flag (serve's `--debug`), and the named test of the
   server shows it with a policy that raises.
+- `Delegates`: `train_demo`'s `--args.*` are `demo.train`'s flags, handed over unchanged: given all at once, they
+  train the very model `demo.train` trains with them.
 
 The commands run in process (serve in a child process, since it serves until stopped), on the bundled demo models,
 the side channel's run of them and the demo dataset. The fast tier runs the refusals and the commands that compile
@@ -635,7 +637,7 @@ SERVE_CASES: dict[str, tuple[Case, ...]] = {
             (*SERVE_OFF, "--config", demo_reach.DEMO_PI05_CONFIG.name, "--fast-tokenizer", "{demo}/fast_tokenizer"),
         ),
     ),
-    "--dtype": (Changes(SERVE, ("--dtype", "bfloat16"), seen("actions")),),
+    "--dtype": (Changes(SERVE, ("--dtype", "bfloat16"), cam_model("dtype")),),
     "--default-prompt": (Changes(SERVE, ("--default-prompt", "reach the red block"), seen("without_prompt")),),
     "--cam.every-k": (Changes(SERVE, ("--cam.every-k", "2"), cam_option("every_k")),),
     "--cam.dir": (Changes(SERVE, ("--cam.dir", "{scratch}/cam2"), cam_folders), side_channel_off("--cam.dir", "x")),
@@ -1036,7 +1038,7 @@ def serve_session(argv: list[str], root: Path) -> Output:
     """`serve ARGV` in a child process: once it answers, a client asks for /stats with and without the API key,
     sends a request and a prompt-less one, opens a second connection while the first is open and sends an oversized
     message; then SIGTERM. What the client saw is `Output.seen`."""
-    from websockets.exceptions import ConnectionClosed
+    from websockets.exceptions import ConnectionClosed, InvalidHandshake
     from websockets.sync.client import connect
 
     port, key = int(_value(argv, "--port")), _value(argv, "--api-key")
@@ -1055,8 +1057,10 @@ def serve_session(argv: list[str], root: Path) -> Output:
 
         def reply(ws: Any, obs: dict[str, Any]) -> Any:
             ws.send(msgpack_numpy.packb(obs))
-            answer = msgpack_numpy.unpackb(ws.recv(timeout=300))
-            return answer if isinstance(answer, str) else np.asarray(answer["actions"]).round(4).tolist()
+            frame = ws.recv(timeout=300)
+            if isinstance(frame, str):  # an error is sent as text
+                return frame
+            return np.asarray(msgpack_numpy.unpackb(frame)["actions"]).round(4).tolist()
 
         url = f"ws://127.0.0.1:{port}"
         with connect(url, additional_headers=headers, max_size=None, open_timeout=60) as ws:
@@ -1070,8 +1074,10 @@ def serve_session(argv: list[str], root: Path) -> Output:
                     seen["second_connection"] = "admitted"
             except ConnectionClosed as e:
                 seen["second_connection"] = f"closed {e.rcvd.code if e.rcvd else None}"
+            except InvalidHandshake as e:  # refused before the websocket opened
+                seen["second_connection"] = f"refused {type(e).__name__}"
             try:
-                ws.send(b"\\x00" * (3 << 19))  # 1.5 MB
+                ws.send(bytes(3 << 19))  # 1.5 MB
                 answer = ws.recv(timeout=300)
                 seen["oversized"] = "answered" if answer else "empty"
             except ConnectionClosed as e:
