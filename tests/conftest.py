@@ -275,6 +275,6 @@ def served_run_dir(tmp_path_factory, demo_policy) -> Path:
 
 @pytest.fixture(scope="session")
 def demo_maps_dir(tmp_path_factory) -> Path:
-    """`explain-dataset` of the demo dataset's first episode with the bundled model: read by the command-line tests,
-    never written (copy it first)."""
+    """`explain-dataset` of the demo dataset's first two episodes with the bundled model: read by the command-line
+    tests, never written (copy it first)."""
     return explained_dataset(tmp_path_factory.mktemp("demo_maps") / "demo.maps")

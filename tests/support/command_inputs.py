@@ -37,10 +37,10 @@ def served_run(cam_dir: Path, policy, seeds: tuple[int, ...] = (0, 1)) -> Path:
 
 
 def explained_dataset(out: Path, *flags: str) -> Path:
-    """`openpi-cam explain-dataset` of the demo dataset's first episode with the bundled model into `out`."""
+    """`openpi-cam explain-dataset` of the demo dataset's first two episodes with the bundled model into `out`."""
     from openpi_cam import cli
 
-    args = ["explain-dataset", str(DEMO_DATASET), "--episodes", "0", "--extra", TARGET_BOX, "--out", str(out)]
+    args = ["explain-dataset", str(DEMO_DATASET), "--episodes", "0,1", "--extra", TARGET_BOX, "--out", str(out)]
     try:
         cli.main([*args, *MAPS_FLAGS, "--no-progress", *flags])
     except SystemExit as e:
