@@ -40,8 +40,18 @@ CHECKPOINT_DTYPE: Dtype = "bfloat16"  # upstream's `create_trained_policy`
 LEROBOT_DTYPE: Dtype = "float32"  # a LeRobot config's default `dtype`
 DTYPES: tuple[Dtype, ...] = ("bfloat16", "float32")
 # The bundled models by name (`openpi-cam demo --model`), their configs and where they ship.
-BUNDLED_CONFIGS = {**demo_reach.DEMO_CONFIGS, "metaworld": demo_metaworld.DEMO_METAWORLD_CONFIG}
-BUNDLED_ASSETS = {**demo_reach.DEFAULT_ASSETS, "metaworld": demo_metaworld.ASSETS_METAWORLD}
+BUNDLED_CONFIGS = {
+    **demo_reach.DEMO_CONFIGS,
+    "metaworld": demo_metaworld.DEMO_METAWORLD_CONFIG,
+    "metaworld_mt_pi05": demo_metaworld.DEMO_METAWORLD_MT_PI05_CONFIG,
+    "metaworld_mt_pi0_fast": demo_metaworld.DEMO_METAWORLD_MT_PI0_FAST_CONFIG,
+}
+BUNDLED_ASSETS = {
+    **demo_reach.DEFAULT_ASSETS,
+    "metaworld": demo_metaworld.ASSETS_METAWORLD,
+    "metaworld_mt_pi05": demo_metaworld.ASSETS_MT_PI05,
+    "metaworld_mt_pi0_fast": demo_metaworld.ASSETS_MT_PI0_FAST,
+}
 BUNDLED_MODELS = {config.name: model for model, config in BUNDLED_CONFIGS.items()}  # config name -> bundled model
 # What must be the same for new steps to join a run or maps dataset (tokenizer files may move between machines).
 _OUTPUT_FIELDS = ("checkpoint_dir", "config", "dtype")
@@ -164,7 +174,7 @@ class ModelSpec:
             dtype=spec.dtype,  # type: ignore[arg-type]
             default_prompt=spec.default_prompt,
             stop_at_action_end=stop_at_action_end,
-            max_decoding_steps=demo_reach.MAX_DECODING_STEPS if _is_demo(spec.config) else MAX_DECODING_STEPS,
+            max_decoding_steps=_decoding_budget(spec.config),
             rng=rng,
         )
 
@@ -223,6 +233,12 @@ class ModelSpec:
             f.name: getattr(flags, f.name) for f in dataclasses.fields(flags) if getattr(flags, f.name) is not None
         }
         return dataclasses.replace(self, **values)
+
+
+def _decoding_budget(config: str | None) -> int:
+    """pi0-FAST's decoding budget under a named config (its own, else upstream's)."""
+    budget = None if config is None else resolve_config(config).max_decoding_steps
+    return MAX_DECODING_STEPS if budget is None else budget
 
 
 def _torch_architecture(folder: pathlib.Path) -> Pi0Config:
