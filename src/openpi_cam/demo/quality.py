@@ -30,7 +30,7 @@ import jax
 import numpy as np
 
 from openpi_cam.cam.batching import explain_traces
-from openpi_cam.cam.faithfulness import box_cells, spearman
+from openpi_cam.cam.faithfulness import box_cells, box_visible, spearman
 from openpi_cam.cam.run_format import load_run
 from openpi_cam.demo import bundled, task
 from openpi_cam.demo.data import Batches, load_normalize
@@ -75,9 +75,10 @@ def object_pointing(cam_map: np.ndarray, boxes: list[tuple[int, ...]], image_siz
 
 
 def run_figures(run_dir: Path, image_size: int = task.TaskConfig().image_size) -> dict[str, Any]:
-    """Success rate (from the demo's episode file) and, per map kind, the pointing game over every logged step."""
+    """Success rate (from the demo's episode file) and, per map kind, the pointing game over every logged step whose
+    target is in view (a hidden target, an empty box, is not scored); cameras of `image_size` px."""
     run = load_run(run_dir)
-    labelled = [s for s in run.steps if s.extra.get("target_box") is not None]
+    labelled = [s for s in run.steps if s.extra.get("target_box") is not None and box_visible(s.extra["target_box"])]
     per_kind = {}
     for kind in MAP_KINDS:
         hit, cell_chance, area_chance, on_block, block_chance = [], [], [], [], []
