@@ -8,7 +8,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from openpi_cam.cam.records import EXTRA_PREFIX, split_extra
+from openpi_cam.cam.records import split_extra
 from openpi_cam.demo import task
 from openpi_cam.model.config import GemmaConfig, Pi0Config, Pi0FASTConfig, SiglipConfig, scan_by_default
 from openpi_cam.policies.demo_reach import (
@@ -20,6 +20,7 @@ from openpi_cam.policies.demo_reach import (
     STATE_KEY,
     WRIST_KEY,
 )
+from openpi_cam.vocabulary import EXTRA_PREFIX
 
 PATCH_SIZE = 16  # 64 px images -> a 4 x 4 map grid per camera
 
