@@ -31,7 +31,7 @@ import numpy as np
 from websockets.sync.client import ClientConnection, connect
 
 from openpi_cam.cam.side_channel import CAMOptions, CAMPolicy, wrap_policy_with_cam
-from openpi_cam.policies import model_spec
+from openpi_cam.checkpoints import model_spec
 from openpi_cam.serving import msgpack_numpy
 from openpi_cam.serving.server import start_server_in_thread
 

@@ -31,9 +31,10 @@ CASES = 4
 
 
 def write(out: Path) -> None:
+    from openpi_cam.checkpoints import model_spec
     from openpi_cam.demo import bundled, task
-    from openpi_cam.policies import demo_reach, model_spec
-    from openpi_cam.policies.lerobot_export import export_lerobot
+    from openpi_cam.lerobot.export import export_lerobot
+    from openpi_cam.policies import demo_reach
     from openpi_cam.policies.policy import create_policy
 
     folder = export_lerobot(

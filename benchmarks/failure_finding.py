@@ -36,10 +36,10 @@ from PIL import Image
 
 from openpi_cam import cli
 from openpi_cam.cam.outcomes import roc_auc, wilson_interval
-from openpi_cam.datasets.maps_dataset import EPISODE_SUCCESS, MapsDataset, is_maps_dataset, open_maps_dataset
-from openpi_cam.datasets.views import DatasetViews, compute_views, displayable, normalised
+from openpi_cam.checkpoints.model_spec import BUNDLED_CONFIGS
 from openpi_cam.demo.quality import EPISODES_FILE
-from openpi_cam.policies.model_spec import BUNDLED_CONFIGS
+from openpi_cam.maps.dataset import EPISODE_SUCCESS, MapsDataset, is_maps_dataset, open_maps_dataset
+from openpi_cam.maps.views import DatasetViews, compute_views, displayable, normalised
 
 PERTURB = ("clean", "distractors=2", "hue=45", "shift=32", "dim=0.3", "absent")
 # Meta-World's strengths, chosen (8 episodes each) so that the policy fails some of the time: hue 30 and 60 gave 8/8

@@ -66,7 +66,7 @@ def test_every_import_points_down_the_layers():
 def test_the_lerobot_format_modules_import_nothing_of_the_package_but_its_errors():
     """The LeRobot reader and writer stay usable on their own: only `openpi_cam.errors` may come in (the writer
     reports errors as the reader does)."""
-    own = {"openpi_cam.errors", "openpi_cam.datasets.lerobot", "openpi_cam.datasets.lerobot_writer"}
+    own = {"openpi_cam.errors", "openpi_cam.lerobot.dataset", "openpi_cam.lerobot.writer"}
     found = [
         f"{name} imports {target}"
         for name in ("lerobot", "lerobot_writer")
@@ -91,7 +91,7 @@ def test_a_dataset_job_does_not_load_the_threaded_side_channel():
     """A Ray worker explaining episodes imports the datasets room; nothing it imports, however indirectly, is the
     live side channel (its worker thread and queue belong to `serve`)."""
     code = (
-        "import sys, openpi_cam.datasets.explain, openpi_cam.datasets.ray_engine, openpi_cam.datasets.faithfulness; "
+        "import sys, openpi_cam.maps.explain, openpi_cam.maps.ray_engine, openpi_cam.maps.faithfulness; "
         "print(sorted(m for m in sys.modules if m == 'openpi_cam.cam.side_channel'))"
     )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)

@@ -39,12 +39,12 @@ from openpi_cam.cam.offline import (
 )
 from openpi_cam.cam.run_format import IMAGE_INPUT, StepRecord, load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
+from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.cli import explain_run
 from openpi_cam.cli.options import ExplainFlags
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import ExplainSkipped, Explanation
 from openpi_cam.policies.libero import make_libero_example
-from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.serving import RequestContext
 from openpi_cam.vocabulary import ExplainOptions
 
@@ -377,7 +377,7 @@ _DATA_PARALLEL = textwrap.dedent(
     from cam_support import demo_obs, policy_part
     from openpi_cam.cam.batching import data_mesh, explain_traces, shard_batch
     from openpi_cam.model.observation import stack_observations
-    from openpi_cam.policies import model_spec
+    from openpi_cam.checkpoints import model_spec
     from openpi_cam.vocabulary import ExplainOptions
 
     policy = model_spec.create_demo_policy()

@@ -35,9 +35,9 @@ from real_clients import get_stats, read_packed
 
 from openpi_cam.cam.run_format import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
+from openpi_cam.checkpoints import model_spec
 from openpi_cam.model import pi0_fast_maps
 from openpi_cam.model.config import EOS_TOKEN
-from openpi_cam.policies import model_spec
 from openpi_cam.serving import RequestContext, msgpack_numpy
 from openpi_cam.serving.server import start_server_in_thread
 from openpi_cam.viz.render import RenderOptions, render_run
@@ -479,7 +479,7 @@ import time
 sys.path.insert(0, sys.argv[2])
 from cam_support import demo_obs
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
-from openpi_cam.policies import model_spec
+from openpi_cam.checkpoints import model_spec
 options = CAMOptions(every_k=1, cam_dir=sys.argv[1], queue_size=64)
 wrapped = wrap_policy_with_cam(model_spec.create_demo_policy(), options)
 print(wrapped.run_dir, flush=True)
@@ -569,7 +569,7 @@ jax.monitoring.register_event_duration_secs_listener(
 )
 from demo_inputs import demo_observation
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
-from openpi_cam.policies import model_spec
+from openpi_cam.checkpoints import model_spec
 from openpi_cam.serving import RequestContext
 
 cam = wrap_policy_with_cam(model_spec.create_demo_policy(), CAMOptions(every_k=1, cam_dir=tempfile.mkdtemp()))
@@ -630,7 +630,7 @@ import jax, numpy as np
 from cam_support import WithExplainer, demo_obs, policy_part
 from openpi_cam.cam.batching import explain_traces
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
-from openpi_cam.policies import model_spec
+from openpi_cam.checkpoints import model_spec
 from openpi_cam.vocabulary import ExplainOptions
 
 

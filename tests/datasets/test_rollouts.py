@@ -12,15 +12,15 @@ from datasets_support import model_job
 
 from openpi_cam import cli
 from openpi_cam.cam.run_format import Reliance
-from openpi_cam.datasets import maps_dataset as fmt
-from openpi_cam.datasets.explain import run_local
-from openpi_cam.datasets.lerobot import DatasetError, open_dataset
-from openpi_cam.datasets.maps_dataset import open_maps_dataset
-from openpi_cam.datasets.rollouts import RolloutRecorder
-from openpi_cam.datasets.views import GROUP, GROUP_NAMES_FILE, TARGET_BOX, compute_views, group_names, normalised
 from openpi_cam.demo import perturb, quality
 from openpi_cam.demo.bundled import PERTURBATION_FEATURE
 from openpi_cam.demo.run import ROLLOUT_FPS, DemoOptions, run_demo
+from openpi_cam.lerobot.dataset import DatasetError, open_dataset
+from openpi_cam.lerobot.rollouts import RolloutRecorder
+from openpi_cam.maps import dataset as fmt
+from openpi_cam.maps.dataset import open_maps_dataset
+from openpi_cam.maps.explain import run_local
+from openpi_cam.maps.views import GROUP, GROUP_NAMES_FILE, TARGET_BOX, compute_views, group_names, normalised
 from openpi_cam.policies import demo_reach
 from openpi_cam.vocabulary import ExplainOptions
 

@@ -23,13 +23,14 @@ from paths import GOLDEN_DIR
 from safetensors.numpy import load_file
 
 from openpi_cam import golden
+from openpi_cam.checkpoints import model_spec
+from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.cli import export as export_cli
+from openpi_cam.lerobot.export import export_lerobot
 from openpi_cam.normalize import load_checkpoint_norm_stats, save_norm_stats
-from openpi_cam.policies import demo_reach, model_spec
+from openpi_cam.policies import demo_reach
 from openpi_cam.policies.checkpoint_format import checkpoint_format
 from openpi_cam.policies.config import PolicyConfig
-from openpi_cam.policies.lerobot_export import export_lerobot
-from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.policies.policy import create_policy
 from openpi_cam.policies.robot import GenericInputs, GenericOutputs
 

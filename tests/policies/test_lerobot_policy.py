@@ -25,12 +25,12 @@ from shared_copies import edit_json, writable_copy
 from openpi_cam import golden
 from openpi_cam.cli import golden as cli_golden
 from openpi_cam.errors import InvalidRequest
+from openpi_cam.lerobot.policy import Feature, Normalizer, write_sizes_record
 from openpi_cam.letterbox import letterbox_geometry
 from openpi_cam.model.pi0 import Pi0
 from openpi_cam.model.safetensors_weights import save_safetensors_params
 from openpi_cam.policies.checkpoint_format import checkpoint_format
 from openpi_cam.policies.golden_policy import run_lerobot_golden
-from openpi_cam.policies.lerobot import Feature, Normalizer, write_sizes_record
 from openpi_cam.policies.policy import create_policy
 from openpi_cam.vocabulary import ExplainOptions
 

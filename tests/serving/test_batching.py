@@ -19,8 +19,8 @@ from websockets.sync.client import connect
 
 from openpi_cam.cam.run_format import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
+from openpi_cam.checkpoints import model_spec
 from openpi_cam.errors import InvalidRequest
-from openpi_cam.policies import model_spec
 from openpi_cam.policies.policy import batch_bucket
 from openpi_cam.serving import RequestContext, msgpack_numpy
 from openpi_cam.serving.server import start_server_in_thread

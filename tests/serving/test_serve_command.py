@@ -28,8 +28,9 @@ from serving_support import ROBOT, assert_same_response, run_dirs, stalled_peer
 
 from openpi_cam.cam.batching import explain_traces
 from openpi_cam.cam.run_format import MANIFEST_JSON, load_run, read_json
-from openpi_cam.policies import demo_reach, model_spec
-from openpi_cam.policies.model_spec import ModelSpec
+from openpi_cam.checkpoints import model_spec
+from openpi_cam.checkpoints.model_spec import ModelSpec
+from openpi_cam.policies import demo_reach
 from openpi_cam.serving.server import (
     PEER_TIMEOUT_S,
 )
@@ -220,7 +221,7 @@ def test_serve_records_each_connection_as_an_episode_of_a_lerobot_dataset(demo_o
     """`serve --record DIR`: two robots' connections become two episodes of a LeRobot v3.0 dataset, each frame holding
     what its request sent (frames, state, the `cam_extra/` box, the prompt as its task) and the chunk it got; our
     reader opens it (LeRobot's own reader is checked outside CI: benchmarks/check_lerobot_reads.py)."""
-    from openpi_cam.datasets.lerobot import open_dataset
+    from openpi_cam.lerobot.dataset import open_dataset
 
     root = tmp_path / "served"
     boxed = [

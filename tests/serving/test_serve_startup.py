@@ -22,9 +22,10 @@ from serve_process import serve_cmd, serve_subprocess, stop
 
 from openpi_cam.cam.run_format import RUN_JSON, load_run, read_json
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
+from openpi_cam.checkpoints import model_spec
 from openpi_cam.cli import serve
 from openpi_cam.cli.options import ExplainFlags
-from openpi_cam.policies import demo_reach, model_spec
+from openpi_cam.policies import demo_reach
 from openpi_cam.vocabulary import MapOptions
 
 PI05_DEMO = demo_reach.ASSETS_PI05

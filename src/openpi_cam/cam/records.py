@@ -10,10 +10,10 @@ from typing import Any
 import numpy as np
 
 from openpi_cam.cam.run_format import IMAGE_INPUT, CameraMeta, Reliance, SpotCheck, StepMeta, StepRecord
+from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.image_tools import client_frame_uint8, unit_to_uint8
 from openpi_cam.model.observation import uint8_to_model
 from openpi_cam.policies.family import Explanation
-from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.policies.policy import InferenceTrace
 from openpi_cam.vocabulary import EXTRA_PREFIX, ExplainOptions, SaveFrames
 

@@ -11,10 +11,10 @@ import tyro
 
 from openpi_cam.cam.faithfulness_run import format_report
 from openpi_cam.cam.outcomes import wilson_interval
-from openpi_cam.datasets.lerobot import DatasetError
-from openpi_cam.datasets.rollouts import RolloutRecorder
 from openpi_cam.demo.quality import EPISODES_FILE
 from openpi_cam.demo.run import ROLLOUT_FPS, ROLLOUT_FPS_METAWORLD, DemoOptions, run_demo
+from openpi_cam.lerobot.dataset import DatasetError
+from openpi_cam.lerobot.rollouts import RolloutRecorder
 from openpi_cam.policies import demo_metaworld, demo_reach
 from openpi_cam.vocabulary import MAP_KIND_INFO
 

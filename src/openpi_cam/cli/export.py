@@ -11,10 +11,10 @@ from typing import Literal
 
 import tyro
 
+from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.cli.options import BUNDLED_MODEL
+from openpi_cam.lerobot.export import export_lerobot
 from openpi_cam.policies.demo_reach import DEMO_PI05_CONFIG
-from openpi_cam.policies.lerobot_export import export_lerobot
-from openpi_cam.policies.model_spec import ModelSpec
 
 
 def main(

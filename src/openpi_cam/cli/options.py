@@ -7,7 +7,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Literal
 
-from openpi_cam.policies.model_spec import ModelSpec
+from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.vocabulary import (
     BASELINES,
     DEFAULT_KINDS,

@@ -9,10 +9,10 @@ from typing import Annotated
 import tyro
 
 from openpi_cam.cam.run_format import load_run
-from openpi_cam.datasets.lerobot import parse_episodes
-from openpi_cam.datasets.maps_dataset import is_maps_dataset, open_maps_dataset
-from openpi_cam.datasets.render import DatasetRenderOptions, render_dataset
-from openpi_cam.datasets.rerun import write_dataset_rrd
+from openpi_cam.lerobot.dataset import parse_episodes
+from openpi_cam.maps.dataset import is_maps_dataset, open_maps_dataset
+from openpi_cam.maps.render import DatasetRenderOptions, render_dataset
+from openpi_cam.maps.rerun import write_dataset_rrd
 from openpi_cam.viz.render import Norm, RenderOptions, default_render_dir, render_run
 from openpi_cam.viz.rerun_sink import write_rrd
 from openpi_cam.viz.stats import MissingMaps

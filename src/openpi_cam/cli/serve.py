@@ -18,10 +18,10 @@ from typing import Annotated, Any
 import tyro
 
 from openpi_cam.cam.side_channel import CAMOptions, CAMPolicy, wrap_policy_with_cam
+from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.cli.options import BUNDLED_MODEL, ExplainFlags
-from openpi_cam.datasets.served_episodes import EpisodeRecorder
+from openpi_cam.lerobot.served_episodes import EpisodeRecorder
 from openpi_cam.policies.family import resolve_target
-from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.policies.policy import Policy
 from openpi_cam.serving.server import PolicyServer
 from openpi_cam.vocabulary import SaveFrames, Target

@@ -10,8 +10,8 @@ from typing import Annotated, Literal
 import tyro
 
 from openpi_cam.cam.run_format import load_run
-from openpi_cam.datasets.maps_dataset import is_maps_dataset, open_maps_dataset
-from openpi_cam.datasets.views import compute_views
+from openpi_cam.maps.dataset import is_maps_dataset, open_maps_dataset
+from openpi_cam.maps.views import compute_views
 from openpi_cam.viz.stats import MissingMaps, aggregate, compute_stats, emit_table, to_rows, view_steps, write_table
 from openpi_cam.vocabulary import DEFAULT_MAP_KIND, MapKind
 

@@ -16,9 +16,9 @@ from typing import Literal
 
 import numpy as np
 
-from openpi_cam.datasets.lerobot import is_lerobot_dataset, open_dataset
-from openpi_cam.datasets.lerobot_writer import Feature, create_dataset
 from openpi_cam.demo import metaworld_data, metaworld_sim, train
+from openpi_cam.lerobot.dataset import is_lerobot_dataset, open_dataset
+from openpi_cam.lerobot.writer import Feature, create_dataset
 from openpi_cam.policies import demo_metaworld
 
 

@@ -11,8 +11,8 @@ import pathlib
 import numpy as np
 
 from openpi_cam import golden
+from openpi_cam.lerobot.policy import OBS_STATE, TASK, TOKEN_MASK, TOKENS, LeRobotParts, build_lerobot
 from openpi_cam.policies.checkpoint_format import CONFIG_FILE
-from openpi_cam.policies.lerobot import OBS_STATE, TASK, TOKEN_MASK, TOKENS, LeRobotParts, build_lerobot
 from openpi_cam.policies.policy import Policy, create_policy, lerobot_policy
 
 LEROBOT_CASES = "cases.npz"

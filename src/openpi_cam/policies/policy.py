@@ -17,6 +17,7 @@ import sentencepiece
 
 from openpi_cam.counters import WarnOnceCounter
 from openpi_cam.errors import InvalidRequest
+from openpi_cam.lerobot.policy import LeRobotParts, build_lerobot, read_head_counts
 from openpi_cam.letterbox import LetterboxGeometry, letterbox_geometry
 from openpi_cam.model.checkpoint import read_param_shapes
 from openpi_cam.model.config import MAX_DECODING_STEPS, family_of
@@ -27,7 +28,6 @@ from openpi_cam.normalize import load_checkpoint_norm_stats
 from openpi_cam.policies.checkpoint_format import PARAMS_DIR, WEIGHTS_FILE, checkpoint_format
 from openpi_cam.policies.config import PolicyConfig, resolve_config
 from openpi_cam.policies.family import Explainer, OutputDecoder, Sampler
-from openpi_cam.policies.lerobot import LeRobotParts, build_lerobot, read_head_counts
 from openpi_cam.policies.pi0_family import FlowParts, build_pi0
 from openpi_cam.policies.pi0_fast_family import FastParts, build_pi0_fast
 from openpi_cam.policies.robot import RobotInputs, example_observation

@@ -30,7 +30,8 @@ from typing import Literal
 
 import numpy as np
 
-from openpi_cam.datasets.frames import (
+from openpi_cam.maps.dataset import MapsDataset, reliance_columns
+from openpi_cam.maps.frames import (
     aligned_frames,
     dataset_scale,
     episode_rows,
@@ -38,8 +39,7 @@ from openpi_cam.datasets.frames import (
     select_episodes,
     source_dataset,
 )
-from openpi_cam.datasets.maps_dataset import MapsDataset, reliance_columns
-from openpi_cam.datasets.views import DatasetViews, compute_views
+from openpi_cam.maps.views import DatasetViews, compute_views
 from openpi_cam.viz.colormap import colorize
 from openpi_cam.viz.overlay import upsample
 from openpi_cam.viz.rerun_sink import import_rerun, log_reliance

@@ -56,7 +56,7 @@ import numpy as np
 from openpi_cam.cam.faithfulness import client_box_cells, nuisance_mass_ratio
 from openpi_cam.cam.outcomes import finding
 from openpi_cam.cam.run_format import RELIANCE_PROMPT
-from openpi_cam.datasets.maps_dataset import (
+from openpi_cam.maps.dataset import (
     CHECK_RANDOM,
     EPISODE_LENGTH,
     EPISODE_SUCCESS,

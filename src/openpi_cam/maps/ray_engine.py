@@ -33,8 +33,9 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.datasets import maps_dataset as fmt
-from openpi_cam.datasets.explain import (
+from openpi_cam.lerobot.dataset import DatasetError, LeRobotDataset, open_dataset
+from openpi_cam.maps import dataset as fmt
+from openpi_cam.maps.explain import (
     DatasetJob,
     EpisodeExplainer,
     EpisodeResult,
@@ -44,7 +45,6 @@ from openpi_cam.datasets.explain import (
     prepare_output,
     selected_episodes,
 )
-from openpi_cam.datasets.lerobot import DatasetError, LeRobotDataset, open_dataset
 from openpi_cam.vocabulary import DEFAULT_TARGETS
 
 log = logging.getLogger(__name__)

@@ -28,6 +28,7 @@ import numpy as np
 import sentencepiece
 from safetensors.numpy import save_file
 
+from openpi_cam.lerobot.policy import ACTION, OBS_IMAGES, OBS_STATE, write_sizes_record
 from openpi_cam.model.pi0 import MAX_PERIOD, MIN_PERIOD, Pi0
 from openpi_cam.model.safetensors_weights import save_safetensors_params
 from openpi_cam.normalize import NormStats, load_checkpoint_norm_stats
@@ -41,7 +42,6 @@ from openpi_cam.policies.checkpoint_format import (
     checkpoint_format,
 )
 from openpi_cam.policies.config import PolicyConfig, resolve_config
-from openpi_cam.policies.lerobot import ACTION, OBS_IMAGES, OBS_STATE, write_sizes_record
 from openpi_cam.policies.robot import GenericInputs, GenericOutputs
 from openpi_cam.tokenizers.paligemma import PALIGEMMA_HUB_ID, resolve_paligemma_tokenizer_path
 

@@ -25,7 +25,9 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from openpi_cam.cam.run_format import RELIANCE_PROMPT
-from openpi_cam.datasets.frames import (
+from openpi_cam.lerobot.dataset import LeRobotDataset
+from openpi_cam.maps.dataset import MapsDataset
+from openpi_cam.maps.frames import (
     EpisodeRows,
     aligned_frames,
     dataset_scale,
@@ -35,9 +37,7 @@ from openpi_cam.datasets.frames import (
     source_dataset,
     video_fps,
 )
-from openpi_cam.datasets.lerobot import LeRobotDataset
-from openpi_cam.datasets.maps_dataset import MapsDataset
-from openpi_cam.datasets.views import GROUP, GROUP_NAMES_FILE, DatasetViews, compute_views, top_k
+from openpi_cam.maps.views import GROUP, GROUP_NAMES_FILE, DatasetViews, compute_views, top_k
 from openpi_cam.viz.colormap import colorize
 from openpi_cam.viz.overlay import blend, upsample
 from openpi_cam.viz.progress import progress

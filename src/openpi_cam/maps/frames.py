@@ -16,9 +16,9 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.datasets.lerobot import LeRobotDataset, open_dataset
-from openpi_cam.datasets.maps_dataset import MapsDataset, map_array, map_column
-from openpi_cam.datasets.views import camera_validity, displayable
+from openpi_cam.lerobot.dataset import LeRobotDataset, open_dataset
+from openpi_cam.maps.dataset import MapsDataset, map_array, map_column
+from openpi_cam.maps.views import camera_validity, displayable
 
 
 def select_episodes(ds: MapsDataset, episodes: Sequence[int] | None) -> list[int]:

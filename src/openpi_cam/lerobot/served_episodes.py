@@ -28,9 +28,9 @@ from typing import Any
 import numpy as np
 
 from openpi_cam.counters import WarnOnceCounter
-from openpi_cam.datasets.lerobot import DatasetError
-from openpi_cam.datasets.rollouts import RolloutRecorder
 from openpi_cam.image_tools import client_frame_uint8
+from openpi_cam.lerobot.dataset import DatasetError
+from openpi_cam.lerobot.rollouts import RolloutRecorder
 from openpi_cam.nested import flatten_dict
 from openpi_cam.vocabulary import EXTRA_PREFIX
 

@@ -23,10 +23,10 @@ from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.records import step_record
 from openpi_cam.cam.run_evidence import REPORT_FILE
 from openpi_cam.cam.run_format import SpotCheck
-from openpi_cam.datasets import maps_dataset as fmt
-from openpi_cam.datasets.explain import DatasetJob, EpisodeExplainer
+from openpi_cam.checkpoints.model_spec import ModelSpec
+from openpi_cam.maps import dataset as fmt
+from openpi_cam.maps.explain import DatasetJob, EpisodeExplainer
 from openpi_cam.policies.family import Explanation
-from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.policies.policy import Policy
 from openpi_cam.vocabulary import ExplainOptions
 

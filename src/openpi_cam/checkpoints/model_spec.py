@@ -17,6 +17,7 @@ from typing import Any, Literal
 
 import jax
 
+from openpi_cam.lerobot.policy import LeRobotConfig, RequestLayout, read_head_counts
 from openpi_cam.model.checkpoint import read_param_shapes
 from openpi_cam.model.config import MAX_DECODING_STEPS, Pi0Config, architecture_from_params, family_of
 from openpi_cam.model.safetensors_weights import pi0_config_from_tensors, read_tensor_infos
@@ -29,7 +30,6 @@ from openpi_cam.policies.checkpoint_format import (
     checkpoint_format,
 )
 from openpi_cam.policies.config import resolve_config
-from openpi_cam.policies.lerobot import LeRobotConfig, RequestLayout, read_head_counts
 from openpi_cam.policies.policy import Policy, create_policy
 
 Dtype = Literal["bfloat16", "float32"]

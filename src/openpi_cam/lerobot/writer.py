@@ -50,7 +50,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from PIL import Image
 
-from openpi_cam.datasets.lerobot import CAMERA_DTYPES, DatasetError, dataset_error
+from openpi_cam.lerobot.dataset import CAMERA_DTYPES, DatasetError, dataset_error
 
 CODEBASE_VERSION = "v3.0"
 DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"

@@ -22,12 +22,12 @@ import numpy as np
 from openpi_cam.cam.batching import data_mesh, explain_batch
 from openpi_cam.cam.records import resume_mismatch
 from openpi_cam.cam.run_format import Reliance, SpotCheck, dumps
-from openpi_cam.datasets import maps_dataset as fmt
-from openpi_cam.datasets.lerobot import DatasetError, LeRobotDataset, open_dataset
-from openpi_cam.datasets.lerobot_writer import REWARD, SUCCESS
+from openpi_cam.checkpoints.model_spec import ModelSpec
+from openpi_cam.lerobot.dataset import DatasetError, LeRobotDataset, open_dataset
+from openpi_cam.lerobot.writer import REWARD, SUCCESS
+from openpi_cam.maps import dataset as fmt
 from openpi_cam.nested import unflatten_dict
 from openpi_cam.policies.family import ExplainSkipped, Explanation, resolve_target
-from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.policies.policy import InferenceTrace, Policy
 from openpi_cam.vocabulary import DATASET_ACTIONS, ExplainOptions
 
