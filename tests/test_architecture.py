@@ -1,8 +1,9 @@
 """The package's layers, drawn from its imports (function-local ones included), point one way: down.
 
-cli > demo > datasets > viz > cam > serving > policies > {model, tokenizers, transforms and the package-root
-utilities}. A function-local import is allowed only for an optional heavy dependency (not a module of this package).
-The datasets room is imported by the command line only, and the side channel's room reaches none of it."""
+cli > demo > maps > viz > cam > serving > checkpoints > lerobot > policies > {model, tokenizers, transforms and the
+package-root utilities}. A function-local import is allowed only for an optional heavy dependency (not a module of
+this package). The maps room is imported by the command line only, and the side channel's room reaches none of it.
+docs/ARCHITECTURE.md says why each room sits where it does."""
 
 from __future__ import annotations
 
@@ -14,7 +15,9 @@ import sys
 from paths import REPO_ROOT
 
 SRC = REPO_ROOT / "src"
-LAYERS = ("cli", "demo", "datasets", "viz", "cam", "serving", "policies", "base")
+LAYERS = ("cli", "demo", "maps", "viz", "cam", "serving", "checkpoints", "lerobot", "policies", "base")
+# The LeRobot room's dataset modules, usable without the rest of the package.
+LEROBOT_FORMAT = ("dataset", "writer", "rollouts")
 
 
 def _module(path: pathlib.Path) -> str:
@@ -66,23 +69,23 @@ def test_every_import_points_down_the_layers():
 def test_the_lerobot_format_modules_import_nothing_of_the_package_but_its_errors():
     """The LeRobot reader and writer stay usable on their own: only `openpi_cam.errors` may come in (the writer
     reports errors as the reader does)."""
-    own = {"openpi_cam.errors", "openpi_cam.lerobot.dataset", "openpi_cam.lerobot.writer"}
+    own = {"openpi_cam.errors", *(f"openpi_cam.lerobot.{name}" for name in LEROBOT_FORMAT)}
     found = [
         f"{name} imports {target}"
-        for name in ("lerobot", "lerobot_writer")
-        for target, _ in _imports(SRC / "openpi_cam" / "datasets" / f"{name}.py")
+        for name in LEROBOT_FORMAT
+        for target, _ in _imports(SRC / "openpi_cam" / "lerobot" / f"{name}.py")
         if target.startswith("openpi_cam") and target not in own
     ]
     assert not found, found
 
 
-def test_only_the_command_line_imports_the_datasets_room():
+def test_only_the_command_line_imports_the_maps_room():
     found = [
         f"{_module(path)} imports {target}"
         for path in sorted(SRC.rglob("*.py"))
-        if _layer(_module(path)) not in ("cli", "datasets")
+        if _layer(_module(path)) not in ("cli", "maps")
         for target, _ in _imports(path)
-        if _layer(target) == "datasets"
+        if _layer(target) == "maps"
     ]
     assert not found, "\n".join(found)
 

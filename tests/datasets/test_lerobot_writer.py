@@ -16,9 +16,9 @@ from one_line import assert_one_line
 from paths import LEROBOT_DIR
 from PIL import Image
 
+from openpi_cam.lerobot import writer as lerobot_writer
 from openpi_cam.lerobot.dataset import DatasetError, LeRobotDataset, open_dataset
 from openpi_cam.lerobot.writer import OUTCOME_FEATURES, DatasetWriter, Feature, create_dataset
-from openpi_cam.maps import lerobot_writer
 
 RECORDED = LEROBOT_DIR / "demo_reach_v30_image"  # LeRobot 0.6.1's recording, cameras as lossless PNG
 RECORDED_VIDEO = LEROBOT_DIR / "demo_reach_v30_video"  # the same frames recorded as AV1 video

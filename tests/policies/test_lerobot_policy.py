@@ -23,14 +23,15 @@ from safetensors_edit import edit_safetensors, read_tensor
 from shared_copies import edit_json, writable_copy
 
 from openpi_cam import golden
+from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.cli import golden as cli_golden
 from openpi_cam.errors import InvalidRequest
-from openpi_cam.lerobot.policy import Feature, Normalizer, write_sizes_record
+from openpi_cam.lerobot.golden import run_lerobot_golden
+from openpi_cam.lerobot.policy import Feature, Normalizer, create_lerobot_policy
 from openpi_cam.letterbox import letterbox_geometry
 from openpi_cam.model.pi0 import Pi0
 from openpi_cam.model.safetensors_weights import save_safetensors_params
-from openpi_cam.policies.checkpoint_format import checkpoint_format
-from openpi_cam.policies.golden_policy import run_lerobot_golden
+from openpi_cam.policies.checkpoint_format import checkpoint_format, write_sizes_record
 from openpi_cam.policies.policy import create_policy
 from openpi_cam.vocabulary import ExplainOptions
 
@@ -42,7 +43,7 @@ Q_PROJ = "model.paligemma_with_expert.paligemma.model.language_model.layers.1.se
 
 
 def policy_of(folder: Path, **kwargs):
-    return create_policy(None, folder, dtype="float32", **kwargs)
+    return create_lerobot_policy(folder, dtype="float32", **kwargs)
 
 
 def copy_folder(tmp_path: Path, folder: Path = PI05) -> Path:
@@ -70,7 +71,7 @@ def test_lerobots_pipelines_model_and_gradient_are_reproduced(family):
 
 def test_the_stable_entry_point_serves_the_post_processed_chunk():
     d = cases(PI05)
-    policy = create_policy(None, PI05, paligemma_tokenizer=PI05 / "tokenizer" / "tokenizer.model", dtype="float32")
+    policy = ModelSpec(PI05, paligemma_tokenizer=PI05 / "tokenizer" / "tokenizer.model", dtype="float32").create()
     response = policy.infer(request(d), noise=d["case0/noise"][0])
     want = d["case0/action"][0]
     assert response["actions"].shape == (10, 7)

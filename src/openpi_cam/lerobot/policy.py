@@ -23,6 +23,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import jax
 import ml_dtypes
 import numpy as np
 import sentencepiece
@@ -30,12 +31,18 @@ from safetensors.numpy import load_file
 
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.image_tools import resize_with_pad_torch_bilinear, unit_to_uint8
-from openpi_cam.model.config import Pi0Config
 from openpi_cam.model.pi0 import MAX_PERIOD, MIN_PERIOD, Pi0
-from openpi_cam.model.safetensors_weights import LEROBOT_HEADS, HeadCounts
-from openpi_cam.policies.checkpoint_format import CONFIG_FILE, POSTPROCESSOR_FILE, PREPROCESSOR_FILE, WEIGHTS_FILE
+from openpi_cam.policies.checkpoint_format import (
+    CONFIG_FILE,
+    POSTPROCESSOR_FILE,
+    PREPROCESSOR_FILE,
+    WEIGHTS_FILE,
+    checkpoint_format,
+    read_head_counts,
+)
 from openpi_cam.policies.family import Sampler
 from openpi_cam.policies.pi0_family import FlowExplainer, flow_sampler
+from openpi_cam.policies.policy import Policy
 from openpi_cam.policies.robot import GenericOutputs, lookup
 from openpi_cam.tokenizers.fast import huggingface_hub_cache
 from openpi_cam.tokenizers.paligemma import PALIGEMMA_HUB_ID, hf_cached_file, load_paligemma_tokenizer
@@ -60,10 +67,6 @@ TOKENS = "observation.language.tokens"
 TOKEN_MASK = "observation.language.attention_mask"
 SERVED_TYPES = ("pi0", "pi05")
 FAST_TYPES = ("pi0_fast", "pi0fast")  # LeRobot's pi0-FAST (0.5 and later; earlier releases)
-# The shared LeRobot goldens record there, under "tiny", the sizes they substituted into LeRobot at run time; the only
-# ones the weights cannot show are the attention head counts (`HeadCounts`). `export --to lerobot` writes the same.
-SIZES_RECORD = "golden_meta.json"
-LEROBOT_SIZES = Pi0Config()  # gemma_2b, gemma_300m and PaliGemma's SigLIP: the sizes LeRobot's configs know
 NORM_MODES = ("IDENTITY", "MEAN_STD", "MIN_MAX", "QUANTILES", "QUANTILE10")
 # The statistics (low, high) each range mode maps onto [-1, 1].
 _RANGE_STATS = {"MIN_MAX": ("min", "max"), "QUANTILES": ("q01", "q99"), "QUANTILE10": ("q10", "q90")}
@@ -209,59 +212,6 @@ def read_stats(folder: Path, spec: StepSpec, where: str) -> dict[str, dict[str, 
         feature, _, stat = key.rpartition(".")
         stats.setdefault(feature, {})[stat] = np.asarray(value, np.float32)
     return stats
-
-
-def read_head_counts(folder: Path) -> HeadCounts:
-    """The attention head counts of a folder's weights: its sizes record where it has one (tiny models), else
-    LeRobot's defaults."""
-    path = folder / SIZES_RECORD
-    if not path.is_file():
-        return LEROBOT_HEADS
-    try:
-        tiny = json.loads(path.read_text())["tiny"]
-        gemma = {int(tiny[stack]["num_heads"]) for stack in ("vlm", "expert")}
-        siglip = int(tiny["siglip"]["num_attention_heads"])
-    except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-        raise ValueError(f"{path}: no readable 'tiny' sizes ({type(e).__name__}: {e})") from e
-    if len(gemma) != 1:
-        raise ValueError(f"{path}: the language model and the expert attend jointly, but their head counts differ")
-    return HeadCounts(gemma=gemma.pop(), siglip=siglip)
-
-
-_GEMMA_SIZES = ("width", "depth", "mlp_dim", "num_heads", "num_kv_heads", "head_dim")
-_SIGLIP_SIZES = {  # Hugging Face's SiglipVisionConfig names of ours
-    "hidden_size": "width",
-    "num_hidden_layers": "depth",
-    "num_attention_heads": "num_heads",
-    "intermediate_size": "mlp_dim",
-    "patch_size": "patch_size",
-    "image_size": "image_size",
-    "projection_dim": "out_dim",
-}
-
-
-def sizes_record(cfg: Pi0Config) -> dict[str, Any]:
-    """The sizes of a pi0 / pi0.5 architecture in the shared LeRobot goldens' record layout."""
-    return {
-        "tiny": {
-            "vlm": {name: getattr(cfg.gemma, name) for name in _GEMMA_SIZES},
-            "expert": {name: getattr(cfg.expert, name) for name in _GEMMA_SIZES},
-            "siglip": {hf: getattr(cfg.siglip, ours) for hf, ours in _SIGLIP_SIZES.items()},
-        },
-        "vocab_size": cfg.gemma.vocab_size,
-    }
-
-
-def write_sizes_record(folder: Path, cfg: Pi0Config) -> Path | None:
-    """Writes the sizes record of a model whose sizes LeRobot's variant table lacks (what `read_head_counts` reads,
-    and what LeRobot needs substituted at run time to build the model); None, and nothing written, for LeRobot's own
-    sizes."""
-    record = sizes_record(cfg)
-    if record == sizes_record(LEROBOT_SIZES):
-        return None
-    path = folder / SIZES_RECORD
-    path.write_text(json.dumps(record, indent=1))
-    return path
 
 
 # --------------------------------------------------------------------------------------------------------------------
@@ -678,7 +628,7 @@ class RequestLayout:
 
 @dataclasses.dataclass(frozen=True)
 class LeRobotParts:
-    """What `create_policy` assembles into a `Policy` for a LeRobot folder."""
+    """A LeRobot folder's model and pipelines (`build_lerobot`), which `policy` assembles into its served `Policy`."""
 
     config: LeRobotConfig
     model: Pi0
@@ -689,6 +639,32 @@ class LeRobotParts:
     explainer: FlowExplainer
     decoder: PassActions
     metadata: dict[str, Any]
+
+    def policy(self, rng: jax.Array | None = None) -> Policy:
+        return Policy(
+            self.model,
+            transforms=self.transforms,
+            sample=self.sample,
+            decoder=self.decoder,
+            explainer=self.explainer,
+            output_transforms=self.output_transforms,
+            rng=rng,
+            metadata=self.metadata,
+        )
+
+
+def create_lerobot_policy(
+    folder: str | Path,
+    *,
+    paligemma_tokenizer: str | Path | sentencepiece.SentencePieceProcessor | None = None,
+    dtype: str = "float32",
+    default_prompt: str | None = None,
+    rng: jax.Array | None = None,
+) -> Policy:
+    """The served policy of a LeRobot pi0 / pi0.5 folder (`build_lerobot`; `paligemma_tokenizer` None: the
+    tokenizer its preprocessor names, then the Hugging Face cache)."""
+    parts = build_lerobot(folder, paligemma_tokenizer=paligemma_tokenizer, dtype=dtype, default_prompt=default_prompt)
+    return parts.policy(rng)
 
 
 def build_lerobot(
@@ -701,6 +677,8 @@ def build_lerobot(
     """The model and the pipelines of a LeRobot pi0 / pi0.5 folder; every file is checked (one line naming what is
     wrong) before the weights are read."""
     folder = Path(folder)
+    if (kind := checkpoint_format(folder)) != "lerobot":
+        raise ValueError(f"{folder} is an OpenPI checkpoint ({kind}), not a LeRobot policy folder")
     cfg = LeRobotConfig.read(folder / CONFIG_FILE)
     pre_where, post_where = str(folder / PREPROCESSOR_FILE), str(folder / POSTPROCESSOR_FILE)
     pre_specs, post_specs = read_pipeline(folder / PREPROCESSOR_FILE), read_pipeline(folder / POSTPROCESSOR_FILE)
