@@ -27,7 +27,7 @@ from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.cli import golden as cli_golden
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.lerobot.golden import run_lerobot_golden
-from openpi_cam.lerobot.policy import Feature, Normalizer, create_lerobot_policy
+from openpi_cam.lerobot.policy import Normalizer, PolicyFeature, create_lerobot_policy
 from openpi_cam.letterbox import letterbox_geometry
 from openpi_cam.model.pi0 import Pi0
 from openpi_cam.model.safetensors_weights import save_safetensors_params
@@ -257,7 +257,7 @@ def test_every_normalisation_mode_maps_its_statistics_to_the_unit_range_and_back
         "q01": np.asarray([-1.5, -0.5, 0.5, 7.0], np.float32), "q99": np.asarray([1.5, 0.5, 3.0, 7.0], np.float32),
         "q10": np.asarray([-1.0, -0.25, 1.0, 7.0], np.float32), "q90": np.asarray([1.0, 0.25, 3.0, 7.0], np.float32),
     }  # fmt: skip
-    features = {"observation.state": Feature("STATE", (4,)), "action": Feature("ACTION", (4,))}
+    features = {"observation.state": PolicyFeature("STATE", (4,)), "action": PolicyFeature("ACTION", (4,))}
     ranges = {"MIN_MAX": ("min", "max"), "QUANTILES": ("q01", "q99"), "QUANTILE10": ("q10", "q90")}
     for mode in ("MEAN_STD", "MIN_MAX", "QUANTILES", "QUANTILE10", "IDENTITY"):
         modes = {"STATE": mode, "ACTION": mode}

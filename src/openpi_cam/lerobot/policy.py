@@ -77,19 +77,21 @@ _RANGE_STATS = {"MIN_MAX": ("min", "max"), "QUANTILES": ("q01", "q99"), "QUANTIL
 
 
 @dataclasses.dataclass(frozen=True)
-class Feature:
+class PolicyFeature:
+    """A feature as a policy config declares it (LeRobot's `PolicyFeature`); a dataset's is `lerobot.writer.Feature`."""
+
     type: str  # VISUAL, STATE, ACTION, ENV, ...
     shape: tuple[int, ...]
 
 
-def _features(raw: Any, where: str) -> dict[str, Feature]:
+def _features(raw: Any, where: str) -> dict[str, PolicyFeature]:
     if not isinstance(raw, Mapping):
         raise ValueError(f"{where}: expected a mapping of features, got {type(raw).__name__}")
     out = {}
     for name, spec in raw.items():
         if not isinstance(spec, Mapping) or "type" not in spec or "shape" not in spec:
             raise ValueError(f"{where}: feature {name!r} needs a type and a shape")
-        out[str(name)] = Feature(str(spec["type"]), tuple(int(d) for d in spec["shape"]))
+        out[str(name)] = PolicyFeature(str(spec["type"]), tuple(int(d) for d in spec["shape"]))
     return out
 
 
@@ -98,8 +100,8 @@ class LeRobotConfig:
     """What serving reads from a LeRobot pi0 / pi0.5 `config.json` (the rest configures training)."""
 
     type: str
-    input_features: dict[str, Feature]
-    output_features: dict[str, Feature]
+    input_features: dict[str, PolicyFeature]
+    output_features: dict[str, PolicyFeature]
     chunk_size: int
     max_state_dim: int
     max_action_dim: int
@@ -223,7 +225,7 @@ class Normalizer:
     """LeRobot's (un)normaliser: per feature type the mode of `modes`, with its formulas and zero-range guards, in
     float32; observation features are (un)normalised where the request has them, the action under `actions`."""
 
-    features: Mapping[str, Feature]
+    features: Mapping[str, PolicyFeature]
     modes: Mapping[str, str]  # feature type -> mode
     stats: Mapping[str, Mapping[str, np.ndarray]]
     eps: float
