@@ -200,6 +200,13 @@ def test_an_unknown_processor_step_or_type_is_named(tmp_path):
     with pytest.raises(ValueError) as raised:
         policy_of(folder)
     assert_one_line(raised.value, "'crop_processor'", "not implemented", "policy_preprocessor.json")
+    # a registered step in a pipeline it has no place in (the tokenizer after the model)
+    folder = copy_folder(tmp_path / "post")
+    step = {"registry_name": "tokenizer_processor", "config": {"max_length": 48}}
+    edit_json(folder / "policy_postprocessor.json", lambda d: d["steps"].append(step))
+    with pytest.raises(ValueError) as raised:
+        policy_of(folder)
+    assert_one_line(raised.value, "'tokenizer_processor'", "not implemented", "policy_postprocessor.json")
     for kind, words in (("pi052", ("'pi052'", "not served")), ("pi0_fast", ("pi0-FAST", "Hugging Face Hub"))):
         folder = copy_folder(tmp_path / kind)
         edit_json(folder / "config.json", lambda d, kind=kind: d.update(type=kind))

@@ -5,7 +5,9 @@ A folder is what LeRobot's `save_pretrained` and the processors' `save_pretraine
 pi0 / pi05, the features, the chunk size, the normalisation modes), `model.safetensors`, `policy_preprocessor.json`
 and `policy_postprocessor.json` with the normaliser statistics each names (`<feature>.<stat>` keys). Which steps
 there are, in which order, and where the statistics live differ between LeRobot versions, so nothing is assumed:
-each step of the lists is built from its own entry (`STEPS`), and a step not known here is refused naming it.
+each step of the lists is built from its own entry by the builder registered under its LeRobot registry name
+(`STEPS`, filled by `register_step` as LeRobot's `ProcessorStepRegistry.register(name=)` fills its registry), and a
+step not registered for its pipeline is refused naming it.
 
 Requests carry the checkpoint's own feature names: `observation.images.<name>` (uint8 [H, W, 3] from a robot, or
 float [3, H, W] in [0, 1] from a LeRobot dataset), `observation.state`, and the task as `prompt` (openpi-client) or
@@ -19,9 +21,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import jax
 import ml_dtypes
@@ -498,7 +500,7 @@ class ActionDims:
 
 
 # --------------------------------------------------------------------------------------------------------------------
-# The pipelines and the policy's parts
+# The tokenizer
 
 
 def resolve_tokenizer(
@@ -525,7 +527,80 @@ def resolve_tokenizer(
     )
 
 
-def _relative_step(spec: StepSpec) -> RelativeActions:
+# --------------------------------------------------------------------------------------------------------------------
+# The step registry: each step a pipeline file may name, by LeRobot's registry name (`ProcessorStepRegistry`)
+
+Pipeline = Literal["preprocessor", "postprocessor"]
+PIPELINE_FILES: dict[Pipeline, str] = {"preprocessor": PREPROCESSOR_FILE, "postprocessor": POSTPROCESSOR_FILE}
+
+
+@dataclasses.dataclass(frozen=True)
+class StepContext:
+    """What building a step may read beside its own entry: the folder (statistics, tokenizer), the pipeline file
+    errors name, the PaliGemma tokenizer given, and the steps built before it (the postprocessor's steps follow the
+    preprocessor's)."""
+
+    folder: Path
+    pipeline: Pipeline
+    paligemma_tokenizer: str | Path | sentencepiece.SentencePieceProcessor | None
+    before: tuple[Transform, ...]
+
+    @property
+    def where(self) -> str:
+        return str(self.folder / PIPELINE_FILES[self.pipeline])
+
+
+StepBuilder = Callable[[StepSpec, StepContext], Transform]
+
+
+@dataclasses.dataclass(frozen=True)
+class RegisteredStep:
+    build: StepBuilder
+    pipelines: tuple[Pipeline, ...]  # the pipelines the step may stand in
+
+
+STEPS: dict[str, RegisteredStep] = {}
+
+
+def register_step(
+    *names: str, pipelines: tuple[Pipeline, ...] = ("preprocessor",)
+) -> Callable[[StepBuilder], StepBuilder]:
+    """Registers a step's builder under LeRobot's registry names for it (as `ProcessorStepRegistry.register(name=)`
+    registers LeRobot's own classes): a decorator."""
+
+    def add(build: StepBuilder) -> StepBuilder:
+        for name in names:
+            if name in STEPS:
+                raise ValueError(f"processor step {name!r} is registered twice")
+            STEPS[name] = RegisteredStep(build, pipelines)
+        return build
+
+    return add
+
+
+@register_step("rename_observations_processor")
+def _rename(spec: StepSpec, ctx: StepContext) -> Transform:
+    return Rename(dict(spec.config.get("rename_map") or {}))
+
+
+@register_step("to_batch_processor")
+def _batch(spec: StepSpec, ctx: StepContext) -> Transform:
+    return Passthrough(spec.name)
+
+
+@register_step("device_processor", pipelines=("preprocessor", "postprocessor"))
+def _device(spec: StepSpec, ctx: StepContext) -> Transform:
+    """Device placement does nothing here; the preprocessor's float dtype rounds the request as LeRobot casts it."""
+    dtype = spec.config.get("float_dtype")
+    if ctx.pipeline == "postprocessor":
+        return Passthrough(spec.name)
+    if dtype is not None and dtype not in _FLOAT_DTYPES:
+        raise ValueError(f"{ctx.where}: device_processor float_dtype {dtype!r} is not one of torch's")
+    return Passthrough(spec.name) if dtype in (None, "float32", "float") else CastFloats(str(dtype))
+
+
+@register_step("relative_actions_processor")
+def _relative(spec: StepSpec, ctx: StepContext) -> Transform:
     names = spec.config.get("action_names")
     return RelativeActions(
         bool(spec.config.get("enabled", False)),
@@ -534,62 +609,67 @@ def _relative_step(spec: StepSpec) -> RelativeActions:
     )
 
 
-def preprocessor_steps(
-    folder: Path, specs: Sequence[StepSpec], paligemma_tokenizer: Any, where: str
-) -> tuple[list[Transform], int]:
-    """The preprocessor's steps as transforms, in the file's order, and the token length its tokenizer pads to."""
-    steps: list[Transform] = []
-    max_length = None
-    for spec in specs:
-        cfg = spec.config
-        if spec.name == "rename_observations_processor":
-            steps.append(Rename(dict(cfg.get("rename_map") or {})))
-        elif spec.name == "to_batch_processor":
-            steps.append(Passthrough(spec.name))
-        elif spec.name == "device_processor":
-            dtype = cfg.get("float_dtype")
-            if dtype is not None and dtype not in _FLOAT_DTYPES:
-                raise ValueError(f"{where}: device_processor float_dtype {dtype!r} is not one of torch's")
-            steps.append(Passthrough(spec.name) if dtype in (None, "float32", "float") else CastFloats(str(dtype)))
-        elif spec.name == "relative_actions_processor":
-            steps.append(_relative_step(spec))
-        elif spec.name == "normalizer_processor":
-            steps.append(_normalizer(folder, spec, where, inverse=False))
-        elif spec.name in ("pi0_new_line_processor", "smolvla_new_line_processor"):
-            steps.append(NewLine())
-        elif spec.name == "pi05_prepare_state_tokenizer_processor_step":
-            steps.append(Pi05Prompt(str(cfg.get("task_key", TASK))))
-        elif spec.name == "tokenizer_processor":
-            if (cfg.get("padding", "max_length"), cfg.get("padding_side", "right")) != ("max_length", "right"):
-                raise ValueError(f"{where}: step tokenizer_processor pads {cfg.get('padding')!r} on the "
-                                 f"{cfg.get('padding_side')!r}; served: 'max_length' on the right")  # fmt: skip
-            max_length = int(cfg.get("max_length", 512))
-            sp = resolve_tokenizer(folder, cfg.get("tokenizer_name"), paligemma_tokenizer)
-            steps.append(Tokenize(sp, max_length, str(cfg.get("task_key", TASK))))
-        else:
-            raise ValueError(f"{where}: processor step {spec.name!r} is not implemented")
-    if max_length is None:
-        raise ValueError(f"{where}: no tokenizer_processor step")
-    return steps, max_length
+@register_step("normalizer_processor")
+def _normalize(spec: StepSpec, ctx: StepContext) -> Transform:
+    return _normalizer(ctx.folder, spec, ctx.where, inverse=False)
 
 
-def postprocessor_steps(
-    folder: Path, specs: Sequence[StepSpec], relative: RelativeActions | None, where: str
+@register_step("unnormalizer_processor", pipelines=("postprocessor",))
+def _unnormalize(spec: StepSpec, ctx: StepContext) -> Transform:
+    return _normalizer(ctx.folder, spec, ctx.where, inverse=True)
+
+
+@register_step("pi0_new_line_processor", "smolvla_new_line_processor")
+def _new_line(spec: StepSpec, ctx: StepContext) -> Transform:
+    return NewLine()
+
+
+@register_step("pi05_prepare_state_tokenizer_processor_step")
+def _pi05_prompt(spec: StepSpec, ctx: StepContext) -> Transform:
+    return Pi05Prompt(str(spec.config.get("task_key", TASK)))
+
+
+@register_step("tokenizer_processor")
+def _tokenize(spec: StepSpec, ctx: StepContext) -> Transform:
+    cfg = spec.config
+    if (cfg.get("padding", "max_length"), cfg.get("padding_side", "right")) != ("max_length", "right"):
+        raise ValueError(f"{ctx.where}: step tokenizer_processor pads {cfg.get('padding')!r} on the "
+                         f"{cfg.get('padding_side')!r}; served: 'max_length' on the right")  # fmt: skip
+    sp = resolve_tokenizer(ctx.folder, cfg.get("tokenizer_name"), ctx.paligemma_tokenizer)
+    return Tokenize(sp, int(cfg.get("max_length", 512)), str(cfg.get("task_key", TASK)))
+
+
+@register_step("absolute_actions_processor", pipelines=("postprocessor",))
+def _absolute(spec: StepSpec, ctx: StepContext) -> Transform:
+    enabled = bool(spec.config.get("enabled", False))
+    relative = next((s for s in ctx.before if isinstance(s, RelativeActions)), None)
+    if enabled and (relative is None or not relative.enabled):
+        raise ValueError(f"{ctx.where}: absolute_actions_processor is enabled without an enabled relative step")
+    return AbsoluteActions(enabled, relative)
+
+
+def pipeline_steps(
+    folder: Path,
+    specs: Sequence[StepSpec],
+    pipeline: Pipeline,
+    *,
+    paligemma_tokenizer: str | Path | sentencepiece.SentencePieceProcessor | None = None,
+    before: Sequence[Transform] = (),
 ) -> list[Transform]:
+    """A pipeline file's steps as transforms, in the file's order, each built by its registered builder; a step not
+    registered for the pipeline is refused naming it."""
     steps: list[Transform] = []
     for spec in specs:
-        if spec.name == "unnormalizer_processor":
-            steps.append(_normalizer(folder, spec, where, inverse=True))
-        elif spec.name == "absolute_actions_processor":
-            enabled = bool(spec.config.get("enabled", False))
-            if enabled and (relative is None or not relative.enabled):
-                raise ValueError(f"{where}: absolute_actions_processor is enabled without an enabled relative step")
-            steps.append(AbsoluteActions(enabled, relative))
-        elif spec.name == "device_processor":
-            steps.append(Passthrough(spec.name))
-        else:
-            raise ValueError(f"{where}: processor step {spec.name!r} is not implemented")
+        ctx = StepContext(folder, pipeline, paligemma_tokenizer, (*before, *steps))
+        registered = STEPS.get(spec.name)
+        if registered is None or pipeline not in registered.pipelines:
+            raise ValueError(f"{ctx.where}: processor step {spec.name!r} is not implemented")
+        steps.append(registered.build(spec, ctx))
     return steps
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# The policy's parts
 
 
 def _request_key(feature: str, renames: Sequence[Mapping[str, str]]) -> str:
@@ -682,11 +762,12 @@ def build_lerobot(
     if (kind := checkpoint_format(folder)) != "lerobot":
         raise ValueError(f"{folder} is an OpenPI checkpoint ({kind}), not a LeRobot policy folder")
     cfg = LeRobotConfig.read(folder / CONFIG_FILE)
-    pre_where, post_where = str(folder / PREPROCESSOR_FILE), str(folder / POSTPROCESSOR_FILE)
     pre_specs, post_specs = read_pipeline(folder / PREPROCESSOR_FILE), read_pipeline(folder / POSTPROCESSOR_FILE)
-    pre, max_length = preprocessor_steps(folder, pre_specs, paligemma_tokenizer, pre_where)
-    relative = next((s for s in pre if isinstance(s, RelativeActions)), None)
-    post = postprocessor_steps(folder, post_specs, relative, post_where)
+    pre = pipeline_steps(folder, pre_specs, "preprocessor", paligemma_tokenizer=paligemma_tokenizer)
+    tokenizer = next((s for s in pre if isinstance(s, Tokenize)), None)
+    if tokenizer is None:
+        raise ValueError(f"{folder / PREPROCESSOR_FILE}: no tokenizer_processor step")
+    post = pipeline_steps(folder, post_specs, "postprocessor", before=pre)
     if cfg.image_resolution[0] != cfg.image_resolution[1]:
         raise ValueError(f"{folder / CONFIG_FILE}: image_resolution {cfg.image_resolution} is not square")
     model = Pi0.from_safetensors(
@@ -694,7 +775,7 @@ def build_lerobot(
         dtype=dtype,
         heads=read_head_counts(folder),
         action_horizon=cfg.chunk_size,
-        max_token_len=max_length,
+        max_token_len=tokenizer.max_length,
         num_steps=cfg.num_inference_steps,
         image_keys=cfg.cameras,
         flow_time="lerobot",
