@@ -17,7 +17,7 @@ from paths import REPO_ROOT
 SRC = REPO_ROOT / "src"
 LAYERS = ("cli", "demo", "maps", "viz", "cam", "serving", "checkpoints", "lerobot", "policies", "base")
 # The LeRobot room's dataset modules, usable without the rest of the package.
-LEROBOT_FORMAT = ("dataset", "writer", "rollouts")
+LEROBOT_FORMAT = ("dataset", "writer", "stats", "video", "rollouts")
 
 
 def _module(path: pathlib.Path) -> str:
