@@ -10,6 +10,7 @@ import numpy as np
 
 from openpi_cam.cam.records import split_extra
 from openpi_cam.demo import task
+from openpi_cam.demo.recorded import PERTURBATION_FEATURE
 from openpi_cam.model.config import GemmaConfig, Pi0Config, Pi0FASTConfig, SiglipConfig, scan_by_default
 from openpi_cam.policies.demo_reach import (
     DEMO_CONFIG,
@@ -104,9 +105,6 @@ class Observed(Protocol):
     state: np.ndarray  # float32
     prompt: str
     target_box: tuple[int, int, int, int]  # the target in the base camera (x0, y0, x1, y1)
-
-
-PERTURBATION_FEATURE = "perturbation"  # a recorded frame's index into the run's perturbations
 
 
 def client_observation(sample: Observed, scene: task.Scene | None = None) -> dict[str, Any]:

@@ -35,6 +35,7 @@ from openpi_cam.cam.run_format import load_run
 from openpi_cam.checkpoints import model_spec
 from openpi_cam.demo import bundled, task
 from openpi_cam.demo.data import Batches, load_normalize
+from openpi_cam.demo.recorded import EPISODES_FILE
 from openpi_cam.model.pi0_fast import Pi0FAST, init_params
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import Explainer, Explanation
@@ -43,7 +44,6 @@ from openpi_cam.policies.policy import InferenceTrace, Policy
 from openpi_cam.vocabulary import DEFAULT_KINDS, MAP_KINDS, ExplainOptions
 
 BASE_CAMERA = "base_0_rgb"
-EPISODES_FILE = "demo_episodes.json"  # the demo's episode outcomes, written beside the run's steps
 
 
 def peak_cell(cam_map: np.ndarray) -> tuple[int, int]:

@@ -203,7 +203,7 @@ def frame_row(
     job: DatasetJob,
     explain_ms: float,
 ) -> dict[str, Any]:
-    """The maps-dataset row of one explained frame (`datasets.maps_dataset` lists the columns)."""
+    """The maps-dataset row of one explained frame (`maps.dataset` lists the columns)."""
     score = explanation.score
     row: dict[str, Any] = {
         "index": int(frame["index"]),
@@ -216,7 +216,7 @@ def frame_row(
         "malformed": trace.malformed_reason,
         "actions": _flat(response["actions"]),
         "explain_ms": round(explain_ms, 3),
-        "cameras": dumps(
+        fmt.CAMERAS_COLUMN: dumps(
             {
                 camera: {
                     **values,
@@ -239,7 +239,7 @@ def frame_row(
             row[fmt.check_column(kind, camera)] = None if figures is None else figures.top_patch_drop.get(kind)
         row[fmt.check_column(fmt.CHECK_RANDOM, camera)] = None if figures is None else list(figures.random_patch_drops)
     for feature, name in job.extra.items():
-        row[f"extra/{name}"] = _flat(frame[feature], np.float64)
+        row[fmt.extra_column(name)] = _flat(frame[feature], np.float64)
     if info.reliance:
         measured = {} if reliance is None else reliance.figures()
         row["reliance"] = None if reliance is None else dumps(reliance.to_json())

@@ -37,7 +37,7 @@ from openpi_cam.maps.frames import (
     source_dataset,
     video_fps,
 )
-from openpi_cam.maps.views import GROUP, GROUP_NAMES_FILE, DatasetViews, compute_views, top_k
+from openpi_cam.maps.views import DatasetViews, ViewOptions, compute_views, top_k
 from openpi_cam.viz.colormap import colorize
 from openpi_cam.viz.overlay import blend, upsample
 from openpi_cam.viz.progress import progress
@@ -69,6 +69,8 @@ class DatasetRenderOptions:
     prior_height: int = 160
     crf: int = 18  # libx264 quality: visually lossless for these overlays
     fps: float | None = None  # video frame rate; None: the source's rate divided by the explain job's `every`
+    # what the report's dataset-level views take (the conditions among them)
+    views: ViewOptions = dataclasses.field(default_factory=ViewOptions)
 
 
 @dataclasses.dataclass
@@ -227,7 +229,7 @@ def render_dataset(
 ) -> DatasetRenderResult:
     """Videos and strips for `episodes` (default: every written one) and index.html over the whole dataset's views."""
     chosen = select_episodes(ds, episodes)
-    views = compute_views(ds, opts.map)
+    views = compute_views(ds, opts.map, opts.views)
     lr = source_dataset(ds, source)
     out_dir.mkdir(parents=True, exist_ok=True)
     dataset_max = dataset_scale(ds, opts.map, chosen) if opts.norm == "run" else 0.0
@@ -417,15 +419,16 @@ def _outcomes_section(views: DatasetViews) -> str:
 
 
 def _groups_section(views: DatasetViews, out_dir: pathlib.Path, opts: DatasetRenderOptions) -> str:
-    """Per condition (`views.GROUP`, e.g. the demo's perturbation): its success, failed and successful episodes side by
-    side, and each camera's mean map over the failed and over the successful episodes' frames."""
-    if not views.groups:
+    """Per condition (`ViewOptions.group`, e.g. the demo's perturbation): its success, failed and successful episodes
+    side by side, and each camera's mean map over the failed and over the successful episodes' frames."""
+    group = views.options.group
+    if not views.groups or group is None:
         return ""
     (out_dir / "groups").mkdir(parents=True, exist_ok=True)
     parts = []
     for g in views.groups:
-        value, name = g[GROUP], g["name"]
-        label = f"{GROUP} {value}" + (f": {name}" if name else "")
+        value, name = g[group], g["name"]
+        label = f"{group} {value}" + (f": {name}" if name else "")
         figures = []
         for c in views.cameras:
             for outcome in ("failure", "success"):
@@ -441,10 +444,10 @@ def _groups_section(views: DatasetViews, out_dir: pathlib.Path, opts: DatasetRen
             f"succeeded</h3>{_outcome_table(views, g['by_outcome'])}{''.join(figures)}</div>"
         )
     return (
-        f"<section id='groups'><h2>per {GROUP}</h2><p class='dim'>each condition's failed and successful episodes side "
+        f"<section id='groups'><h2>per {group}</h2><p class='dim'>each condition's failed and successful episodes side "
         "by side, and each camera's mean map (each frame's map normalised to sum 1) over their frames, scaled to its "
-        f"own maximum; the condition is the carried feature named {GROUP} (`--extra FEATURE={GROUP}`), named from "
-        f"the source's {GROUP_NAMES_FILE} where the demo wrote one</p>{''.join(parts)}</section>"
+        f"own maximum; the condition is the carried feature named {group} (`--extra FEATURE={group}`), named where "
+        f"the recording named its conditions</p>{''.join(parts)}</section>"
     )
 
 
