@@ -231,7 +231,7 @@ def test_explain_command_exit_codes_follow_the_replay_check(demo_policy, tmp_pat
 def test_explained_steps_have_the_side_channel_layout(demo_policy, tmp_path):
     """An offline step carries exactly the fields a live side-channel step carries, with the same values."""
     obs = demo_obs(7)
-    cam = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, cam_dir=tmp_path / "live", save_frames="both"))
+    cam = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, dir=tmp_path / "live", save_frames="both"))
     cam.infer(obs, RequestContext("c0", 0))
     cam.close(timeout=None)
     live = load_run(cam.run_dir).steps[0]
@@ -437,7 +437,7 @@ def test_data_parallel_over_two_host_devices_matches_one_device(tmp_path):
 
 def _served_run(policy: Any, observations: list[dict], cam_dir: pathlib.Path, run_config: dict) -> pathlib.Path:
     """A run the side channel wrote while serving `observations` (raw frames kept), with their responses."""
-    cam = wrap_policy_with_cam(policy, CAMOptions(every_k=1, cam_dir=cam_dir, save_frames="both", maps=("gradnorm",),
+    cam = wrap_policy_with_cam(policy, CAMOptions(every_k=1, dir=cam_dir, save_frames="both", maps=("gradnorm",),
                                                   check_patches=0), run_config=run_config)  # fmt: skip
     actions = [cam.infer(obs, RequestContext("robot", i))["actions"] for i, obs in enumerate(observations)]
     cam.close(timeout=None)

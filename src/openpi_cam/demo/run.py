@@ -197,7 +197,7 @@ def run_demo(opts: DemoOptions, sink: RolloutSink | None = None) -> DemoResult:
     policy = model.create()
     options = CAMOptions(
         every_k=1,
-        cam_dir=opts.out,
+        dir=opts.out,
         save_frames="both",
         target=opts.target,
         maps=opts.maps,
@@ -215,7 +215,7 @@ def run_demo(opts: DemoOptions, sink: RolloutSink | None = None) -> DemoResult:
     checkpoint = str(model.checkpoint)
     cam = wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=checkpoint) if opts.explain else None
     # The demo explains every request: the drain at the end is the rest of the run's work, not a shutdown grace.
-    server = start_server_in_thread(cam or policy, metadata=policy.metadata, close_timeout=DRAIN_S)
+    server = start_server_in_thread(cam or policy, metadata=policy.metadata, drain_timeout=DRAIN_S)
     drive = run_metaworld_episodes if opts.sim == "metaworld" else run_episodes
     try:
         episodes = drive(
