@@ -3,7 +3,8 @@
 cli > demo > maps > viz > cam > serving > checkpoints > lerobot > policies > {model, tokenizers, transforms and the
 package-root utilities}. A function-local import is allowed only for an optional heavy dependency (not a module of
 this package). The maps room is imported by the command line only, and the side channel's room reaches none of it.
-docs/ARCHITECTURE.md says why each room sits where it does."""
+docs/ARCHITECTURE.md says why each room sits where it does. Inside a room, no function runs past MAX_FUNCTION_LINES
+(docstrings aside; a command line's `main` lists its flags and is exempt)."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from paths import REPO_ROOT
 
 SRC = REPO_ROOT / "src"
 LAYERS = ("cli", "demo", "maps", "viz", "cam", "serving", "checkpoints", "lerobot", "policies", "base")
+MAX_FUNCTION_LINES = 80
 # The LeRobot room's dataset modules, usable without the rest of the package.
 LEROBOT_FORMAT = ("dataset", "writer", "stats", "video", "rollouts")
 
@@ -115,3 +117,43 @@ def test_no_import_cycles_among_files_or_subpackages():
     checker = REPO_ROOT.parent / "shared" / "tools" / "import_cycles.py"
     result = subprocess.run([sys.executable, str(checker), str(SRC)], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stdout + result.stderr
+
+
+def _long_functions(path: pathlib.Path, module: str) -> list[str]:
+    """`module.function (N lines)` for each function or method of the file longer than MAX_FUNCTION_LINES, its
+    docstring not counted; a command line's `main` is exempt."""
+    found = []
+    for fn in ast.walk(ast.parse(path.read_text())):
+        if not isinstance(fn, ast.FunctionDef | ast.AsyncFunctionDef):
+            continue
+        if fn.name == "main" and _layer(module) == "cli":
+            continue
+        lines = fn.end_lineno - fn.lineno + 1  # type: ignore[operator]
+        if ast.get_docstring(fn) is not None:
+            doc = fn.body[0]
+            lines -= doc.end_lineno - doc.lineno + 1  # type: ignore[operator]
+        if lines > MAX_FUNCTION_LINES:
+            found.append(f"{module}.{fn.name} ({lines} lines)")
+    return found
+
+
+def test_no_function_runs_past_the_line_limit():
+    found = [f for path in sorted(SRC.rglob("*.py")) for f in _long_functions(path, _module(path))]
+    assert not found, f"functions over {MAX_FUNCTION_LINES} lines:\n" + "\n".join(found)
+
+
+def test_the_line_check_counts_code_and_leaves_docstrings_and_cli_mains_out(tmp_path):
+    """A function one line over the limit is named; one at the limit is not, however long its docstring; a command
+    line's `main` is exempt, the same function elsewhere is not."""
+
+    def function(name: str, code_lines: int, docstring_lines: int = 0) -> str:
+        doc = '    """' + "\n".join(["words"] * docstring_lines) + '"""\n' if docstring_lines else ""
+        body = "".join(f"    x{i} = {i}\n" for i in range(code_lines - 1))  # the `def` line is the first
+        return f"def {name}():\n{doc}{body}\n"
+
+    path = tmp_path / "m.py"
+    path.write_text(function("over", MAX_FUNCTION_LINES + 1) + function("at", MAX_FUNCTION_LINES, docstring_lines=30))
+    assert _long_functions(path, "openpi_cam.cam.m") == [f"openpi_cam.cam.m.over ({MAX_FUNCTION_LINES + 1} lines)"]
+    path.write_text(function("main", MAX_FUNCTION_LINES + 1))
+    assert _long_functions(path, "openpi_cam.cli.m") == []
+    assert _long_functions(path, "openpi_cam.cam.m") == [f"openpi_cam.cam.m.main ({MAX_FUNCTION_LINES + 1} lines)"]
