@@ -93,7 +93,7 @@ def test_only_the_command_line_imports_the_maps_room():
 
 
 def test_a_dataset_job_does_not_load_the_threaded_side_channel():
-    """A Ray worker explaining episodes imports the datasets room; nothing it imports, however indirectly, is the
+    """A Ray worker explaining episodes imports the maps room; nothing it imports, however indirectly, is the
     live side channel (its worker thread and queue belong to `serve`)."""
     code = (
         "import sys, openpi_cam.maps.explain, openpi_cam.maps.ray_engine, openpi_cam.maps.faithfulness; "

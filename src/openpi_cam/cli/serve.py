@@ -98,7 +98,7 @@ def main(
         max_batch: requests per batched call at most, a power of two (calls run at power-of-two batch sizes: one
             compiled program each, all compiled at warm-up).
         record: record every connection as an episode of a new LeRobot v3.0 dataset in this folder (its requests'
-            images and values, prompts and served chunks; `datasets.served_episodes`), saved when it closes.
+            images and values, prompts and served chunks; `lerobot.served_episodes`), saved when it closes.
         record_fps: the recorded dataset's frame rate (LeRobot's timestamps are frame index / fps): the rate at which
             the robot sends requests.
         drain_timeout: on SIGTERM, seconds the server lets the served policy drain (the side channel's queued

@@ -29,7 +29,7 @@ def main(
 
     Args:
         run_dir: a CAM run directory (holds run.json and steps/), or a maps dataset (`explain-dataset`'s output:
-            one row per frame, and the dataset-level views in the JSON summary; `datasets.views`).
+            one row per frame, and the dataset-level views in the JSON summary; `maps.views`).
         format: csv, json (rows plus a summary) or parquet (summary in the file metadata).
         out: output file; defaults to stdout for csv/json and RUN_DIR/stats.parquet (a maps dataset's
             stats-<kind>.parquet) for parquet.

@@ -63,7 +63,7 @@ OUTCOME_COLUMNS = (EPISODE_LENGTH, EPISODE_SUCCESS, EPISODE_RETURN)
 @dataclasses.dataclass(frozen=True)
 class MapsInfo:
     """A maps dataset's meta/info.json: what was explained and how. JSON-only (the viewers read it without JAX):
-    `model` is a `policies.model_spec.ModelSpec` and `options` a `vocabulary.ExplainOptions` as they encode
+    `model` is a `checkpoints.model_spec.ModelSpec` and `options` a `vocabulary.ExplainOptions` as they encode
     themselves, with the job's `batch_size` beside the options."""
 
     source: str  # the LeRobot dataset's folder

@@ -1,9 +1,9 @@
 """Explaining a LeRobot dataset into a maps dataset (`openpi-cam explain DATASET_DIR`).
 
-An episode is the unit of work: its frames are decoded forward once (`datasets.lerobot`), every selected frame is
+An episode is the unit of work: its frames are decoded forward once (`lerobot.dataset`), every selected frame is
 served to the policy as a robot would send it (one `infer_traced` call each, exactly as served), the traced calls are
 explained `batch_size` at a time, each explanation gets its spot check, and the episode's rows are written as one
-shard (`datasets.maps_dataset`). The local engine runs episodes in a loop; the Ray engine (`datasets.ray_engine`) runs
+shard (`maps.dataset`). The local engine runs episodes in a loop; the Ray engine (`maps.ray_engine`) runs
 the same `EpisodeExplainer` in an actor per worker, so both write the same rows.
 """
 
@@ -123,7 +123,7 @@ def outcome_features(ds: LeRobotDataset, job: DatasetJob) -> tuple[str | None, s
 
 
 def episode_outcome(ds: LeRobotDataset, episode: int, outcome: str, reward: str | None) -> dict[str, Any]:
-    """The `episode_*` columns of one episode (`maps_dataset.OUTCOME_COLUMNS`), read from all its frames."""
+    """The `episode_*` columns of one episode (`maps.dataset.OUTCOME_COLUMNS`), read from all its frames."""
     frames = list(ds.frames(episode, features=[outcome] if reward is None else [outcome, reward]))
     rewards = None if reward is None else [np.asarray(f[reward], np.float64).sum() for f in frames]
     return {

@@ -3,7 +3,7 @@ dataset's frames, and one HTML report of the dataset-level views.
 
 The frames are decoded again from the LeRobot dataset the maps were computed from (`MapsInfo.source`, read with
 `data.lerobot`), frame by frame as the maps dataset lists them, and each row's `index` is checked against the
-source's (`datasets.frames`), so a video can never pair a map with another frame. Each explained frame becomes one
+source's (`maps.frames`), so a video can never pair a map with another frame. Each explained frame becomes one
 video frame, the cameras side by side (the map bilinearly stretched over the frame and colour-blended,
 `viz.overlay`), at the source's frame rate divided by the explain job's `every`. Videos are H.264 (libx264, yuv420p)
 written with PyAV.
@@ -11,7 +11,7 @@ written with PyAV.
 The report (OUT/index.html, relative links to the files beside it, no network) opens with the spot checks stored in
 the maps dataset, then the positional prior with its flagged hot patches, failed and successful episodes side by side
 (when the source records outcomes), the episodes ranked with the most diffuse maps first, the per-task table, and a
-section per rendered episode (its video and a strip of its frames). Figures: `datasets.views`.
+section per rendered episode (its video and a strip of its frames). Figures: `maps.views`.
 """
 
 from __future__ import annotations
