@@ -23,11 +23,11 @@ from safetensors_edit import edit_safetensors, read_tensor
 from shared_copies import edit_json, writable_copy
 
 from openpi_cam import golden
-from openpi_cam.checkpoints.model_spec import ModelSpec
+from openpi_cam.checkpoints.model_spec import BundledModel, LeRobotFolder, ModelSpec, OpenPICheckpoint
 from openpi_cam.cli import golden as cli_golden
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.lerobot.golden import run_lerobot_golden
-from openpi_cam.lerobot.policy import Normalizer, PolicyFeature, create_lerobot_policy
+from openpi_cam.lerobot.policy import LeRobotConfig, Normalizer, PolicyFeature, create_lerobot_policy
 from openpi_cam.letterbox import letterbox_geometry
 from openpi_cam.model.pi0 import Pi0
 from openpi_cam.model.safetensors_weights import save_safetensors_params
@@ -141,6 +141,26 @@ def test_formats_are_recognised_in_one_place(tmp_path):
     with pytest.raises(FileNotFoundError) as raised:
         checkpoint_format(tmp_path / "empty")
     assert_one_line(raised.value, "params", "policy_preprocessor.json", "OpenPI PyTorch export")
+
+
+def test_a_model_spec_is_resolved_once_into_its_source(tmp_path, monkeypatch):
+    """No folder is the bundled model, an OpenPI checkpoint keeps the config it is named with (pi0_fast_droid by
+    default), a LeRobot folder's config.json is read once however many questions the spec answers; a LeRobot folder
+    named with a config is refused in one line."""
+    orbax, export = openpi_pytorch_export(tmp_path)
+    bundled = ModelSpec().source
+    assert isinstance(bundled, BundledModel) and bundled.installed and bundled.config == "demo_reach"
+    assert ModelSpec(orbax, "pi05_droid").source == OpenPICheckpoint(orbax.resolve(), "pi05_droid", "orbax")
+    assert ModelSpec(export).source == OpenPICheckpoint(export.resolve(), "pi0_fast_droid", "openpi_pytorch")
+    read, reads = LeRobotConfig.read, []
+    monkeypatch.setattr(LeRobotConfig, "read", lambda path: reads.append(path) or read(path))
+    spec = ModelSpec(PI05)
+    assert isinstance(spec.source, LeRobotFolder) and spec.resolved().dtype == "float32"
+    assert spec.dataset_keys()[0] and spec.facts().family == "pi05" and spec.tokenizers() == (None, None)
+    assert reads == [PI05.resolve() / "config.json"]
+    with pytest.raises(ValueError) as raised:
+        ModelSpec(PI05, "pi05_droid").source  # noqa: B018
+    assert_one_line(raised.value, "LeRobot policy folder", "'pi05_droid'")
 
 
 def test_openpis_pytorch_export_is_served_like_its_orbax_checkpoint(tmp_path):

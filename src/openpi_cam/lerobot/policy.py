@@ -331,7 +331,7 @@ class CastFloats:
 
 
 @dataclasses.dataclass(frozen=True)
-class RelativeActions:
+class RelativeActionsStep:
     """`relative_actions_processor`: at inference it only remembers the state it sees (for the postprocessor's
     `absolute_actions_processor`); `mask` says which action dims are relative (LeRobot's `_build_mask`)."""
 
@@ -354,11 +354,11 @@ class RelativeActions:
 
 
 @dataclasses.dataclass(frozen=True)
-class AbsoluteActions:
+class AbsoluteActionsStep:
     """`absolute_actions_processor`: the remembered state added back on the relative dims, when enabled."""
 
     enabled: bool
-    relative: RelativeActions | None
+    relative: RelativeActionsStep | None
 
     def __call__(self, data: DataDict) -> DataDict:
         if not self.enabled:
@@ -602,7 +602,7 @@ def _device(spec: StepSpec, ctx: StepContext) -> Transform:
 @register_step("relative_actions_processor")
 def _relative(spec: StepSpec, ctx: StepContext) -> Transform:
     names = spec.config.get("action_names")
-    return RelativeActions(
+    return RelativeActionsStep(
         bool(spec.config.get("enabled", False)),
         tuple(spec.config.get("exclude_joints") or ()),
         None if names is None else tuple(names),
@@ -642,10 +642,10 @@ def _tokenize(spec: StepSpec, ctx: StepContext) -> Transform:
 @register_step("absolute_actions_processor", pipelines=("postprocessor",))
 def _absolute(spec: StepSpec, ctx: StepContext) -> Transform:
     enabled = bool(spec.config.get("enabled", False))
-    relative = next((s for s in ctx.before if isinstance(s, RelativeActions)), None)
+    relative = next((s for s in ctx.before if isinstance(s, RelativeActionsStep)), None)
     if enabled and (relative is None or not relative.enabled):
         raise ValueError(f"{ctx.where}: absolute_actions_processor is enabled without an enabled relative step")
-    return AbsoluteActions(enabled, relative)
+    return AbsoluteActionsStep(enabled, relative)
 
 
 def pipeline_steps(
