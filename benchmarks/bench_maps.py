@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 
 from openpi_cam.cam.spot_check import check_trace
+from openpi_cam.checkpoints import model_spec
 from openpi_cam.demo import bundled, task
 from openpi_cam.model import attribution, baseline_maps
-from openpi_cam.policies import model_spec
 from openpi_cam.vocabulary import DEFAULT_PATCHES, ExplainOptions
 
 KIND_SETS = {

@@ -152,6 +152,9 @@ DEFAULT_TARGETS: dict[str, Target] = {"pi0_fast": "action-token", "pi0": "chunk"
 # Which camera frames are stored beside the maps: the client's (raw), the model's input (model), both or none.
 SaveFrames = Literal["none", "raw", "model", "both"]
 SAVE_FRAMES: tuple[str, ...] = ("none", "raw", "model", "both")
+# Observation keys with this prefix are not passed to the policy; their values are recorded beside what was served
+# (the step's `extra` metadata, a recorded frame's features: e.g. the demo's ground-truth target box).
+EXTRA_PREFIX = "cam_extra/"
 
 # Random single patches of each explained step's spot check (`cam.spot_check`): with each kind's top patch and the
 # unpainted score, 1 + kinds + 4 re-runs per camera in one call.

@@ -13,10 +13,11 @@ import pytest
 
 from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.run_format import StepRecord, load_run
+from openpi_cam.checkpoints import model_spec
 from openpi_cam.demo import bundled, perturb, quality, sim, task, train
 from openpi_cam.demo.data import Batches, load_normalize
 from openpi_cam.demo.run import DemoOptions, run_demo
-from openpi_cam.policies import demo_reach, model_spec
+from openpi_cam.policies import demo_reach
 from openpi_cam.vocabulary import MAP_KINDS
 
 

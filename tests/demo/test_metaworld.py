@@ -11,15 +11,15 @@ import pytest
 
 from openpi_cam import cli
 from openpi_cam.cam.run_format import load_run
+from openpi_cam.checkpoints.model_spec import create_demo_policy
 from openpi_cam.cli import train_demo
 from openpi_cam.cli.demo import main as demo_main
 from openpi_cam.cli.train_demo import RecordArgs, read_demonstrations, record_expert
-from openpi_cam.datasets.lerobot import open_dataset
 from openpi_cam.demo import bundled, metaworld_data, metaworld_sim, quality, train
 from openpi_cam.demo.metaworld_sim import MetaWorldSim, Perturbation
 from openpi_cam.demo.run import DemoOptions, run_demo
+from openpi_cam.lerobot.dataset import open_dataset
 from openpi_cam.policies import demo_metaworld, demo_reach
-from openpi_cam.policies.model_spec import create_demo_policy
 
 pytest.importorskip("metaworld", reason='the Meta-World demo needs pip install -e ".[metaworld]"')
 

@@ -11,10 +11,10 @@ import tyro
 
 from openpi_cam.cam.faithfulness_run import format_report
 from openpi_cam.cam.outcomes import wilson_interval
-from openpi_cam.datasets.lerobot import DatasetError
-from openpi_cam.datasets.rollouts import RolloutRecorder
-from openpi_cam.demo.quality import EPISODES_FILE
+from openpi_cam.demo.recorded import recorded_episodes_file
 from openpi_cam.demo.run import ROLLOUT_FPS, ROLLOUT_FPS_METAWORLD, DemoOptions, run_demo
+from openpi_cam.lerobot.dataset import DatasetError
+from openpi_cam.lerobot.rollouts import RolloutRecorder
 from openpi_cam.policies import demo_metaworld, demo_reach
 from openpi_cam.vocabulary import MAP_KIND_INFO
 
@@ -51,7 +51,7 @@ def main(opts: tyro.conf.OmitArgPrefixes[DemoOptions] = DEFAULT, record: pathlib
     if record is not None:
         episodes = [{"episode_index": i, **e} for i, e in enumerate(result.episodes)]
         rollouts = {"perturbations": list(opts.perturb), "episodes": episodes}
-        (record / "meta" / EPISODES_FILE).write_text(json.dumps(rollouts, indent=2))
+        recorded_episodes_file(record).write_text(json.dumps(rollouts, indent=2))
     wins = sum(r["success"] for r in result.episodes)
     goal = "pressed the button" if metaworld else "reached their block"
     print(f"\nopenpi-cam demo: {wins}/{len(result.episodes)} episodes {goal} in {result.seconds:.0f}s")

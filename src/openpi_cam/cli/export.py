@@ -11,10 +11,10 @@ from typing import Literal
 
 import tyro
 
+from openpi_cam.checkpoints.model_spec import LeRobotFolder, ModelSpec
 from openpi_cam.cli.options import BUNDLED_MODEL
+from openpi_cam.lerobot.export import export_lerobot
 from openpi_cam.policies.demo_reach import DEMO_PI05_CONFIG
-from openpi_cam.policies.lerobot_export import export_lerobot
-from openpi_cam.policies.model_spec import ModelSpec
 
 
 def main(
@@ -37,10 +37,10 @@ def main(
     if model.checkpoint_dir is None and model.config is None:
         model = dataclasses.replace(model, config=DEMO_PI05_CONFIG.name)
     try:
-        spec = model.resolved()
-        if spec.config is None:
-            raise ValueError(f"{spec.checkpoint} is a LeRobot folder already")
-        folder = export_lerobot(spec.checkpoint, spec.config, out, paligemma_tokenizer=model.tokenizers()[0])
+        source = model.source
+        if isinstance(source, LeRobotFolder):
+            raise ValueError(f"{source.checkpoint} is a LeRobot folder already")
+        folder = export_lerobot(source.checkpoint, source.config, out, paligemma_tokenizer=model.tokenizers()[0])
     except (ValueError, FileNotFoundError, FileExistsError, KeyError) as e:
         print(f"openpi-cam export: {e}", file=sys.stderr)
         return 2

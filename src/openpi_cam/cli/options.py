@@ -1,4 +1,4 @@
-"""Flags shared by several subcommands, each declared once: which model to load (`policies.model_spec.ModelSpec`,
+"""Flags shared by several subcommands, each declared once: which model to load (`checkpoints.model_spec.ModelSpec`,
 taken as it is) and what an explanation explains and carries (`ExplainFlags`, building `vocabulary.ExplainOptions`).
 Allowed values come from `openpi_cam.vocabulary`."""
 
@@ -7,7 +7,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Literal
 
-from openpi_cam.policies.model_spec import ModelSpec
+from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.vocabulary import (
     BASELINES,
     DEFAULT_KINDS,

@@ -4,7 +4,7 @@
 `--sim reach` is `python -m openpi_cam.demo.train` (procedural samples, nothing recorded). `--sim metaworld` records
 the scripted expert's episodes as a LeRobot v3.0 dataset in `--data` (unless it already holds one), reads them back
 through the project's LeRobot reader and trains the tiny pi0.5 on them with `demo.train` (the command line composes
-the two, since only it may import the datasets room).
+the two: the demo room records through the sink it is handed and reads no dataset).
 """
 
 from __future__ import annotations
@@ -16,9 +16,9 @@ from typing import Literal
 
 import numpy as np
 
-from openpi_cam.datasets.lerobot import is_lerobot_dataset, open_dataset
-from openpi_cam.datasets.lerobot_writer import Feature, create_dataset
 from openpi_cam.demo import metaworld_data, metaworld_sim, train
+from openpi_cam.lerobot.dataset import is_lerobot_dataset, open_dataset
+from openpi_cam.lerobot.writer import Feature, create_dataset
 from openpi_cam.policies import demo_metaworld
 from openpi_cam.policies.config import PolicyConfig
 

@@ -8,8 +8,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from openpi_cam.cam.records import EXTRA_PREFIX, split_extra
+from openpi_cam.cam.records import split_extra
 from openpi_cam.demo import task
+from openpi_cam.demo.recorded import PERTURBATION_FEATURE
 from openpi_cam.model.config import GemmaConfig, Pi0Config, Pi0FASTConfig, SiglipConfig, scan_by_default
 from openpi_cam.policies.config import PolicyConfig
 from openpi_cam.policies.demo_reach import (
@@ -21,6 +22,7 @@ from openpi_cam.policies.demo_reach import (
     STATE_KEY,
     WRIST_KEY,
 )
+from openpi_cam.vocabulary import EXTRA_PREFIX
 
 PATCH_SIZE = 16  # 64 px images -> a 4 x 4 map grid per camera
 
@@ -109,9 +111,6 @@ class Observed(Protocol):
     state: np.ndarray  # float32
     prompt: str
     target_box: tuple[int, int, int, int]  # the target in the base camera (x0, y0, x1, y1)
-
-
-PERTURBATION_FEATURE = "perturbation"  # a recorded frame's index into the run's perturbations
 
 
 def client_observation(sample: Observed, scene: task.Scene | None = None) -> dict[str, Any]:

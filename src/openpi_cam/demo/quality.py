@@ -32,17 +32,18 @@ import numpy as np
 from openpi_cam.cam.batching import explain_traces
 from openpi_cam.cam.faithfulness import box_cells, box_visible, spearman
 from openpi_cam.cam.run_format import load_run
+from openpi_cam.checkpoints import model_spec
 from openpi_cam.demo import bundled, task
 from openpi_cam.demo.data import Batches, load_normalize
+from openpi_cam.demo.recorded import EPISODES_FILE
 from openpi_cam.model.pi0_fast import Pi0FAST, init_params
-from openpi_cam.policies import demo_reach, model_spec
+from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import Explainer, Explanation
 from openpi_cam.policies.pi0_fast_family import FastExplainer
 from openpi_cam.policies.policy import InferenceTrace, Policy
 from openpi_cam.vocabulary import DEFAULT_KINDS, MAP_KINDS, ExplainOptions
 
 BASE_CAMERA = "base_0_rgb"
-EPISODES_FILE = "demo_episodes.json"  # the demo's episode outcomes, written beside the run's steps
 
 
 def peak_cell(cam_map: np.ndarray) -> tuple[int, int]:

@@ -18,10 +18,10 @@ from openpi_cam.cam.faithfulness_run import FaithfulnessOptions, evaluate_run
 from openpi_cam.cam.run_evidence import REPORT_FILE
 from openpi_cam.cam.run_format import dumps, load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
+from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.demo import bundled, metaworld_data, metaworld_loop, metaworld_sim, quality
 from openpi_cam.demo.client import PolicyClient, RolloutSink
 from openpi_cam.demo.perturb import Perturbation
-from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.serving.server import start_server_in_thread
 from openpi_cam.viz.render import RenderOptions, default_render_dir, render_run
 from openpi_cam.vocabulary import MAP_KINDS, Baseline, IgSpace, MapKind, MapOptions, Target
@@ -197,7 +197,7 @@ def run_demo(opts: DemoOptions, sink: RolloutSink | None = None) -> DemoResult:
     policy = model.create()
     options = CAMOptions(
         every_k=1,
-        cam_dir=opts.out,
+        dir=opts.out,
         save_frames="both",
         target=opts.target,
         maps=opts.maps,
@@ -215,7 +215,7 @@ def run_demo(opts: DemoOptions, sink: RolloutSink | None = None) -> DemoResult:
     checkpoint = str(model.checkpoint)
     cam = wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=checkpoint) if opts.explain else None
     # The demo explains every request: the drain at the end is the rest of the run's work, not a shutdown grace.
-    server = start_server_in_thread(cam or policy, metadata=policy.metadata, close_timeout=DRAIN_S)
+    server = start_server_in_thread(cam or policy, metadata=policy.metadata, drain_timeout=DRAIN_S)
     drive = run_metaworld_episodes if opts.sim == "metaworld" else run_episodes
     try:
         episodes = drive(

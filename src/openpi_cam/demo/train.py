@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from openpi_cam.checkpoints import model_spec
 from openpi_cam.demo import bundled, make_tokenizers, metaworld_loop, metaworld_sim, sim
 from openpi_cam.demo.data import Batches, write_norm_stats
 from openpi_cam.demo.metaworld_data import Demonstrations
@@ -33,7 +34,7 @@ from openpi_cam.model import pi0
 from openpi_cam.model.checkpoint import load_params, save_params
 from openpi_cam.model.config import Pi0Config, Pi0FASTConfig
 from openpi_cam.model.pi0_fast import compute_loss, init_params
-from openpi_cam.policies import demo_reach, model_spec
+from openpi_cam.policies import demo_reach
 from openpi_cam.policies.config import PolicyConfig
 
 
