@@ -44,12 +44,12 @@ from bench_serving import machine_line
 
 from openpi_cam import cli
 from openpi_cam.cam.batching import explain_traces
-from openpi_cam.datasets.rollouts import RolloutRecorder
+from openpi_cam.checkpoints.model_spec import BUNDLED_CONFIGS, ModelSpec
 from openpi_cam.demo import bundled, metaworld_sim, sim
 from openpi_cam.demo.perturb import Perturbation
 from openpi_cam.demo.run import ROLLOUT_FPS, ROLLOUT_FPS_METAWORLD, run_episodes, run_metaworld_episodes
+from openpi_cam.lerobot.rollouts import RolloutRecorder
 from openpi_cam.policies import demo_metaworld, demo_reach
-from openpi_cam.policies.model_spec import BUNDLED_CONFIGS, ModelSpec
 from openpi_cam.serving.server import start_server_in_thread
 from openpi_cam.vocabulary import MAP_KINDS, ExplainOptions
 
