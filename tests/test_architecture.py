@@ -1,8 +1,9 @@
 """The package's layers, drawn from its imports (function-local ones included), point one way: down.
 
-cli > demo > datasets > viz > cam > serving > policies > {model, tokenizers, transforms and the package-root
-utilities}. A function-local import is allowed only for an optional heavy dependency (not a module of this package).
-The datasets room is imported by the command line only, and the side channel's room reaches none of it."""
+cli > demo > datasets > viz > cam > monitor > serving > policies > {model, tokenizers, transforms and the
+package-root utilities}. A function-local import is allowed only for an optional heavy dependency (not a module of
+this package). The datasets room is imported by the command line only, and the side channel's room reaches none of
+it."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ import sys
 from paths import REPO_ROOT
 
 SRC = REPO_ROOT / "src"
-LAYERS = ("cli", "demo", "datasets", "viz", "cam", "serving", "policies", "base")
+LAYERS = ("cli", "demo", "datasets", "viz", "cam", "monitor", "serving", "policies", "base")
 
 
 def _module(path: pathlib.Path) -> str:
@@ -74,6 +75,22 @@ def test_the_lerobot_format_modules_import_nothing_of_the_package_but_its_errors
         if target.startswith("openpi_cam") and target not in own
     ]
     assert not found, found
+
+
+def test_the_monitor_room_is_numpy_and_the_standard_library_over_the_base_modules():
+    """The failure monitor runs in the side channel, in dataset jobs and in the viewers alike: besides its own
+    modules it imports NumPy, the standard library and the package-root utilities, never JAX nor a room above or
+    beside it (serving, policies, model, tokenizers)."""
+    found = []
+    for path in sorted((SRC / "openpi_cam" / "monitor").rglob("*.py")):
+        for target, _ in _imports(path):
+            top = target.split(".")[0]
+            if top == "openpi_cam":
+                if not (_layer(target) == "monitor" or (_layer(target) == "base" and target.count(".") == 1)):
+                    found.append(f"{_module(path)} imports {target}")
+            elif top != "numpy" and top not in sys.stdlib_module_names:
+                found.append(f"{_module(path)} imports {target}")
+    assert not found, "\n".join(found)
 
 
 def test_only_the_command_line_imports_the_datasets_room():
