@@ -25,6 +25,7 @@ from openpi_cam.monitor.fit import (
     fit_logistic,
     fit_mahalanobis,
     fit_monitor,
+    leading_directions,
     ledoit_wolf,
     split_episodes,
 )
@@ -84,6 +85,20 @@ def test_the_basis_projects_onto_the_leading_principal_directions():
     filled = x[:1].copy()
     filled[0, 4] = basis.mean[4]
     assert basis.apply(probe) == pytest.approx(basis.apply(filled))
+
+
+def test_the_randomised_directions_capture_what_the_exact_ones_do():
+    """On a spectrum with no gap to speak of (singular values 1 / i), the k directions found capture the variance
+    the exact top k capture: measured above 0.99999 of it for k = 5, 10, 32 on this matrix; asserted at 0.9999."""
+    rng = np.random.default_rng(6)
+    u = np.linalg.qr(rng.normal(size=(400, 300)))[0]
+    v = np.linalg.qr(rng.normal(size=(600, 300)))[0]
+    a = (u / np.arange(1, 301)) @ v.T
+    exact = np.linalg.svd(a, full_matrices=False)[2]
+    for k in (5, 10, 32):
+        found = leading_directions(a, k)
+        assert found @ found.T == pytest.approx(np.eye(k), abs=1e-10)
+        assert ((a @ found.T) ** 2).sum() / ((a @ exact[:k].T) ** 2).sum() > 0.9999
 
 
 def _toy_probe_data(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
