@@ -1,10 +1,10 @@
 """The package's layers, drawn from its imports (function-local ones included), point one way: down.
 
-cli > demo > maps > viz > cam > serving > checkpoints > lerobot > policies > {model, tokenizers, transforms and the
-package-root utilities}. A function-local import is allowed only for an optional heavy dependency (not a module of
-this package). The maps room is imported by the command line only, and the side channel's room reaches none of it.
-docs/ARCHITECTURE.md says why each room sits where it does. Inside a room, no function runs past MAX_FUNCTION_LINES
-(docstrings aside; a command line's `main` lists its flags and is exempt)."""
+cli > demo > maps > viz > cam > monitor > serving > checkpoints > lerobot > policies > {model, tokenizers,
+transforms and the package-root utilities}. A function-local import is allowed only for an optional heavy
+dependency (not a module of this package). The maps room is imported by the command line only, and the side
+channel's room reaches none of it. docs/ARCHITECTURE.md says why each room sits where it does. Inside a room, no
+function runs past MAX_FUNCTION_LINES (docstrings aside; a command line's `main` lists its flags and is exempt)."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ import sys
 from paths import REPO_ROOT
 
 SRC = REPO_ROOT / "src"
-LAYERS = ("cli", "demo", "maps", "viz", "cam", "serving", "checkpoints", "lerobot", "policies", "base")
+LAYERS = ("cli", "demo", "maps", "viz", "cam", "monitor", "serving", "checkpoints", "lerobot", "policies", "base")
 MAX_FUNCTION_LINES = 80
 # The LeRobot room's dataset modules, usable without the rest of the package.
 LEROBOT_FORMAT = ("dataset", "writer", "stats", "video", "rollouts")
@@ -79,6 +79,22 @@ def test_the_lerobot_format_modules_import_nothing_of_the_package_but_its_errors
         if target.startswith("openpi_cam") and target not in own
     ]
     assert not found, found
+
+
+def test_the_monitor_room_is_numpy_and_the_standard_library_over_the_base_modules():
+    """The failure monitor runs in the side channel, in dataset jobs and in the viewers alike: besides its own
+    modules it imports NumPy, the standard library and the package-root utilities, never JAX nor a room above or
+    beside it (serving, policies, model, tokenizers)."""
+    found = []
+    for path in sorted((SRC / "openpi_cam" / "monitor").rglob("*.py")):
+        for target, _ in _imports(path):
+            top = target.split(".")[0]
+            if top == "openpi_cam":
+                if not (_layer(target) == "monitor" or (_layer(target) == "base" and target.count(".") == 1)):
+                    found.append(f"{_module(path)} imports {target}")
+            elif top != "numpy" and top not in sys.stdlib_module_names:
+                found.append(f"{_module(path)} imports {target}")
+    assert not found, "\n".join(found)
 
 
 def test_only_the_command_line_imports_the_maps_room():
