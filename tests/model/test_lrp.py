@@ -2,7 +2,8 @@
 
 Per rule, a case computed by hand: the identity rule passes relevance through GELU and SiLU unchanged, a bilinear
 product gives each factor half, the softmax gives its logits the paper's formula (a 3-element example whose
-softmax is rational), a normaliser is held constant. A hand-built bias-free network (linear, RMSNorm, gated-GELU
+softmax is rational), a log-probability score the same rule with its entropy absorbed, a normaliser is held
+constant. A hand-built bias-free network (linear, RMSNorm, gated-GELU
 MLP, linear) conserves relevance exactly; a one-head attention block conserves it up to what its softmax absorbs,
 computed here from the paper's formula. Tolerances: these sums are float32 evaluations of exact identities over a
 few hundred terms; measured within 5.5e-8 (the network) and 2.5e-7 (the attention block) of the largest term, so
@@ -109,6 +110,24 @@ def test_gemma_attention_applies_the_uniform_and_softmax_rules():
     assert float(r_q.sum()) == pytest.approx(sum(SOFTMAX_R_X) / 2, abs=1e-6)
     absorbed = sum(SOFTMAX_R_S) - sum(SOFTMAX_R_X)
     assert r_q.sum() + r_k.sum() + r_v.sum() + absorbed == pytest.approx(5.5, abs=1e-5)
+
+
+def test_a_log_probability_score_gets_the_softmax_rule_and_absorbs_the_entropy():
+    """pi0-FAST's `chunk` score (`pi0_fast_maps._scores_of` over a weights target), one step with the tied projection
+    the identity, so the logits are z = (0, ln 2, ln 5) and p = (1, 2, 5) / 8, explaining token 2: the logits get
+    z_i (1[i = 2] - p_i) = (0, -ln 2 / 4, 3 ln 5 / 8), which sums to log p_2 + H(p); the bias takes -H(p)."""
+    from openpi_cam.model import pi0_fast_maps
+
+    params = {"PaliGemma": {"llm": {"embedder": {"input_embedding": jnp.eye(3)}}}}
+    generated = jnp.asarray([[2]])
+    target = pi0_fast_maps._weights_target(np.ones((1, 1), np.float32))
+    pre = jnp.asarray(SOFTMAX_X).reshape(1, 1, 3)
+    score, (r_z,) = relevance(lambda z: pi0_fast_maps._scores_of(params, z, generated, target)[0, 0], pre)
+    p = np.asarray([1, 2, 5]) / 8
+    assert float(score) == pytest.approx(math.log(5 / 8), abs=1e-6)
+    np.testing.assert_allclose(r_z.ravel(), [0.0, -math.log(2.0) / 4, 3 * math.log(5.0) / 8], atol=1e-6)
+    entropy = -float(np.sum(p * np.log(p)))
+    assert r_z.sum() == pytest.approx(math.log(5 / 8) + entropy, abs=1e-6)
 
 
 def test_norms_hold_their_normaliser_constant():

@@ -30,7 +30,7 @@ Decisions for this model family (docs/MAP_KINDS.md, "AttnLRP relevance"):
 - What biases absorb: SigLIP's (the patch embedding's bias, the position embedding, LayerNorm's beta, every dense
   bias), the pi0 projections' (action in / out, state, time MLPs) and pi0.5's adaRMS shift keep their relevance
   b * g; Gemma has none. With each softmax's remainder they are why the relevance read at the inputs sums to the
-  score only up to these terms (tests/model/test_lrp.py states and checks the balance).
+  score only up to these terms (tests/model/test_lrp_models.py checks the balance on whole models).
 - pi0.5's adaRMS modulation (scale, shift, gate from the time embedding alone) and its time MLP: they do not depend
   on the observation, only on the Euler step, so they are held constant, weights of that step like a norm's learned
   scale: normed * (1 + scale) and y * gate are linear in their image-dependent factor. The uniform rule would hand
@@ -40,8 +40,9 @@ Decisions for this model family (docs/MAP_KINDS.md, "AttnLRP relevance"):
   an input of the step whose relevance, like a bias's, is not drawn.
 - A log-softmax score (pi0-FAST's `chunk` and `generated-tokens`: a sum of log p(g_k)) keeps its plain gradient: the
   paper's softmax rule (first-order expansion at the logits) applied to log p_g. The logits receive z_i (1[i = g] -
-  p_i), which sums to z_g - E_p[z] = log p_g + H(p): the entropy of the explained distribution is absorbed, small
-  where the policy is confident. A token logit (`action-token`, `all-action-tokens`) is linear in the last layer.
+  p_i), which sums to z_g - E_p[z] = log p_g + H(p): what it leaves out, -H(p) (the entropy of the explained
+  distribution), is absorbed, small where the policy is confident. A token logit (`action-token`,
+  `all-action-tokens`) is linear in the last layer.
 - Where relevance is read: at the pixels of the model's input images (at the model resolution, in [-1, 1]), x * g
   summed over each patch's pixels and channels, one signed map per camera on its token grid, as every kind. The
   patch embedding is linear, so a patch's sum is the relevance of its embedding less what the embedding's bias and
