@@ -17,6 +17,9 @@ frame blurred, or its mean colour), and are signed (positive = supports the expl
              (no gradient through SigLIP); its completeness terms come with the result (`IgCompleteness`).
   occlusion  the drop of the score when a region's pixels are replaced by the baseline's and the whole model re-run,
              one camera at a time; every region once ("regions") or random Bernoulli masks (ISS, "random").
+A fifth kind propagates the score back to the pixels with AttnLRP's rules (`model.lrp`), one modified backward pass
+through the replay and SigLIP per explained score:
+  lrp        relevance = input x modified gradient at the model's input pixels, summed per patch; signed.
 Scores: a token's logit at its decode step (`maps_for_steps`), or a sum of log-probabilities over decode steps (the
 chunk, or any per-row list of steps: `maps_for_chunk`). `rescore_masks` returns the same scores with patches painted,
 for the spot checks and faithfulness metrics. `gradcam_for_token` and `gradcam_for_action_token` are the Grad-CAM API

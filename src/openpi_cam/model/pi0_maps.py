@@ -5,7 +5,8 @@ E [B, C, N, D] the LLM sees, from the call's own noise (no gradient through SigL
 the chunk, score = sum(W * x_0): one action dimension at one horizon step (W one-hot at (h, d)), or the whole chunk
 (W = stop_gradient(x_0), the goldens' `gc_chunk`: its gradient is sum_hd x_0[h, d] * dx_0[h, d] / dE). Several targets
 share one forward pass and take one backward pass each. Each Euler step is rematerialised (`pi0.denoise`), so the
-backward keeps one step's activations at a time.
+backward keeps one step's activations at a time. The `lrp` kind runs its own backward pass per target with AttnLRP's
+rules (`model.lrp`) through SigLIP too, to the pixels (`lrp_maps`).
 """
 
 from __future__ import annotations
