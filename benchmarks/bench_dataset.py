@@ -52,8 +52,8 @@ PHASES = ("decode", "inference", "explanation", "writing")
 
 
 def _job(spec: dict[str, Any], out: pathlib.Path) -> Any:
-    from openpi_cam.datasets.explain import DatasetJob, dataset_keys
-    from openpi_cam.policies.model_spec import ModelSpec
+    from openpi_cam.checkpoints.model_spec import ModelSpec
+    from openpi_cam.maps.explain import DatasetJob, dataset_keys
     from openpi_cam.vocabulary import ExplainOptions
 
     keys, nested = dataset_keys(ModelSpec(), {})
@@ -63,9 +63,9 @@ def _job(spec: dict[str, Any], out: pathlib.Path) -> Any:
 
 
 def run_local_job(spec: dict[str, Any]) -> dict[str, Any]:
-    from openpi_cam.datasets import maps_dataset as fmt
-    from openpi_cam.datasets.explain import run_local
-    from openpi_cam.policies.model_spec import ModelSpec
+    from openpi_cam.checkpoints.model_spec import ModelSpec
+    from openpi_cam.maps import dataset as fmt
+    from openpi_cam.maps.explain import run_local
 
     t0 = time.perf_counter()
     ends: list[tuple[int, float]] = []
@@ -99,7 +99,7 @@ def run_local_job(spec: dict[str, Any]) -> dict[str, Any]:
 
 
 def run_ray_job(spec: dict[str, Any]) -> dict[str, Any]:
-    from openpi_cam.datasets import ray_engine
+    from openpi_cam.maps import ray_engine
 
     records: list[tuple[dict[str, Any], float]] = []
 
@@ -189,7 +189,7 @@ def record_rollouts(out: pathlib.Path) -> pathlib.Path:
 def batch_sizes(args: argparse.Namespace) -> None:
     """The local engine's steady frames per second at each batch size, each in a fresh process, side by side (the
     order rotated every round)."""
-    from openpi_cam.datasets.lerobot import open_dataset
+    from openpi_cam.lerobot.dataset import open_dataset
 
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory() as tmp:
@@ -252,7 +252,7 @@ def main() -> None:
         batch_sizes(args)
         return
 
-    from openpi_cam.datasets.lerobot import open_dataset
+    from openpi_cam.lerobot.dataset import open_dataset
 
     source = _source(args)
     n_episodes = len(open_dataset(source).episodes)

@@ -20,10 +20,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from openpi_cam.checkpoints import model_spec
 from openpi_cam.demo import bundled, task
 from openpi_cam.model import pi0_maps
 from openpi_cam.model.pi0 import preprocess, sample_actions
-from openpi_cam.policies import model_spec
 
 
 def temp_bytes(fn, *args) -> int:

@@ -1,14 +1,17 @@
 """What each map kind costs next to the inference it explains, on a bundled demo model, measured side by side.
 
 For `--scenes` fresh demo scenes (after one compile scene), times `policy.infer` and one explanation per kind set
-(gradcam + gradnorm share a backward pass; ig; occlusion; all four) through the family's explainer, exactly what the
-side channel runs per explained request, and the spot check the side channel adds to the gradcam + gradnorm
-explanation (each map's top patch and `--check-patches` random patches re-scored, `cam.spot_check`), interleaved
-scene by scene so that machine load hits every row alike. Prints medians and the ratio explanation / inference.
+(gradcam + gradnorm share a backward pass; ig; occlusion; all four; lrp, its own modified backward pass through
+SigLIP too) through the family's explainer, exactly what the side channel runs per explained request, and the spot
+check the side channel adds to the gradcam + gradnorm explanation (each map's top patch and `--check-patches`
+random patches re-scored, `cam.spot_check`), interleaved scene by scene so that machine load hits every row alike.
+Prints medians, the ratio explanation / inference and the ratio to the gradient kinds' pass (backward-pass
+equivalents).
 
     python benchmarks/bench_maps.py                       # pi0-FAST demo model, target chunk
     python benchmarks/bench_maps.py --model pi05 --target action
     python benchmarks/bench_maps.py --dtype bfloat16 --target action-token --compare-ig-stall
+    python benchmarks/bench_maps.py --sets gradcam+gradnorm lrp --scenes 40   # the two one-pass rows alone
 
 `--compare-ig-stall` adds a row "ig, no stall": IG with its quadrature points doubled to the cap whenever completeness
 misses its target, as before `attribution.IG_STALL` (which stops doubling when a doubling did not shrink the error).
@@ -28,9 +31,9 @@ from pathlib import Path
 import numpy as np
 
 from openpi_cam.cam.spot_check import check_trace
+from openpi_cam.checkpoints import model_spec
 from openpi_cam.demo import bundled, task
 from openpi_cam.model import attribution, baseline_maps
-from openpi_cam.policies import model_spec
 from openpi_cam.vocabulary import DEFAULT_PATCHES, ExplainOptions
 
 KIND_SETS = {
@@ -38,6 +41,7 @@ KIND_SETS = {
     "ig": ("ig",),
     "occlusion": ("occlusion",),
     "all four": ("gradcam", "gradnorm", "ig", "occlusion"),
+    "lrp": ("lrp",),
 }
 
 
@@ -61,10 +65,13 @@ def main() -> None:
     parser.add_argument("--check-patches", type=int, default=DEFAULT_PATCHES)
     parser.add_argument("--dtype", choices=["float32", "bfloat16"], default="float32")
     parser.add_argument("--compare-ig-stall", action="store_true")
+    # the kind sets to time (the gradient kinds' pass always: every ratio is to it)
+    parser.add_argument("--sets", nargs="+", choices=list(KIND_SETS), default=list(KIND_SETS))
     args = parser.parse_args()
 
     policy = model_spec.create_demo_policy(model=args.model, dtype=args.dtype)
-    kind_sets = {**KIND_SETS, **({"ig, no stall": ("ig",)} if args.compare_ig_stall else {})}
+    chosen = {name: KIND_SETS[name] for name in KIND_SETS if name in args.sets or name == "gradcam+gradnorm"}
+    kind_sets = {**chosen, **({"ig, no stall": ("ig",)} if args.compare_ig_stall else {})}
     explainer = policy.explainer
     rng = np.random.default_rng(args.seed)
     check_row = f"spot check ({args.check_patches})"
@@ -100,12 +107,17 @@ def main() -> None:
 
     cpu = f"{os.cpu_count()} CPU cores" if sys.platform != "darwin" else platform.processor()
     model = f"{args.model} demo model ({args.dtype}), target {args.target}"
-    print(f"{model}, {args.scenes} scenes, {platform.machine()}, {cpu}")
+    load = ", load average {:.1f} {:.1f} {:.1f}".format(*os.getloadavg()) if hasattr(os, "getloadavg") else ""
+    print(f"{model}, {args.scenes} scenes, {platform.machine()}, {cpu}{load}")
     infer = statistics.median(times["infer"])
-    print(f"{'':>18} {'median ms':>10} {'x inference':>12}")
+    gradient = statistics.median(times["gradcam+gradnorm"])
+    print(f"{'':>18} {'median ms':>10} {'x inference':>12} {'x gradient pass':>16}")
     for name, values in times.items():
         med = statistics.median(values)
-        print(f"{name:>18} {med * 1e3:10.1f} {med / infer:12.1f}")
+        print(f"{name:>18} {med * 1e3:10.1f} {med / infer:12.1f} {med / gradient:16.2f}")
+    if "lrp" in times:  # the same ratio per scene (both timed back to back on it): steadier under load
+        per_scene = [r / g for r, g in zip(times["lrp"], times["gradcam+gradnorm"], strict=True)]
+        print(f"lrp / gradient pass, median of per-scene ratios: {statistics.median(per_scene):.2f}")
     for name, used in ig_steps.items():
         if used:
             counts = dict(zip(*np.unique(used, return_counts=True), strict=True))

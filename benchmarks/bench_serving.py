@@ -31,7 +31,7 @@ import numpy as np
 from websockets.sync.client import ClientConnection, connect
 
 from openpi_cam.cam.side_channel import CAMOptions, CAMPolicy, wrap_policy_with_cam
-from openpi_cam.policies import model_spec
+from openpi_cam.checkpoints import model_spec
 from openpi_cam.serving import msgpack_numpy
 from openpi_cam.serving.server import start_server_in_thread
 
@@ -148,9 +148,7 @@ def main() -> None:
     load_before = os.getloadavg()
     policy, observations = demo_setup(args.scenes)
     with tempfile.TemporaryDirectory() as cam_dir:
-        options = CAMOptions(
-            every_k=1, cam_dir=cam_dir, target=args.target, stats_window=window, settle_ms=args.settle_ms
-        )
+        options = CAMOptions(every_k=1, dir=cam_dir, target=args.target, stats_window=window, settle_ms=args.settle_ms)
         wrapped = wrap_policy_with_cam(policy, options)
         plain_server = start_server_in_thread(policy, close_policy_on_stop=False)
         cam_server = start_server_in_thread(wrapped, close_policy_on_stop=False)

@@ -31,10 +31,11 @@ CASES = 4
 
 
 def write(out: Path) -> None:
+    from openpi_cam.checkpoints import model_spec
     from openpi_cam.demo import bundled, task
-    from openpi_cam.policies import demo_reach, model_spec
-    from openpi_cam.policies.lerobot_export import export_lerobot
-    from openpi_cam.policies.policy import create_policy
+    from openpi_cam.lerobot.export import export_lerobot
+    from openpi_cam.lerobot.policy import create_lerobot_policy
+    from openpi_cam.policies import demo_reach
 
     folder = export_lerobot(
         demo_reach.ASSETS_PI05 / demo_reach.CHECKPOINT.name,
@@ -42,7 +43,7 @@ def write(out: Path) -> None:
         out / "folder",
         paligemma_tokenizer=demo_reach.ASSETS_PI05 / demo_reach.PALIGEMMA_TOKENIZER.name,
     )
-    ours = create_policy(None, folder, dtype="float32")
+    ours = create_lerobot_policy(folder, dtype="float32")
     original = model_spec.create_demo_policy("pi05", dtype="float32")
     rng = np.random.default_rng(0)
     arrays: dict[str, np.ndarray] = {}

@@ -1,4 +1,4 @@
-"""Checks that LeRobot 0.6.1's own `LeRobotDataset` opens datasets written by `openpi_cam.datasets.lerobot_writer` and
+"""Checks that LeRobot 0.6.1's own `LeRobotDataset` opens datasets written by `openpi_cam.lerobot.writer` and
 returns, frame by frame, what was written. Not a test: LeRobot needs torch, which neither the project nor CI has.
 
 Two steps, two environments:
@@ -48,9 +48,9 @@ CODEC_MEAN_ERROR = 8.0
 
 
 def _record(root: Path, *, base: str, wrist: str, **limits) -> dict[str, np.ndarray]:
-    from openpi_cam.datasets.lerobot import open_dataset
-    from openpi_cam.datasets.lerobot_writer import OUTCOME_FEATURES, Feature, create_dataset
     from openpi_cam.demo import sim, task
+    from openpi_cam.lerobot.dataset import open_dataset
+    from openpi_cam.lerobot.writer import OUTCOME_FEATURES, Feature, create_dataset
 
     cameras = {"observation.images.base": base, "observation.images.wrist": wrist}
     features = {
@@ -126,9 +126,9 @@ class _Capture:
 def _record_rollouts(root: Path, sim: str = "reach") -> dict[str, np.ndarray]:
     """Closed-loop demo rollouts under perturbations, served through the real websocket server and client and
     recorded as `openpi-cam demo --record` records them."""
-    from openpi_cam.datasets.lerobot import open_dataset
-    from openpi_cam.datasets.rollouts import RolloutRecorder
     from openpi_cam.demo.run import ROLLOUT_FPS, ROLLOUT_FPS_METAWORLD, DemoOptions, run_demo
+    from openpi_cam.lerobot.dataset import open_dataset
+    from openpi_cam.lerobot.rollouts import RolloutRecorder
 
     assert ROLLOUT_FPS == FPS
     if sim == "metaworld":

@@ -12,7 +12,7 @@ second), with the commands a user runs:
 2. `openpi-cam explain-dataset OUT/M.lerobot --maps gradnorm occlusion --every-k 5 --reliance --extra
    observation.target_box=target_box perturbation=perturbation`: every request frame (the robot asks every 5 steps)
    explained, with camera and prompt reliance, the named block's box carried for the nuisance mass;
-3. the views of each map kind (`datasets.views.compute_views`, what `stats --format json` prints).
+3. the views of each map kind (`maps.views.compute_views`, what `stats --format json` prints).
 
 Printed as markdown: success per perturbation with Wilson intervals; per map kind, each episode figure's ROC AUC for
 finding the failures (whole episodes, with the episode length beside it, and from each episode's first request
@@ -36,10 +36,10 @@ from PIL import Image
 
 from openpi_cam import cli
 from openpi_cam.cam.outcomes import roc_auc, wilson_interval
-from openpi_cam.datasets.maps_dataset import EPISODE_SUCCESS, MapsDataset, is_maps_dataset, open_maps_dataset
-from openpi_cam.datasets.views import DatasetViews, compute_views, displayable, normalised
-from openpi_cam.demo.quality import EPISODES_FILE
-from openpi_cam.policies.model_spec import BUNDLED_CONFIGS
+from openpi_cam.checkpoints.model_spec import BUNDLED_CONFIGS
+from openpi_cam.demo.recorded import recorded_episodes_file
+from openpi_cam.maps.dataset import EPISODE_SUCCESS, MapsDataset, is_maps_dataset, open_maps_dataset
+from openpi_cam.maps.views import DatasetViews, compute_views, displayable, normalised
 
 PERTURB = ("clean", "distractors=2", "hue=45", "shift=32", "dim=0.3", "absent")
 # Meta-World's strengths, chosen (8 episodes each) so that the policy fails some of the time: hue 30 and 60 gave 8/8
@@ -224,7 +224,7 @@ def main() -> None:
         source, maps = args.out / f"{model}.lerobot", args.out / f"{model}.maps"
         record(model, source, args.per_perturbation)
         seconds[model] = explain(model, source, maps)
-        rollouts[model] = json.loads((source / "meta" / EPISODES_FILE).read_text())
+        rollouts[model] = json.loads(recorded_episodes_file(source).read_text())
         ds = open_maps_dataset(maps)
         table = ds.table(columns=["episode_index", "extra/perturbation"]).to_pydict()
         perturbation_of[model] = {

@@ -228,7 +228,7 @@ def tiny_droid_policy(tiny_policy_files: TinyPolicyFiles):
 
 @pytest.fixture(scope="session")
 def demo_policy():
-    from openpi_cam.policies.model_spec import create_demo_policy
+    from openpi_cam.checkpoints.model_spec import create_demo_policy
 
     return create_demo_policy()
 
@@ -237,7 +237,7 @@ def demo_policy():
 def demo_pi05_policy():
     """The bundled pi0.5 (float32), one per test module: it draws its noise from the policy's own rng stream, which
     each module then starts afresh."""
-    from openpi_cam.policies.model_spec import create_demo_policy
+    from openpi_cam.checkpoints.model_spec import create_demo_policy
 
     return create_demo_policy(model="pi05")
 
@@ -258,8 +258,8 @@ def demo_observations(demo_policy) -> list[dict[str, Any]]:
 def demo_pi05_lerobot(tmp_path_factory) -> Path:
     """The bundled pi0.5 exported as a LeRobot policy folder (`openpi-cam export --to lerobot --config
     demo_reach_pi05`): a LeRobot checkpoint that has learned the demo task, with the demo datasets' feature names."""
+    from openpi_cam.checkpoints.model_spec import ModelSpec
     from openpi_cam.cli import export
-    from openpi_cam.policies.model_spec import ModelSpec
 
     out = tmp_path_factory.mktemp("lerobot") / "demo_pi05"
     assert export.main(out, ModelSpec(config="demo_reach_pi05")) == 0

@@ -69,14 +69,16 @@ def test_render_refuses_episodes_for_a_run(tmp_path, capsys):
         ["explain-dataset", str(DATASET), "--every", "2", "--episodes", "99", "--no-progress"],
         ["faithfulness", "NO_SUCH_RUN", "--json-out", "x.json"],
         ["serve", "--cam-every-k", "1", "--checkpoint-dir", "NO_SUCH_CHECKPOINT", "--no-warm-up"],
+        ["serve", "--cam.drain-timeout", "3", "--checkpoint-dir", "NO_SUCH_CHECKPOINT", "--no-warm-up"],
         ["cam-index", "NO_SUCH_RUN"],
         ["render", "NO_SUCH_RUN", "--map", "ig"],
         ["stats", "NO_SUCH_RUN", "--map", "ig"],
     ],
 )
 def test_earlier_spellings_still_parse(args, capsys):
-    """`--limit`, `--every`, `--json-out`, `--cam-every-k`, `--map` and `cam-index` are kept for scripts: each parses
-    and the command fails only later, on the missing input (not exit 2, what a flag tyro refuses gives)."""
+    """`--limit`, `--every`, `--json-out`, `--cam-every-k`, `--cam.drain-timeout` (now `serve --drain-timeout`), `--map`
+    and `cam-index` are kept for scripts: each parses and the command fails only later, on the missing input (not exit
+    2, what a flag tyro refuses gives)."""
     with pytest.raises((SystemExit, FileNotFoundError)) as failed:
         cli.main(args)
     assert not (isinstance(failed.value, SystemExit) and failed.value.code == 2)

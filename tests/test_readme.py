@@ -27,7 +27,7 @@ from client_env import run_client
 from paths import GOLDEN_DIR, REPO_ROOT, SHARED_DIR
 from serve_process import free_port, stop, wait_healthy
 
-from openpi_cam.datasets.lerobot import open_dataset
+from openpi_cam.lerobot.dataset import open_dataset
 
 README = REPO_ROOT / "README.md"
 BIN = Path(sys.prefix) / "bin"

@@ -30,6 +30,16 @@ def unit_to_uint8(images: np.ndarray) -> np.ndarray:
     return np.clip(np.round(np.asarray(images, np.float32) * 255.0), 0, 255).astype(np.uint8)
 
 
+def client_frame_uint8(image: np.ndarray) -> np.ndarray:
+    """A client image as uint8 HWC RGB: clients may send [3, H, W] and float images in [0, 1] (as upstream accepts)."""
+    x = np.asarray(image)
+    if x.ndim == 3 and x.shape[0] == 3 and x.shape[-1] != 3:
+        x = np.moveaxis(x, 0, -1)
+    if x.dtype != np.uint8:
+        x = unit_to_uint8(x)
+    return np.ascontiguousarray(x)
+
+
 def resize_with_pad(images: jax.Array | np.ndarray, height: int, width: int) -> jax.Array:
     """Letterbox ``[..., H, W, C]`` images to ``[..., height, width, C]`` with ``jax.image.resize`` (linear).
 

@@ -74,13 +74,18 @@ class MapOptions:
 
 # The maps the model layer computes. gradcam: Grad-CAM as the founding spec defines it; gradnorm: the per-token
 # gradient norm from the same backward pass; ig: integrated gradients from the baseline frame's tokens; occlusion:
-# the score's drop when a region is painted with the baseline frame and the model re-run.
-MapKind = Literal["gradcam", "gradnorm", "ig", "occlusion"]
+# the score's drop when a region is painted with the baseline frame and the model re-run; lrp: AttnLRP relevance,
+# propagated through the language model and SigLIP to the pixels by one modified backward pass (`model.lrp`).
+MapKind = Literal["gradcam", "gradnorm", "ig", "occlusion", "lrp"]
 MAP_KINDS: tuple[MapKind, ...] = get_args(MapKind)
 GRADIENT_KINDS: tuple[MapKind, ...] = ("gradcam", "gradnorm")  # one backward pass per explained score gives both
 BASELINE_KINDS: tuple[MapKind, ...] = ("ig", "occlusion")  # compare the frame with a baseline frame
+RELEVANCE_KINDS: tuple[MapKind, ...] = ("lrp",)  # one backward pass of their own per score, with modified rules
 # What a live side channel computes unless told otherwise: the kinds at the cost of one backward pass.
 DEFAULT_KINDS: tuple[MapKind, ...] = GRADIENT_KINDS
+# What the offline commands (`explain-run`, `explain-dataset`) and the demo compute unless told otherwise: the kinds
+# their reports compare. `lrp` is asked for by name until a bench measures it against them.
+COMPARED_KINDS: tuple[MapKind, ...] = (*GRADIENT_KINDS, *BASELINE_KINDS)
 # What render, the reports and the demo draw unless told otherwise: the map that measured most faithful on the demo
 # models at the cost of one backward pass (docs/MAP_KINDS.md, "Which map to trust").
 DEFAULT_MAP_KIND: MapKind = "gradnorm"
@@ -123,6 +128,13 @@ MAP_KIND_INFO: dict[MapKind, KindInfo] = {
         "re-run. It is the interventional reference the other kinds are scored against, exact for one region at a "
         "time.",
     ),
+    "lrp": KindInfo(
+        "lrp/",
+        "AttnLRP relevance (signed)",
+        "AttnLRP relevance: the explained score propagated back through the language model and SigLIP to the pixels "
+        "with rules that conserve it (one modified backward pass), summed per patch: signed (positive supports the "
+        "score). The relevance of a step adds up to its score less what biases and softmaxes absorb.",
+    ),
 }
 
 
@@ -152,6 +164,9 @@ DEFAULT_TARGETS: dict[str, Target] = {"pi0_fast": "action-token", "pi0": "chunk"
 # Which camera frames are stored beside the maps: the client's (raw), the model's input (model), both or none.
 SaveFrames = Literal["none", "raw", "model", "both"]
 SAVE_FRAMES: tuple[str, ...] = ("none", "raw", "model", "both")
+# Observation keys with this prefix are not passed to the policy; their values are recorded beside what was served
+# (the step's `extra` metadata, a recorded frame's features: e.g. the demo's ground-truth target box).
+EXTRA_PREFIX = "cam_extra/"
 
 # Random single patches of each explained step's spot check (`cam.spot_check`): with each kind's top patch and the
 # unpainted score, 1 + kinds + 4 re-runs per camera in one call.

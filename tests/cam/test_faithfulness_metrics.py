@@ -143,3 +143,13 @@ def test_box_cells_pointing_and_mass():
     # A stack is averaged over tokens before pointing.
     stack = np.stack([m, np.where(cells, 10.0, 0.0)])
     assert fm.pointing_hit(stack, cells)
+
+
+def test_a_hidden_target_is_not_scored():
+    """Simulators send an empty box (zeros) for a target out of view or fully occluded: no patch can hold it, so the
+    step gives no pointing figure rather than a miss at chance 0."""
+    assert fm.client_box_cells((0, 0, 0, 0), None, (4, 4), (64, 64)) is None
+    assert fm.client_box_cells((10, 10, 10, 30), None, (4, 4), (64, 64)) is None  # zero width
+    visible = fm.client_box_cells((20, 0, 32, 17), None, (4, 4), (64, 64))
+    assert visible is not None and visible.sum() == 2
+    assert not fm.box_visible((5, 5, 5, 5)) and fm.box_visible((5, 5, 6, 6))

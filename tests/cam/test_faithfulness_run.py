@@ -43,7 +43,7 @@ def _logged_run(tmp_path, policy, target, save_frames="model", seeds=SEEDS, maps
     actions = [policy.infer(policy_part(o))["actions"] for o in observations]
     assert_pairwise_different(actions)  # the steps are distinct inferences, so a mixed-up replay would show
     options = CAMOptions(
-        every_k=1, cam_dir=tmp_path, save_frames=save_frames, target=target, maps=maps, queue_size=16, **request
+        every_k=1, dir=tmp_path, save_frames=save_frames, target=target, maps=maps, queue_size=16, **request
     )
     family = "pi05" if policy.explainer.targets == ("action", "chunk") else "pi0_fast"
     wrapped = wrap_policy_with_cam(policy, options, run_config={"config": demo_reach.DEMO_CONFIGS[family].name})

@@ -40,13 +40,13 @@ from openpi_cam.cam.offline import (
 )
 from openpi_cam.cam.run_format import IMAGE_INPUT, StepRecord, load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
+from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.cli import explain_run
 from openpi_cam.cli.options import ExplainFlags
 from openpi_cam.errors import BadFile
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import ExplainSkipped, Explanation
 from openpi_cam.policies.libero import make_libero_example
-from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.serving import RequestContext
 from openpi_cam.vocabulary import ExplainOptions
 
@@ -233,7 +233,7 @@ def test_explain_command_exit_codes_follow_the_replay_check(demo_policy, tmp_pat
 def test_explained_steps_have_the_side_channel_layout(demo_policy, tmp_path):
     """An offline step carries exactly the fields a live side-channel step carries, with the same values."""
     obs = demo_obs(7)
-    cam = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, cam_dir=tmp_path / "live", save_frames="both"))
+    cam = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, dir=tmp_path / "live", save_frames="both"))
     cam.infer(obs, RequestContext("c0", 0))
     cam.close(timeout=None)
     live = load_run(cam.run_dir).steps[0]
@@ -384,7 +384,7 @@ _DATA_PARALLEL = textwrap.dedent(
     from cam_support import demo_obs, policy_part
     from openpi_cam.cam.batching import data_mesh, explain_traces, shard_batch
     from openpi_cam.model.observation import stack_observations
-    from openpi_cam.policies import model_spec
+    from openpi_cam.checkpoints import model_spec
     from openpi_cam.vocabulary import ExplainOptions
 
     policy = model_spec.create_demo_policy()
@@ -444,7 +444,7 @@ def test_data_parallel_over_two_host_devices_matches_one_device(tmp_path):
 
 def _served_run(policy: Any, observations: list[dict], cam_dir: pathlib.Path, run_config: dict) -> pathlib.Path:
     """A run the side channel wrote while serving `observations` (raw frames kept), with their responses."""
-    cam = wrap_policy_with_cam(policy, CAMOptions(every_k=1, cam_dir=cam_dir, save_frames="both", maps=("gradnorm",),
+    cam = wrap_policy_with_cam(policy, CAMOptions(every_k=1, dir=cam_dir, save_frames="both", maps=("gradnorm",),
                                                   check_patches=0), run_config=run_config)  # fmt: skip
     actions = [cam.infer(obs, RequestContext("robot", i))["actions"] for i, obs in enumerate(observations)]
     cam.close(timeout=None)

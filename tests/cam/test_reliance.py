@@ -81,7 +81,7 @@ def test_explain_batch_measures_reliance_only_with_the_policy_that_served(demo_p
 
 
 def test_the_side_channel_stores_reliance_per_step_and_stats_reads_it(tmp_path, demo_policy, capsys):
-    options = CAMOptions(every_k=1, cam_dir=tmp_path, save_frames="none", maps=("gradnorm",), reliance=True)
+    options = CAMOptions(every_k=1, dir=tmp_path, save_frames="none", maps=("gradnorm",), reliance=True)
     wrapped = wrap_policy_with_cam(demo_policy, options)
     observations = [policy_part(demo_obs(seed)) for seed in (6, 7)]
     for obs in observations:

@@ -27,7 +27,7 @@ REPLAY_ATOL = 1e-4
 def _run(tmp_path, policy, target="chunk", **options):
     observations = [demo_obs(s) for s in SEEDS]
     assert_pairwise_different([policy.infer(policy_part(o))["actions"] for o in observations])
-    opts = CAMOptions(every_k=1, cam_dir=tmp_path, target=target, queue_size=16, **options)
+    opts = CAMOptions(every_k=1, dir=tmp_path, target=target, queue_size=16, **options)
     wrapped = wrap_policy_with_cam(policy, opts, run_config={"config": "demo_reach"})
     try:
         for obs in observations:

@@ -11,9 +11,9 @@ from paths import LEROBOT_DIR
 from shared_copies import writable_copy
 
 from openpi_cam.cam.faithfulness import box_cells, pointing_chance, pointing_hit
-from openpi_cam.datasets import maps_dataset as fmt
-from openpi_cam.datasets.explain import DatasetJob, dataset_keys
-from openpi_cam.policies.model_spec import ModelSpec
+from openpi_cam.checkpoints.model_spec import ModelSpec
+from openpi_cam.maps import dataset as fmt
+from openpi_cam.maps.explain import DatasetJob, dataset_keys
 from openpi_cam.vocabulary import ExplainOptions
 
 # The demo datasets' client images, which the boxes of `extra/target_box` are given in.

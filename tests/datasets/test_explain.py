@@ -26,11 +26,11 @@ from paths import LEROBOT_DIR, REPO_ROOT
 from shared_copies import edit_json, writable_copy
 
 from openpi_cam import cli
-from openpi_cam.datasets import maps_dataset as fmt
-from openpi_cam.datasets.explain import DatasetJob, dataset_keys, run_local
-from openpi_cam.datasets.lerobot import DatasetError, open_dataset, parse_episodes
-from openpi_cam.policies import model_spec
-from openpi_cam.policies.model_spec import ModelSpec
+from openpi_cam.checkpoints import model_spec
+from openpi_cam.checkpoints.model_spec import ModelSpec
+from openpi_cam.lerobot.dataset import DatasetError, open_dataset, parse_episodes
+from openpi_cam.maps import dataset as fmt
+from openpi_cam.maps.explain import DatasetJob, dataset_keys, run_local
 from openpi_cam.vocabulary import ExplainOptions
 
 DATASETS = ("demo_reach_v30_video", "demo_reach_v30_image", "demo_reach_v21_video")
@@ -283,7 +283,7 @@ def test_faithfulness_of_a_maps_dataset_serves_its_frames_again(explained, tmp_p
 
 
 def test_flow_matching_families_refuse_dataset_actions(tmp_path):
-    from openpi_cam.datasets.explain import EpisodeExplainer
+    from openpi_cam.maps.explain import EpisodeExplainer
 
     options = ExplainOptions(target="chunk", maps=KINDS)
     model = ModelSpec(config="demo_reach_pi05")

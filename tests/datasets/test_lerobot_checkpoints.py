@@ -10,10 +10,10 @@ from datasets_support import pointing
 from paths import LEROBOT_DIR
 from shared_copies import edit_json, writable_copy
 
+from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.cli import explain_dataset
 from openpi_cam.cli.options import ExplainFlags
-from openpi_cam.datasets import maps_dataset as fmt
-from openpi_cam.policies.model_spec import ModelSpec
+from openpi_cam.maps import dataset as fmt
 
 SOURCE = LEROBOT_DIR / "demo_reach_v30_image"  # lossless frames: the two models see the same pixels
 FLAGS = ExplainFlags(maps=("gradnorm",), check_patches=0)
@@ -80,7 +80,7 @@ def test_what_a_ray_driver_plans_with_is_what_the_loaded_policy_says(demo_pi05_l
 
 def test_views_of_a_policy_with_a_blank_camera(explained):
     """A LeRobot folder's `empty_cameras` are masked: no frame of theirs has a map, and the views still hold."""
-    from openpi_cam.datasets.views import compute_views
+    from openpi_cam.maps.views import compute_views
 
     summary = compute_views(explained["lerobot"], "gradnorm").summary()
     cameras = summary["cameras"]

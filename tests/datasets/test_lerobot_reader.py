@@ -18,7 +18,7 @@ from one_line import assert_one_line
 from paths import LEROBOT_DIR
 from shared_copies import edit_json, writable_copy
 
-from openpi_cam.datasets.lerobot import DatasetError, LeRobotDataset, open_dataset
+from openpi_cam.lerobot.dataset import DatasetError, LeRobotDataset, open_dataset
 
 DATASETS = ("demo_reach_v30_video", "demo_reach_v30_image", "demo_reach_v21_video")
 V30_VIDEO, V30_IMAGE, V21_VIDEO = DATASETS

@@ -16,9 +16,10 @@ from one_line import assert_one_line
 from paths import LEROBOT_DIR
 from PIL import Image
 
-from openpi_cam.datasets import lerobot_writer
-from openpi_cam.datasets.lerobot import DatasetError, LeRobotDataset, open_dataset
-from openpi_cam.datasets.lerobot_writer import OUTCOME_FEATURES, DatasetWriter, Feature, create_dataset
+from openpi_cam.lerobot import writer as lerobot_writer
+from openpi_cam.lerobot.dataset import DatasetError, LeRobotDataset, open_dataset
+from openpi_cam.lerobot.video import VideoOptions
+from openpi_cam.lerobot.writer import OUTCOME_FEATURES, DatasetWriter, Feature, create_dataset
 
 RECORDED = LEROBOT_DIR / "demo_reach_v30_image"  # LeRobot 0.6.1's recording, cameras as lossless PNG
 RECORDED_VIDEO = LEROBOT_DIR / "demo_reach_v30_video"  # the same frames recorded as AV1 video
@@ -460,7 +461,5 @@ def test_episodes_and_writers_refuse_what_they_cannot_write(tmp_path):
             create_dataset(tmp_path / f"bad{i}", fps=FPS, features=features)
         assert_one_line(error.value, str(tmp_path / f"bad{i}"), *parts)
     with pytest.raises(DatasetError) as error:
-        create_dataset(
-            tmp_path / "codec", fps=FPS, features=MIXED, video=lerobot_writer.VideoOptions(codec="no-such-codec")
-        )
+        create_dataset(tmp_path / "codec", fps=FPS, features=MIXED, video=VideoOptions(codec="no-such-codec"))
     assert_one_line(error.value, "'no-such-codec'")

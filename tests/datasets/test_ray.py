@@ -25,14 +25,14 @@ import pytest
 from datasets_support import model_job, truncated_video_copy
 from paths import LEROBOT_DIR
 
-from openpi_cam.datasets import maps_dataset as fmt
-from openpi_cam.datasets.explain import DatasetJob, run_local
-from openpi_cam.datasets.lerobot import DatasetError, open_dataset
-from openpi_cam.policies.model_spec import ModelSpec
+from openpi_cam.checkpoints.model_spec import ModelSpec
+from openpi_cam.lerobot.dataset import DatasetError, open_dataset
+from openpi_cam.maps import dataset as fmt
+from openpi_cam.maps.explain import DatasetJob, run_local
 from openpi_cam.vocabulary import ExplainOptions
 
 ray = pytest.importorskip("ray")  # the `ray` extra, in `dev`: under CI=true a skip fails
-from openpi_cam.datasets.ray_engine import EPISODE_RECORD, run_ray  # noqa: E402
+from openpi_cam.maps.ray_engine import EPISODE_RECORD, run_ray  # noqa: E402
 
 SOURCE = LEROBOT_DIR / "demo_reach_v30_video"
 # Five episodes of 4 to 8 frames (27 frames): when the first shard appears, four are still to do, so that there is an
@@ -49,7 +49,7 @@ WORKERS = 2
 # count could change, far below any difference between two frames' maps.
 RTOL = 1e-6
 JOB_TIMEOUT_S = 900
-ENGINE_LOG = "openpi_cam.datasets.ray_engine"
+ENGINE_LOG = "openpi_cam.maps.ray_engine"
 
 
 def _job(out, source=SOURCE, episodes=EPISODES) -> DatasetJob:

@@ -12,19 +12,21 @@ from datasets_support import model_job
 
 from openpi_cam import cli
 from openpi_cam.cam.run_format import Reliance
-from openpi_cam.datasets import maps_dataset as fmt
-from openpi_cam.datasets.explain import run_local
-from openpi_cam.datasets.lerobot import DatasetError, open_dataset
-from openpi_cam.datasets.maps_dataset import open_maps_dataset
-from openpi_cam.datasets.rollouts import RolloutRecorder
-from openpi_cam.datasets.views import GROUP, GROUP_NAMES_FILE, TARGET_BOX, compute_views, group_names, normalised
 from openpi_cam.demo import perturb, quality
-from openpi_cam.demo.bundled import PERTURBATION_FEATURE
+from openpi_cam.demo.recorded import PERTURBATION_FEATURE, perturbation_names, recorded_episodes_file
 from openpi_cam.demo.run import ROLLOUT_FPS, DemoOptions, run_demo
+from openpi_cam.lerobot.dataset import DatasetError, open_dataset
+from openpi_cam.lerobot.rollouts import RolloutRecorder
+from openpi_cam.maps import dataset as fmt
+from openpi_cam.maps.dataset import open_maps_dataset
+from openpi_cam.maps.explain import run_local
+from openpi_cam.maps.views import TARGET_BOX, ViewOptions, compute_views, normalised
 from openpi_cam.policies import demo_reach
 from openpi_cam.vocabulary import ExplainOptions
 
 PERTURB = ("clean", "absent")
+# The carried name of each frame's perturbation: the condition `stats` and `render` set episodes side by side by.
+GROUP = PERTURBATION_FEATURE
 # AV1 at LeRobot's crf 30 on these 64 px frames: a mean error of 1.5 to 6 of 255 per frame (check_lerobot_reads.py)
 CODEC_MEAN_ERROR = 8.0
 
@@ -191,7 +193,7 @@ def test_stats_show_failures_beside_successes_and_how_well_each_figure_finds_the
 def test_each_perturbation_sets_its_failures_beside_its_successes_with_their_mean_maps(recorded, explained, tmp_path):
     _, result = recorded
     ds = open_maps_dataset(explained)
-    views = compute_views(ds, "gradnorm")
+    views = compute_views(ds, "gradnorm", ViewOptions(group=GROUP))
     table = ds.table(columns=["episode_index", "episode_success"]).to_pydict()
     episode, success = np.array(table["episode_index"]), np.array(table["episode_success"])
     maps = normalised(ds.maps("gradnorm", "base_0_rgb"))[0]
@@ -214,9 +216,9 @@ def test_each_perturbation_sets_its_failures_beside_its_successes_with_their_mea
     for g in views.groups:
         assert f"{GROUP} {g[GROUP]}: {g['successes']}/{g['episodes']} episodes succeeded" in html
     listed = tmp_path / "listed"
-    (listed / GROUP_NAMES_FILE).parent.mkdir(parents=True)
-    (listed / GROUP_NAMES_FILE).write_text(json.dumps({"perturbations": list(PERTURB)}))
-    assert group_names(str(listed)) == list(PERTURB) and group_names(str(tmp_path / "absent")) == []
+    recorded_episodes_file(listed).parent.mkdir(parents=True)
+    recorded_episodes_file(listed).write_text(json.dumps({"perturbations": list(PERTURB)}))
+    assert perturbation_names(listed) == list(PERTURB) and perturbation_names(tmp_path / "absent") == []
 
 
 def _pair_auc(failed: dict[int, bool], values: dict[int, float]) -> float:

@@ -20,13 +20,13 @@ from datasets_support import model_job
 from paths import LEROBOT_DIR
 
 from openpi_cam import cli
-from openpi_cam.datasets import maps_dataset as fmt
-from openpi_cam.datasets.explain import run_local
-from openpi_cam.datasets.frames import aligned_frames, episode_rows, video_fps
-from openpi_cam.datasets.lerobot import open_dataset
-from openpi_cam.datasets.maps_dataset import open_maps_dataset
-from openpi_cam.datasets.render import DatasetRenderOptions, episode_frame
-from openpi_cam.datasets.views import compute_views, flag_hot, hot_rates, in_top_k, prior_fit, top_k
+from openpi_cam.lerobot.dataset import open_dataset
+from openpi_cam.maps import dataset as fmt
+from openpi_cam.maps.dataset import open_maps_dataset
+from openpi_cam.maps.explain import run_local
+from openpi_cam.maps.frames import aligned_frames, episode_rows, video_fps
+from openpi_cam.maps.render import DatasetRenderOptions, episode_frame
+from openpi_cam.maps.views import compute_views, flag_hot, hot_rates, in_top_k, prior_fit, top_k
 from openpi_cam.viz.colormap import colorize
 from openpi_cam.viz.overlay import upsample
 from openpi_cam.vocabulary import ExplainOptions

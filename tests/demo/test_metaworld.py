@@ -11,15 +11,15 @@ import pytest
 
 from openpi_cam import cli
 from openpi_cam.cam.run_format import load_run
+from openpi_cam.checkpoints.model_spec import create_demo_policy
 from openpi_cam.cli import train_demo
 from openpi_cam.cli.demo import main as demo_main
 from openpi_cam.cli.train_demo import RecordArgs, read_demonstrations, record_expert
-from openpi_cam.datasets.lerobot import open_dataset
 from openpi_cam.demo import bundled, metaworld_data, metaworld_sim, quality, train
 from openpi_cam.demo.metaworld_sim import MetaWorldSim, Perturbation
 from openpi_cam.demo.run import DemoOptions, run_demo
+from openpi_cam.lerobot.dataset import open_dataset
 from openpi_cam.policies import demo_metaworld, demo_reach
-from openpi_cam.policies.model_spec import create_demo_policy
 
 pytest.importorskip("metaworld", reason='the Meta-World demo needs pip install -e ".[metaworld]"')
 
@@ -147,18 +147,21 @@ def test_the_bundled_model_presses_the_button_served_with_the_side_channel(tmp_p
 
 @pytest.mark.slow
 def test_the_training_command_records_the_expert_as_lerobot_and_trains_a_servable_model(tmp_path):
-    """`python -m openpi_cam.cli.train_demo --sim metaworld` at toy size: the expert's episodes recorded as a LeRobot
-    v3.0 dataset, read back frame for frame as the expert produced them, and a model trained on them that serves."""
+    """`python -m openpi_cam.cli.train_demo --sim metaworld-button` at toy size: the expert's episodes recorded as a
+    LeRobot v3.0 dataset, read back frame for frame as the expert produced them, and a model trained on them that
+    serves."""
     data, out = tmp_path / "expert", tmp_path / "model"
-    record_expert(data, RecordArgs(episodes=2, seed=7, clean_every=2))
+    record_expert(
+        data, RecordArgs(episodes=2, tasks=(metaworld_sim.TASK,), seed=7, clean_every=2, image_size=64, phrasings=1)
+    )
     steps = [s for e in range(2) for s in metaworld_data.expert_episode(7 + e, 0.3 * (e % 2))]
     demos = read_demonstrations(data)
     assert len(demos) == len(steps) and list(np.unique(demos.episode_index)) == [0, 1]
     np.testing.assert_array_equal(demos.actions, np.stack([s.frame[metaworld_data.ACTION_FEATURE] for s in steps]))
     np.testing.assert_array_equal(demos.base_image, np.stack([s.frame[metaworld_data.BASE_FEATURE] for s in steps]))
     assert set(demos.prompt) == {"press the button"}
-    args = train.TrainArgs(out=out, steps=2, batch_size=4, log_every=1, eval_episodes=0)
-    assert train_demo.main(args, sim="metaworld", data=data) == 0
+    args = train.TrainArgs(model="pi05", out=out, steps=2, batch_size=4, log_every=1, eval_episodes=0)
+    assert train_demo.main(args, sim="metaworld-button", data=data) == 0
     policy = create_demo_policy("metaworld", assets=out)
     with MetaWorldSim(0) as sim:
         obs = bundled.policy_input(bundled.client_observation(sim.frame()))

@@ -21,12 +21,12 @@ from paths import GOLDEN_DIR
 from scipy import ndimage
 
 from openpi_cam import golden, vocabulary
+from openpi_cam.checkpoints.model_spec import create_demo_policy
 from openpi_cam.demo import bundled, task
 from openpi_cam.model import attribution, baseline_maps
 from openpi_cam.model import pi0_fast_maps as maps
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.pi0_fast import Pi0FAST
-from openpi_cam.policies.model_spec import create_demo_policy
 from openpi_cam.vocabulary import MapOptions
 
 TINY = GOLDEN_DIR / "tiny_pi0_fast"

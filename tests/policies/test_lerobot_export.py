@@ -23,14 +23,16 @@ from paths import GOLDEN_DIR
 from safetensors.numpy import load_file
 
 from openpi_cam import golden
+from openpi_cam.checkpoints import model_spec
+from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.cli import export as export_cli
+from openpi_cam.lerobot.export import export_lerobot
+from openpi_cam.lerobot.policy import create_lerobot_policy
 from openpi_cam.model.safetensors_weights import read_tensor_infos
 from openpi_cam.normalize import load_checkpoint_norm_stats, save_norm_stats
-from openpi_cam.policies import demo_reach, model_spec
+from openpi_cam.policies import demo_reach
 from openpi_cam.policies.checkpoint_format import checkpoint_format
 from openpi_cam.policies.config import PolicyConfig
-from openpi_cam.policies.lerobot_export import export_lerobot
-from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.policies.policy import create_policy
 from openpi_cam.policies.robot import GenericInputs, GenericOutputs
 
@@ -101,7 +103,7 @@ def test_the_demo_pi05_round_trips_through_a_lerobot_folder(tmp_path):
     config = json.loads((out / "config.json").read_text())
     assert (config["type"], config["empty_cameras"], config["chunk_size"]) == ("pi05", 1, demo_reach.ACTION_HORIZON)
     assert list(config["input_features"])[:2] == ["observation.images.base", "observation.images.wrist"]
-    back = create_policy(None, out, dtype="float32")
+    back = create_lerobot_policy(out, dtype="float32")
     original = model_spec.create_demo_policy("pi05", dtype="float32")
     assert_round_trip(original, back, demo_frames(4), demo_reach.LEROBOT_KEYS)
 
@@ -143,7 +145,7 @@ def test_a_pi0_round_trips_with_its_mean_std_statistics_and_newline_prompt(tmp_p
     assert json.loads((out / "config.json").read_text())["normalization_mapping"]["STATE"] == "MEAN_STD"
     kwargs = {"paligemma_tokenizer": LIBERO / "paligemma_tokenizer_tiny.model", "dtype": "float32"}
     original = create_policy(PI0_GENERIC, LIBERO / "checkpoint", **kwargs)
-    back = create_policy(None, out, dtype="float32")
+    back = create_lerobot_policy(out, dtype="float32")
     prompt = json.loads((LIBERO / "case.json").read_text())["cases"]["case_1"]["prompt"]
     with np.load(LIBERO / "case_1.npz") as npz:
         obs = {"observation/" + k[len("raw/") :]: npz[k] for k in npz.files if k.startswith("raw/")} | {

@@ -24,14 +24,15 @@ from safetensors_edit import edit_safetensors, read_tensor
 from shared_copies import edit_json, writable_copy
 
 from openpi_cam import golden
+from openpi_cam.checkpoints.model_spec import BundledModel, LeRobotFolder, ModelSpec, OpenPICheckpoint
 from openpi_cam.cli import golden as cli_golden
 from openpi_cam.errors import InvalidRequest
+from openpi_cam.lerobot.golden import run_lerobot_golden
+from openpi_cam.lerobot.policy import LeRobotConfig, Normalizer, PolicyFeature, create_lerobot_policy
 from openpi_cam.letterbox import letterbox_geometry
 from openpi_cam.model.pi0 import Pi0
 from openpi_cam.model.safetensors_weights import save_safetensors_params
-from openpi_cam.policies.checkpoint_format import checkpoint_format
-from openpi_cam.policies.golden_policy import run_lerobot_golden
-from openpi_cam.policies.lerobot import Feature, Normalizer, write_sizes_record
+from openpi_cam.policies.checkpoint_format import checkpoint_format, write_sizes_record
 from openpi_cam.policies.policy import create_policy
 from openpi_cam.vocabulary import ExplainOptions
 
@@ -43,7 +44,7 @@ Q_PROJ = "model.paligemma_with_expert.paligemma.model.language_model.layers.1.se
 
 
 def policy_of(folder: Path, **kwargs):
-    return create_policy(None, folder, dtype="float32", **kwargs)
+    return create_lerobot_policy(folder, dtype="float32", **kwargs)
 
 
 def copy_folder(tmp_path: Path, folder: Path = PI05) -> Path:
@@ -71,7 +72,7 @@ def test_lerobots_pipelines_model_and_gradient_are_reproduced(family):
 
 def test_the_stable_entry_point_serves_the_post_processed_chunk():
     d = cases(PI05)
-    policy = create_policy(None, PI05, paligemma_tokenizer=PI05 / "tokenizer" / "tokenizer.model", dtype="float32")
+    policy = ModelSpec(PI05, paligemma_tokenizer=PI05 / "tokenizer" / "tokenizer.model", dtype="float32").create()
     response = policy.infer(request(d), noise=d["case0/noise"][0])
     want = d["case0/action"][0]
     assert response["actions"].shape == (10, 7)
@@ -141,6 +142,26 @@ def test_formats_are_recognised_in_one_place(tmp_path):
     with pytest.raises(FileNotFoundError) as raised:
         checkpoint_format(tmp_path / "empty")
     assert_one_line(raised.value, "params", "policy_preprocessor.json", "OpenPI PyTorch export")
+
+
+def test_a_model_spec_is_resolved_once_into_its_source(tmp_path, monkeypatch):
+    """No folder is the bundled model, an OpenPI checkpoint keeps the config it is named with (pi0_fast_droid by
+    default), a LeRobot folder's config.json is read once however many questions the spec answers; a LeRobot folder
+    named with a config is refused in one line."""
+    orbax, export = openpi_pytorch_export(tmp_path)
+    bundled = ModelSpec().source
+    assert isinstance(bundled, BundledModel) and bundled.installed and bundled.config == "demo_reach"
+    assert ModelSpec(orbax, "pi05_droid").source == OpenPICheckpoint(orbax.resolve(), "pi05_droid", "orbax")
+    assert ModelSpec(export).source == OpenPICheckpoint(export.resolve(), "pi0_fast_droid", "openpi_pytorch")
+    read, reads = LeRobotConfig.read, []
+    monkeypatch.setattr(LeRobotConfig, "read", lambda path: reads.append(path) or read(path))
+    spec = ModelSpec(PI05)
+    assert isinstance(spec.source, LeRobotFolder) and spec.resolved().dtype == "float32"
+    assert spec.dataset_keys()[0] and spec.facts().family == "pi05" and spec.tokenizers() == (None, None)
+    assert reads == [PI05.resolve() / "config.json"]
+    with pytest.raises(ValueError) as raised:
+        ModelSpec(PI05, "pi05_droid").source  # noqa: B018
+    assert_one_line(raised.value, "LeRobot policy folder", "'pi05_droid'")
 
 
 def test_openpis_pytorch_export_is_served_like_its_orbax_checkpoint(tmp_path):
@@ -213,6 +234,13 @@ def test_an_unknown_processor_step_or_type_is_named(tmp_path):
     with pytest.raises(ValueError) as raised:
         policy_of(folder)
     assert_one_line(raised.value, "'crop_processor'", "not implemented", "policy_preprocessor.json")
+    # a registered step in a pipeline it has no place in (the tokenizer after the model)
+    folder = copy_folder(tmp_path / "post")
+    step = {"registry_name": "tokenizer_processor", "config": {"max_length": 48}}
+    edit_json(folder / "policy_postprocessor.json", lambda d: d["steps"].append(step))
+    with pytest.raises(ValueError) as raised:
+        policy_of(folder)
+    assert_one_line(raised.value, "'tokenizer_processor'", "not implemented", "policy_postprocessor.json")
     for kind, words in (("pi052", ("'pi052'", "not served")), ("pi0_fast", ("pi0-FAST", "Hugging Face Hub"))):
         folder = copy_folder(tmp_path / kind)
         edit_json(folder / "config.json", lambda d, kind=kind: d.update(type=kind))
@@ -282,7 +310,7 @@ def test_every_normalisation_mode_maps_its_statistics_to_the_unit_range_and_back
         "q01": np.asarray([-1.5, -0.5, 0.5, 7.0], np.float32), "q99": np.asarray([1.5, 0.5, 3.0, 7.0], np.float32),
         "q10": np.asarray([-1.0, -0.25, 1.0, 7.0], np.float32), "q90": np.asarray([1.0, 0.25, 3.0, 7.0], np.float32),
     }  # fmt: skip
-    features = {"observation.state": Feature("STATE", (4,)), "action": Feature("ACTION", (4,))}
+    features = {"observation.state": PolicyFeature("STATE", (4,)), "action": PolicyFeature("ACTION", (4,))}
     ranges = {"MIN_MAX": ("min", "max"), "QUANTILES": ("q01", "q99"), "QUANTILE10": ("q10", "q90")}
     for mode in ("MEAN_STD", "MIN_MAX", "QUANTILES", "QUANTILE10", "IDENTITY"):
         modes = {"STATE": mode, "ACTION": mode}

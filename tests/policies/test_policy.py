@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from openpi_cam.checkpoints import model_spec
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.model.checkpoint import save_params
 from openpi_cam.model.config import GemmaConfig, SiglipConfig, param_shapes
@@ -21,7 +22,6 @@ from openpi_cam.policies import (
     PolicyConfig,
     create_policy,
     droid,
-    model_spec,
     register_config,
 )
 from openpi_cam.policies.config import PI0_FAST_DROID, get_config

@@ -19,8 +19,8 @@ from websockets.sync.client import connect
 
 from openpi_cam.cam.run_format import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
+from openpi_cam.checkpoints import model_spec
 from openpi_cam.errors import InvalidRequest
-from openpi_cam.policies import model_spec
 from openpi_cam.policies.policy import batch_bucket
 from openpi_cam.serving import RequestContext, msgpack_numpy
 from openpi_cam.serving.server import start_server_in_thread
@@ -63,7 +63,7 @@ def test_a_bad_request_in_a_batch_gets_its_own_error_and_the_others_their_action
 def test_the_side_channel_passes_a_bad_batch_row_to_the_policy_to_refuse(demo_policy, demo_observations, tmp_path):
     """Through the side channel too, a row that is not an observation gets the policy's named error (not an internal
     one), and the rows around it their own actions and steps."""
-    cam = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, cam_dir=tmp_path))
+    cam = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, dir=tmp_path))
     contexts = [RequestContext(f"conn{i}", 0) for i in range(3)]
     try:
         results = cam.infer_batch([demo_observations[0], 7, demo_observations[1]], contexts)
@@ -97,7 +97,7 @@ def test_flow_matching_batches_keep_each_requests_noise_and_the_rng_stream():
 def test_side_channel_explains_batched_requests_per_connection(demo_policy, demo_observations, tmp_path):
     """Batched rows are explained like single requests: every request of every connection has its step, numbered
     per connection, and each step's generation is that request's own."""
-    cam = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, cam_dir=tmp_path / "runs", queue_size=64))
+    cam = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, dir=tmp_path / "runs", queue_size=64))
     running = start_server_in_thread(cam, batch_window_ms=WINDOW_MS, max_batch=N_CLIENTS)
     try:
         serve_concurrent_clients(running.port, tmp_path, demo_observations)

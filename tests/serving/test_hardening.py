@@ -202,7 +202,7 @@ def _port_refuses(port: int) -> bool:
 
 def test_shutdown_finishes_in_flight_request_then_closes_the_policy(policy, tmp_path):
     gated = GatedPolicy(policy)
-    running = start_server_in_thread(gated, close_timeout=7.5)
+    running = start_server_in_thread(gated, drain_timeout=7.5)
     body = r"""
 policy = connect()
 obs = droid_obs(np.random.RandomState(0), size=(32, 32))

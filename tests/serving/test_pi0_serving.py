@@ -90,7 +90,7 @@ def test_real_client_gets_upstream_stream_actions_with_the_side_channel_off_and_
 
     options = CAMOptions(
         every_k=1,
-        cam_dir=tmp_path / "cam",
+        dir=tmp_path / "cam",
         save_frames="model",
         target="action",
         action_index=2,

@@ -187,8 +187,8 @@ def test_the_concurrency_check_catches_a_server_that_swaps_replies(demo_policy, 
 def test_side_channel_leaves_the_response_bytes_alone(demo_policy, demo_observations, tmp_path):
     """Through the real client, the responses of a server with the side channel off (every_k=0) and on
     (every_k=1) are byte for byte those of plain serving, timings aside."""
-    plain_cam = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=0, cam_dir=tmp_path / "cam_off"))
-    on_cam = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, cam_dir=tmp_path / "cam_on"))
+    plain_cam = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=0, dir=tmp_path / "cam_off"))
+    on_cam = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, dir=tmp_path / "cam_on"))
     results = {}
     for name, served in (("plain", demo_policy), ("off", plain_cam), ("on", on_cam)):
         running = start_server_in_thread(served, close_policy_on_stop=False)

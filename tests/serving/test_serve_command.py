@@ -28,8 +28,9 @@ from serving_support import ROBOT, assert_same_response, run_dirs, stalled_peer
 
 from openpi_cam.cam.batching import explain_traces
 from openpi_cam.cam.run_format import MANIFEST_JSON, load_run, read_json
-from openpi_cam.policies import demo_reach, model_spec
-from openpi_cam.policies.model_spec import ModelSpec
+from openpi_cam.checkpoints import model_spec
+from openpi_cam.checkpoints.model_spec import ModelSpec
+from openpi_cam.policies import demo_reach
 from openpi_cam.serving.server import (
     PEER_TIMEOUT_S,
 )
@@ -104,7 +105,7 @@ def test_serve_with_cam_flags_writes_an_explained_closed_run(demo_observations, 
     cam += ["--cam.per-connection", "4", "--cam.settle-ms", "5", "--cam.check-patches", "2"]
     # The side channel explains in the client's pauses and at shutdown; the first explanation compiles (seconds on a
     # loaded 2-core machine), more than the 5 s default drain of a container stop: this test wants every step.
-    cam += ["--cam.drain-timeout", "120"]
+    cam += ["--drain-timeout", "120"]
     observations = demo_observations[:3]
     with serve_subprocess(tmp_path, *files, *cam) as (proc, port, log_path):
         # Compiled before /healthz answered (tests/cam checks that the first request then compiles nothing).
@@ -159,7 +160,7 @@ def test_sigterm_with_stalled_peers_exits_within_the_deadline_and_closes_the_run
     half of PEER_TIMEOUT_S after the signal (an empty-queue drain takes milliseconds; the first jobs here are drained
     before the signal)."""
     cam_dir = tmp_path / "cam"
-    cam = ["--cam.every-k", "1", "--cam.dir", str(cam_dir), "--cam.drain-timeout", "5"]
+    cam = ["--cam.every-k", "1", "--cam.dir", str(cam_dir), "--drain-timeout", "5"]
     with serve_subprocess(tmp_path, "--dtype", "float32", *cam) as (proc, port, log_path):
         collect(send_observations(port, tmp_path / "client", demo_observations[:2]))
         deadline = time.monotonic() + 120
@@ -189,7 +190,7 @@ def test_sigterm_with_stalled_peers_exits_within_the_deadline_and_closes_the_run
 
 
 def test_sigterm_during_a_long_explanation_exits_cleanly_with_the_run_closed(tiny_policy_files, tmp_path):
-    """An explanation longer than `--cam.drain-timeout` (exhaustive occlusion on the tiny DROID checkpoint's 3 x 256
+    """An explanation longer than `--drain-timeout` (exhaustive occlusion on the tiny DROID checkpoint's 3 x 256
     patches: seconds per step) is still computing when the drain deadline passes. The server writes the closed
     manifest, says so, and exits with 0 without the interpreter's teardown: a teardown under a running XLA computation
     can abort the process ("terminate called after throwing an instance of ..."; seen at the end of a demo run whose
@@ -199,7 +200,7 @@ def test_sigterm_during_a_long_explanation_exits_cleanly_with_the_run_closed(tin
         "--checkpoint-dir", str(tiny_policy_files.checkpoint), "--dtype", "float32",
         "--paligemma-tokenizer", str(tiny_policy_files.paligemma_tokenizer),
         "--fast-tokenizer", str(tiny_policy_files.fast_tokenizer),
-        "--cam.every-k", "1", "--cam.dir", str(cam_dir), "--cam.maps", "occlusion", "--cam.drain-timeout", "0.5",
+        "--cam.every-k", "1", "--cam.dir", str(cam_dir), "--cam.maps", "occlusion", "--drain-timeout", "0.5",
         "--no-warm-up",
     ]  # fmt: skip
     with serve_subprocess(tmp_path, *files) as (proc, port, log_path):
@@ -220,7 +221,7 @@ def test_serve_records_each_connection_as_an_episode_of_a_lerobot_dataset(demo_o
     """`serve --record DIR`: two robots' connections become two episodes of a LeRobot v3.0 dataset, each frame holding
     what its request sent (frames, state, the `cam_extra/` box, the prompt as its task) and the chunk it got; our
     reader opens it (LeRobot's own reader is checked outside CI: benchmarks/check_lerobot_reads.py)."""
-    from openpi_cam.datasets.lerobot import open_dataset
+    from openpi_cam.lerobot.dataset import open_dataset
 
     root = tmp_path / "served"
     boxed = [

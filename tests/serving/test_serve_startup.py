@@ -22,9 +22,10 @@ from serve_process import serve_cmd, serve_subprocess, stop
 
 from openpi_cam.cam.run_format import RUN_JSON, load_run, read_json
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
+from openpi_cam.checkpoints import model_spec
 from openpi_cam.cli import serve
 from openpi_cam.cli.options import ExplainFlags
-from openpi_cam.policies import demo_reach, model_spec
+from openpi_cam.policies import demo_reach
 from openpi_cam.vocabulary import MapOptions
 
 PI05_DEMO = demo_reach.ASSETS_PI05
@@ -156,22 +157,20 @@ def test_side_channel_flags_build_the_options_they_name(tmp_path):
     flags = serve.SideChannelFlags(
         every_k=2, dir=tmp_path, save_frames="both", target="action", action_index="3,1", maps=("ig", "gradnorm"),
         baseline="blur", occlusion_region=2, occlusion_masks=16, ig_space="pixels", check_patches=0, queue_size=3,
-        per_connection=1, settle_ms=2.5, device=0, max_steps=9, max_mb=1.5, drain_timeout=7.0,
-        max_extra_value_kb=2.0, max_extra_kb=4.0,
+        per_connection=1, settle_ms=2.5, device=0, max_steps=9, max_mb=1.5, max_extra_value_kb=2.0, max_extra_kb=4.0,
+        stats_window=50,
     )  # fmt: skip
     options = flags.options()
-    assert (options.every_k, options.cam_dir, options.save_frames, options.target) == (2, tmp_path, "both", "action")
+    assert (options.every_k, options.dir, options.save_frames, options.target) == (2, tmp_path, "both", "action")
     assert (options.action_index, options.action_dim_index, options.maps) == (3, 1, ("ig", "gradnorm"))
     assert options.map_options == MapOptions(
         baseline="blur", occlusion_region=2, occlusion_mode="random", random_masks=16, ig_space="pixels"
     )
     assert (options.check_patches, options.queue_size, options.per_connection, options.settle_ms) == (0, 3, 1, 2.5)
-    assert (options.device, options.max_steps, options.max_bytes, options.drain_timeout) == (0, 9, 1572864, 7.0)
-    assert (options.max_extra_value_bytes, options.max_extra_bytes) == (2048, 4096)
-    # Left alone, the flags give the library's own options, apart from the two the command line decides: off unless
-    # asked, and a drain that fits a container's stop grace period.
-    defaults = dataclasses.replace(serve.SIDE_CHANNEL_OFF.options(), every_k=1, drain_timeout=CAMOptions.drain_timeout)
-    assert defaults == CAMOptions()
+    assert (options.device, options.max_steps, options.max_mb, options.stats_window) == (0, 9, 1.5, 50)
+    assert (options.max_extra_value_kb, options.max_extra_kb) == (2.0, 4.0)
+    # Left alone, the flags give the library's own options: one name, unit and default each.
+    assert serve.SIDE_CHANNEL_OFF.options() == CAMOptions()
     assert flags.options(target="chunk").target == "chunk"  # the served family's resolved target stands in
 
 
@@ -183,7 +182,6 @@ def test_side_channel_flags_build_the_options_they_name(tmp_path):
         (["--cam.occlusion-masks", "-3"], "occlusion_masks must be >= 0"),
         (["--cam.check-patches", "-1"], "check_patches must be >= 0"),
         (["--cam.queue-size", "0"], "queue_size >= 1"),
-        (["--cam.drain-timeout", "-1"], "drain_timeout must be >= 0"),
         (["--cam.maps"], "map kinds must be a non-empty selection"),
     ],
 )
@@ -198,7 +196,7 @@ def test_bad_side_channel_flags_are_refused_as_the_command_line_is_parsed(flags,
 def test_the_side_channel_explains_the_familys_target_unless_told_and_refuses_one_it_cannot(demo_policy, tmp_path):
     """`wrap_policy_with_cam` resolves no target to the family's default (recorded in the run) and refuses a target
     the family cannot explain before creating anything."""
-    wrapped = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, cam_dir=tmp_path / "runs"))
+    wrapped = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, dir=tmp_path / "runs"))
     try:
         assert read_json(wrapped.run_dir / RUN_JSON)["options"]["target"] == "action-token"
     finally:
@@ -206,7 +204,7 @@ def test_the_side_channel_explains_the_familys_target_unless_told_and_refuses_on
     pi05 = model_spec.create_demo_policy(model="pi05")
     assert pi05.explainer.targets == ("action", "chunk") and pi05.explainer.default_target == "chunk"
     with pytest.raises(ValueError, match=r"^action-token: pi0\.5 explains action, chunk$"):
-        wrap_policy_with_cam(pi05, CAMOptions(every_k=1, cam_dir=tmp_path / "refused", target="action-token"))
+        wrap_policy_with_cam(pi05, CAMOptions(every_k=1, dir=tmp_path / "refused", target="action-token"))
     assert not (tmp_path / "refused").exists()
 
 
@@ -228,3 +226,11 @@ def test_serve_refuses_server_limits_it_cannot_serve_with(capsys):
     assert serve.main(max_message_mb=8.0, max_buffered_mb=4.0, warm_up=False) == 2
     err = capsys.readouterr().err
     assert "openpi-cam serve: server limits" in err and "max_buffered_bytes >= max_message_bytes" in err
+
+
+def test_serve_refuses_a_negative_drain_timeout_before_loading_a_model(capsys):
+    """`--drain-timeout` is the server's own flag (it bounds the recorder's drain too, with the side channel off),
+    checked with the other start-up flags, before the model loads (the server's own check would name the server
+    limits)."""
+    assert serve.main(drain_timeout=-1.0, warm_up=False) == 2
+    assert "openpi-cam serve: --drain-timeout must be >= 0, got -1.0" in capsys.readouterr().err

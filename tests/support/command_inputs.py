@@ -22,9 +22,9 @@ def served_run(cam_dir: Path, policy, seeds: tuple[int, ...] = (0, 1)) -> Path:
     frames raw and model-side (replayable by `explain-run`, re-scorable by `faithfulness`), recording the model as
     `serve` records it."""
     from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
-    from openpi_cam.policies.model_spec import ModelSpec
+    from openpi_cam.checkpoints.model_spec import ModelSpec
 
-    options = CAMOptions(every_k=1, cam_dir=cam_dir, save_frames="both", queue_size=16)
+    options = CAMOptions(every_k=1, dir=cam_dir, save_frames="both", queue_size=16)
     run_config = {**ModelSpec().resolved().to_json(), "stop_at_action_end": False}
     wrapped = wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=str(ModelSpec().checkpoint))
     try:

@@ -184,6 +184,13 @@ def null_abs_spearman(maps: Sequence[np.ndarray]) -> np.ndarray:
     return np.abs([spearman(maps[i], maps[(i + 1) % n]) for i in range(n)])
 
 
+def box_visible(box: Sequence[float]) -> bool:
+    """Whether a target box (x0, y0, x1, y1), end exclusive, holds any pixel: simulators send zeros for a target
+    that is out of view or fully occluded."""
+    x0, y0, x1, y1 = (float(v) for v in box)
+    return x1 > x0 and y1 > y0
+
+
 def box_cells(box: Sequence[int], grid: tuple[int, int], image_size: int | tuple[int, int]) -> np.ndarray:
     """bool [Hp, Wp]: the patches sharing at least one pixel with box (x0, y0, x1, y1), end exclusive, for an image
     of `image_size` (side, or (H, W)) pixels cut into the grid."""
@@ -247,8 +254,11 @@ def client_box_cells(
 ) -> np.ndarray | None:
     """The patches of a box (x0, y0, x1, y1) in a client image, on the model frame of size `model_hw` that the
     camera's letterbox `geometry` (`LetterboxGeometry.as_dict`) places it in (its own size, when given); None
-    without either. -> bool [Hp, Wp]"""
+    without either, and None for an empty box (the target is hidden in that frame: a map cannot point at it, so the
+    frame is not scored). -> bool [Hp, Wp]"""
     x0, y0, x1, y1 = (float(v) for v in box)
+    if not box_visible((x0, y0, x1, y1)):
+        return None
     if geometry:  # client pixels -> model pixels through the letterbox
         sx, sy = geometry["resized_w"] / geometry["orig_w"], geometry["resized_h"] / geometry["orig_h"]
         x0, x1 = geometry["pad_left"] + x0 * sx, geometry["pad_left"] + x1 * sx

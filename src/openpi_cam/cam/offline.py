@@ -30,13 +30,13 @@ from jax.sharding import Mesh
 
 from openpi_cam.cam.batching import data_mesh, explain_batch
 from openpi_cam.cam.logger import CAMLogger
-from openpi_cam.cam.records import EXTRA_PREFIX, split_extra, step_record
+from openpi_cam.cam.records import split_extra, step_record
 from openpi_cam.cam.run_format import RUN_JSON, load_run
 from openpi_cam.errors import BadFile, reading
 from openpi_cam.nested import unflatten_dict
 from openpi_cam.policies.family import ExplainSkipped
 from openpi_cam.policies.policy import Policy
-from openpi_cam.vocabulary import ExplainOptions, SaveFrames
+from openpi_cam.vocabulary import EXTRA_PREFIX, ExplainOptions, SaveFrames
 
 log = logging.getLogger(__name__)
 

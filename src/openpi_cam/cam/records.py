@@ -10,16 +10,13 @@ from typing import Any
 import numpy as np
 
 from openpi_cam.cam.run_format import IMAGE_INPUT, CameraMeta, Reliance, SpotCheck, StepMeta, StepRecord
-from openpi_cam.image_tools import unit_to_uint8
+from openpi_cam.checkpoints.model_spec import ModelSpec
+from openpi_cam.image_tools import client_frame_uint8, unit_to_uint8
 from openpi_cam.model.observation import uint8_to_model
 from openpi_cam.policies.family import Explanation
-from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.policies.policy import InferenceTrace
-from openpi_cam.vocabulary import ExplainOptions, SaveFrames
+from openpi_cam.vocabulary import EXTRA_PREFIX, ExplainOptions, SaveFrames
 
-# Observation keys with this prefix are not passed to the policy; their values go into the step's `extra` metadata
-# (e.g. the demo's ground-truth target box).
-EXTRA_PREFIX = "cam_extra/"
 _ARRAY_KEY = re.compile(r"[A-Za-z0-9_.\-/]+")
 
 
@@ -88,16 +85,6 @@ def model_frame_uint8(image: Any) -> np.ndarray:
     """The model's input image ([-1, 1] float, batch row 0) back as uint8 RGB (exact for uint8-derived inputs)."""
     x = np.asarray(image, np.float32)
     return unit_to_uint8(((x[0] if x.ndim == 4 else x) + 1.0) / 2.0)
-
-
-def client_frame_uint8(image: Any) -> np.ndarray:
-    """A client image as uint8 HWC RGB: clients may send [3, H, W] and float images in [0, 1] (as upstream accepts)."""
-    x = np.asarray(image)
-    if x.ndim == 3 and x.shape[0] == 3 and x.shape[-1] != 3:
-        x = np.moveaxis(x, 0, -1)
-    if x.dtype != np.uint8:
-        x = unit_to_uint8(x)
-    return np.ascontiguousarray(x)
 
 
 def model_inputs(trace: InferenceTrace, frames: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -28,14 +28,16 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
+import math
 import pathlib
 import threading
 import time
 from collections.abc import Mapping, Sequence
-from typing import Any, Protocol
+from typing import Annotated, Any, Protocol
 
 import jax
 import numpy as np
+import tyro
 from jax.sharding import Mesh
 
 from openpi_cam.cam.batching import explain_batch
@@ -75,48 +77,57 @@ class TracedPolicy(Resampler, Protocol):
     def close(self, timeout: float | None = None) -> None: ...
 
 
-_EXPLAIN_FIELDS = frozenset(f.name for f in dataclasses.fields(ExplainOptions))
 # How long `close` waits past the drain deadline for the final manifest, which the drain writes after it stops waiting
 # for the worker (a few milliseconds of disk I/O; the bound only guards against a stalled disk).
 MANIFEST_WRITE_S = 5.0
 
 
-@dataclasses.dataclass(frozen=True)
-class CAMOptions(ExplainOptions):
-    """The side channel's settings: the explanation options of every explained step, plus when to explain, where the
-    run goes and how the queue makes room; `openpi-cam serve` builds them from its `--cam.*` flags (`cli.serve`). A
-    `target` of None is the wrapped policy's family's default, resolved when the side channel wraps it."""
+MiB, KiB = 1024 * 1024, 1024
 
-    every_k: int = 1  # explain every k-th inference of each connection (0 = off)
-    cam_dir: str | pathlib.Path = pathlib.Path("cam_runs")  # a new run directory per wrapped policy goes under it
+
+@dataclasses.dataclass(frozen=True)
+class SideChannelSettings:
+    """When the side channel explains, where its run goes and how its queue makes room: what `CAMOptions` adds to the
+    explanation options. `openpi-cam serve` offers each field as the flag `--cam.<field>` (`cli.serve`), with its name,
+    unit, default and the comment above it as its help."""
+
+    # explain every k-th inference of each connection (usually an episode); 0: off. `--cam-every-k` is the spelling of
+    # earlier releases.
+    every_k: Annotated[int, tyro.conf.arg(aliases=("--cam-every-k",))] = 0
+    # a new run directory per wrapped policy (per server start) goes under this folder (an earlier run is never
+    # overwritten).
+    dir: pathlib.Path = pathlib.Path("cam_runs")
+    # which camera frames are stored next to the maps (`model` is what `openpi-cam faithfulness` needs; `raw` and
+    # `both` keep the run re-explainable by `openpi-cam explain`).
     save_frames: SaveFrames = "model"
-    queue_size: int = 8  # pending jobs in all (module docstring: which one a full queue drops)
-    # Pending jobs per connection: a newer job supersedes that connection's oldest (e.g. 1: only the newest waits).
-    # None: no limit of its own, the fair drop at `queue_size` applies (every request is explained when there is room).
+    # pending jobs in all; at the cap the oldest job of the connection holding the most is dropped (module docstring).
+    queue_size: int = 8
+    # pending jobs per connection at most (a newer one supersedes that connection's oldest; e.g. 1: only the newest
+    # waits); default: no such limit, the fair drop at the queue's cap applies.
     per_connection: int | None = None
-    stats_window: int = 1000  # jobs whose timings are kept (`timings()`); `/stats` lag percentiles are over these
-    # The worker starts a phase only once no inference has run for this long: an inference's reply is still being
-    # packed and sent for a few ms after `infer` returns, and the robot would feel an explanation competing with it.
+    # jobs whose timings are kept; `/stats` lag percentiles are over these.
+    stats_window: int = 1000
+    # the worker starts an explanation only this long after the last inference ended: its reply is still being packed
+    # and sent, and the robot would feel an explanation competing with it.
     settle_ms: float = 10.0
-    # Index into `jax.devices()` of a device that explains while the served model keeps its own (e.g. a second GPU):
-    # the explainer's parameters are copied there and explanations no longer wait for inference to pause. None: the
-    # served model's device, shared under the settle rule above.
+    # explain on this device (an index into `jax.devices()`, e.g. 1 for a second GPU), which holds a copy of the
+    # parameters; explanations then run while the served model infers. Default: share the served model's device,
+    # explaining only in its pauses.
     device: int | None = None
+    # stop recording after this many steps; default: no limit.
     max_steps: int | None = None
-    max_bytes: int | None = None
-    drain_timeout: float = 30.0  # seconds `close()` waits for queued jobs
-    # `cam_extra/` values a client may have stored per step (sizes as stored: an array's bytes, other values' JSON);
-    # larger values are dropped, counted and named in the step's `extra_dropped`, so no client can make the server
-    # store megabytes per request.
-    max_extra_value_bytes: int = 16 * 1024
-    max_extra_bytes: int = 64 * 1024
+    # stop recording once the run directory holds this many MiB; default: no limit.
+    max_mb: float | None = None
+    # largest `cam_extra/` value a step stores, in KiB as stored (an array's bytes, other values' JSON); larger ones
+    # are dropped, counted and named in the step's `extra_dropped`, so no client can make the server store megabytes
+    # per request.
+    max_extra_value_kb: float = 16.0
+    # all `cam_extra/` values a step stores together, in KiB.
+    max_extra_kb: float = 64.0
 
     def __post_init__(self) -> None:
-        super().__post_init__()
         if self.every_k < 0 or self.queue_size < 1 or self.stats_window < 1 or self.settle_ms < 0:
             raise ValueError("every_k >= 0, queue_size >= 1, stats_window >= 1 and settle_ms >= 0 are required")
-        if self.drain_timeout < 0:
-            raise ValueError(f"drain_timeout must be >= 0, got {self.drain_timeout}")
         if self.device is not None and self.device < 0:
             raise ValueError(f"device must be an index into jax.devices() (>= 0), got {self.device}")
         if self.per_connection is not None and self.per_connection < 1:
@@ -124,10 +135,24 @@ class CAMOptions(ExplainOptions):
         if self.save_frames not in SAVE_FRAMES:
             raise ValueError(f"save_frames must be one of {SAVE_FRAMES}, got {self.save_frames!r}")
 
+    def settings(self) -> dict[str, Any]:
+        """These settings by field name (what a subclass passes on to `CAMOptions`)."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(SideChannelSettings)}
+
+
+@dataclasses.dataclass(frozen=True)
+class CAMOptions(SideChannelSettings, ExplainOptions):
+    """The side channel's options: the explanation options of every explained step, plus its own settings
+    (`SideChannelSettings`). A `target` of None is the wrapped policy's family's default, resolved when the side
+    channel wraps it."""
+
+    def __post_init__(self) -> None:
+        ExplainOptions.__post_init__(self)
+        SideChannelSettings.__post_init__(self)
+
     def to_json(self) -> dict[str, Any]:
         """The explanation options as every run records them, then the side channel's own settings."""
-        own = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in _EXPLAIN_FIELDS}
-        return {**super().to_json(), **own, "cam_dir": str(self.cam_dir)}
+        return {**super().to_json(), **self.settings(), "dir": str(self.dir)}
 
 
 @dataclasses.dataclass
@@ -311,7 +336,9 @@ class CAMPolicy:
             unused["request"] = None
         trace = dataclasses.replace(trace, **unused)
         try:
-            kept, dropped = bounded_extra(extra, self._options.max_extra_value_bytes, self._options.max_extra_bytes)
+            kept, dropped = bounded_extra(
+                extra, int(self._options.max_extra_value_kb * KiB), int(self._options.max_extra_kb * KiB)
+            )
             if dropped:
                 self.count("extra_dropped", f"cam_extra values over the size limits dropped: {dropped[:3]}")
                 kept["extra_dropped"] = dropped
@@ -461,13 +488,14 @@ class CAMPolicy:
 
     def begin_close(self, timeout: float | None = None) -> None:
         """Stops scheduling and starts the drain without waiting: queued jobs are explained until `timeout` seconds
-        from now, then the final manifest is written. The server calls this as soon as it is asked to stop, so the
-        drain runs while connections are still closing (a container's stop grace period is short). Idempotent."""
+        from now (None: until none is left), then the final manifest is written. The server calls this as soon as it
+        is asked to stop, with its drain timeout, so the drain runs while connections are still closing (a
+        container's stop grace period is short). Idempotent."""
         with self._lock:
             if self._closer is not None:
                 return
             self._closed = True  # `infer` checks it under the same lock: nothing is queued behind the end marker
-            self._deadline = time.monotonic() + (self._options.drain_timeout if timeout is None else timeout)
+            self._deadline = time.monotonic() + (math.inf if timeout is None else timeout)
             self._closer = threading.Thread(target=self._drain, name="explain-drain", daemon=True)
             self._closer.start()
 
@@ -475,7 +503,7 @@ class CAMPolicy:
         with self._cond:  # the worker explains what is pending, then exits
             self._finishing = True
             self._cond.notify_all()
-        self._worker.join(max(0.0, self._deadline - time.monotonic()))
+        self._worker.join(_left(self._deadline))
         if self._worker.is_alive():
             self.count("unfinished_at_shutdown", "shutdown deadline passed with jobs pending")
         if self._logger is not None:
@@ -489,10 +517,11 @@ class CAMPolicy:
         assert self._closer is not None
         # At the deadline the drain stops waiting for the worker, but it still writes the manifest: a caller that
         # exits right after `close` (serve, with an explanation still computing) must not cut that write short.
-        self._closer.join(max(0.0, self._deadline - time.monotonic()) + MANIFEST_WRITE_S)
+        left = _left(self._deadline)
+        self._closer.join(None if left is None else left + MANIFEST_WRITE_S)
         if self._closer.is_alive():
             self.count("manifest_not_written", f"the final manifest was not written within {MANIFEST_WRITE_S} s")
-        self._policy.close(max(0.0, self._deadline - time.monotonic()))
+        self._policy.close(_left(self._deadline))
 
     @property
     def computing(self) -> bool:
@@ -522,6 +551,11 @@ class CAMPolicy:
         return what
 
 
+def _left(deadline: float) -> float | None:
+    """Seconds until a `time.monotonic()` deadline (0 once past it); None for no deadline."""
+    return None if math.isinf(deadline) else max(0.0, deadline - time.monotonic())
+
+
 def explanation_device(index: int) -> jax.Device:
     """`jax.devices()[index]`, or an error naming the devices this machine has."""
     devices = jax.devices()
@@ -549,15 +583,15 @@ def wrap_policy_with_cam(
         explanation_device(options.device)
     try:
         cam_logger = CAMLogger(
-            options.cam_dir,
+            options.dir,
             run_config=run_config or {},
             checkpoint=str(checkpoint),
             options=options.to_json(),
             max_steps=options.max_steps,
-            max_bytes=options.max_bytes,
+            max_bytes=None if options.max_mb is None else int(options.max_mb * MiB),
         )
     except OSError as e:
-        logger.error("explanation side channel off: cannot create a run directory under %s: %s", options.cam_dir, e)
+        logger.error("explanation side channel off: cannot create a run directory under %s: %s", options.dir, e)
         wrapped = CAMPolicy(policy, options, None)
         wrapped.count("disabled_logger_unavailable")
         return wrapped

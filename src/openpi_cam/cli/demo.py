@@ -11,10 +11,10 @@ import tyro
 
 from openpi_cam.cam.faithfulness_run import format_report
 from openpi_cam.cam.outcomes import wilson_interval
-from openpi_cam.datasets.lerobot import DatasetError
-from openpi_cam.datasets.rollouts import RolloutRecorder
-from openpi_cam.demo.quality import EPISODES_FILE
+from openpi_cam.demo.recorded import recorded_episodes_file
 from openpi_cam.demo.run import ROLLOUT_FPS, ROLLOUT_FPS_METAWORLD, DemoOptions, run_demo
+from openpi_cam.lerobot.dataset import DatasetError
+from openpi_cam.lerobot.rollouts import RolloutRecorder
 from openpi_cam.policies import demo_metaworld, demo_reach
 from openpi_cam.vocabulary import MAP_KIND_INFO
 
@@ -54,18 +54,22 @@ def main(opts: tyro.conf.OmitArgPrefixes[DemoOptions] = DEFAULT, record: pathlib
     if record is not None:
         episodes = [{"episode_index": i, **e} for i, e in enumerate(result.episodes)]
         rollouts = {"perturbations": list(opts.perturb), "episodes": episodes}
-        (record / "meta" / EPISODES_FILE).write_text(json.dumps(rollouts, indent=2))
+        recorded_episodes_file(record).write_text(json.dumps(rollouts, indent=2))
     wins = sum(r["success"] for r in result.episodes)
-    goal = "pressed the button" if metaworld else "reached their block"
+    goal = "succeeded at their task" if metaworld else "reached their block"
     print(f"\nopenpi-cam demo: {wins}/{len(result.episodes)} episodes {goal} in {result.seconds:.0f}s")
     if metaworld or len(opts.perturb) > 1 or opts.perturbations[0].kind != "clean":
-        for name in opts.perturb:
-            outcomes = [r["success"] for r in result.episodes if r["perturbation"] == name]
-            low, high = wilson_interval(sum(outcomes), len(outcomes))
-            print(f"  {name:>20}: {sum(outcomes)}/{len(outcomes)} (95% interval {low:.0%}-{high:.0%})")
+        tasks = opts.tasks if metaworld else (None,)
+        for task in tasks:
+            for name in opts.perturb:
+                group = [r for r in result.episodes if r["perturbation"] == name and r.get("task") == task]
+                outcomes = [r["success"] for r in group]
+                low, high = wilson_interval(sum(outcomes), len(outcomes))
+                label = name if task is None else f"{task} {name}"
+                print(f"  {label:>40}: {sum(outcomes)}/{len(outcomes)} (95% interval {low:.0%}-{high:.0%})")
     figures = result.figures
     if figures["steps"]:
-        target = "the button's box" if metaworld else "the named block"
+        target = "the task's target" if metaworld else "the named block"
         print(f"pointing game over {figures['steps']} steps (the base camera's map peaks on {target}):")
     for kind, f in figures["maps"].items():
         if not f["steps"]:

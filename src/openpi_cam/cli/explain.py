@@ -7,7 +7,7 @@ from __future__ import annotations
 import pathlib
 from collections.abc import Sequence
 
-from openpi_cam.datasets.lerobot import is_lerobot_dataset
+from openpi_cam.lerobot.dataset import is_lerobot_dataset
 
 USAGE = """usage: openpi-cam explain SOURCE [ARGS...]
 

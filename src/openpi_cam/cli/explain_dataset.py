@@ -10,8 +10,11 @@ from typing import Annotated, Literal
 
 import tyro
 
+from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.cli.options import BUNDLED_MODEL, EVERY_KIND, ExplainFlags
-from openpi_cam.datasets.explain import (
+from openpi_cam.errors import InvalidRequest
+from openpi_cam.lerobot.dataset import DatasetError, parse_episodes
+from openpi_cam.maps.explain import (
     DatasetJob,
     JobSummary,
     dataset_keys,
@@ -19,10 +22,7 @@ from openpi_cam.datasets.explain import (
     recorded_actions_feature,
     run_local,
 )
-from openpi_cam.datasets.lerobot import DatasetError, parse_episodes
-from openpi_cam.datasets.ray_engine import run_ray
-from openpi_cam.errors import InvalidRequest
-from openpi_cam.policies.model_spec import ModelSpec
+from openpi_cam.maps.ray_engine import run_ray
 from openpi_cam.viz.progress import Reporter
 from openpi_cam.vocabulary import DATASET_ACTIONS
 

@@ -13,10 +13,10 @@ from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.offline import ReplayOptions, explain_replays, open_source
 from openpi_cam.cam.records import resume_mismatch
 from openpi_cam.cam.run_format import RUN_JSON, load_run
+from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.cli.options import BUNDLED_MODEL, EVERY_KIND, ExplainFlags
 from openpi_cam.errors import InvalidRequest
 from openpi_cam.policies.family import resolve_target
-from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.viz.progress import Reporter
 from openpi_cam.viz.rerun_sink import write_rrd
 from openpi_cam.vocabulary import SaveFrames

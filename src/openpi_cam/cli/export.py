@@ -11,10 +11,10 @@ from typing import Literal
 
 import tyro
 
+from openpi_cam.checkpoints.model_spec import LeRobotFolder, ModelSpec
 from openpi_cam.cli.options import BUNDLED_MODEL
+from openpi_cam.lerobot.export import export_lerobot
 from openpi_cam.policies.demo_reach import DEMO_PI05_CONFIG
-from openpi_cam.policies.lerobot_export import export_lerobot
-from openpi_cam.policies.model_spec import ModelSpec
 
 # The model flags a LeRobot pi0 / pi0.5 folder has no place for: `ModelSpec` field -> why.
 NOT_IN_A_LEROBOT_FOLDER = {
@@ -50,13 +50,13 @@ def main(
     if model.checkpoint_dir is None and model.config is None:
         model = dataclasses.replace(model, config=DEMO_PI05_CONFIG.name)
     try:
-        spec = model.resolved()
-        if spec.config is None:
-            raise ValueError(f"{spec.checkpoint} is a LeRobot folder already")
+        source = model.source
+        if isinstance(source, LeRobotFolder):
+            raise ValueError(f"{source.checkpoint} is a LeRobot folder already")
         # The flag's dtype, else LeRobot's default: not the resolved one, which is an OpenPI checkpoint's serving dtype.
         dtype = model.dtype or "float32"
         folder = export_lerobot(
-            spec.checkpoint, spec.config, out, paligemma_tokenizer=model.tokenizers()[0], dtype=dtype
+            source.checkpoint, source.config, out, paligemma_tokenizer=model.tokenizers()[0], dtype=dtype
         )
     except (ValueError, FileNotFoundError, FileExistsError, KeyError) as e:
         print(f"openpi-cam export: {e}", file=sys.stderr)

@@ -13,12 +13,12 @@ import tyro
 from openpi_cam.cam.faithfulness_run import FaithfulnessOptions, evaluate_run, format_report
 from openpi_cam.cam.run_evidence import REPORT_FILE
 from openpi_cam.cam.run_format import dumps, load_run
+from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.cli.options import BUNDLED_MODEL, DeletionBaseline
-from openpi_cam.datasets.faithfulness import REPORT_PATH as DATASET_REPORT_PATH
-from openpi_cam.datasets.faithfulness import build_run
-from openpi_cam.datasets.maps_dataset import is_maps_dataset, open_maps_dataset
 from openpi_cam.errors import InvalidRequest
-from openpi_cam.policies.model_spec import ModelSpec
+from openpi_cam.maps.dataset import is_maps_dataset, open_maps_dataset
+from openpi_cam.maps.faithfulness import REPORT_PATH as DATASET_REPORT_PATH
+from openpi_cam.maps.faithfulness import build_run
 from openpi_cam.viz.progress import Reporter
 
 # Frames of a maps dataset evaluated unless --max-steps says otherwise: each is served again and re-scored.

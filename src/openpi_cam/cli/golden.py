@@ -7,12 +7,8 @@ import pathlib
 import tyro
 
 from openpi_cam.golden import check_folder
-from openpi_cam.policies.golden_policy import (
-    is_lerobot_golden,
-    is_policy_folder,
-    run_lerobot_golden,
-    run_policy_golden,
-)
+from openpi_cam.lerobot.golden import is_lerobot_golden, run_lerobot_golden
+from openpi_cam.policies.golden_policy import is_policy_folder, run_policy_golden
 
 
 def main(folder: tyro.conf.Positional[pathlib.Path]) -> int:

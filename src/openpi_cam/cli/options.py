@@ -1,4 +1,4 @@
-"""Flags shared by several subcommands, each declared once: which model to load (`policies.model_spec.ModelSpec`,
+"""Flags shared by several subcommands, each declared once: which model to load (`checkpoints.model_spec.ModelSpec`,
 taken as it is) and what an explanation explains and carries (`ExplainFlags`, building `vocabulary.ExplainOptions`).
 Allowed values come from `openpi_cam.vocabulary`."""
 
@@ -7,12 +7,12 @@ from __future__ import annotations
 import dataclasses
 from typing import Literal
 
-from openpi_cam.policies.model_spec import ModelSpec
+from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.vocabulary import (
     BASELINES,
+    COMPARED_KINDS,
     DEFAULT_KINDS,
     DEFAULT_PATCHES,
-    MAP_KINDS,
     Baseline,
     ExplainOptions,
     IgSpace,
@@ -45,7 +45,8 @@ class ExplainFlags:
     # pi0-FAST: which action token (`action-token`); pi0 / pi0.5: `H,D`, dimension D at horizon step H (`action`).
     action_index: str = "0"
     # which kinds of map each explained step carries (README, "Which map to trust"): `gradcam` and `gradnorm` cost one
-    # backward pass together; `ig` and `occlusion` cost several inferences each.
+    # backward pass together; `ig` and `occlusion` cost several inferences each; `lrp` (AttnLRP relevance at the
+    # pixels) one backward pass of its own, through SigLIP too.
     maps: tuple[MapKind, ...] = DEFAULT_KINDS
     # the frame `ig` starts from and `occlusion` paints with: the frame's mean colour or a Gaussian-blurred copy.
     baseline: Baseline = MapOptions.baseline
@@ -89,7 +90,7 @@ class ExplainFlags:
         )
 
 
-# The explain commands' default: every kind, since offline there is no robot to keep waiting.
-EVERY_KIND = ExplainFlags(maps=MAP_KINDS)
+# The explain commands' default: every kind their reports compare, since offline there is no robot to keep waiting.
+EVERY_KIND = ExplainFlags(maps=COMPARED_KINDS)
 # No model flags: the bundled demo model (`ModelSpec`'s defaults).
 BUNDLED_MODEL = ModelSpec()

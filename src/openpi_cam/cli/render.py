@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import pathlib
 import sys
 from typing import Annotated
@@ -9,10 +10,11 @@ from typing import Annotated
 import tyro
 
 from openpi_cam.cam.run_format import load_run
-from openpi_cam.datasets.lerobot import parse_episodes
-from openpi_cam.datasets.maps_dataset import is_maps_dataset, open_maps_dataset
-from openpi_cam.datasets.render import DatasetRenderOptions, render_dataset
-from openpi_cam.datasets.rerun import write_dataset_rrd
+from openpi_cam.cli.stats import view_options
+from openpi_cam.lerobot.dataset import parse_episodes
+from openpi_cam.maps.dataset import is_maps_dataset, open_maps_dataset
+from openpi_cam.maps.render import DatasetRenderOptions, render_dataset
+from openpi_cam.maps.rerun import write_dataset_rrd
 from openpi_cam.viz.render import Norm, RenderOptions, default_render_dir, render_run
 from openpi_cam.viz.rerun_sink import write_rrd
 from openpi_cam.viz.stats import MissingMaps
@@ -105,6 +107,7 @@ def _render_dataset(
 ) -> int:
     """A maps dataset's videos and report, and with `rerun` its Rerun recording."""
     ds = open_maps_dataset(root)
+    opts = dataclasses.replace(opts, views=view_options(ds))
     out_dir = pathlib.Path(out) if out is not None else default_render_dir(root, opts.map)
     try:
         chosen = parse_episodes(episodes)

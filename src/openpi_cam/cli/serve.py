@@ -2,7 +2,8 @@
 `scripts/serve_policy.py`.
 
 With `--cam.every-k K > 0` every K-th request per connection also gets its maps written under `--cam.dir` (off the
-request path; see docs/FORMAT.md). The side channel's flags are one dataclass, `SideChannelFlags`, nested as `--cam.*`.
+request path; see docs/FORMAT.md). The side channel's flags are one dataclass, `SideChannelFlags`, nested as `--cam.*`
+and generated from the side channel's own settings (`cam.side_channel.SideChannelSettings`).
 """
 
 from __future__ import annotations
@@ -17,77 +18,31 @@ from typing import Annotated, Any
 
 import tyro
 
-from openpi_cam.cam.side_channel import CAMOptions, CAMPolicy, wrap_policy_with_cam
+from openpi_cam.cam.side_channel import CAMOptions, CAMPolicy, SideChannelSettings, wrap_policy_with_cam
+from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.cli.options import BUNDLED_MODEL, ExplainFlags
-from openpi_cam.datasets.served_episodes import EpisodeRecorder
+from openpi_cam.lerobot.served_episodes import EpisodeRecorder
 from openpi_cam.policies.family import resolve_target
-from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.policies.policy import Policy
 from openpi_cam.serving.server import PolicyServer
-from openpi_cam.vocabulary import SaveFrames, Target
+from openpi_cam.vocabulary import Target
 
 logger = logging.getLogger(__name__)
 
 
 @dataclasses.dataclass(frozen=True)
-class SideChannelFlags(ExplainFlags):
-    """The explanation side channel: which requests are explained, what each explained step carries, where the run is
-    written and how the worker makes room for inference. Defaults are `CAMOptions`' unless the command line's differ.
-    """
+class SideChannelFlags(SideChannelSettings, ExplainFlags):
+    """The explanation side channel's flags, `--cam.*`: what each explained step explains and carries
+    (`ExplainFlags`), then the side channel's own settings, generated from `SideChannelSettings` field by field (one
+    name, unit and default each)."""
 
-    # explain every k-th request of each connection (0: off). `--cam-every-k` is the spelling of earlier releases.
-    every_k: Annotated[int, tyro.conf.arg(aliases=("--cam-every-k",))] = 0
-    # a new run directory per server start goes under this folder (an earlier run is never overwritten).
-    dir: Path = Path(CAMOptions.cam_dir)
-    # which camera frames are stored next to the maps (`model` is what `openpi-cam faithfulness` needs; `raw` and
-    # `both` keep the run re-explainable by `openpi-cam explain`).
-    save_frames: SaveFrames = CAMOptions.save_frames
-    # pending jobs in all; at the cap the oldest job of the connection holding the most is dropped.
-    queue_size: int = CAMOptions.queue_size
-    # pending jobs per connection at most (a newer one supersedes that connection's oldest); default: no such limit.
-    per_connection: int | None = CAMOptions.per_connection
-    # the worker starts an explanation only this long after the last inference ended (its reply is still being sent).
-    settle_ms: float = CAMOptions.settle_ms
-    # explain on this device (an index into `jax.devices()`, e.g. 1 for a second GPU), which holds a copy of the
-    # parameters; explanations then run while the served model infers. Default: share the served model's device,
-    # explaining only in its pauses.
-    device: int | None = CAMOptions.device
-    # stop recording after this many steps; default: no limit.
-    max_steps: int | None = CAMOptions.max_steps
-    # stop recording once the run directory holds this many MB; default: no limit.
-    max_mb: float | None = None
-    # on SIGTERM, seconds the side channel keeps explaining queued jobs (counted from the signal, while connections
-    # close) before the run's manifest is closed: SIGTERM exits within this, the in-flight inference and 2 s for
-    # unresponsive peers, inside a container's 10 s stop grace period.
-    drain_timeout: float = 5.0
-    # largest `cam_extra/` value a step stores (an array's bytes, other values' JSON); larger ones are dropped and named
-    # in the step's `extra_dropped`.
-    max_extra_value_kb: float = CAMOptions.max_extra_value_bytes / 1024
-    # all `cam_extra/` values a step stores together.
-    max_extra_kb: float = CAMOptions.max_extra_bytes / 1024
+    def __post_init__(self) -> None:
+        ExplainFlags.__post_init__(self)  # builds the options, which check every flag
 
     def options(self, target: Target | None = None) -> CAMOptions:
         """The side channel's options; `target`, when given, stands for the flag's (the served family's resolved
         target)."""
-        return (
-            super()
-            .options(target)
-            .extended(
-                CAMOptions,
-                every_k=self.every_k,
-                cam_dir=self.dir,
-                save_frames=self.save_frames,
-                queue_size=self.queue_size,
-                per_connection=self.per_connection,
-                settle_ms=self.settle_ms,
-                device=self.device,
-                max_steps=self.max_steps,
-                max_bytes=None if self.max_mb is None else int(self.max_mb * 1024 * 1024),
-                drain_timeout=self.drain_timeout,
-                max_extra_value_bytes=int(self.max_extra_value_kb * 1024),
-                max_extra_bytes=int(self.max_extra_kb * 1024),
-            )
-        )
+        return super().options(target).extended(CAMOptions, **self.settings())
 
 
 SIDE_CHANNEL_OFF = SideChannelFlags()
@@ -120,6 +75,7 @@ def main(
     max_batch: int = DEFAULT_MAX_BATCH,
     record: Path | None = None,
     record_fps: int = DEFAULT_RECORD_FPS,
+    drain_timeout: Annotated[float, tyro.conf.arg(aliases=("--cam.drain-timeout",))] = 5.0,
 ) -> int:
     """Serve an OpenPI checkpoint (pi0-FAST, pi0 or pi0.5) over websockets (openpi-client compatible), optionally
     explaining every k-th request of each connection in the background (`--cam.every-k`).
@@ -144,13 +100,19 @@ def main(
         max_batch: requests per batched call at most, a power of two (calls run at power-of-two batch sizes: one
             compiled program each, all compiled at warm-up).
         record: record every connection as an episode of a new LeRobot v3.0 dataset in this folder (its requests'
-            images and values, prompts and served chunks; `datasets.served_episodes`), saved when it closes.
+            images and values, prompts and served chunks; `lerobot.served_episodes`), saved when it closes.
         record_fps: the recorded dataset's frame rate (LeRobot's timestamps are frame index / fps): the rate at which
             the robot sends requests.
+        drain_timeout: on SIGTERM, seconds the server lets the served policy drain (the side channel's queued
+            explanations, the recorder's last episodes), counted from the signal while connections close, before the
+            run's manifest is closed: SIGTERM exits within this, the in-flight inference and 2 s for unresponsive
+            peers, inside a container's 10 s stop grace period. `--cam.drain-timeout` is its earlier spelling.
     """
     _configure_logging()
     try:
         _check_batching(batch_window_ms, max_batch)
+        if drain_timeout < 0:
+            raise StartupError(f"--drain-timeout must be >= 0, got {drain_timeout}", 2)
         _check_side_channel_flags(cam)
         _check_recording(record, record_fps)
         policy = _create_policy(model, stop_at_action_end)
@@ -168,7 +130,7 @@ def main(
             max_connections=max_connections,
             max_buffered_mb=max_buffered_mb,
             debug=debug,
-            drain_timeout=cam.drain_timeout,
+            drain_timeout=drain_timeout,
             batch_window_ms=batch_window_ms,
             max_batch=max_batch,
         )
@@ -188,14 +150,13 @@ def _configure_logging() -> None:
 
 
 def _check_side_channel_flags(flags: SideChannelFlags) -> None:
-    """With the side channel off, a --cam flag would be accepted and ignored: refused instead, naming it.
-    `drain_timeout` also bounds the server's own shutdown, so it stands alone."""
+    """With the side channel off, a --cam flag would be accepted and ignored: refused instead, naming it."""
     if flags.every_k:
         return
     unused = [
         f.name
         for f in dataclasses.fields(flags)
-        if f.name not in ("every_k", "drain_timeout") and getattr(flags, f.name) != getattr(SIDE_CHANNEL_OFF, f.name)
+        if f.name != "every_k" and getattr(flags, f.name) != getattr(SIDE_CHANNEL_OFF, f.name)
     ]
     if unused:
         names = ", ".join("--cam." + n.replace("_", "-") for n in unused)
@@ -283,13 +244,15 @@ def _server(
             max_connections=max_connections,
             max_buffered_bytes=int(max_buffered_mb * 1024 * 1024),
             debug=debug,
-            close_timeout=drain_timeout,
+            drain_timeout=drain_timeout,
             batch_window_ms=batch_window_ms,
             max_batch=max_batch,
         )
     except ValueError as e:
         served.close(0.0)  # the side channel may have opened its run: close it with its manifest
-        raise StartupError(f"server limits (--max-message-mb, --max-connections, --max-buffered-mb): {e}", 2) from None
+        raise StartupError(
+            f"server limits (--max-message-mb, --max-connections, --max-buffered-mb, --drain-timeout): {e}", 2
+        ) from None
 
 
 def _warm_up(served: Policy | CAMPolicy, policy: Policy, batch_window_ms: float | None, max_batch: int) -> None:
@@ -332,7 +295,7 @@ def _serve(
     if isinstance(served, CAMPolicy) and served.computing:
         # The manifest is written; an explanation still runs in XLA on the worker thread, and interpreter shutdown
         # under a running XLA computation aborts the process. Exit without the interpreter's teardown instead.
-        logger.warning("exiting with an explanation still computing past --cam.drain-timeout (its step is not written)")
+        logger.warning("exiting with an explanation still computing past --drain-timeout (its step is not written)")
         logging.shutdown()
         os._exit(0)
     return 0

@@ -10,8 +10,9 @@ from typing import Annotated, Literal
 import tyro
 
 from openpi_cam.cam.run_format import load_run
-from openpi_cam.datasets.maps_dataset import is_maps_dataset, open_maps_dataset
-from openpi_cam.datasets.views import compute_views
+from openpi_cam.demo.recorded import PERTURBATION_FEATURE, perturbation_names
+from openpi_cam.maps.dataset import MapsDataset, is_maps_dataset, open_maps_dataset
+from openpi_cam.maps.views import ViewOptions, compute_views
 from openpi_cam.viz.stats import MissingMaps, aggregate, compute_stats, emit_table, to_rows, view_steps, write_table
 from openpi_cam.vocabulary import DEFAULT_MAP_KIND, MapKind
 
@@ -28,7 +29,7 @@ def main(
 
     Args:
         run_dir: a CAM run directory (holds run.json and steps/), or a maps dataset (`explain-dataset`'s output:
-            one row per frame, and the dataset-level views in the JSON summary; `datasets.views`).
+            one row per frame, and the dataset-level views in the JSON summary; `maps.views`).
         format: csv, json (rows plus a summary) or parquet (summary in the file metadata).
         out: output file; defaults to stdout for csv/json and RUN_DIR/stats.parquet (a maps dataset's
             stats-<kind>.parquet) for parquet.
@@ -50,11 +51,18 @@ def main(
     return 0
 
 
+def view_options(ds: MapsDataset) -> ViewOptions:
+    """The views of a maps dataset as the demo recorded it: each episode's perturbation is its condition (where the
+    rows carry `--extra perturbation=perturbation` and outcomes), named as `demo --record` listed them."""
+    return ViewOptions(group=PERTURBATION_FEATURE, group_names=tuple(perturbation_names(ds.info.source)))
+
+
 def _dataset_stats(root: pathlib.Path, format: Format, out: pathlib.Path | None, kind: str) -> int:
     """A maps dataset's per-frame rows as CSV or parquet (the views in its metadata), or JSON holding the
     dataset-level views (`summary`) and the rows (`frames`)."""
     try:
-        views = compute_views(open_maps_dataset(root), kind)
+        ds = open_maps_dataset(root)
+        views = compute_views(ds, kind, view_options(ds))
     except ValueError as e:
         print(f"openpi-cam stats: {e}", file=sys.stderr)
         return 2

@@ -4,7 +4,7 @@
 `--sim reach` is `python -m openpi_cam.demo.train` (procedural samples, nothing recorded). `--sim metaworld` records
 the scripted expert's episodes as a LeRobot v3.0 dataset in `--data` (unless it already holds one), reads them back
 through the project's LeRobot reader and trains the tiny pi0.5 on them with `demo.train` (the command line composes
-the two, since only it may import the datasets room).
+the two: the demo room records through the sink it is handed and reads no dataset).
 """
 
 from __future__ import annotations
@@ -16,25 +16,79 @@ from typing import Literal
 
 import numpy as np
 
-from openpi_cam.datasets.lerobot import is_lerobot_dataset, open_dataset
-from openpi_cam.datasets.lerobot_writer import Feature, create_dataset
 from openpi_cam.demo import metaworld_data, metaworld_sim, train
+from openpi_cam.lerobot.dataset import is_lerobot_dataset, open_dataset
+from openpi_cam.lerobot.writer import Feature, create_dataset
 from openpi_cam.policies import demo_metaworld
+from openpi_cam.policies.config import PolicyConfig
 
 
 @dataclasses.dataclass(frozen=True)
 class RecordArgs:
-    """How many expert episodes, and how noisy."""
+    """Which tasks, how many expert episodes of each, and how noisy; None: the simulator choice's own (`SIMS`)."""
 
-    episodes: int = 200
-    seed: int = 100_000  # episode i's scene is seed + i (the demo's evaluation episodes start at 0)
+    episodes: int | None = None  # per task
+    tasks: tuple[str, ...] | None = None
+    seed: int = 100_000  # episode i of a task is scene seed + i (the demo's evaluation episodes start at 0)
     noise: float = 0.3  # std of the noise added to executed actions (DART)
     clean_every: int = 4  # every this many episodes runs without noise (the expert's own path)
+    image_size: int | None = None  # both cameras, square
+    phrasings: int | None = None  # how many of each task's instructions the episodes cycle through
+
+
+@dataclasses.dataclass(frozen=True)
+class MetaWorldModels:
+    """What `--sim` trains on Meta-World: the expert episodes' defaults and the bundled model per family."""
+
+    tasks: tuple[str, ...]
+    episodes: int
+    image_size: int
+    configs: dict[str, PolicyConfig]  # family -> the bundled model's config
+    phrasings: int  # how many of each task's instructions the episodes cycle through
+    vocabulary: tuple[str, ...] = ()  # prompts the tokenizer learns beyond the recorded ones
+
+
+SIMS = {
+    "metaworld": MetaWorldModels(
+        metaworld_sim.TRAINED_TASKS,
+        120,
+        demo_metaworld.MT_IMAGE_SIZE,
+        {
+            "pi05": demo_metaworld.DEMO_METAWORLD_MT_PI05_CONFIG,
+            "pi0_fast": demo_metaworld.DEMO_METAWORLD_MT_PI0_FAST_CONFIG,
+        },
+        phrasings=3,
+        vocabulary=metaworld_sim.all_prompts(),
+    ),
+    "metaworld-button": MetaWorldModels(
+        (metaworld_sim.TASK,),
+        200,
+        metaworld_sim.IMAGE_SIZE,
+        {"pi05": demo_metaworld.DEMO_METAWORLD_CONFIG},
+        phrasings=1,
+    ),
+}
+
+
+def with_defaults(record: RecordArgs, models: MetaWorldModels) -> RecordArgs:
+    return dataclasses.replace(
+        record,
+        episodes=models.episodes if record.episodes is None else record.episodes,
+        tasks=models.tasks if record.tasks is None else record.tasks,
+        image_size=models.image_size if record.image_size is None else record.image_size,
+        phrasings=models.phrasings if record.phrasings is None else record.phrasings,
+    )
 
 
 def record_expert(root: Path, args: RecordArgs) -> None:
-    """The expert's episodes as a LeRobot v3.0 dataset (PNG cameras: the frames the model trains on, losslessly)."""
-    size = metaworld_sim.IMAGE_SIZE
+    """The expert's episodes as a LeRobot v3.0 dataset (PNG cameras: the frames the model trains on, losslessly),
+    the tasks interleaved episode by episode; episode i of a task is instructed by the task's phrasing i modulo their
+    number."""
+    assert args.tasks is not None and args.episodes is not None and args.image_size is not None  # `with_defaults`
+    unknown = [t for t in args.tasks if t not in metaworld_sim.TASKS]
+    if unknown:
+        raise ValueError(f"unknown Meta-World tasks {unknown}: one of {', '.join(metaworld_sim.TASKS)}")
+    size = args.image_size
     features = {
         metaworld_data.BASE_FEATURE: Feature.camera(size, size, video=False),
         metaworld_data.WRIST_FEATURE: Feature.camera(size, size, video=False),
@@ -43,16 +97,22 @@ def record_expert(root: Path, args: RecordArgs) -> None:
     }
     t0 = time.time()
     with create_dataset(root, fps=metaworld_data.FPS, features=features, robot_type="sawyer") as writer:
-        wins = 0
+        wins, total = 0, args.episodes * len(args.tasks)
         for e in range(args.episodes):
             noise = 0.0 if e % args.clean_every == 0 else args.noise
-            success = False
-            for step in metaworld_data.expert_episode(args.seed + e, noise):
-                writer.add_frame(step.frame, task=step.prompt)
-                success = step.success
-            writer.save_episode()
-            wins += success
-            print(f"episode {e + 1}/{args.episodes}: {wins} successes, {time.time() - t0:.0f}s", flush=True)
+            for task in args.tasks:
+                prompts = metaworld_sim.TASKS[task].prompts[: args.phrasings]
+                episode = metaworld_data.expert_episode(
+                    args.seed + e, noise, task=task, prompt=prompts[e % len(prompts)], image_size=size
+                )
+                success = False
+                for step in episode:
+                    writer.add_frame(step.frame, task=step.prompt)
+                    success = step.success
+                writer.save_episode()
+                wins += success
+                done = e * len(args.tasks) + args.tasks.index(task) + 1
+                print(f"episode {done}/{total} ({task}): {wins} successes, {time.time() - t0:.0f}s", flush=True)
 
 
 def read_demonstrations(root: Path) -> metaworld_data.Demonstrations:
@@ -85,15 +145,16 @@ def _unused(args: train.TrainArgs, sim: str, data: Path | None, record: RecordAr
 
 def main(
     args: train.TrainArgs = DEFAULT_TRAIN,
-    sim: Literal["reach", "metaworld"] = "reach",
+    sim: Literal["reach", "metaworld", "metaworld-button"] = "reach",
     data: Path | None = None,
     record: RecordArgs = DEFAULT_RECORD,
 ) -> int:
     """Train a demo model.
 
     Args:
-        args: the training run (as `python -m openpi_cam.demo.train`).
-        sim: which simulator's task: the synthetic reaching task or Meta-World's button press.
+        args: the training run (as `python -m openpi_cam.demo.train`); `--args.model` picks the family.
+        sim: which simulator's task: the synthetic reaching task, Meta-World's six tasks (the multi-task pi0.5 or
+            pi0-FAST) or Meta-World's button press alone (the one-task pi0.5).
         data: metaworld: the LeRobot dataset of expert episodes, recorded there first if the folder is absent or empty.
         record: metaworld: the expert episodes to record.
     """
@@ -103,15 +164,24 @@ def main(
     if sim == "reach":
         train.train(args)
         return 0
-    if data is None:
-        print("train_demo: --sim metaworld needs --data DIR (the expert episodes' LeRobot dataset)")
+    models = SIMS[sim]
+    if args.model not in models.configs:
+        print(f"train_demo: --sim {sim} trains {', '.join(models.configs)}, not --args.model {args.model}")
         return 2
+    if data is None:
+        print(f"train_demo: --sim {sim} needs --data DIR (the expert episodes' LeRobot dataset)")
+        return 2
+    record = with_defaults(record, models)
     if not is_lerobot_dataset(data):
         record_expert(data, record)
     demos = read_demonstrations(data)
     print(f"{len(demos)} frames in {len(np.unique(demos.episode_index))} episodes from {data}", flush=True)
     train.train(
-        dataclasses.replace(args, model="pi05"), demonstrations=demos, config=demo_metaworld.DEMO_METAWORLD_CONFIG
+        args,
+        demonstrations=demos,
+        config=models.configs[args.model],
+        vocabulary=models.vocabulary,
+        eval_tasks=record.tasks,
     )
     return 0
 

@@ -8,9 +8,11 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from openpi_cam.cam.records import EXTRA_PREFIX, split_extra
+from openpi_cam.cam.records import split_extra
 from openpi_cam.demo import task
+from openpi_cam.demo.recorded import PERTURBATION_FEATURE
 from openpi_cam.model.config import GemmaConfig, Pi0Config, Pi0FASTConfig, SiglipConfig, scan_by_default
+from openpi_cam.policies.config import PolicyConfig
 from openpi_cam.policies.demo_reach import (
     DEMO_CONFIG,
     DEMO_PI05_CONFIG,
@@ -20,6 +22,7 @@ from openpi_cam.policies.demo_reach import (
     STATE_KEY,
     WRIST_KEY,
 )
+from openpi_cam.vocabulary import EXTRA_PREFIX
 
 PATCH_SIZE = 16  # 64 px images -> a 4 x 4 map grid per camera
 
@@ -32,8 +35,11 @@ def model_config(
     vit_width: int = 64,
     patch_size: int = PATCH_SIZE,
     scan: bool | None = None,
+    image_size: int = task.TaskConfig().image_size,
+    robot: PolicyConfig = DEMO_CONFIG,
 ) -> Pi0FASTConfig:
-    """pi0-FAST's architecture scaled down. 16 px patches rather than 8: each block then covers a larger share of the
+    """pi0-FAST's architecture scaled down, for the demo robot `robot` (its action sizes and prompt length) at
+    `image_size` px. 16 px patches rather than 8: each block then covers a larger share of the
     image tokens (1-4 of 16), and colour binding is learned within the CPU budget (at 8 px it was not:
     docs/DEMO_NOTES.md).
     `scan` None: the layout a checkpoint of this depth is served with (`scan_by_default`)."""
@@ -54,16 +60,16 @@ def model_config(
         mlp_dim=2 * vit_width,
         num_heads=2,
         patch_size=patch_size,
-        image_size=task.TaskConfig().image_size,
+        image_size=image_size,
         out_dim=width,
         scan=scan,
     )
     return Pi0FASTConfig(
         gemma=gemma,
         siglip=siglip,
-        action_dim=DEMO_CONFIG.action_dim,
-        action_horizon=DEMO_CONFIG.action_horizon,
-        max_token_len=DEMO_CONFIG.max_token_len,
+        action_dim=robot.action_dim,
+        action_horizon=robot.action_horizon,
+        max_token_len=robot.max_token_len,
         dtype="float32",
     )
 
@@ -77,20 +83,22 @@ def pi05_model_config(
     patch_size: int = PATCH_SIZE,
     expert_width: int = 64,
     scan: bool | None = None,
+    image_size: int = task.TaskConfig().image_size,
+    robot: PolicyConfig = DEMO_PI05_CONFIG,
 ) -> Pi0Config:
     """pi0.5's architecture scaled down like `model_config`'s backbone, with an action expert half as wide (upstream's
     gemma_300m is half of gemma_2b's width; depth, heads and head dim must equal the LLM's)."""
-    fast = model_config(vocab_size, width=width, depth=depth, vit_width=vit_width, patch_size=patch_size, scan=scan)
+    sizes = {"width": width, "depth": depth, "vit_width": vit_width, "patch_size": patch_size}
+    fast = model_config(vocab_size, **sizes, scan=scan, image_size=image_size)
     expert = dataclasses.replace(fast.gemma, width=expert_width, mlp_dim=2 * expert_width, vocab_size=0)
-    cfg = DEMO_PI05_CONFIG
     return Pi0Config(
         gemma=fast.gemma,
         expert=expert,
         siglip=fast.siglip,
         pi05=True,
-        action_dim=cfg.action_dim,
-        action_horizon=cfg.action_horizon,
-        max_token_len=cfg.max_token_len,
+        action_dim=robot.action_dim,
+        action_horizon=robot.action_horizon,
+        max_token_len=robot.max_token_len,
         dtype="float32",
     )
 
@@ -103,9 +111,6 @@ class Observed(Protocol):
     state: np.ndarray  # float32
     prompt: str
     target_box: tuple[int, int, int, int]  # the target in the base camera (x0, y0, x1, y1)
-
-
-PERTURBATION_FEATURE = "perturbation"  # a recorded frame's index into the run's perturbations
 
 
 def client_observation(sample: Observed, scene: task.Scene | None = None) -> dict[str, Any]:

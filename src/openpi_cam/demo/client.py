@@ -40,7 +40,7 @@ class PolicyClient:
 
 
 class RolloutSink(Protocol):
-    """Where a recorded rollout goes, a step at a time (`datasets.rollouts.RolloutRecorder`, composed by the command
+    """Where a recorded rollout goes, a step at a time (`lerobot.rollouts.RolloutRecorder`, composed by the command
     line): per executed action, the frame the robot saw before it (by LeRobot feature name, the action included) and
     what followed it, as lerobot-eval records evaluation episodes."""
 

@@ -88,9 +88,15 @@ def train_sentencepiece(
 
 
 def fit_fast(
-    out: Path, normalize: Callable[[np.ndarray], np.ndarray], *, seed: int = 1, num_chunks: int = 5000
+    out: Path,
+    normalize: Callable[[np.ndarray], np.ndarray],
+    *,
+    seed: int = 1,
+    num_chunks: int = 5000,
+    chunks: np.ndarray | None = None,
 ) -> FastActionTokenizer:
-    """FAST fitted on normalised expert chunks; `normalize` must be the checkpoint's action normalisation.
+    """FAST fitted on normalised expert chunks; `normalize` must be the checkpoint's action normalisation. `chunks`
+    [N, H, A]: the expert's recorded chunks (`num_chunks` of them drawn with `seed`); None: the reaching task's.
 
     The BPE vocabulary is asked for as the coefficient alphabet plus `MERGES` merges, but FAST's byte-level BPE starts
     from 256 byte symbols, more than that budget, so the fit learns no merges at all (a larger vocabulary does fold a
@@ -99,14 +105,19 @@ def fit_fast(
     zeros). Room for merges needs more FAST ids than the 256 `<loc>` pieces, i.e. a larger text vocabulary.
     """
     rng = np.random.default_rng(seed)
-    cfg = task.TaskConfig()
-    chunks = list(normalize(np.stack([task.training_sample(rng, cfg).actions for _ in range(num_chunks)])))
-    coefficients = np.concatenate([np.around(dct_coefficients(c) * FAST_SCALE).ravel() for c in chunks])
+    if chunks is None:
+        cfg = task.TaskConfig()
+        chunks = np.stack([task.training_sample(rng, cfg).actions for _ in range(num_chunks)])
+    else:
+        chunks = np.asarray(chunks)[rng.permutation(len(chunks))[:num_chunks]]
+    normalised = list(normalize(chunks))
+    coefficients = np.concatenate([np.around(dct_coefficients(c) * FAST_SCALE).ravel() for c in normalised])
     alphabet = int(coefficients.max() - coefficients.min()) + 1
     if alphabet + MERGES > FAST_VOCAB:
         raise ValueError(f"FAST alphabet {alphabet} + {MERGES} merges does not fit the {FAST_VOCAB} <loc> pieces")
+    horizon, action_dim = chunks.shape[1:]
     fast = FastActionTokenizer.fit(
-        chunks, scale=FAST_SCALE, vocab_size=alphabet + MERGES, action_dim=2, time_horizon=cfg.action_horizon
+        normalised, scale=FAST_SCALE, vocab_size=alphabet + MERGES, action_dim=action_dim, time_horizon=horizon
     )
     fast.save(out / demo_reach.FAST_TOKENIZER.name)
     return fast

@@ -33,14 +33,22 @@ class ExpertStep:
     success: bool  # after this step's action
 
 
-def expert_episode(seed: int, noise: float, *, max_steps: int = metaworld_sim.MAX_STEPS) -> Iterator[ExpertStep]:
-    """One expert episode of `seed`; the executed action is the expert's plus Gaussian noise of std `noise` (the
-    recorded one is the expert's). Ends `HOLD_STEPS` after success, or at `max_steps`."""
+def expert_episode(
+    seed: int,
+    noise: float,
+    *,
+    task: str = metaworld_sim.TASK,
+    prompt: str | None = None,
+    image_size: int = metaworld_sim.IMAGE_SIZE,
+) -> Iterator[ExpertStep]:
+    """One expert episode of `task` in scene `seed`, instructed by `prompt` (None: the task's first); the executed
+    action is the expert's plus Gaussian noise of std `noise` (the recorded one is the expert's). Ends `HOLD_STEPS`
+    after success, or at the task's step budget."""
     rng = np.random.default_rng([seed, 1])
-    with metaworld_sim.MetaWorldSim(seed) as sim:
-        hold = 0
+    with metaworld_sim.MetaWorldSim(seed, task=task, image_size=image_size, prompt=prompt) as sim:
+        hold, max_steps = 0, sim.spec.max_steps
         while sim.steps < max_steps and hold < HOLD_STEPS:
-            frame = sim.frame()
+            frame = sim.frame(with_target=False)
             action = sim.expert_action()
             success = sim.step(action + noise * rng.standard_normal(action.shape))
             hold += success
@@ -92,6 +100,10 @@ class Demonstrations:
         episode = self.episode_index[row]
         last = row + int(np.searchsorted(self.episode_index[row:], episode, side="right")) - 1
         return self.actions[np.minimum(np.arange(row, row + horizon), last)]
+
+    def all_chunks(self, horizon: int) -> np.ndarray:
+        """Every frame's chunk (`chunk`) -> [N, horizon, ACTION_DIM]."""
+        return np.stack([self.chunk(row, horizon) for row in range(len(self))])
 
     def sample(self, row: int, horizon: int) -> task.Sample:
         return task.Sample(

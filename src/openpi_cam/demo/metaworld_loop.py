@@ -11,10 +11,15 @@ import numpy as np
 
 from openpi_cam.demo import bundled
 from openpi_cam.demo.client import RolloutSink
-from openpi_cam.demo.metaworld_sim import CLEAN, MetaWorldSim, Perturbation
+from openpi_cam.demo.metaworld_sim import CLEAN, TASK, TASKS, MetaWorldSim, Perturbation
 
-MAX_CALLS = 30  # 150 steps at 5 executed actions per call: about twice what the expert needs
 EXECUTE = 5
+MAX_CALLS = TASKS[TASK].max_steps // EXECUTE  # the button task's: about twice the steps the expert needs
+
+
+def max_calls_of(task: str, execute: int = EXECUTE) -> int:
+    """The calls an episode of `task` may make: its step budget (`TaskSpec.max_steps`) at `execute` actions each."""
+    return TASKS[task].max_steps // execute
 
 
 def run_episode(
@@ -22,15 +27,20 @@ def run_episode(
     seed: int,
     perturbation: Perturbation = CLEAN,
     *,
-    max_calls: int = MAX_CALLS,
+    task: str = TASK,
+    max_calls: int | None = None,
     execute: int = EXECUTE,
     sink: RolloutSink | None = None,
     perturbation_index: int = 0,
+    image_size: int | None = None,
 ) -> dict[str, Any]:
-    """One closed-loop episode; `infer` takes the client observation (with its `cam_extra/` entries) and returns the
-    server's reply. Recorded frames carry `perturbation_index` (the perturbation's place in the run's list)."""
+    """One closed-loop episode of `task`; `infer` takes the client observation (with its `cam_extra/` entries) and
+    returns the server's reply. `max_calls` None: the task's budget (`max_calls_of`); `image_size` None: the
+    simulator's default. Recorded frames carry `perturbation_index` (the perturbation's place in the run's list)."""
     calls = 0
-    with MetaWorldSim(seed, perturbation) as sim:
+    max_calls = max_calls_of(task, execute) if max_calls is None else max_calls
+    size = {} if image_size is None else {"image_size": image_size}
+    with MetaWorldSim(seed, perturbation, task=task, **size) as sim:
         while calls < max_calls and not sim.success:
             frame = sim.frame()
             chunk = np.asarray(infer(bundled.client_observation(frame))["actions"])[:execute]
@@ -53,6 +63,7 @@ def run_episode(
             sink.end_episode()
         return {
             "seed": seed,
+            "task": task,
             "perturbation": perturbation.name,
             "prompt": sim.prompt,
             "success": sim.success,

@@ -27,15 +27,69 @@ from typing import Any
 import numpy as np
 
 TASK = "button-press-topdown-v3"
-PROMPTS = {TASK: "press the button"}
-TARGET_BODIES = ("box", "buttonbox", "button")  # the box the button sits in, as the task's MJCF names its bodies
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskSpec:
+    """One Meta-World task as the demos use it: its instructions (the first is the one a demo episode sends; training
+    episodes cycle through all of them) and what the pointing figures score against, the bodies (and sites) of the
+    object the task is about, as the task's MJCF names them."""
+
+    prompts: tuple[str, ...]
+    target_bodies: tuple[str, ...] = ()
+    target_sites: tuple[str, ...] = ()
+    max_steps: int = 150  # the episode budget: about twice the steps the expert needs (docs/DEMO_NOTES.md)
+    # The least distance (m, on the table) between the object and the goal that the task's own reset insists on: it
+    # redraws until they are apart, and loops forever on a frozen draw that is not (`MetaWorldSim` draws again).
+    object_goal_distance: float = 0.0
+
+    @property
+    def prompt(self) -> str:
+        return self.prompts[0]
+
+
+# The tasks of the multi-task models (six of Meta-World's MT10, button press first) and two MT10 tasks no model is
+# trained on, whose scenes (a drawer, a window) are those of trained tasks with the opposite goal.
+TASKS: dict[str, TaskSpec] = {
+    TASK: TaskSpec(
+        ("press the button", "push the button down", "press down on the button"), ("box", "buttonbox", "button")
+    ),
+    "reach-v3": TaskSpec(
+        ("reach the goal", "move your hand to the goal", "touch the goal marker"),
+        target_sites=("goal",),
+        object_goal_distance=0.15,
+    ),
+    "push-v3": TaskSpec(
+        ("push the puck to the goal", "slide the puck to the goal", "push the puck onto the target"),
+        ("obj",),
+        object_goal_distance=0.15,
+    ),
+    "drawer-close-v3": TaskSpec(("close the drawer", "push the drawer shut", "shut the drawer"), ("drawer_link",)),
+    "door-open-v3": TaskSpec(
+        ("open the door", "pull the door open", "swing the door open"), ("door_link",), max_steps=200
+    ),
+    "window-open-v3": TaskSpec(
+        ("open the window", "slide the window open", "push the window open"), ("windowb_a", "windowb_b"), max_steps=200
+    ),
+    "drawer-open-v3": TaskSpec(("open the drawer",), ("drawer_link",), max_steps=200),
+    "window-close-v3": TaskSpec(("close the window",), ("windowb_a", "windowb_b"), max_steps=200),
+}
+
+
+def all_prompts() -> tuple[str, ...]:
+    """Every instruction of every task, trained or held out (what the multi-task models' text tokenizer learns)."""
+    return tuple(p for spec in TASKS.values() for p in spec.prompts)
+
+
+TRAINED_TASKS = ("button-press-topdown-v3", "reach-v3", "push-v3", "drawer-close-v3", "door-open-v3", "window-open-v3")
+HELD_OUT_TASKS = ("drawer-open-v3", "window-close-v3")
 BASE_CAMERA = "corner"
 WRIST_CAMERA = "gripperPOV"
 FLIPPED = frozenset({BASE_CAMERA})  # cameras whose frame comes out upside down
 IMAGE_SIZE = 64
 STATE_DIM = 4  # hand x, y, z and the gripper's opening: Meta-World's observation without the object and goal
 ACTION_DIM = 4  # hand displacement (x, y, z) and grip effort, each in [-1, 1]
-MAX_STEPS = 150  # the expert needs 61-73 steps (docs/DEMO_NOTES.md)
+MAX_STEPS = TASKS[TASK].max_steps
 PERTURBATION_KINDS = ("clean", "hue", "dim", "shift", "distractors", "prompt")
 # MuJoCo picks its GL backend when it is first imported, by whoever imports it (metaworld does): set it first.
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -151,9 +205,9 @@ def _distractor_spots(rng: np.random.Generator, n: int, box_xy: np.ndarray) -> l
     return spots
 
 
-def _target_geoms(model: Any) -> list[int]:
-    """The geoms of the box's bodies (`TARGET_BODIES`)."""
-    return [g for g in range(model.ngeom) if model.body(model.geom_bodyid[g]).name in TARGET_BODIES]
+def _target_geoms(model: Any, bodies: tuple[str, ...]) -> list[int]:
+    """The geoms of the task's target bodies."""
+    return [g for g in range(model.ngeom) if model.body(model.geom_bodyid[g]).name in bodies]
 
 
 def set_scene(env: Any, rand_vec: np.ndarray) -> None:
@@ -169,6 +223,16 @@ def set_scene(env: Any, rand_vec: np.ndarray) -> None:
         env.__dict__.pop("sawyer_observation_space", None)
 
 
+def _draw_scene(env: Any, rng: np.random.Generator, apart: float) -> np.ndarray:
+    """A placement from the task's own reset range ([object xyz, goal xyz] where the task has both), drawn again
+    until object and goal lie `apart` metres apart on the table, as the task's reset requires."""
+    low, high = env._random_reset_space.low, env._random_reset_space.high
+    while True:
+        vec = rng.uniform(low, high)
+        if apart == 0 or np.linalg.norm(vec[:2] - vec[-3:-1]) >= apart:
+            return vec
+
+
 class MetaWorldSim:
     """One episode of the task under a perturbation: `frame()` observes, `step(action)` acts, `success` says whether
     the button is pressed (Meta-World's `info["success"]`). Episode `seed` fixes the box's place (drawn from the task's
@@ -181,12 +245,17 @@ class MetaWorldSim:
         *,
         task: str = TASK,
         image_size: int = IMAGE_SIZE,
+        prompt: str | None = None,
     ) -> None:
+        if task not in TASKS:
+            raise ValueError(f"unknown Meta-World task {task!r}: one of {', '.join(TASKS)}")
         mujoco = _mujoco()
         env = _environment_class(task)()
         rng = np.random.default_rng(seed)
-        set_scene(env, rng.uniform(env._random_reset_space.low, env._random_reset_space.high))
+        set_scene(env, _draw_scene(env, rng, TASKS[task].object_goal_distance))
         self.task, self.perturbation, self.seed, self.image_size = task, perturbation, seed, image_size
+        self.spec = TASKS[task]
+        self._prompt = self.spec.prompt if prompt is None else prompt
         if perturbation.kind == "distractors":
             self._add_distractors(env, mujoco, rng, int(perturbation.value), env._last_rand_vec[:2])
         env.model.light_castshadow[:] = 0
@@ -196,7 +265,8 @@ class MetaWorldSim:
         self._renderer = mujoco.Renderer(env.model, image_size, image_size)
         self._segmenter = mujoco.Renderer(env.model, image_size, image_size)
         self._segmenter.enable_segmentation_rendering()
-        self._target_geoms = np.array(_target_geoms(env.model))
+        self._target_geoms = np.array(_target_geoms(env.model, self.spec.target_bodies), np.int64)
+        self._target_sites = np.array([env.model.site(n).id for n in self.spec.target_sites], np.int64)
         self.steps = 0
         self.success = False
         self._expert = expert_policy(task)
@@ -224,7 +294,7 @@ class MetaWorldSim:
     def _perturb_model(self, model: Any, mujoco: Any) -> None:
         kind = self.perturbation.kind
         if kind == "hue":
-            geoms = _target_geoms(model)
+            geoms = _target_geoms(model, self.spec.target_bodies)
             rgba = model.geom_rgba[geoms]
             rgba[:, :3] = _hue_turn(rgba[:, :3], self.perturbation.value)
             model.geom_rgba[geoms] = rgba
@@ -249,17 +319,25 @@ class MetaWorldSim:
     def prompt(self) -> str:
         if self.perturbation.kind == "prompt":
             return self.perturbation.strength
-        return PROMPTS[self.task]
+        return self._prompt
 
     def _render(self, renderer: Any, camera: str) -> np.ndarray:
         renderer.update_scene(self.env.data, camera=camera)
         image = renderer.render()
         return np.ascontiguousarray(image[::-1] if camera in FLIPPED else image)
 
-    def frame(self) -> Frame:
+    def target_mask(self) -> np.ndarray:
+        """The base camera's pixels showing the task's target (a segmentation render: occlusion by the arm counts)."""
         segments = self._render(self._segmenter, BASE_CAMERA)
-        geom = _mujoco().mjtObj.mjOBJ_GEOM
-        mask = (segments[..., 1] == geom) & np.isin(segments[..., 0], self._target_geoms)
+        objects = _mujoco().mjtObj
+        geoms = (segments[..., 1] == objects.mjOBJ_GEOM) & np.isin(segments[..., 0], self._target_geoms)
+        sites = (segments[..., 1] == objects.mjOBJ_SITE) & np.isin(segments[..., 0], self._target_sites)
+        return geoms | sites
+
+    def frame(self, *, with_target: bool = True) -> Frame:
+        """What the robot observes now; `with_target` False skips the segmentation render (an empty mask and box)."""
+        size = self.image_size
+        mask = self.target_mask() if with_target else np.zeros((size, size), bool)
         ys, xs = np.nonzero(mask)
         box = (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1) if len(xs) else (0, 0, 0, 0)
         return Frame(

@@ -30,19 +30,20 @@ import jax
 import numpy as np
 
 from openpi_cam.cam.batching import explain_traces
-from openpi_cam.cam.faithfulness import box_cells, spearman
+from openpi_cam.cam.faithfulness import box_cells, box_visible, spearman
 from openpi_cam.cam.run_format import load_run
+from openpi_cam.checkpoints import model_spec
 from openpi_cam.demo import bundled, task
 from openpi_cam.demo.data import Batches, load_normalize
+from openpi_cam.demo.recorded import EPISODES_FILE
 from openpi_cam.model.pi0_fast import Pi0FAST, init_params
-from openpi_cam.policies import demo_reach, model_spec
+from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import Explainer, Explanation
 from openpi_cam.policies.pi0_fast_family import FastExplainer
 from openpi_cam.policies.policy import InferenceTrace, Policy
 from openpi_cam.vocabulary import DEFAULT_KINDS, MAP_KINDS, ExplainOptions
 
 BASE_CAMERA = "base_0_rgb"
-EPISODES_FILE = "demo_episodes.json"  # the demo's episode outcomes, written beside the run's steps
 
 
 def peak_cell(cam_map: np.ndarray) -> tuple[int, int]:
@@ -75,11 +76,12 @@ def object_pointing(cam_map: np.ndarray, boxes: list[tuple[int, ...]], image_siz
 
 
 def run_figures(run_dir: Path, image_size: int = task.TaskConfig().image_size) -> dict[str, Any]:
-    """Success rate (from the demo's episode file) and, per map kind, the pointing game over every logged step."""
+    """Success rate (from the demo's episode file) and, per map kind the run carries, the pointing game over every
+    logged step whose target is in view (a hidden target, an empty box, is not scored); cameras of `image_size` px."""
     run = load_run(run_dir)
-    labelled = [s for s in run.steps if s.extra.get("target_box") is not None]
+    labelled = [s for s in run.steps if s.extra.get("target_box") is not None and box_visible(s.extra["target_box"])]
     per_kind = {}
-    for kind in MAP_KINDS:
+    for kind in (k for k in MAP_KINDS if any(k in s.map_kinds for s in run.steps)):
         hit, cell_chance, area_chance, on_block, block_chance = [], [], [], [], []
         for step in labelled:
             extra = step.extra

@@ -18,13 +18,14 @@ from openpi_cam.cam.faithfulness_run import FaithfulnessOptions, evaluate_run
 from openpi_cam.cam.run_evidence import REPORT_FILE
 from openpi_cam.cam.run_format import dumps, load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
-from openpi_cam.demo import bundled, metaworld_data, metaworld_loop, metaworld_sim, quality
+from openpi_cam.checkpoints.model_spec import ModelSpec
+from openpi_cam.demo import bundled, metaworld_data, metaworld_loop, metaworld_sim, quality, task
 from openpi_cam.demo.client import PolicyClient, RolloutSink
 from openpi_cam.demo.perturb import Perturbation
-from openpi_cam.policies.model_spec import ModelSpec
+from openpi_cam.policies import demo_metaworld
 from openpi_cam.serving.server import start_server_in_thread
 from openpi_cam.viz.render import RenderOptions, default_render_dir, render_run
-from openpi_cam.vocabulary import MAP_KINDS, Baseline, IgSpace, MapKind, MapOptions, Target
+from openpi_cam.vocabulary import COMPARED_KINDS, DEFAULT_KINDS, Baseline, IgSpace, MapKind, MapOptions, Target
 
 
 def run_episodes(
@@ -84,23 +85,29 @@ def run_metaworld_episodes(
     episodes: int,
     *,
     seed: int,
-    max_calls: int,
+    max_calls: int | None,
     execute: int,
     perturbations: Sequence[metaworld_sim.Perturbation],
+    tasks: Sequence[str] = (metaworld_sim.TASK,),
+    image_size: int = metaworld_sim.IMAGE_SIZE,
     sink: RolloutSink | None = None,
 ) -> list[dict[str, Any]]:
-    """Meta-World episodes over the server, laid out as `run_episodes` lays out the reaching task's: episode i is the
-    scene of seed + i // P under the (i mod P)-th of the P perturbations."""
+    """Meta-World episodes over the server: episode i drives task (i // P) mod T under perturbation i mod P in the
+    scene of seed + i // (P T) (T tasks, P perturbations), so every task meets every perturbation in the same scenes;
+    `max_calls` None gives each task its own budget. Cameras render at `image_size` px (the robot the model serves)."""
+    p, t = len(perturbations), len(tasks)
     with PolicyClient(url) as client:
         return [
             metaworld_loop.run_episode(
                 client.infer,
-                seed + e // len(perturbations),
-                perturbations[e % len(perturbations)],
+                seed + e // (p * t),
+                perturbations[e % p],
+                task=tasks[(e // p) % t],
                 max_calls=max_calls,
                 execute=execute,
                 sink=sink,
-                perturbation_index=e % len(perturbations),
+                perturbation_index=e % p,
+                image_size=image_size,
             )
             for e in range(episodes)
         ]
@@ -108,7 +115,12 @@ def run_metaworld_episodes(
 
 ROLLOUT_FPS = 10  # the frame rate recorded rollouts declare (the simulator has no clock: one frame per action)
 ROLLOUT_FPS_METAWORLD = metaworld_data.FPS  # Meta-World's control rate
-MAX_CALLS = {"reach": 6, "metaworld": metaworld_loop.MAX_CALLS}
+MAX_CALLS = 6  # the reaching task's calls per episode (a Meta-World task's: `metaworld_loop.max_calls_of`)
+# The Meta-World models `--model` names, and the size their robot's cameras render at.
+METAWORLD_MODELS = {"pi05": "metaworld_mt_pi05", "pi0_fast": "metaworld_mt_pi0_fast"}
+METAWORLD_CAMERA_SIZE = demo_metaworld.MT_IMAGE_SIZE
+# `--task` names that stand for a group of Meta-World tasks.
+TASK_GROUPS = {"all": metaworld_sim.TRAINED_TASKS, "held-out": metaworld_sim.HELD_OUT_TASKS}
 DRAIN_S = 3600.0  # how long the end of a demo run may spend explaining requests still queued
 
 
@@ -118,12 +130,16 @@ class DemoOptions:
 
     # the folder in which the CAM run directory is created.
     out: pathlib.Path = pathlib.Path("demo_runs")
-    # which simulator the robot lives in: the synthetic reaching task, or Meta-World's button press (MuJoCo; needs
-    # `pip install -e ".[metaworld]"`), served by its own bundled pi0.5.
+    # which simulator the robot lives in: the synthetic reaching task, or Meta-World (MuJoCo; needs
+    # `pip install -e ".[metaworld]"`), whose tasks a bundled multi-task model serves.
     sim: Literal["reach", "metaworld"] = "reach"
+    # metaworld: the tasks the episodes drive, in turn (names of `openpi_cam.demo.metaworld_sim.TASKS`; `all`: the six
+    # the models were trained on; `held-out`: the two they never saw).
+    task: tuple[str, ...] = (metaworld_sim.TASK,)
     # simulated episodes to drive.
     num_episodes: int = 3
-    # inference calls per episode at most (default: 6 for reach, 30 for metaworld).
+    # inference calls per episode at most (default: 6 for reach; for a Meta-World task its own budget, about twice
+    # the steps its expert needs, at `execute` actions a call).
     max_calls: int | None = None
     # actions of each returned chunk the robot executes before asking again.
     execute: int = 5
@@ -143,13 +159,14 @@ class DemoOptions:
     render: bool = True
     # with `render`, also write an MP4 and a GIF per episode.
     videos: bool = True
-    # which bundled model serves the reaching task: the tiny pi0-FAST (the default) or the tiny pi0.5 (metaworld has
-    # its own pi0.5, and takes no --model).
-    model: Literal["pi0_fast", "pi05"] | None = None
+    # which bundled model serves: the tiny pi0-FAST or the tiny pi0.5 of the simulator's task (metaworld: the
+    # multi-task models).
+    model: Literal["pi0_fast", "pi05"] = "pi0_fast"
     # the folder holding the model (checkpoint/) and its tokenizers; default: the bundled ones of `model`.
     assets: pathlib.Path | None = None
-    # which map kinds the side channel computes (all four, so that the faithfulness table compares them).
-    maps: tuple[MapKind, ...] = MAP_KINDS
+    # which map kinds the side channel computes (default: reach, the kinds the faithfulness table compares,
+    # `vocabulary.COMPARED_KINDS`; metaworld, the cheap ones, `vocabulary.DEFAULT_KINDS`: the costly kinds are opt-in).
+    maps: tuple[MapKind, ...] | None = None
     # re-score every step afterwards and report how faithful each map kind is.
     faithfulness: bool = True
     # the frame `ig` starts from and `occlusion` (and the faithfulness deletion) paints with.
@@ -165,19 +182,33 @@ class DemoOptions:
 
     @property
     def calls(self) -> int:
-        return MAX_CALLS[self.sim] if self.max_calls is None else self.max_calls
+        """Calls per episode at most (Meta-World: the most any of the tasks may make)."""
+        if self.max_calls is not None:
+            return self.max_calls
+        if self.sim == "metaworld":
+            return max(metaworld_loop.max_calls_of(t, self.execute) for t in self.tasks)
+        return MAX_CALLS
+
+    @property
+    def tasks(self) -> tuple[str, ...]:
+        """The Meta-World tasks, groups expanded."""
+        return tuple(dict.fromkeys(t for name in self.task for t in TASK_GROUPS.get(name, (name,))))
+
+    @property
+    def map_kinds(self) -> tuple[MapKind, ...]:
+        if self.maps is not None:
+            return self.maps
+        return DEFAULT_KINDS if self.sim == "metaworld" else COMPARED_KINDS
 
     @property
     def bundled_model(self) -> str:
         """The bundled model that serves (`model_spec.BUNDLED_CONFIGS`)."""
-        return "metaworld" if self.sim == "metaworld" else self.model or "pi0_fast"
+        return METAWORLD_MODELS[self.model] if self.sim == "metaworld" else self.model
 
     def ignored(self) -> dict[str, str]:
         """The flags given (other than their defaults) that the other flags leave without effect: flag -> why. The
         command refuses them, so that no flag is accepted and then ignored."""
         flags = {}
-        if self.sim == "metaworld" and self.model is not None:
-            flags["--model"] = "--sim metaworld serves its own bundled pi0.5"
         changed = [f.name for f in dataclasses.fields(self) if getattr(self, f.name) != f.default]
         spelled = {name: _flag(name, getattr(self, name)) for name in changed}
         if not self.explain:
@@ -191,6 +222,12 @@ class DemoOptions:
         if not self.perturb:
             raise ValueError("--perturb needs at least one perturbation (clean: none)")
         self.perturbations  # noqa: B018  (refused as the flags are parsed)
+        unknown = [t for t in self.tasks if t not in metaworld_sim.TASKS]
+        if unknown or not self.task:
+            names = ", ".join([*TASK_GROUPS, *metaworld_sim.TASKS])
+            raise ValueError(f"--task {' '.join(unknown) or '(none)'}: not a Meta-World task; one or more of {names}")
+        if self.sim != "metaworld" and self.task != (metaworld_sim.TASK,):
+            raise ValueError("--task names Meta-World tasks: it needs --sim metaworld")
 
 
 # What only an explained run uses (the run's folder, the maps, their renders and faithfulness).
@@ -223,10 +260,10 @@ def run_demo(opts: DemoOptions, sink: RolloutSink | None = None) -> DemoResult:
     policy = model.create()
     options = CAMOptions(
         every_k=1,
-        cam_dir=opts.out,
+        dir=opts.out,
         save_frames="both",
         target=opts.target,
-        maps=opts.maps,
+        maps=opts.map_kinds,
         map_options=MapOptions(baseline=opts.baseline, ig_space=opts.ig_space),
         queue_size=max(64, opts.num_episodes * opts.calls),  # room for every request: the demo logs each one
     )
@@ -236,23 +273,36 @@ def run_demo(opts: DemoOptions, sink: RolloutSink | None = None) -> DemoResult:
         "model": opts.bundled_model,
         "perturb": list(opts.perturb),
         "sim": opts.sim,
+        **({"tasks": list(opts.tasks)} if opts.sim == "metaworld" else {}),
     }
     run_config = {**model.resolved().to_json(), "demo": demo}
     checkpoint = str(model.checkpoint)
     cam = wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=checkpoint) if opts.explain else None
     # The demo explains every request: the drain at the end is the rest of the run's work, not a shutdown grace.
-    server = start_server_in_thread(cam or policy, metadata=policy.metadata, close_timeout=DRAIN_S)
-    drive = run_metaworld_episodes if opts.sim == "metaworld" else run_episodes
+    server = start_server_in_thread(cam or policy, metadata=policy.metadata, drain_timeout=DRAIN_S)
     try:
-        episodes = drive(
-            server.url,
-            opts.num_episodes,
-            seed=opts.seed,
-            max_calls=opts.calls,
-            execute=opts.execute,
-            perturbations=opts.perturbations,  # type: ignore[arg-type]
-            sink=sink,
-        )
+        if opts.sim == "metaworld":
+            episodes = run_metaworld_episodes(
+                server.url,
+                opts.num_episodes,
+                seed=opts.seed,
+                max_calls=opts.max_calls,
+                execute=opts.execute,
+                perturbations=opts.perturbations,  # type: ignore[arg-type]
+                tasks=opts.tasks,
+                image_size=METAWORLD_CAMERA_SIZE,
+                sink=sink,
+            )
+        else:
+            episodes = run_episodes(
+                server.url,
+                opts.num_episodes,
+                seed=opts.seed,
+                max_calls=opts.calls,
+                execute=opts.execute,
+                perturbations=opts.perturbations,  # type: ignore[arg-type]
+                sink=sink,
+            )
     finally:
         server.stop(timeout=DRAIN_S + 60)  # closes the side channel too, which drains its queue
     if cam is None:
@@ -270,9 +320,11 @@ def run_demo(opts: DemoOptions, sink: RolloutSink | None = None) -> DemoResult:
     reports = {}
     if opts.render:
         run = load_run(run_dir, load_arrays=False)
-        for kind in options.maps:
+        for kind in opts.map_kinds:
             render_opts = RenderOptions(map=kind, videos=opts.videos, progress=False)
             result = render_run(run, default_render_dir(run_dir, kind), render_opts)
             if result.report is not None:
                 reports[kind] = result.report
-    return DemoResult(run_dir, episodes, quality.run_figures(run_dir), reports, time.time() - t0, faithfulness)
+    size = METAWORLD_CAMERA_SIZE if opts.sim == "metaworld" else task.TaskConfig().image_size
+    figures = quality.run_figures(run_dir, size)
+    return DemoResult(run_dir, episodes, figures, reports, time.time() - t0, faithfulness)

@@ -27,6 +27,7 @@ import numpy as np
 import optax
 import tyro
 
+from openpi_cam.checkpoints import model_spec
 from openpi_cam.demo import bundled, make_tokenizers, metaworld_loop, metaworld_sim, sim
 from openpi_cam.demo.data import Batches, write_norm_stats
 from openpi_cam.demo.metaworld_data import Demonstrations
@@ -35,7 +36,7 @@ from openpi_cam.model import pi0
 from openpi_cam.model.checkpoint import load_params, save_params
 from openpi_cam.model.config import Pi0Config, Pi0FASTConfig
 from openpi_cam.model.pi0_fast import compute_loss, init_params
-from openpi_cam.policies import demo_reach, model_spec
+from openpi_cam.policies import demo_reach
 from openpi_cam.policies.config import PolicyConfig
 
 
@@ -106,12 +107,22 @@ def run_episode(policy, seed: int, *, max_calls: int = 8, execute: int = 5) -> t
     return False, max_calls
 
 
-def evaluate(out: Path, episodes: int, model: str, seed: int = 10_000) -> float:
-    """Closed-loop success rate of the model trained into `out` over fresh episodes of its task."""
+def evaluate(
+    out: Path, episodes: int, model: str, seed: int = 10_000, tasks: tuple[str, ...] = (), image_size: int | None = None
+) -> float:
+    """Closed-loop success rate of the model trained into `out` over fresh episodes of its task (Meta-World: episode
+    e of task e modulo the `tasks`, cameras at `image_size` px)."""
     policy = model_spec.create_demo_policy(model=model, assets=out)
-    if model == "metaworld":
+    if tasks:
         infer = lambda obs: policy.infer(bundled.policy_input(obs))  # noqa: E731
-        return float(np.mean([metaworld_loop.run_episode(infer, seed + e)["success"] for e in range(episodes)]))
+        outcomes = []
+        for e in range(episodes):
+            task_name = tasks[e % len(tasks)]
+            outcomes.append(
+                metaworld_loop.run_episode(infer, seed + e, task=task_name, image_size=image_size)["success"]
+            )
+            print(f"evaluation episode {e + 1}/{episodes} ({task_name}): {sum(outcomes)} successes", flush=True)
+        return float(np.mean(outcomes))
     return float(np.mean([run_episode(policy, seed + e)[0] for e in range(episodes)]))
 
 
@@ -124,8 +135,14 @@ def phases(args: TrainArgs) -> list[Phase]:
 ModelConfig = Pi0FASTConfig | Pi0Config
 
 
-def model_config(args: TrainArgs) -> ModelConfig:
+def model_config(args: TrainArgs, robot: PolicyConfig | None = None, image_size: int | None = None) -> ModelConfig:
+    """The architecture `args` describe for the demo robot `robot` (None: the reaching demo's) at `image_size` px (None:
+    the reaching task's)."""
     sizes = {"width": args.width, "depth": args.depth, "vit_width": args.vit_width, "patch_size": args.patch_size}
+    if image_size is not None:
+        sizes["image_size"] = image_size
+    if robot is not None:
+        sizes["robot"] = robot
     if args.model == "pi05":
         return bundled.pi05_model_config(make_tokenizers.VOCAB_SIZE, **sizes)
     return bundled.model_config(make_tokenizers.VOCAB_SIZE, **sizes)
@@ -146,24 +163,37 @@ def example_losses(cfg: ModelConfig, decode_offset: int) -> Callable:
     return flow_losses
 
 
-def train(args: TrainArgs, demonstrations: Demonstrations | None = None, config: PolicyConfig | None = None) -> dict:
+def train(
+    args: TrainArgs,
+    demonstrations: Demonstrations | None = None,
+    config: PolicyConfig | None = None,
+    *,
+    vocabulary: tuple[str, ...] = (),
+    eval_tasks: tuple[str, ...] = (),
+) -> dict:
     """Trains on the reaching task, or on recorded `demonstrations` for the bundled robot `config` names (its assets
-    are the default `--out`; the binding probe is the reaching task's and is skipped)."""
+    are the default `--out`; the binding probe is the reaching task's and is skipped). The text tokenizer learns the
+    demonstrations' prompts and the `vocabulary` prompts (instructions the model may be sent but was not trained on);
+    the evaluation drives the Meta-World `eval_tasks` in turn."""
     bundled_name = args.model if config is None else model_spec.BUNDLED_MODELS[config.name]
     out = model_spec.BUNDLED_ASSETS[bundled_name] if args.out is None else args.out
     out.mkdir(parents=True, exist_ok=True)
+    image_size = None
     if demonstrations is None:
         normalize = write_norm_stats(out)
         make_tokenizers.train_sentencepiece(out, seed=args.seed)
     else:
         asset_id = config.asset_id if config is not None else demo_reach.ASSET_ID
         normalize = write_norm_stats(out, demonstrations=demonstrations, asset_id=asset_id)
-        prompts = tuple(sorted(set(demonstrations.prompt.tolist())))
+        prompts = tuple(sorted(set(demonstrations.prompt.tolist()) | set(vocabulary)))
         make_tokenizers.train_sentencepiece(out, seed=args.seed, prompts=prompts, state_dim=metaworld_sim.STATE_DIM)
         args = dataclasses.replace(args, probe_every=0)
+        image_size = int(demonstrations.base_image.shape[1])
     if args.model == "pi0_fast":
-        make_tokenizers.fit_fast(out, lambda chunks: normalize({"actions": chunks})["actions"])
-    cfg = model_config(args)
+        chunks = None if demonstrations is None else demonstrations.all_chunks(config.action_horizon)
+        fast = make_tokenizers.fit_fast(out, lambda c: normalize({"actions": c})["actions"], chunks=chunks)
+        print(f"FAST: {fast.bpe_vocab_size} ids", flush=True)
+    cfg = model_config(args, config, image_size)
     init = init_params if args.model == "pi0_fast" else pi0.init_params
     params = init(cfg, jax.random.key(args.seed)) if args.init_from is None else load_params(args.init_from)
     batches = Batches(
@@ -184,7 +214,9 @@ def train(args: TrainArgs, demonstrations: Demonstrations | None = None, config:
     save_params(params_dir, params)
     summary["train_seconds"] = round(time.time() - t0)
     if args.eval_episodes:
-        summary["success_rate"] = evaluate(out, args.eval_episodes, bundled_name)
+        summary["success_rate"] = evaluate(
+            out, args.eval_episodes, bundled_name, tasks=eval_tasks, image_size=image_size
+        )
     print(json.dumps(summary), flush=True)
     return summary
 

@@ -14,6 +14,10 @@ EOS_TOKEN = 1
 MAX_DECODING_STEPS = 256
 # The cameras upstream's pi0 / pi0.5 read, in token order (upstream `IMAGE_KEYS`).
 PI0_IMAGE_KEYS = ("base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb")
+# How a layer stack's backward pass treats its non-linear operations (`model.lrp`): "gradient" differentiates them,
+# "lrp" applies AttnLRP's rules so that input x gradient is relevance. The forward pass is the same under both.
+Rules = Literal["gradient", "lrp"]
+RULES: tuple[str, ...] = ("gradient", "lrp")
 
 
 def remat_by_default(width: int) -> bool:
@@ -48,6 +52,7 @@ class GemmaConfig:
     # Recompute each layer in the backward pass instead of storing its activations (`jax.checkpoint`): explanations
     # of full-size models trade a second forward for memory. No effect on a forward pass.
     remat: bool = False
+    rules: Rules = "gradient"  # the backward pass's rules (`RULES`); no effect on a forward pass
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,6 +65,7 @@ class SiglipConfig:
     image_size: int = 224  # square images, as upstream's pi0-FAST (224 x 224)
     out_dim: int = 2048  # the linear head projects onto the LLM width
     scan: bool = True  # run the encoder blocks as `lax.scan` (False: unrolled)
+    rules: Rules = "gradient"  # the backward pass's rules (`RULES`); no effect on a forward pass
 
     @property
     def grid(self) -> tuple[int, int]:

@@ -13,6 +13,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from openpi_cam.model import lrp
 from openpi_cam.model.config import GemmaConfig
 
 # Upstream masks attention logits with this constant rather than -inf, so fully masked rows get a uniform softmax.
@@ -25,9 +26,9 @@ class KVCache(NamedTuple):
     idx: jax.Array  # int32 [], the next slot to write
 
 
-def rms_norm(x: jax.Array, scale: jax.Array) -> jax.Array:
+def rms_norm(x: jax.Array, scale: jax.Array, rules: str = "gradient") -> jax.Array:
     var = jnp.mean(jnp.square(x.astype(jnp.float32)), axis=-1, keepdims=True)
-    normed = x * jnp.reciprocal(jnp.sqrt(var + 1e-6))
+    normed = x * lrp.constant(jnp.reciprocal(jnp.sqrt(var + 1e-6)), rules)
     return (normed * (1 + scale)).astype(x.dtype)
 
 
@@ -67,7 +68,7 @@ def einsum_lora(eq: str, x: jax.Array, p: dict, name: str, lora_scale: float) ->
     return y
 
 
-def feed_forward(x: jax.Array, p: dict) -> jax.Array:
+def feed_forward(x: jax.Array, p: dict, rules: str = "gradient") -> jax.Array:
     def dot(h, name, idx=None):
         w = p[name] if idx is None else p[name][idx]
         y = jnp.dot(h, w.astype(h.dtype))
@@ -77,8 +78,8 @@ def feed_forward(x: jax.Array, p: dict) -> jax.Array:
             y = y + jnp.dot(jnp.dot(h, a.astype(h.dtype)), b.astype(h.dtype))
         return y
 
-    gate = jax.nn.gelu(dot(x, "gating_einsum", 0), approximate=True)
-    return dot(gate * dot(x, "gating_einsum", 1), "linear")
+    gate = lrp.gelu(dot(x, "gating_einsum", 0), rules)
+    return dot(lrp.split(gate * dot(x, "gating_einsum", 1), rules), "linear")
 
 
 def _attention(x, p, positions, mask, k_cache, v_cache, idx, cfg: GemmaConfig, rows: slice, hidden_slots: int):
@@ -98,7 +99,8 @@ def _attention(x, p, positions, mask, k_cache, v_cache, idx, cfg: GemmaConfig, r
 
     b, t, n, h = q.shape
     q = q.reshape(b, t, cfg.num_kv_heads, n // cfg.num_kv_heads, h)
-    encoded = attend(q, k_cache, v_cache, mask[:, rows], hidden_slots).reshape(b, t, n, h)
+    q, k_att, v_att = lrp.attention_operands(q, k_cache, v_cache, cfg.rules)
+    encoded = attend(q, k_att, v_att, mask[:, rows], hidden_slots).reshape(b, t, n, h)
     return einsum_lora("BTNH,NHD->BTD", encoded, p, "attn_vec_einsum", scale), k_cache, v_cache
 
 
@@ -174,7 +176,7 @@ def forward(
     def layer(h, p, k_cache, v_cache, top_only):
         rows = slice(-1, None) if top_only else slice(None)
         attn, k_cache, v_cache = _attention(
-            rms_norm(h, p["pre_attention_norm"]["scale"]),
+            rms_norm(h, p["pre_attention_norm"]["scale"], cfg.rules),
             p["attn"],
             positions,
             mask,
@@ -186,7 +188,7 @@ def forward(
             hidden_slots,
         )
         h = h[:, rows] + attn
-        h = h + feed_forward(rms_norm(h, p["pre_ffw_norm"]["scale"]), p["mlp"])
+        h = h + feed_forward(rms_norm(h, p["pre_ffw_norm"]["scale"], cfg.rules), p["mlp"], cfg.rules)
         return h, (k_cache, v_cache)
 
     if cfg.remat:
@@ -203,4 +205,4 @@ def forward(
         x, (k, v) = jax.lax.scan(body, x, jnp.arange(cfg.depth - 1), unroll=not cfg.scan)
         x, (k_top, v_top) = layer(x, *jax.tree.map(lambda a: a[-1], stack), True)
         k, v = jnp.concatenate([k, k_top[None]]), jnp.concatenate([v, v_top[None]])
-    return rms_norm(x, params["final_norm"]["scale"]), KVCache(k, v, cache.idx + t)
+    return rms_norm(x, params["final_norm"]["scale"], cfg.rules), KVCache(k, v, cache.idx + t)

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from openpi_cam.model import gemma
+from openpi_cam.model import gemma, lrp
 from openpi_cam.model.checkpoint import load_params
 from openpi_cam.model.config import GemmaConfig, Pi0Config, pi0_architecture_from_params, pi0_param_shapes
 from openpi_cam.model.init import init_from_shapes
@@ -61,14 +61,15 @@ def _linear(p: dict, x: jax.Array) -> jax.Array:
     return jnp.dot(x, p["kernel"]) + p["bias"]
 
 
-def _norm(x: jax.Array, p: dict, cond: jax.Array | None) -> tuple[jax.Array, jax.Array | None]:
+def _norm(x: jax.Array, p: dict, cond: jax.Array | None, rules: str = "gradient") -> tuple[jax.Array, jax.Array | None]:
     """RMSNorm; with a condition (pi0.5's expert) adaptive: (normed * (1 + scale) + shift, gate), where scale, shift
-    and gate come from `cond @ Dense_0` [B, 3E]."""
+    and gate come from `cond @ Dense_0` [B, 3E]. Under "lrp" rules the normaliser and the modulation are constants
+    (`model.lrp`: the modulation depends on the Euler step alone)."""
     if cond is None:
-        return gemma.rms_norm(x, p["scale"]), None
+        return gemma.rms_norm(x, p["scale"], rules), None
     var = jnp.mean(jnp.square(x.astype(jnp.float32)), axis=-1, keepdims=True)
-    normed = x * jnp.reciprocal(jnp.sqrt(var + 1e-6))
-    modulation = _linear(p["Dense_0"], cond.astype(x.dtype))
+    normed = x * lrp.constant(jnp.reciprocal(jnp.sqrt(var + 1e-6)), rules)
+    modulation = lrp.constant(_linear(p["Dense_0"], cond.astype(x.dtype)), rules)
     scale, shift, gate = jnp.split(modulation[:, None, :], 3, axis=-1)  # [B, 1, E] each
     return (normed * (1 + scale) + shift).astype(x.dtype), gate
 
@@ -116,7 +117,7 @@ def mixture_forward(
         lps, layer_cache = scanned
         normed, gates, qs, ks, vs = [], [], [], [], []
         for h, lp, i in zip(hs, lps, active, strict=True):
-            n, gate = _norm(h, lp["pre_attention_norm"], conds[i])
+            n, gate = _norm(h, lp["pre_attention_norm"], conds[i], cfgs[i].rules)
             scale = cfgs[i].lora_alpha / cfgs[i].lora_rank if cfgs[i].lora_rank else 1.0
             q = gemma.einsum_lora("BTD,NDH->BTNH", n, lp["attn"], "q_einsum", scale)
             k, v = gemma.einsum_lora("BSD,CKDH->CBSKH", n, lp["attn"], "kv_einsum", scale)
@@ -132,7 +133,7 @@ def mixture_forward(
             v = jnp.concatenate([layer_cache[1], v], axis=1)
         b, t, n_heads, hd = q.shape
         q = q.reshape(b, t, ref.num_kv_heads, n_heads // ref.num_kv_heads, hd)
-        encoded = gemma.attend(q, k, v, mask, 0).reshape(b, t, n_heads, hd)
+        encoded = gemma.attend(*lrp.attention_operands(q, k, v, ref.rules), mask, 0).reshape(b, t, n_heads, hd)
         out, start = [], 0
         for h, lp, i, gate, length in zip(hs, lps, active, gates, lengths, strict=True):
             scale = cfgs[i].lora_alpha / cfgs[i].lora_rank if cfgs[i].lora_rank else 1.0
@@ -140,8 +141,8 @@ def mixture_forward(
                 "BTNH,NHD->BTD", encoded[:, start : start + length], lp["attn"], "attn_vec_einsum", scale
             )
             h = _gated(h, y, gate)
-            n, gate = _norm(h, lp["pre_ffw_norm"], conds[i])
-            out.append(_gated(h, gemma.feed_forward(n, lp["mlp"]), gate))
+            n, gate = _norm(h, lp["pre_ffw_norm"], conds[i], cfgs[i].rules)
+            out.append(_gated(h, gemma.feed_forward(n, lp["mlp"], cfgs[i].rules), gate))
             start += length
         return tuple(out), (k, v)
 
@@ -150,7 +151,7 @@ def mixture_forward(
     hs, kv = jax.lax.scan(layer, hs, (lps, cache), unroll=not ref.scan)
     outs: list[jax.Array | None] = [None] * len(xs)
     for h, e, i in zip(hs, experts, active, strict=True):
-        outs[i] = _norm(h, e["final_norm"], conds[i])[0]
+        outs[i] = _norm(h, e["final_norm"], conds[i], cfgs[i].rules)[0]
     return outs, kv
 
 
@@ -181,7 +182,8 @@ def embed_suffix(
         tokens, ar = actions, [True] + [False] * (h - 1)
     else:
         mixed = jnp.concatenate([actions, jnp.broadcast_to(time_emb[:, None, :], (b, h, width))], axis=-1)
-        mixed = _linear(params["action_time_mlp_out"], jax.nn.swish(_linear(params["action_time_mlp_in"], mixed)))
+        hidden = lrp.swish(_linear(params["action_time_mlp_in"], mixed), cfg.expert.rules)
+        mixed = _linear(params["action_time_mlp_out"], hidden)
         state_token = _linear(params["state_proj"], state)[:, None, :]
         cond, tokens, ar = None, jnp.concatenate([state_token, mixed], axis=1), [True, True] + [False] * (h - 1)
     return tokens, jnp.ones(tokens.shape[:2], bool), jnp.asarray(ar), cond

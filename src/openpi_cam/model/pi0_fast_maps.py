@@ -17,6 +17,9 @@ frame blurred, or its mean colour), and are signed (positive = supports the expl
              (no gradient through SigLIP); its completeness terms come with the result (`IgCompleteness`).
   occlusion  the drop of the score when a region's pixels are replaced by the baseline's and the whole model re-run,
              one camera at a time; every region once ("regions") or random Bernoulli masks (ISS, "random").
+A fifth kind propagates the score back to the pixels with AttnLRP's rules (`model.lrp`), one modified backward pass
+through the replay and SigLIP per explained score:
+  lrp        relevance = input x modified gradient at the model's input pixels, summed per patch; signed.
 Scores: a token's logit at its decode step (`maps_for_steps`), or a sum of log-probabilities over decode steps (the
 chunk, or any per-row list of steps: `maps_for_chunk`). `rescore_masks` returns the same scores with patches painted,
 for the spot checks and faithfulness metrics. `gradcam_for_token` and `gradcam_for_action_token` are the Grad-CAM API
@@ -40,12 +43,19 @@ import jax.numpy as jnp
 import numpy as np
 from numpy.typing import ArrayLike
 
-from openpi_cam.model import baseline_maps, gemma, remat
+from openpi_cam.model import baseline_maps, gemma, lrp, lrp_maps, remat
 from openpi_cam.model.attribution import IgCompleteness, gradcam_reduce, per_score_grads
 from openpi_cam.model.config import MAX_DECODING_STEPS, Pi0FASTConfig
 from openpi_cam.model.observation import Observation, preprocess_observation
 from openpi_cam.model.pi0_fast import Pi0FAST, embed_images, replay_prelogits
-from openpi_cam.vocabulary import BASELINE_KINDS, DEFAULT_KINDS, GRADIENT_KINDS, MapOptions, check_kinds
+from openpi_cam.vocabulary import (
+    BASELINE_KINDS,
+    DEFAULT_KINDS,
+    GRADIENT_KINDS,
+    RELEVANCE_KINDS,
+    MapOptions,
+    check_kinds,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -183,24 +193,50 @@ def _weights_target(weights: np.ndarray) -> dict[str, jax.Array]:
     return {"weights": jnp.asarray(w), "positions": jnp.asarray(positions)}
 
 
+def _scores_of(params: dict, pre: jax.Array, generated: jax.Array, target: dict[str, jax.Array]) -> jax.Array:
+    """The explained scores [T, B] from the replay's pre-logits pre [B, L, D]: a token target's logits
+    (`_token_target`), or a weights target's weighted log-prob sum as one row [1, B] (`_weights_target`)."""
+    if "steps" in target:
+        rows, steps = jnp.arange(generated.shape[0])[None, :], target["steps"]
+        return _gathered_logits(params, pre[rows, steps], target["ids"][rows, steps]).astype(jnp.float32)
+    positions = target["positions"]
+    logits = gemma.logits_from_prelogits(params["PaliGemma"]["llm"], pre[:, positions]).astype(jnp.float32)
+    logp = jnp.take_along_axis(jax.nn.log_softmax(logits, -1), generated[:, positions, None], -1)[..., 0]  # [B, K]
+    return jnp.sum(target["weights"] * logp, axis=-1)[None]
+
+
 def _score_fn(params, obs, generated, target, cfg, decode_len) -> Callable[[jax.Array], jax.Array]:
-    """The explained scores as a function of the image tokens E [B, C, N, D] -> [T, B]: a token target's logits
-    (`_token_target`), or a weights target's weighted log-prob sum as one row [1, B] (`_weights_target`), over the
+    """The explained scores (`_scores_of`) as a function of the image tokens E [B, C, N, D] -> [T, B], over the
     replay of generated [B, L] in a decode of `decode_len` steps."""
-    llm = params["PaliGemma"]["llm"]
-    rows = jnp.arange(generated.shape[0])[None, :]
 
     def fn(image_tokens):
         pre = replay_prelogits(params, image_tokens, obs, generated, cfg, decode_len)
-        if "steps" in target:
-            steps = target["steps"]
-            return _gathered_logits(params, pre[rows, steps], target["ids"][rows, steps]).astype(jnp.float32)
-        positions = target["positions"]
-        logits = gemma.logits_from_prelogits(llm, pre[:, positions]).astype(jnp.float32)  # [B, K, V]
-        logp = jnp.take_along_axis(jax.nn.log_softmax(logits, -1), generated[:, positions, None], -1)[..., 0]
-        return jnp.sum(target["weights"] * logp, axis=-1)[None]
+        return _scores_of(params, pre, generated, target)
 
     return fn
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "decode_len", "logits"))
+def _relevance_maps(params, obs, generated, target, *, cfg: Pi0FASTConfig, decode_len: int, logits: bool):
+    """The lrp kind of a token or weights target (`cfg` with rules "lrp", `lrp_maps.pixel_relevance`): one modified
+    backward pass per score, through the replay and SigLIP to the pixels. Returns scores [T, B], relevance
+    [T, B, C, N] and, for a token target with `logits`, the full logit vectors of the explained outputs [T, B, V]
+    (else None)."""
+    full = logits and "steps" in target
+
+    def output_fn(image_tokens):
+        pre = replay_prelogits(params, image_tokens, obs, generated, cfg, decode_len)
+        explained = pre[jnp.arange(generated.shape[0])[None, :], target["steps"]] if full else None  # [T, B, D]
+        return _scores_of(params, pre, generated, target), explained
+
+    def cotangents(scores):  # one score row at a time, every batch row at once
+        t = scores.shape[0]
+        return jnp.broadcast_to(jnp.eye(t, dtype=scores.dtype)[:, :, None], (t, *scores.shape))
+
+    scores, explained, relevance = lrp_maps.pixel_relevance(params, obs, cfg, output_fn, cotangents)
+    if full:
+        explained = gemma.logits_from_prelogits(params["PaliGemma"]["llm"], explained).astype(jnp.float32)
+    return scores, relevance, explained
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "decode_len", "kinds", "options", "base_outputs", "logits"))
@@ -274,15 +310,26 @@ def _baseline_outputs(
     return _map_tree(rows, extra), ig_steps
 
 
+def _relevance_outputs(
+    model, obs, generated, target, decode_len, logits, layout=lambda c: c
+) -> tuple[jax.Array, jax.Array, jax.Array | None]:
+    """`_relevance_maps` of one target in the model's config with rules "lrp", laid out by `layout` (the family's
+    backward layout) and without remat where it fits the device (`remat.backward_layout`)."""
+    args, static = (model.params, obs, generated, target), {"decode_len": decode_len, "logits": logits}
+    cfg = remat.backward_layout(_relevance_maps, lrp.with_rules(model.config, "lrp"), args, static, layout)
+    return _relevance_maps(*args, cfg=cfg, **static)
+
+
 def _camera_maps(x: np.ndarray, cams: Sequence[str], grid: tuple[int, int]) -> dict[str, np.ndarray]:
     """[..., C, N] -> camera -> [..., Hp, Wp] (row-major patch grid)."""
     return {c: x[..., i, :].reshape(*x.shape[:-2], *grid) for i, c in enumerate(cams)}
 
 
 def _result(
-    model, obs, *, target, kinds, grad, score, logits, extra, ig_steps, token_ids, steps, positions, options
+    model, obs, *, target, kinds, grad, relevance, score, logits, extra, ig_steps, token_ids, steps, positions, options
 ) -> MapResult:
-    """grad: (alpha, cam, token_norm) batch-first or None; extra: `_baseline_outputs` made batch-first."""
+    """grad: (alpha, cam, token_norm) batch-first or None; relevance: the lrp kind's [..., C, N] batch-first or None;
+    extra: `_baseline_outputs` made batch-first."""
     cams = tuple(obs.images)
     n = model.config.siglip.num_tokens
     grid = model.config.siglip.grid
@@ -294,6 +341,8 @@ def _result(
         by_kind.update({k: _camera_maps(m, cams, grid) for k, m in gradient_maps.items() if k in kinds})
         alphas = {c: alpha[..., i, :] for i, c in enumerate(cams)}
         grad_norms = {c: grad_norm[..., i] for i, c in enumerate(cams)}
+    if relevance is not None:
+        by_kind["lrp"] = _camera_maps(np.asarray(relevance), cams, grid)
     by_kind.update({k: extra[k] for k in BASELINE_KINDS if k in extra})
     completeness = IgCompleteness(*extra["ig_check"], steps=ig_steps) if "ig_check" in extra else None
     return MapResult(
@@ -472,19 +521,29 @@ def _explain_tokens(
         grad = tuple(batch_first(x) for x in (alpha, cam, token_norm))
         score = batch_first(score)
         logits = None if logits is None else batch_first(logits)
+    target_spec = _token_target(targets, steps_tb)
+    relevance = None
+    if any(k in RELEVANCE_KINDS for k in kinds):
+        tokens = steps_tb.shape[0]
+        lrp_score, relevance, lrp_logits = _relevance_outputs(
+            model, obs, generated, target_spec, decode_len, with_logits, lambda c: backward_config(c, tokens)
+        )
+        relevance = batch_first(relevance)
+        if score is None:
+            score, logits = batch_first(lrp_score), None if lrp_logits is None else batch_first(lrp_logits)
     extra, ig_steps = _baseline_outputs(
         model,
         obs,
         generated,
-        _token_target(targets, steps_tb),
+        target_spec,
         decode_len=decode_len,
         kinds=kinds,
         options=options,
-        base_outputs=grad is None,
+        base_outputs=score is None,
         logits=with_logits,
         rows=batch_first,
     )
-    if extra and grad is None:
+    if extra and score is None:
         score, logits = extra["score"], extra.get("logits")
     token_ids = np.take_along_axis(np.asarray(targets), steps, axis=1)
     return _result(
@@ -493,6 +552,7 @@ def _explain_tokens(
         target="token" if squeeze else "tokens",
         kinds=kinds,
         grad=grad,
+        relevance=relevance,
         score=score,
         logits=logits,
         extra=extra,
@@ -575,6 +635,11 @@ def _explain_chunk(
         cfg = remat.backward_layout(_chunk_gradient_maps, model.config, args, static)
         score, alpha, cam, token_norm = _chunk_gradient_maps(*args, cfg=cfg, **static)
         grad = (alpha, cam, token_norm)
+    relevance = None
+    if any(k in RELEVANCE_KINDS for k in kinds):
+        lrp_score, relevance, _ = _relevance_outputs(model, obs, generated, target_spec, decode_len, False)
+        relevance = np.asarray(relevance)[0]  # the one score row
+        score = np.asarray(lrp_score)[0] if score is None else score
     extra, ig_steps = _baseline_outputs(
         model,
         obs,
@@ -583,10 +648,10 @@ def _explain_chunk(
         decode_len=decode_len,
         kinds=kinds,
         options=options,
-        base_outputs=grad is None,
+        base_outputs=score is None,
         rows=lambda x: x[0],  # the one score row
     )
-    if extra and grad is None:
+    if extra and score is None:
         score = extra["score"]
     valid = padded >= 0
     token_ids = np.where(valid, np.take_along_axis(np.asarray(generated), np.maximum(padded, 0), axis=1), -1)
@@ -596,6 +661,7 @@ def _explain_chunk(
         target="chunk",
         kinds=kinds,
         grad=grad,
+        relevance=relevance,
         score=score,
         logits=None,
         extra=extra,

@@ -5,7 +5,8 @@ E [B, C, N, D] the LLM sees, from the call's own noise (no gradient through SigL
 the chunk, score = sum(W * x_0): one action dimension at one horizon step (W one-hot at (h, d)), or the whole chunk
 (W = stop_gradient(x_0), the goldens' `gc_chunk`: its gradient is sum_hd x_0[h, d] * dx_0[h, d] / dE). Several targets
 share one forward pass and take one backward pass each. Each Euler step is rematerialised (`pi0.denoise`), so the
-backward keeps one step's activations at a time.
+backward keeps one step's activations at a time. The `lrp` kind runs its own backward pass per target with AttnLRP's
+rules (`model.lrp`) through SigLIP too, to the pixels (`lrp_maps`).
 """
 
 from __future__ import annotations
@@ -19,13 +20,20 @@ import jax.numpy as jnp
 import numpy as np
 from numpy.typing import ArrayLike
 
-from openpi_cam.model import baseline_maps, remat
+from openpi_cam.model import baseline_maps, lrp, lrp_maps, remat
 from openpi_cam.model.attribution import IgCompleteness, gradcam_reduce
 from openpi_cam.model.config import Pi0Config
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.paligemma import embed_images
 from openpi_cam.model.pi0 import Pi0, denoise, preprocess
-from openpi_cam.vocabulary import BASELINE_KINDS, DEFAULT_KINDS, GRADIENT_KINDS, MapOptions, check_kinds
+from openpi_cam.vocabulary import (
+    BASELINE_KINDS,
+    DEFAULT_KINDS,
+    GRADIENT_KINDS,
+    RELEVANCE_KINDS,
+    MapOptions,
+    check_kinds,
+)
 
 CHUNK = (-1, -1)  # the (h, d) that stands for the whole-chunk target
 
@@ -67,6 +75,20 @@ def _flow_gradient_maps(params, obs, noise, *, cfg: Pi0Config, targets: tuple[tu
     alpha, cam, token_norm = gradcam_reduce(E, G)
     score = jnp.einsum("tbha,bha->bt", weights, x_0)
     return score, x_0, jnp.moveaxis(alpha, 0, 1), jnp.moveaxis(cam, 0, 1), jnp.moveaxis(token_norm, 0, 1)
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "targets"))
+def _flow_relevance_maps(params, obs, noise, *, cfg: Pi0Config, targets: tuple[tuple[int, int], ...]):
+    """The lrp kind of the targets (`cfg` with rules "lrp", `lrp_maps.pixel_relevance`): one modified backward pass
+    per target from its weighting of x_0 through the Euler integration, the LLM and SigLIP to the pixels. -> score
+    [B, T], x_0 [B, H, A], relevance [B, T, C, N]."""
+
+    def output_fn(image_tokens):
+        return denoise(params, image_tokens, obs, noise, cfg), None
+
+    x_0, _, relevance = lrp_maps.pixel_relevance(params, obs, cfg, output_fn, lambda x: _weights(x, targets))
+    score = jnp.einsum("tbha,bha->bt", _weights(x_0, targets), x_0)
+    return score, x_0, jnp.moveaxis(relevance, 0, 1)
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "targets", "kinds", "options", "base_outputs"))
@@ -133,6 +155,13 @@ def maps_for_actions(
         by_kind.update({k: gradient_maps[k] for k in GRADIENT_KINDS if k in kinds})
         alphas = {c: np.asarray(alpha)[:, :, i] for i, c in enumerate(cams)}
         grad_norms = {c: grad_norm[:, :, i] for i, c in enumerate(cams)}
+    if any(k in RELEVANCE_KINDS for k in kinds):
+        args, static = (model.params, obs, noise), {"targets": targets}
+        lrp_cfg = remat.backward_layout(_flow_relevance_maps, lrp.with_rules(cfg, "lrp"), args, static)
+        lrp_score, lrp_actions, relevance = _flow_relevance_maps(*args, cfg=lrp_cfg, **static)
+        by_kind["lrp"] = per_camera(np.asarray(relevance))
+        if score is None:
+            score, actions = lrp_score, lrp_actions
     if any(k in BASELINE_KINDS for k in kinds):
         first_outputs = score is None
 

@@ -10,17 +10,19 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from openpi_cam.model import lrp
 from openpi_cam.model.config import SiglipConfig
 
 LN_EPS = 1e-6
 
 
-def layer_norm(x: jax.Array, p: dict, dtype) -> jax.Array:
-    """flax LayerNorm (use_fast_variance): statistics in float32, result cast to the compute dtype."""
+def layer_norm(x: jax.Array, p: dict, dtype, rules: str = "gradient") -> jax.Array:
+    """flax LayerNorm (use_fast_variance): statistics in float32, result cast to the compute dtype; `rules`: the
+    backward pass's (`model.lrp`)."""
     xf = x.astype(jnp.promote_types(x.dtype, jnp.float32))
     mean = jnp.mean(xf, -1, keepdims=True)
     var = jnp.maximum(jnp.mean(jnp.square(xf), -1, keepdims=True) - jnp.square(mean), 0.0)
-    y = (xf - mean) * (jax.lax.rsqrt(var + LN_EPS) * p["scale"]) + p["bias"]
+    y = (xf - mean) * (lrp.constant(jax.lax.rsqrt(var + LN_EPS), rules) * p["scale"]) + p["bias"]
     return y.astype(dtype)
 
 
@@ -28,20 +30,30 @@ def _dense(x: jax.Array, p: dict, eq: str) -> jax.Array:
     return jnp.einsum(eq, x, p["kernel"].astype(x.dtype)) + p["bias"].astype(x.dtype)
 
 
-def _encoder_block(x: jax.Array, p: dict, num_heads: int) -> jax.Array:
+def attention_weights(logits: jax.Array, dtype) -> jax.Array:
+    """Softmax over the keys (the last axis), cast to the compute dtype. Every rule keeps its plain gradient
+    (`model.lrp`: AttnLRP's softmax rule is input x gradient)."""
+    return jax.nn.softmax(logits, axis=-1).astype(dtype)
+
+
+def attention_sublayer(x: jax.Array, p: dict, rules: str = "gradient") -> jax.Array:
+    """x + multi-head self-attention of LayerNorm_0(x), the first half of an encoder block (its params `p`)."""
     dtype = x.dtype
-    y = layer_norm(x, p["LayerNorm_0"], dtype)
+    y = layer_norm(x, p["LayerNorm_0"], dtype, rules)
     att = p["MultiHeadDotProductAttention_0"]
     q = _dense(y, att["query"], "btw,wnh->btnh")
     k = _dense(y, att["key"], "btw,wnh->btnh")
     v = _dense(y, att["value"], "btw,wnh->btnh")
     q = q / jnp.sqrt(q.shape[-1]).astype(dtype)
-    probs = jax.nn.softmax(jnp.einsum("btnh,bsnh->bnts", q, k), axis=-1).astype(dtype)
-    y = _dense(jnp.einsum("bnts,bsnh->btnh", probs, v), att["out"], "btnh,nhw->btw")
-    x = x + y
-    y = layer_norm(x, p["LayerNorm_1"], dtype)
+    probs = attention_weights(lrp.split(jnp.einsum("btnh,bsnh->bnts", q, k), rules), dtype)
+    return x + _dense(lrp.split(jnp.einsum("bnts,bsnh->btnh", probs, v), rules), att["out"], "btnh,nhw->btw")
+
+
+def mlp_sublayer(x: jax.Array, p: dict, rules: str = "gradient") -> jax.Array:
+    """x + the GELU MLP of LayerNorm_1(x), the second half of an encoder block (its params `p`)."""
+    y = layer_norm(x, p["LayerNorm_1"], x.dtype, rules)
     mlp = p["MlpBlock_0"]
-    y = jax.nn.gelu(_dense(y, mlp["Dense_0"], "btw,wm->btm"), approximate=True)
+    y = lrp.gelu(_dense(y, mlp["Dense_0"], "btw,wm->btm"), rules)
     return x + _dense(y, mlp["Dense_1"], "btm,mw->btw")
 
 
@@ -59,8 +71,8 @@ def encode_images(params: dict, images: jax.Array, cfg: SiglipConfig, dtype) -> 
     x = x.astype(dtype)
 
     def body(h, layer_params):
-        return _encoder_block(h, layer_params, cfg.num_heads), None
+        return mlp_sublayer(attention_sublayer(h, layer_params, cfg.rules), layer_params, cfg.rules), None
 
     x, _ = jax.lax.scan(body, x, params["Transformer"]["encoderblock"], unroll=not cfg.scan)
-    x = layer_norm(x, params["Transformer"]["encoder_norm"], dtype)
+    x = layer_norm(x, params["Transformer"]["encoder_norm"], dtype, cfg.rules)
     return _dense(x, params["head"], "btw,wo->bto")

@@ -65,6 +65,9 @@ class PolicyConfig:
     lerobot_keys: Mapping[str, str] | None = None
     # Whether observation keys `a/b` are nested dicts (ALOHA's `images/cam_high`) rather than flat keys.
     lerobot_nested: bool = False
+    # pi0-FAST: the decoding budget in tokens (upstream's `max_decoding_steps`; a bundled tiny model's chunk needs far
+    # fewer, and a short budget keeps a broken model cheap). None: upstream's 256.
+    max_decoding_steps: int | None = None
 
     def __post_init__(self) -> None:
         for field in ("action_dim", "action_horizon", "max_token_len"):
@@ -76,6 +79,8 @@ class PolicyConfig:
             raise ValueError(f"PolicyConfig {self.name!r}: asset_id is empty")
         if self.family not in ("pi0_fast", "pi0", "pi05"):
             raise ValueError(f"PolicyConfig {self.name!r}: unknown family {self.family!r}")
+        if self.max_decoding_steps is not None and self.max_decoding_steps < 1:
+            raise ValueError(f"PolicyConfig {self.name!r}: max_decoding_steps must be positive")
         if self.discrete_state_input and self.family != "pi05":
             raise ValueError(f"PolicyConfig {self.name!r}: only pi0.5 reads the state as prompt text")
         self.robot_inputs  # noqa: B018  (fail at declaration, not at first request)

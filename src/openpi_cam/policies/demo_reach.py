@@ -48,6 +48,7 @@ DEMO_CONFIG = register_config(
         action_horizon=ACTION_HORIZON,
         max_token_len=56,  # the longest training sequence is 47 tokens
         lerobot_keys=LEROBOT_KEYS,
+        max_decoding_steps=MAX_DECODING_STEPS,
     )
 )
 

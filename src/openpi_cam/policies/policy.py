@@ -24,10 +24,9 @@ from openpi_cam.model.observation import Observation, pad_rows, stack_observatio
 from openpi_cam.model.safetensors_weights import read_tensor_infos, torch_family
 from openpi_cam.nested import flatten_dict
 from openpi_cam.normalize import load_checkpoint_norm_stats
-from openpi_cam.policies.checkpoint_format import PARAMS_DIR, WEIGHTS_FILE, checkpoint_format
+from openpi_cam.policies.checkpoint_format import PARAMS_DIR, WEIGHTS_FILE, checkpoint_format, read_head_counts
 from openpi_cam.policies.config import PolicyConfig, resolve_config
 from openpi_cam.policies.family import Explainer, OutputDecoder, Sampler
-from openpi_cam.policies.lerobot import LeRobotParts, build_lerobot, read_head_counts
 from openpi_cam.policies.pi0_family import FlowParts, build_pi0
 from openpi_cam.policies.pi0_fast_family import FastParts, build_pi0_fast
 from openpi_cam.policies.robot import RobotInputs, example_observation
@@ -420,20 +419,6 @@ def build_transforms(
     return inputs, outputs
 
 
-def lerobot_policy(parts: LeRobotParts, *, rng: jax.Array | None = None) -> Policy:
-    """The served policy of a LeRobot folder's parts (`lerobot.build_lerobot`)."""
-    return Policy(
-        parts.model,
-        transforms=parts.transforms,
-        sample=parts.sample,
-        decoder=parts.decoder,
-        explainer=parts.explainer,
-        output_transforms=parts.output_transforms,
-        rng=rng,
-        metadata=parts.metadata,
-    )
-
-
 def create_policy(
     config: str | PolicyConfig | None,
     checkpoint_dir: str | Path,
@@ -446,13 +431,13 @@ def create_policy(
     max_decoding_steps: int = MAX_DECODING_STEPS,
     rng: jax.Array | None = None,
 ) -> Policy:
-    """A served policy from a checkpoint folder, whose format `checkpoint_format` recognises: OpenPI's orbax
+    """A served policy from an OpenPI checkpoint folder, whose format `checkpoint_format` recognises: OpenPI's orbax
     checkpoint (``params/`` and ``assets/<asset_id>/norm_stats.json``) or OpenPI's PyTorch export
-    (``model.safetensors`` and the same ``assets/``), both served with a named `config`; or a LeRobot pi0 / pi0.5
-    policy folder, served by its own files (its ``config.json`` says what it is, so `config` is None).
+    (``model.safetensors`` and the same ``assets/``), served with the named `config` (None is refused, naming the
+    folder's format). A LeRobot pi0 / pi0.5 policy folder is served by its own files (`lerobot.policy`), and refused
+    here.
 
-    ``paligemma_tokenizer``: a SentencePiece model path or a loaded processor (None: upstream's cache location; for a
-    LeRobot folder the tokenizer its preprocessor names, then the Hugging Face cache);
+    ``paligemma_tokenizer``: a SentencePiece model path or a loaded processor (None: upstream's cache location);
     ``fast_tokenizer``: a FAST tokenizer directory or a loaded `FastActionTokenizer` (None: the HF cache).
     ``stop_at_action_end`` ends decoding at the first token containing "|" (upstream decodes to EOS; what follows
     "|" is ignored by action extraction, so actions are unchanged, only the generation is shorter).
@@ -460,15 +445,8 @@ def create_policy(
     checkpoint_dir = Path(checkpoint_dir)
     kind = checkpoint_format(checkpoint_dir)
     if kind == "lerobot":
-        if config is not None:
-            name = config if isinstance(config, str) else config.name
-            raise ValueError(
-                f"{checkpoint_dir} is a LeRobot policy folder, served by its own config.json, not {name!r}"
-            )
-        lerobot = build_lerobot(
-            checkpoint_dir, paligemma_tokenizer=paligemma_tokenizer, dtype=dtype, default_prompt=default_prompt
-        )
-        return lerobot_policy(lerobot, rng=rng)
+        name = "" if config is None else f", not {config if isinstance(config, str) else config.name!r}"
+        raise ValueError(f"{checkpoint_dir} is a LeRobot policy folder, served by its own config.json{name}")
     if config is None:
         raise ValueError(f"{checkpoint_dir} is an OpenPI checkpoint ({kind}): name the config that serves it")
     cfg = resolve_config(config)

@@ -117,7 +117,8 @@ class PolicyServer:
     from all connections arriving within that many ms share one call of up to `max_batch`: `serving.batching`).
     `stats()` (merged into `/stats`), `begin_close(timeout)` (called as soon as a stop is requested, must not block),
     `close(timeout)` (called once in-flight requests are answered) and `connection_closed(connection_id)` (called when
-    a connection ends, after its last answer; must not block) are used when present.
+    a connection ends, after its last answer; must not block) are used when present. Both closes get `drain_timeout`:
+    the seconds the policy may drain from the stop request (None: until it is done).
     """
 
     def __init__(
@@ -132,7 +133,7 @@ class PolicyServer:
         debug: bool = False,
         latency_window: int = 1000,
         close_policy_on_stop: bool = True,
-        close_timeout: float = 60.0,
+        drain_timeout: float | None = None,
         max_connections: int = 64,
         max_buffered_bytes: int = DEFAULT_MAX_BUFFERED_BYTES,
         batch_window_ms: float | None = None,
@@ -143,6 +144,8 @@ class PolicyServer:
                 "max_message_bytes and max_connections must be positive and max_buffered_bytes >= max_message_bytes, "
                 f"got {max_message_bytes}, {max_connections}, {max_buffered_bytes}"
             )
+        if drain_timeout is not None and drain_timeout < 0:
+            raise ValueError(f"drain_timeout must be >= 0, got {drain_timeout}")
         if batch_window_ms is not None and not callable(getattr(policy, "infer_batch", None)):
             raise ValueError(f"batched serving needs a policy with infer_batch; {type(policy).__name__} has none")
         if batch_window_ms is not None and (batch_window_ms < 0 or max_batch < 1):
@@ -160,7 +163,7 @@ class PolicyServer:
         self._max_message_bytes = max_message_bytes
         self._debug = debug
         self._close_policy_on_stop = close_policy_on_stop
-        self._close_timeout = close_timeout
+        self._drain_timeout = drain_timeout
         # Each connection may hold one queued frame of up to max_message_bytes: this caps what clients can make the
         # server buffer at max_connections x max_message_bytes.
         self._max_connections = max_connections
@@ -237,7 +240,7 @@ class PolicyServer:
                 if self._close_policy_on_stop and callable(begin_close):
                     # The drain (e.g. the side channel's queued explanations) starts now and runs while connections
                     # close; `close` below waits for it within the same deadline.
-                    begin_close(self._close_timeout)
+                    begin_close(self._drain_timeout)
                 await self._shutdown(server)
         finally:
             if batching is not None:
@@ -245,8 +248,8 @@ class PolicyServer:
             executor.shutdown(wait=True)
         close = getattr(self._policy, "close", None)
         if self._close_policy_on_stop and callable(close):
-            logger.info("closing the policy (timeout %.0fs)", self._close_timeout)
-            await asyncio.to_thread(close, self._close_timeout)
+            logger.info("closing the policy (drain timeout %s s)", self._drain_timeout)
+            await asyncio.to_thread(close, self._drain_timeout)
 
     async def _shutdown(self, server: ws_server.Server) -> None:
         logger.info("shutting down: no new connections; finishing %d open", len(self._connections))

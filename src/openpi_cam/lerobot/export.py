@@ -4,7 +4,7 @@ The folder is what LeRobot 0.6's `save_pretrained` and processor `save_pretraine
 `config.json` (its PI0Config / PI05Config fields), `model.safetensors` (every tensor of its module, the LM heads
 included, which its strict loader requires), the two processor pipelines in LeRobot 0.6.1's step order with the
 normaliser statistics, a `tokenizer/` directory with the SentencePiece model (when one is given), and for sizes
-LeRobot's variant table lacks, the sizes record `lerobot.read_head_counts` and a LeRobot loader read.
+LeRobot's variant table lacks, the sizes record `checkpoint_format.read_head_counts` and a LeRobot loader read.
 
 The statistics are the checkpoint's own (`<checkpoint>/assets/<asset id>/norm_stats.json`); OpenPI's own converter
 copies them from the checkpoint's parent folder instead. The policy must be one LeRobot's pipeline can express: a
@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 from safetensors.numpy import save_file
 
+from openpi_cam.lerobot.policy import ACTION, OBS_IMAGES, OBS_STATE
 from openpi_cam.model.pi0 import MAX_PERIOD, MIN_PERIOD, Pi0
 from openpi_cam.model.safetensors_weights import save_safetensors_params
 from openpi_cam.normalize import NormStats, load_checkpoint_norm_stats
@@ -38,9 +39,9 @@ from openpi_cam.policies.checkpoint_format import (
     PREPROCESSOR_FILE,
     WEIGHTS_FILE,
     checkpoint_format,
+    write_sizes_record,
 )
 from openpi_cam.policies.config import PolicyConfig, resolve_config
-from openpi_cam.policies.lerobot import ACTION, OBS_IMAGES, OBS_STATE, write_sizes_record
 from openpi_cam.policies.robot import GenericInputs, GenericOutputs
 from openpi_cam.tokenizers.paligemma import PALIGEMMA_HUB_ID, load_paligemma_tokenizer, resolve_paligemma_tokenizer_path
 

@@ -3,7 +3,7 @@ dataset viewer lays out a dataset, so that the frames and their maps open aligne
 
 Entities, per model camera whose dataset feature is `<feature>` (e.g. `observation.images.base`, the name LeRobot
 logs the camera under):
-  <feature>                  the dataset's frame, decoded again from the source dataset (`datasets.frames`)
+  <feature>                  the dataset's frame, decoded again from the source dataset (`maps.frames`)
   <feature>/<kind>           the map as a layer over it: stretched to the frame, coloured, drawn with opacity `alpha`
                              above the frame (cleared on frames where the model did not see the camera)
   openpi_cam/<kind>/share/<camera>   the camera's share of the frame's map mass (`viz.stats`)
@@ -12,7 +12,7 @@ logs the camera under):
   openpi_cam/reliance_score/<camera or prompt>, openpi_cam/reliance_actions/<camera or prompt>
                              the frame's reliance (`--reliance`): the score's drop and the chunk's change without it
   openpi_cam/about           (static) what the maps are, their spot checks, the flagged hot patches, how well each
-                             figure finds failures (with outcomes) and the top-ranked episodes (`datasets.views`)
+                             figure finds failures (with outcomes) and the top-ranked episodes (`maps.views`)
 Timelines: `frame_index` (sequence) and `timestamp` (seconds, logged as LeRobot logs it) as in LeRobot's recordings,
 plus `episode_index` and `index` (the dataset-wide frame index, which plays the episodes one after another). One
 recording holds every chosen episode; on `frame_index` and `timestamp` the episodes share the same times, so pick
@@ -30,7 +30,8 @@ from typing import Literal
 
 import numpy as np
 
-from openpi_cam.datasets.frames import (
+from openpi_cam.maps.dataset import MapsDataset, reliance_columns
+from openpi_cam.maps.frames import (
     aligned_frames,
     dataset_scale,
     episode_rows,
@@ -38,8 +39,7 @@ from openpi_cam.datasets.frames import (
     select_episodes,
     source_dataset,
 )
-from openpi_cam.datasets.maps_dataset import MapsDataset, reliance_columns
-from openpi_cam.datasets.views import DatasetViews, compute_views
+from openpi_cam.maps.views import DatasetViews, compute_views
 from openpi_cam.viz.colormap import colorize
 from openpi_cam.viz.overlay import upsample
 from openpi_cam.viz.rerun_sink import import_rerun, log_reliance

@@ -1,22 +1,29 @@
 """Which model to load: one `ModelSpec` that every command takes as the same flags, that creates the policy, and
 that runs and maps datasets record as JSON, so a run is explained or measured again with the very model that made it.
 
-No checkpoint folder names the bundled demo model of the config (`demo_reach`, the tiny pi0-FAST, by default; or
-`demo_reach_pi05`), with its own tokenizers, in float32. A checkpoint folder is recognised by `checkpoint_format`:
-OpenPI's orbax checkpoint or PyTorch export, served with a named config (pi0_fast_droid unless one is named) in
-bfloat16 as upstream serves; or a LeRobot pi0 / pi0.5 policy folder, which its own config.json describes (no config is
-named) and which computes in the dtype it was saved with.
+A spec is resolved once (`ModelSpec.source`) into the source its weights come from, and every question about the
+model is answered by matching on that source:
+
+- `BundledModel`: no checkpoint folder names the bundled demo model of the config (`demo_reach`, the tiny pi0-FAST, by
+  default; `demo_reach_pi05`, ...); a folder with a demo config is one trained by `demo.train`. Its tokenizers lie
+  beside its checkpoint; it computes in float32 and decodes few steps.
+- `OpenPICheckpoint`: OpenPI's orbax checkpoint or PyTorch export (`checkpoint_format`), served with a named config
+  (pi0_fast_droid unless one is named) in bfloat16 as upstream serves.
+- `LeRobotFolder`: a LeRobot pi0 / pi0.5 policy folder, which its own config.json describes (naming a config is
+  refused) and which computes in the dtype it was saved with.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import pathlib
 from collections.abc import Mapping
 from typing import Any, Literal
 
 import jax
 
+from openpi_cam.lerobot.policy import LeRobotConfig, RequestLayout, create_lerobot_policy, read_pipeline
 from openpi_cam.model.checkpoint import read_param_shapes
 from openpi_cam.model.config import MAX_DECODING_STEPS, Pi0Config, architecture_from_params, family_of
 from openpi_cam.model.safetensors_weights import pi0_config_from_tensors, read_tensor_infos
@@ -24,12 +31,13 @@ from openpi_cam.policies import demo_metaworld, demo_reach
 from openpi_cam.policies.checkpoint_format import (
     CONFIG_FILE,
     PARAMS_DIR,
+    PREPROCESSOR_FILE,
     WEIGHTS_FILE,
     CheckpointFormat,
     checkpoint_format,
+    read_head_counts,
 )
 from openpi_cam.policies.config import resolve_config
-from openpi_cam.policies.lerobot import LeRobotConfig, RequestLayout, read_head_counts
 from openpi_cam.policies.policy import Policy, create_policy
 
 Dtype = Literal["bfloat16", "float32"]
@@ -40,17 +48,21 @@ CHECKPOINT_DTYPE: Dtype = "bfloat16"  # upstream's `create_trained_policy`
 LEROBOT_DTYPE: Dtype = "float32"  # a LeRobot config's default `dtype`
 DTYPES: tuple[Dtype, ...] = ("bfloat16", "float32")
 # The bundled models by name (`openpi-cam demo --model`), their configs and where they ship.
-BUNDLED_CONFIGS = {**demo_reach.DEMO_CONFIGS, "metaworld": demo_metaworld.DEMO_METAWORLD_CONFIG}
-BUNDLED_ASSETS = {**demo_reach.DEFAULT_ASSETS, "metaworld": demo_metaworld.ASSETS_METAWORLD}
+BUNDLED_CONFIGS = {
+    **demo_reach.DEMO_CONFIGS,
+    "metaworld": demo_metaworld.DEMO_METAWORLD_CONFIG,
+    "metaworld_mt_pi05": demo_metaworld.DEMO_METAWORLD_MT_PI05_CONFIG,
+    "metaworld_mt_pi0_fast": demo_metaworld.DEMO_METAWORLD_MT_PI0_FAST_CONFIG,
+}
+BUNDLED_ASSETS = {
+    **demo_reach.DEFAULT_ASSETS,
+    "metaworld": demo_metaworld.ASSETS_METAWORLD,
+    "metaworld_mt_pi05": demo_metaworld.ASSETS_MT_PI05,
+    "metaworld_mt_pi0_fast": demo_metaworld.ASSETS_MT_PI0_FAST,
+}
 BUNDLED_MODELS = {config.name: model for model, config in BUNDLED_CONFIGS.items()}  # config name -> bundled model
 # What must be the same for new steps to join a run or maps dataset (tokenizer files may move between machines).
 _OUTPUT_FIELDS = ("checkpoint_dir", "config", "dtype")
-
-
-def _is_demo(config: str | None) -> bool:
-    """Whether a config is a demo model's: its tokenizers ship beside its checkpoint, it decodes few steps and was
-    trained in float32, wherever its checkpoint lies."""
-    return config in BUNDLED_MODELS
 
 
 def _path(value: str | pathlib.Path | None) -> pathlib.Path | None:
@@ -64,6 +76,68 @@ class ModelFacts:
     family: str  # pi0_fast, pi0, pi05
     grid: tuple[int, int]  # SigLIP's patch grid of every camera
     camera_sources: dict[str, str | None]  # model camera -> observation key (None: a blank camera), in token order
+
+
+@dataclasses.dataclass(frozen=True)
+class BundledModel:
+    """A bundled demo model, or one `demo.train` trained into a folder of its own: an orbax checkpoint served by the
+    model's demo config."""
+
+    name: str  # the bundled model ("pi0_fast", "pi05", "metaworld": `BUNDLED_CONFIGS`)
+    checkpoint: pathlib.Path
+    # the package's own copy: recorded as no checkpoint folder, so a run finds it wherever the package is installed
+    installed: bool
+
+    @property
+    def config(self) -> str:
+        return BUNDLED_CONFIGS[self.name].name
+
+
+@dataclasses.dataclass(frozen=True)
+class OpenPICheckpoint:
+    """An OpenPI checkpoint (orbax, or OpenPI's PyTorch export) served by a named config."""
+
+    checkpoint: pathlib.Path
+    config: str
+    format: CheckpointFormat
+
+
+@dataclasses.dataclass(frozen=True)
+class LeRobotFolder:
+    """A LeRobot pi0 / pi0.5 policy folder, served by its own files."""
+
+    checkpoint: pathlib.Path
+    lerobot: LeRobotConfig  # its config.json, read once
+
+    @property
+    def dtype(self) -> Dtype:
+        """The dtype the folder was saved with (a LeRobot config's default where it names another)."""
+        return self.lerobot.dtype if self.lerobot.dtype in DTYPES else LEROBOT_DTYPE  # type: ignore[return-value]
+
+
+ModelSource = BundledModel | OpenPICheckpoint | LeRobotFolder
+
+
+def resolve_source(spec: ModelSpec) -> ModelSource:
+    """The source a spec names (module docstring); a folder is recognised by `checkpoint_format`."""
+    if spec.checkpoint_dir is None:
+        config = spec.config or demo_reach.DEMO_CONFIG.name
+        if config not in BUNDLED_MODELS:
+            raise ValueError(
+                f"--config {config} needs --checkpoint-dir (the bundled models serve {sorted(BUNDLED_MODELS)})"
+            )
+        name = BUNDLED_MODELS[config]
+        return BundledModel(name, BUNDLED_ASSETS[name] / demo_reach.CHECKPOINT.name, installed=True)
+    folder = pathlib.Path(spec.checkpoint_dir).expanduser().resolve()
+    if spec.config in BUNDLED_MODELS:
+        name = BUNDLED_MODELS[spec.config]
+        return BundledModel(name, folder, installed=folder == BUNDLED_ASSETS[name] / demo_reach.CHECKPOINT.name)
+    kind = checkpoint_format(folder)
+    if kind != "lerobot":
+        return OpenPICheckpoint(folder, spec.config or DEFAULT_CHECKPOINT_CONFIG, kind)
+    if spec.config is not None:
+        raise ValueError(f"{folder} is a LeRobot policy folder, served by its own config.json, not {spec.config!r}")
+    return LeRobotFolder(folder, LeRobotConfig.read(folder / CONFIG_FILE))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -95,79 +169,67 @@ class ModelSpec:
         config = BUNDLED_CONFIGS[model].name
         return cls(None if assets is None else assets / demo_reach.CHECKPOINT.name, config, dtype=dtype)
 
-    @property
-    def bundled(self) -> str | None:
-        """The bundled model this names ("pi0_fast", "pi05" or "metaworld"), or None for a checkpoint folder."""
-        if self.checkpoint_dir is not None:
-            return None
-        config = self.config or demo_reach.DEMO_CONFIG.name
-        if config not in BUNDLED_MODELS:
-            raise ValueError(
-                f"--config {config} needs --checkpoint-dir (the bundled models serve {sorted(BUNDLED_MODELS)})"
-            )
-        return BUNDLED_MODELS[config]
+    @functools.cached_property
+    def source(self) -> ModelSource:
+        """Where the weights come from, resolved once (`resolve_source`)."""
+        return resolve_source(self)
 
     @property
-    def format(self) -> CheckpointFormat:
-        """The checkpoint folder's format (`checkpoint_format`; the bundled models are orbax)."""
-        return checkpoint_format(self.checkpoint)
+    def checkpoint(self) -> pathlib.Path:
+        """The folder the weights are read from (the bundled model's own for no `checkpoint_dir`)."""
+        return self.source.checkpoint
 
     def resolved(self) -> ModelSpec:
         """The same model with the config and dtype defaults filled in and paths made absolute: what a run records.
         The bundled model is `checkpoint_dir` None (its files are found wherever the package is installed), also where
         it was named by its path (as runs made before specs were recorded name it)."""
-        demo = self.bundled is not None or _is_demo(self.config)
-        checkpoint = None if self.checkpoint_dir is None else self.checkpoint
-        if _is_demo(self.config):
-            assets = BUNDLED_ASSETS[BUNDLED_MODELS[self.config]]  # type: ignore[index]
-            checkpoint = None if checkpoint == assets / demo_reach.CHECKPOINT.name else checkpoint
-        if checkpoint is not None and not demo and self.format == "lerobot":
-            saved = LeRobotConfig.read(checkpoint / CONFIG_FILE).dtype
-            config, dtype = self.config, self.dtype or (saved if saved in DTYPES else LEROBOT_DTYPE)
-        else:
-            config = self.config or (demo_reach.DEMO_CONFIG.name if self.bundled else DEFAULT_CHECKPOINT_CONFIG)
-            dtype = self.dtype or (DEMO_DTYPE if demo else CHECKPOINT_DTYPE)
+        match self.source:
+            case BundledModel(installed=installed, checkpoint=folder) as bundled:
+                checkpoint, config, dtype = None if installed else folder, bundled.config, DEMO_DTYPE
+            case OpenPICheckpoint(checkpoint=folder, config=config):
+                checkpoint, dtype = folder, CHECKPOINT_DTYPE
+            case LeRobotFolder(checkpoint=folder) as lerobot:
+                checkpoint, config, dtype = folder, None, lerobot.dtype
         return ModelSpec(
             checkpoint_dir=checkpoint,
             config=config,
             paligemma_tokenizer=None if self.paligemma_tokenizer is None else self.paligemma_tokenizer.resolve(),
             fast_tokenizer=None if self.fast_tokenizer is None else self.fast_tokenizer.resolve(),
-            dtype=dtype,  # type: ignore[arg-type]
+            dtype=self.dtype or dtype,
             default_prompt=self.default_prompt,
         )
-
-    @property
-    def checkpoint(self) -> pathlib.Path:
-        """The folder the weights are read from (the bundled model's own for no `checkpoint_dir`)."""
-        if (model := self.bundled) is not None:
-            return BUNDLED_ASSETS[model] / demo_reach.CHECKPOINT.name
-        return pathlib.Path(self.checkpoint_dir).expanduser().resolve()  # type: ignore[arg-type]
 
     def tokenizers(self) -> tuple[pathlib.Path | None, pathlib.Path | None]:
         """(PaliGemma SentencePiece model, FAST tokenizer folder) as given; a demo model's ship beside its checkpoint
         (`demo.train` writes them there too); None leaves the choice to the loader (upstream's cache locations)."""
         spec = self.resolved()
         paligemma, fast = spec.paligemma_tokenizer, spec.fast_tokenizer
-        if _is_demo(spec.config):
-            paligemma = paligemma or spec.checkpoint.parent / demo_reach.PALIGEMMA_TOKENIZER.name
-            fast = fast or spec.checkpoint.parent / demo_reach.FAST_TOKENIZER.name
+        if isinstance(self.source, BundledModel):
+            paligemma = paligemma or self.checkpoint.parent / demo_reach.PALIGEMMA_TOKENIZER.name
+            fast = fast or self.checkpoint.parent / demo_reach.FAST_TOKENIZER.name
         return paligemma, fast
 
     def create(self, *, stop_at_action_end: bool = False, rng: jax.Array | None = None) -> Policy:
         """The policy; a FAST tokenizer named for a model of another family is refused (it would go unread)."""
         spec = self.resolved()
         paligemma, fast = self.tokenizers()
-        policy = create_policy(
-            spec.config,
-            spec.checkpoint,
-            paligemma_tokenizer=paligemma,
-            fast_tokenizer=fast,
-            dtype=spec.dtype,  # type: ignore[arg-type]
-            default_prompt=spec.default_prompt,
-            stop_at_action_end=stop_at_action_end,
-            max_decoding_steps=demo_reach.MAX_DECODING_STEPS if _is_demo(spec.config) else MAX_DECODING_STEPS,
-            rng=rng,
-        )
+        match self.source:
+            case LeRobotFolder(checkpoint=folder):
+                policy = create_lerobot_policy(
+                    folder, paligemma_tokenizer=paligemma, dtype=spec.dtype, default_prompt=spec.default_prompt, rng=rng
+                )
+            case BundledModel(checkpoint=folder) | OpenPICheckpoint(checkpoint=folder) as source:
+                policy = create_policy(
+                    source.config,
+                    folder,
+                    paligemma_tokenizer=paligemma,
+                    fast_tokenizer=fast,
+                    dtype=spec.dtype,  # type: ignore[arg-type]
+                    default_prompt=spec.default_prompt,
+                    stop_at_action_end=stop_at_action_end,
+                    max_decoding_steps=_decoding_budget(source.config),
+                    rng=rng,
+                )
         if self.fast_tokenizer is not None and policy.model.family != "pi0_fast":  # given, and nothing would read it
             family = policy.model.family
             raise ValueError(f"--fast-tokenizer {self.fast_tokenizer}: a {family} model has no FAST tokenizer")
@@ -177,26 +239,27 @@ class ModelSpec:
         """How a LeRobot dataset feeds this model: observation key -> dataset feature (with `actions`, the recorded
         actions), and whether observation keys `a/b` nest. A named config declares it (upstream's `RepackTransform`); a
         LeRobot policy reads its own feature names."""
-        spec = self.resolved()
-        if spec.config is None:
-            return RequestLayout.read(spec.checkpoint).dataset_keys, False
-        config = resolve_config(spec.config)
-        return dict(config.lerobot_keys or {}), config.lerobot_nested
+        match self.source:
+            case LeRobotFolder() as lerobot:
+                return _layout(lerobot).dataset_keys, False
+            case BundledModel() | OpenPICheckpoint() as source:
+                config = resolve_config(source.config)
+                return dict(config.lerobot_keys or {}), config.lerobot_nested
 
     def facts(self) -> ModelFacts:
         """The family, SigLIP patch grid and cameras of the model, read from the folder's metadata, tensor shapes and
         configs without loading a weight (a Ray driver plans a job with them)."""
-        spec = self.resolved()
-        folder = spec.checkpoint
-        if spec.config is None:
-            layout = RequestLayout.read(folder)
-            return ModelFacts(layout.config.type, _torch_architecture(folder).siglip.grid, layout.camera_sources)
-        sources = dict(resolve_config(spec.config).camera_sources)
-        if spec.format == "orbax":
-            shapes = read_param_shapes(folder / PARAMS_DIR)
-            return ModelFacts(family_of(shapes), architecture_from_params(shapes)[1].grid, sources)
-        cfg = _torch_architecture(folder)
-        return ModelFacts("pi05" if cfg.pi05 else "pi0", cfg.siglip.grid, sources)
+        match self.source:
+            case LeRobotFolder(checkpoint=folder, lerobot=cfg) as lerobot:
+                return ModelFacts(cfg.type, _torch_architecture(folder).siglip.grid, _layout(lerobot).camera_sources)
+            case OpenPICheckpoint(checkpoint=folder, format="openpi_pytorch", config=config):
+                cfg = _torch_architecture(folder)
+                sources = dict(resolve_config(config).camera_sources)
+                return ModelFacts("pi05" if cfg.pi05 else "pi0", cfg.siglip.grid, sources)
+            case BundledModel(checkpoint=folder) | OpenPICheckpoint(checkpoint=folder) as source:
+                shapes = read_param_shapes(folder / PARAMS_DIR)
+                sources = dict(resolve_config(source.config).camera_sources)
+                return ModelFacts(family_of(shapes), architecture_from_params(shapes)[1].grid, sources)
 
     def to_json(self) -> dict[str, Any]:
         return {f.name: _jsonable(getattr(self, f.name)) for f in dataclasses.fields(self)}
@@ -228,6 +291,17 @@ class ModelSpec:
             f.name: getattr(flags, f.name) for f in dataclasses.fields(flags) if getattr(flags, f.name) is not None
         }
         return dataclasses.replace(self, **values)
+
+
+def _decoding_budget(config: str | None) -> int:
+    """pi0-FAST's decoding budget under a named config (its own, else upstream's)."""
+    budget = None if config is None else resolve_config(config).max_decoding_steps
+    return MAX_DECODING_STEPS if budget is None else budget
+
+
+def _layout(source: LeRobotFolder) -> RequestLayout:
+    """What a LeRobot folder's requests carry (its config, read once, and its preprocessor's renaming)."""
+    return RequestLayout.of(source.lerobot, read_pipeline(source.checkpoint / PREPROCESSOR_FILE))
 
 
 def _torch_architecture(folder: pathlib.Path) -> Pi0Config:

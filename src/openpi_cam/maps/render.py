@@ -3,7 +3,7 @@ dataset's frames, and one HTML report of the dataset-level views.
 
 The frames are decoded again from the LeRobot dataset the maps were computed from (`MapsInfo.source`, read with
 `data.lerobot`), frame by frame as the maps dataset lists them, and each row's `index` is checked against the
-source's (`datasets.frames`), so a video can never pair a map with another frame. Each explained frame becomes one
+source's (`maps.frames`), so a video can never pair a map with another frame. Each explained frame becomes one
 video frame, the cameras side by side (the map bilinearly stretched over the frame and colour-blended,
 `viz.overlay`), at the source's frame rate divided by the explain job's `every`. Videos are H.264 (libx264, yuv420p)
 written with PyAV.
@@ -11,7 +11,7 @@ written with PyAV.
 The report (OUT/index.html, relative links to the files beside it, no network) opens with the spot checks stored in
 the maps dataset, then the positional prior with its flagged hot patches, failed and successful episodes side by side
 (when the source records outcomes), the episodes ranked with the most diffuse maps first, the per-task table, and a
-section per rendered episode (its video and a strip of its frames). Figures: `datasets.views`.
+section per rendered episode (its video and a strip of its frames). Figures: `maps.views`.
 """
 
 from __future__ import annotations
@@ -25,7 +25,9 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from openpi_cam.cam.run_format import RELIANCE_PROMPT
-from openpi_cam.datasets.frames import (
+from openpi_cam.lerobot.dataset import LeRobotDataset
+from openpi_cam.maps.dataset import MapsDataset
+from openpi_cam.maps.frames import (
     EpisodeRows,
     aligned_frames,
     dataset_scale,
@@ -35,9 +37,7 @@ from openpi_cam.datasets.frames import (
     source_dataset,
     video_fps,
 )
-from openpi_cam.datasets.lerobot import LeRobotDataset
-from openpi_cam.datasets.maps_dataset import MapsDataset
-from openpi_cam.datasets.views import GROUP, GROUP_NAMES_FILE, DatasetViews, compute_views, top_k
+from openpi_cam.maps.views import DatasetViews, ViewOptions, compute_views, top_k
 from openpi_cam.viz.colormap import colorize
 from openpi_cam.viz.overlay import blend, upsample
 from openpi_cam.viz.progress import progress
@@ -69,6 +69,8 @@ class DatasetRenderOptions:
     prior_height: int = 160
     crf: int = 18  # libx264 quality: visually lossless for these overlays
     fps: float | None = None  # video frame rate; None: the source's rate divided by the explain job's `every`
+    # what the report's dataset-level views take (the conditions among them)
+    views: ViewOptions = dataclasses.field(default_factory=ViewOptions)
 
 
 @dataclasses.dataclass
@@ -227,7 +229,7 @@ def render_dataset(
 ) -> DatasetRenderResult:
     """Videos and strips for `episodes` (default: every written one) and index.html over the whole dataset's views."""
     chosen = select_episodes(ds, episodes)
-    views = compute_views(ds, opts.map)
+    views = compute_views(ds, opts.map, opts.views)
     lr = source_dataset(ds, source)
     out_dir.mkdir(parents=True, exist_ok=True)
     dataset_max = dataset_scale(ds, opts.map, chosen) if opts.norm == "run" else 0.0
@@ -417,15 +419,16 @@ def _outcomes_section(views: DatasetViews) -> str:
 
 
 def _groups_section(views: DatasetViews, out_dir: pathlib.Path, opts: DatasetRenderOptions) -> str:
-    """Per condition (`views.GROUP`, e.g. the demo's perturbation): its success, failed and successful episodes side by
-    side, and each camera's mean map over the failed and over the successful episodes' frames."""
-    if not views.groups:
+    """Per condition (`ViewOptions.group`, e.g. the demo's perturbation): its success, failed and successful episodes
+    side by side, and each camera's mean map over the failed and over the successful episodes' frames."""
+    group = views.options.group
+    if not views.groups or group is None:
         return ""
     (out_dir / "groups").mkdir(parents=True, exist_ok=True)
     parts = []
     for g in views.groups:
-        value, name = g[GROUP], g["name"]
-        label = f"{GROUP} {value}" + (f": {name}" if name else "")
+        value, name = g[group], g["name"]
+        label = f"{group} {value}" + (f": {name}" if name else "")
         figures = []
         for c in views.cameras:
             for outcome in ("failure", "success"):
@@ -441,10 +444,10 @@ def _groups_section(views: DatasetViews, out_dir: pathlib.Path, opts: DatasetRen
             f"succeeded</h3>{_outcome_table(views, g['by_outcome'])}{''.join(figures)}</div>"
         )
     return (
-        f"<section id='groups'><h2>per {GROUP}</h2><p class='dim'>each condition's failed and successful episodes side "
+        f"<section id='groups'><h2>per {group}</h2><p class='dim'>each condition's failed and successful episodes side "
         "by side, and each camera's mean map (each frame's map normalised to sum 1) over their frames, scaled to its "
-        f"own maximum; the condition is the carried feature named {GROUP} (`--extra FEATURE={GROUP}`), named from "
-        f"the source's {GROUP_NAMES_FILE} where the demo wrote one</p>{''.join(parts)}</section>"
+        f"own maximum; the condition is the carried feature named {group} (`--extra FEATURE={group}`), named where "
+        f"the recording named its conditions</p>{''.join(parts)}</section>"
     )
 
 

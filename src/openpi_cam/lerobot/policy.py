@@ -5,7 +5,9 @@ A folder is what LeRobot's `save_pretrained` and the processors' `save_pretraine
 pi0 / pi05, the features, the chunk size, the normalisation modes), `model.safetensors`, `policy_preprocessor.json`
 and `policy_postprocessor.json` with the normaliser statistics each names (`<feature>.<stat>` keys). Which steps
 there are, in which order, and where the statistics live differ between LeRobot versions, so nothing is assumed:
-each step of the lists is built from its own entry (`STEPS`), and a step not known here is refused naming it.
+each step of the lists is built from its own entry by the builder registered under its LeRobot registry name
+(`STEPS`, filled by `register_step` as LeRobot's `ProcessorStepRegistry.register(name=)` fills its registry), and a
+step not registered for its pipeline is refused naming it.
 
 Requests carry the checkpoint's own feature names: `observation.images.<name>` (uint8 [H, W, 3] from a robot, or
 float [3, H, W] in [0, 1] from a LeRobot dataset), `observation.state`, and the task as `prompt` (openpi-client) or
@@ -18,11 +20,11 @@ post-processed chunk: `chunk_size` rows of the action feature's dims.
 from __future__ import annotations
 
 import dataclasses
-import json
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
+import jax
 import ml_dtypes
 import numpy as np
 import sentencepiece
@@ -30,12 +32,18 @@ from safetensors.numpy import load_file
 
 from openpi_cam.errors import InvalidRequest, load_json, reading
 from openpi_cam.image_tools import resize_with_pad_torch_bilinear, unit_to_uint8
-from openpi_cam.model.config import Pi0Config
 from openpi_cam.model.pi0 import MAX_PERIOD, MIN_PERIOD, Pi0
-from openpi_cam.model.safetensors_weights import LEROBOT_HEADS, HeadCounts
-from openpi_cam.policies.checkpoint_format import CONFIG_FILE, POSTPROCESSOR_FILE, PREPROCESSOR_FILE, WEIGHTS_FILE
+from openpi_cam.policies.checkpoint_format import (
+    CONFIG_FILE,
+    POSTPROCESSOR_FILE,
+    PREPROCESSOR_FILE,
+    WEIGHTS_FILE,
+    checkpoint_format,
+    read_head_counts,
+)
 from openpi_cam.policies.family import Sampler
 from openpi_cam.policies.pi0_family import FlowExplainer, flow_sampler
+from openpi_cam.policies.policy import Policy
 from openpi_cam.policies.robot import GenericOutputs, lookup
 from openpi_cam.tokenizers.fast import huggingface_hub_cache
 from openpi_cam.tokenizers.paligemma import PALIGEMMA_HUB_ID, hf_cached_file, load_paligemma_tokenizer
@@ -60,10 +68,6 @@ TOKENS = "observation.language.tokens"
 TOKEN_MASK = "observation.language.attention_mask"
 SERVED_TYPES = ("pi0", "pi05")
 FAST_TYPES = ("pi0_fast", "pi0fast")  # LeRobot's pi0-FAST (0.5 and later; earlier releases)
-# The shared LeRobot goldens record there, under "tiny", the sizes they substituted into LeRobot at run time; the only
-# ones the weights cannot show are the attention head counts (`HeadCounts`). `export --to lerobot` writes the same.
-SIZES_RECORD = "golden_meta.json"
-LEROBOT_SIZES = Pi0Config()  # gemma_2b, gemma_300m and PaliGemma's SigLIP: the sizes LeRobot's configs know
 NORM_MODES = ("IDENTITY", "MEAN_STD", "MIN_MAX", "QUANTILES", "QUANTILE10")
 # The statistics (low, high) each range mode maps onto [-1, 1].
 _RANGE_STATS = {"MIN_MAX": ("min", "max"), "QUANTILES": ("q01", "q99"), "QUANTILE10": ("q10", "q90")}
@@ -74,19 +78,21 @@ _RANGE_STATS = {"MIN_MAX": ("min", "max"), "QUANTILES": ("q01", "q99"), "QUANTIL
 
 
 @dataclasses.dataclass(frozen=True)
-class Feature:
+class PolicyFeature:
+    """A feature as a policy config declares it (LeRobot's `PolicyFeature`); a dataset's is `lerobot.writer.Feature`."""
+
     type: str  # VISUAL, STATE, ACTION, ENV, ...
     shape: tuple[int, ...]
 
 
-def _features(raw: Any, where: str) -> dict[str, Feature]:
+def _features(raw: Any, where: str) -> dict[str, PolicyFeature]:
     if not isinstance(raw, Mapping):
         raise ValueError(f"{where}: expected a mapping of features, got {type(raw).__name__}")
     out = {}
     for name, spec in raw.items():
         if not isinstance(spec, Mapping) or "type" not in spec or "shape" not in spec:
             raise ValueError(f"{where}: feature {name!r} needs a type and a shape")
-        out[str(name)] = Feature(str(spec["type"]), tuple(int(d) for d in spec["shape"]))
+        out[str(name)] = PolicyFeature(str(spec["type"]), tuple(int(d) for d in spec["shape"]))
     return out
 
 
@@ -95,8 +101,8 @@ class LeRobotConfig:
     """What serving reads from a LeRobot pi0 / pi0.5 `config.json` (the rest configures training)."""
 
     type: str
-    input_features: dict[str, Feature]
-    output_features: dict[str, Feature]
+    input_features: dict[str, PolicyFeature]
+    output_features: dict[str, PolicyFeature]
     chunk_size: int
     max_state_dim: int
     max_action_dim: int
@@ -211,60 +217,6 @@ def read_stats(folder: Path, spec: StepSpec, where: str) -> dict[str, dict[str, 
     return stats
 
 
-def read_head_counts(folder: Path) -> HeadCounts:
-    """The attention head counts of a folder's weights: its sizes record where it has one (tiny models), else
-    LeRobot's defaults."""
-    path = folder / SIZES_RECORD
-    if not path.is_file():
-        return LEROBOT_HEADS
-    record = load_json(path)
-    try:
-        tiny = record["tiny"]
-        gemma = {int(tiny[stack]["num_heads"]) for stack in ("vlm", "expert")}
-        siglip = int(tiny["siglip"]["num_attention_heads"])
-    except (KeyError, TypeError, ValueError) as e:
-        raise ValueError(f"{path}: no readable 'tiny' sizes ({type(e).__name__}: {e})") from e
-    if len(gemma) != 1:
-        raise ValueError(f"{path}: the language model and the expert attend jointly, but their head counts differ")
-    return HeadCounts(gemma=gemma.pop(), siglip=siglip)
-
-
-_GEMMA_SIZES = ("width", "depth", "mlp_dim", "num_heads", "num_kv_heads", "head_dim")
-_SIGLIP_SIZES = {  # Hugging Face's SiglipVisionConfig names of ours
-    "hidden_size": "width",
-    "num_hidden_layers": "depth",
-    "num_attention_heads": "num_heads",
-    "intermediate_size": "mlp_dim",
-    "patch_size": "patch_size",
-    "image_size": "image_size",
-    "projection_dim": "out_dim",
-}
-
-
-def sizes_record(cfg: Pi0Config) -> dict[str, Any]:
-    """The sizes of a pi0 / pi0.5 architecture in the shared LeRobot goldens' record layout."""
-    return {
-        "tiny": {
-            "vlm": {name: getattr(cfg.gemma, name) for name in _GEMMA_SIZES},
-            "expert": {name: getattr(cfg.expert, name) for name in _GEMMA_SIZES},
-            "siglip": {hf: getattr(cfg.siglip, ours) for hf, ours in _SIGLIP_SIZES.items()},
-        },
-        "vocab_size": cfg.gemma.vocab_size,
-    }
-
-
-def write_sizes_record(folder: Path, cfg: Pi0Config) -> Path | None:
-    """Writes the sizes record of a model whose sizes LeRobot's variant table lacks (what `read_head_counts` reads,
-    and what LeRobot needs substituted at run time to build the model); None, and nothing written, for LeRobot's own
-    sizes."""
-    record = sizes_record(cfg)
-    if record == sizes_record(LEROBOT_SIZES):
-        return None
-    path = folder / SIZES_RECORD
-    path.write_text(json.dumps(record, indent=1))
-    return path
-
-
 # --------------------------------------------------------------------------------------------------------------------
 # Processor steps (each a transform over the flat request dict)
 
@@ -274,7 +226,7 @@ class Normalizer:
     """LeRobot's (un)normaliser: per feature type the mode of `modes`, with its formulas and zero-range guards, in
     float32; observation features are (un)normalised where the request has them, the action under `actions`."""
 
-    features: Mapping[str, Feature]
+    features: Mapping[str, PolicyFeature]
     modes: Mapping[str, str]  # feature type -> mode
     stats: Mapping[str, Mapping[str, np.ndarray]]
     eps: float
@@ -378,7 +330,7 @@ class CastFloats:
 
 
 @dataclasses.dataclass(frozen=True)
-class RelativeActions:
+class RelativeActionsStep:
     """`relative_actions_processor`: at inference it only remembers the state it sees (for the postprocessor's
     `absolute_actions_processor`); `mask` says which action dims are relative (LeRobot's `_build_mask`)."""
 
@@ -401,11 +353,11 @@ class RelativeActions:
 
 
 @dataclasses.dataclass(frozen=True)
-class AbsoluteActions:
+class AbsoluteActionsStep:
     """`absolute_actions_processor`: the remembered state added back on the relative dims, when enabled."""
 
     enabled: bool
-    relative: RelativeActions | None
+    relative: RelativeActionsStep | None
 
     def __call__(self, data: DataDict) -> DataDict:
         if not self.enabled:
@@ -547,7 +499,7 @@ class ActionDims:
 
 
 # --------------------------------------------------------------------------------------------------------------------
-# The pipelines and the policy's parts
+# The tokenizer
 
 
 def resolve_tokenizer(
@@ -574,71 +526,149 @@ def resolve_tokenizer(
     )
 
 
-def _relative_step(spec: StepSpec) -> RelativeActions:
+# --------------------------------------------------------------------------------------------------------------------
+# The step registry: each step a pipeline file may name, by LeRobot's registry name (`ProcessorStepRegistry`)
+
+Pipeline = Literal["preprocessor", "postprocessor"]
+PIPELINE_FILES: dict[Pipeline, str] = {"preprocessor": PREPROCESSOR_FILE, "postprocessor": POSTPROCESSOR_FILE}
+
+
+@dataclasses.dataclass(frozen=True)
+class StepContext:
+    """What building a step may read beside its own entry: the folder (statistics, tokenizer), the pipeline file
+    errors name, the PaliGemma tokenizer given, and the steps built before it (the postprocessor's steps follow the
+    preprocessor's)."""
+
+    folder: Path
+    pipeline: Pipeline
+    paligemma_tokenizer: str | Path | sentencepiece.SentencePieceProcessor | None
+    before: tuple[Transform, ...]
+
+    @property
+    def where(self) -> str:
+        return str(self.folder / PIPELINE_FILES[self.pipeline])
+
+
+StepBuilder = Callable[[StepSpec, StepContext], Transform]
+
+
+@dataclasses.dataclass(frozen=True)
+class RegisteredStep:
+    build: StepBuilder
+    pipelines: tuple[Pipeline, ...]  # the pipelines the step may stand in
+
+
+STEPS: dict[str, RegisteredStep] = {}
+
+
+def register_step(
+    *names: str, pipelines: tuple[Pipeline, ...] = ("preprocessor",)
+) -> Callable[[StepBuilder], StepBuilder]:
+    """Registers a step's builder under LeRobot's registry names for it (as `ProcessorStepRegistry.register(name=)`
+    registers LeRobot's own classes): a decorator."""
+
+    def add(build: StepBuilder) -> StepBuilder:
+        for name in names:
+            if name in STEPS:
+                raise ValueError(f"processor step {name!r} is registered twice")
+            STEPS[name] = RegisteredStep(build, pipelines)
+        return build
+
+    return add
+
+
+@register_step("rename_observations_processor")
+def _rename(spec: StepSpec, ctx: StepContext) -> Transform:
+    return Rename(dict(spec.config.get("rename_map") or {}))
+
+
+@register_step("to_batch_processor")
+def _batch(spec: StepSpec, ctx: StepContext) -> Transform:
+    return Passthrough(spec.name)
+
+
+@register_step("device_processor", pipelines=("preprocessor", "postprocessor"))
+def _device(spec: StepSpec, ctx: StepContext) -> Transform:
+    """Device placement does nothing here; the preprocessor's float dtype rounds the request as LeRobot casts it."""
+    dtype = spec.config.get("float_dtype")
+    if ctx.pipeline == "postprocessor":
+        return Passthrough(spec.name)
+    if dtype is not None and dtype not in _FLOAT_DTYPES:
+        raise ValueError(f"{ctx.where}: device_processor float_dtype {dtype!r} is not one of torch's")
+    return Passthrough(spec.name) if dtype in (None, "float32", "float") else CastFloats(str(dtype))
+
+
+@register_step("relative_actions_processor")
+def _relative(spec: StepSpec, ctx: StepContext) -> Transform:
     names = spec.config.get("action_names")
-    return RelativeActions(
+    return RelativeActionsStep(
         bool(spec.config.get("enabled", False)),
         tuple(spec.config.get("exclude_joints") or ()),
         None if names is None else tuple(names),
     )
 
 
-def preprocessor_steps(
-    folder: Path, specs: Sequence[StepSpec], paligemma_tokenizer: Any, where: str
-) -> tuple[list[Transform], int]:
-    """The preprocessor's steps as transforms, in the file's order, and the token length its tokenizer pads to."""
-    steps: list[Transform] = []
-    max_length = None
-    for spec in specs:
-        cfg = spec.config
-        if spec.name == "rename_observations_processor":
-            steps.append(Rename(dict(cfg.get("rename_map") or {})))
-        elif spec.name == "to_batch_processor":
-            steps.append(Passthrough(spec.name))
-        elif spec.name == "device_processor":
-            dtype = cfg.get("float_dtype")
-            if dtype is not None and dtype not in _FLOAT_DTYPES:
-                raise ValueError(f"{where}: device_processor float_dtype {dtype!r} is not one of torch's")
-            steps.append(Passthrough(spec.name) if dtype in (None, "float32", "float") else CastFloats(str(dtype)))
-        elif spec.name == "relative_actions_processor":
-            steps.append(_relative_step(spec))
-        elif spec.name == "normalizer_processor":
-            steps.append(_normalizer(folder, spec, where, inverse=False))
-        elif spec.name in ("pi0_new_line_processor", "smolvla_new_line_processor"):
-            steps.append(NewLine())
-        elif spec.name == "pi05_prepare_state_tokenizer_processor_step":
-            steps.append(Pi05Prompt(str(cfg.get("task_key", TASK))))
-        elif spec.name == "tokenizer_processor":
-            if (cfg.get("padding", "max_length"), cfg.get("padding_side", "right")) != ("max_length", "right"):
-                raise ValueError(f"{where}: step tokenizer_processor pads {cfg.get('padding')!r} on the "
-                                 f"{cfg.get('padding_side')!r}; served: 'max_length' on the right")  # fmt: skip
-            max_length = int(cfg.get("max_length", 512))
-            sp = resolve_tokenizer(folder, cfg.get("tokenizer_name"), paligemma_tokenizer)
-            steps.append(Tokenize(sp, max_length, str(cfg.get("task_key", TASK))))
-        else:
-            raise ValueError(f"{where}: processor step {spec.name!r} is not implemented")
-    if max_length is None:
-        raise ValueError(f"{where}: no tokenizer_processor step")
-    return steps, max_length
+@register_step("normalizer_processor")
+def _normalize(spec: StepSpec, ctx: StepContext) -> Transform:
+    return _normalizer(ctx.folder, spec, ctx.where, inverse=False)
 
 
-def postprocessor_steps(
-    folder: Path, specs: Sequence[StepSpec], relative: RelativeActions | None, where: str
+@register_step("unnormalizer_processor", pipelines=("postprocessor",))
+def _unnormalize(spec: StepSpec, ctx: StepContext) -> Transform:
+    return _normalizer(ctx.folder, spec, ctx.where, inverse=True)
+
+
+@register_step("pi0_new_line_processor", "smolvla_new_line_processor")
+def _new_line(spec: StepSpec, ctx: StepContext) -> Transform:
+    return NewLine()
+
+
+@register_step("pi05_prepare_state_tokenizer_processor_step")
+def _pi05_prompt(spec: StepSpec, ctx: StepContext) -> Transform:
+    return Pi05Prompt(str(spec.config.get("task_key", TASK)))
+
+
+@register_step("tokenizer_processor")
+def _tokenize(spec: StepSpec, ctx: StepContext) -> Transform:
+    cfg = spec.config
+    if (cfg.get("padding", "max_length"), cfg.get("padding_side", "right")) != ("max_length", "right"):
+        raise ValueError(f"{ctx.where}: step tokenizer_processor pads {cfg.get('padding')!r} on the "
+                         f"{cfg.get('padding_side')!r}; served: 'max_length' on the right")  # fmt: skip
+    sp = resolve_tokenizer(ctx.folder, cfg.get("tokenizer_name"), ctx.paligemma_tokenizer)
+    return Tokenize(sp, int(cfg.get("max_length", 512)), str(cfg.get("task_key", TASK)))
+
+
+@register_step("absolute_actions_processor", pipelines=("postprocessor",))
+def _absolute(spec: StepSpec, ctx: StepContext) -> Transform:
+    enabled = bool(spec.config.get("enabled", False))
+    relative = next((s for s in ctx.before if isinstance(s, RelativeActionsStep)), None)
+    if enabled and (relative is None or not relative.enabled):
+        raise ValueError(f"{ctx.where}: absolute_actions_processor is enabled without an enabled relative step")
+    return AbsoluteActionsStep(enabled, relative)
+
+
+def pipeline_steps(
+    folder: Path,
+    specs: Sequence[StepSpec],
+    pipeline: Pipeline,
+    *,
+    paligemma_tokenizer: str | Path | sentencepiece.SentencePieceProcessor | None = None,
+    before: Sequence[Transform] = (),
 ) -> list[Transform]:
+    """A pipeline file's steps as transforms, in the file's order, each built by its registered builder; a step not
+    registered for the pipeline is refused naming it."""
     steps: list[Transform] = []
     for spec in specs:
-        if spec.name == "unnormalizer_processor":
-            steps.append(_normalizer(folder, spec, where, inverse=True))
-        elif spec.name == "absolute_actions_processor":
-            enabled = bool(spec.config.get("enabled", False))
-            if enabled and (relative is None or not relative.enabled):
-                raise ValueError(f"{where}: absolute_actions_processor is enabled without an enabled relative step")
-            steps.append(AbsoluteActions(enabled, relative))
-        elif spec.name == "device_processor":
-            steps.append(Passthrough(spec.name))
-        else:
-            raise ValueError(f"{where}: processor step {spec.name!r} is not implemented")
+        ctx = StepContext(folder, pipeline, paligemma_tokenizer, (*before, *steps))
+        registered = STEPS.get(spec.name)
+        if registered is None or pipeline not in registered.pipelines:
+            raise ValueError(f"{ctx.where}: processor step {spec.name!r} is not implemented")
+        steps.append(registered.build(spec, ctx))
     return steps
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# The policy's parts
 
 
 def _request_key(feature: str, renames: Sequence[Mapping[str, str]]) -> str:
@@ -679,7 +709,7 @@ class RequestLayout:
 
 @dataclasses.dataclass(frozen=True)
 class LeRobotParts:
-    """What `create_policy` assembles into a `Policy` for a LeRobot folder."""
+    """A LeRobot folder's model and pipelines (`build_lerobot`), which `policy` assembles into its served `Policy`."""
 
     config: LeRobotConfig
     model: Pi0
@@ -690,6 +720,32 @@ class LeRobotParts:
     explainer: FlowExplainer
     decoder: PassActions
     metadata: dict[str, Any]
+
+    def policy(self, rng: jax.Array | None = None) -> Policy:
+        return Policy(
+            self.model,
+            transforms=self.transforms,
+            sample=self.sample,
+            decoder=self.decoder,
+            explainer=self.explainer,
+            output_transforms=self.output_transforms,
+            rng=rng,
+            metadata=self.metadata,
+        )
+
+
+def create_lerobot_policy(
+    folder: str | Path,
+    *,
+    paligemma_tokenizer: str | Path | sentencepiece.SentencePieceProcessor | None = None,
+    dtype: str = "float32",
+    default_prompt: str | None = None,
+    rng: jax.Array | None = None,
+) -> Policy:
+    """The served policy of a LeRobot pi0 / pi0.5 folder (`build_lerobot`; `paligemma_tokenizer` None: the
+    tokenizer its preprocessor names, then the Hugging Face cache)."""
+    parts = build_lerobot(folder, paligemma_tokenizer=paligemma_tokenizer, dtype=dtype, default_prompt=default_prompt)
+    return parts.policy(rng)
 
 
 def build_lerobot(
@@ -702,19 +758,22 @@ def build_lerobot(
     """The model and the pipelines of a LeRobot pi0 / pi0.5 folder; every file is checked (one line naming what is
     wrong) before the weights are read."""
     folder = Path(folder)
+    if (kind := checkpoint_format(folder)) != "lerobot":
+        raise ValueError(f"{folder} is an OpenPI checkpoint ({kind}), not a LeRobot policy folder")
     cfg = LeRobotConfig.read(folder / CONFIG_FILE)
-    pre_where, post_where = str(folder / PREPROCESSOR_FILE), str(folder / POSTPROCESSOR_FILE)
     pre_specs, post_specs = read_pipeline(folder / PREPROCESSOR_FILE), read_pipeline(folder / POSTPROCESSOR_FILE)
-    pre, max_length = preprocessor_steps(folder, pre_specs, paligemma_tokenizer, pre_where)
-    if max_length != cfg.tokenizer_max_length:
+    pre = pipeline_steps(folder, pre_specs, "preprocessor", paligemma_tokenizer=paligemma_tokenizer)
+    tokenizer = next((s for s in pre if isinstance(s, Tokenize)), None)
+    if tokenizer is None:
+        raise ValueError(f"{folder / PREPROCESSOR_FILE}: no tokenizer_processor step")
+    if tokenizer.max_length != cfg.tokenizer_max_length:
         # LeRobot builds the tokenizer step from the config's value, so folders that disagree were edited by hand:
         # which length the model was trained with cannot be told.
         raise ValueError(
-            f"{folder / CONFIG_FILE}: tokenizer_max_length {cfg.tokenizer_max_length}, but {pre_where}'s "
-            f"tokenizer_processor pads to max_length {max_length}"
+            f"{folder / CONFIG_FILE}: tokenizer_max_length {cfg.tokenizer_max_length}, but "
+            f"{folder / PREPROCESSOR_FILE}'s tokenizer_processor pads to max_length {tokenizer.max_length}"
         )
-    relative = next((s for s in pre if isinstance(s, RelativeActions)), None)
-    post = postprocessor_steps(folder, post_specs, relative, post_where)
+    post = pipeline_steps(folder, post_specs, "postprocessor", before=pre)
     if cfg.image_resolution[0] != cfg.image_resolution[1]:
         raise ValueError(f"{folder / CONFIG_FILE}: image_resolution {cfg.image_resolution} is not square")
     model = Pi0.from_safetensors(
@@ -722,7 +781,7 @@ def build_lerobot(
         dtype=dtype,
         heads=read_head_counts(folder),
         action_horizon=cfg.chunk_size,
-        max_token_len=max_length,
+        max_token_len=tokenizer.max_length,
         num_steps=cfg.num_inference_steps,
         image_keys=cfg.cameras,
         flow_time="lerobot",

@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.datasets.lerobot import dataset_error
-from openpi_cam.datasets.lerobot_writer import (
+from openpi_cam.lerobot.dataset import dataset_error
+from openpi_cam.lerobot.writer import (
     DONE,
     OUTCOME_FEATURES,
     REWARD,

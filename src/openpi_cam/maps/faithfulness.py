@@ -23,10 +23,10 @@ from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.records import step_record
 from openpi_cam.cam.run_evidence import REPORT_FILE
 from openpi_cam.cam.run_format import SpotCheck
-from openpi_cam.datasets import maps_dataset as fmt
-from openpi_cam.datasets.explain import DatasetJob, EpisodeExplainer
+from openpi_cam.checkpoints.model_spec import ModelSpec
+from openpi_cam.maps import dataset as fmt
+from openpi_cam.maps.explain import DatasetJob, EpisodeExplainer
 from openpi_cam.policies.family import Explanation
-from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.policies.policy import Policy
 from openpi_cam.vocabulary import ExplainOptions
 
@@ -75,7 +75,7 @@ def _explanation(row: dict[str, Any], maps: fmt.MapsDataset) -> Explanation:
         target=row["target"],
         maps=by_kind,
         score=row["score"],
-        cameras=json.loads(row["cameras"]),
+        cameras=json.loads(row[fmt.CAMERAS_COLUMN]),
         details=json.loads(row["details"]),
     )
 
@@ -107,7 +107,7 @@ def build_run(
                 if served.shape != (len(row["actions"]),) or not np.allclose(served, row["actions"], atol=ACTIONS_ATOL):
                     counts["actions_mismatched"] += 1
                     continue
-                extra = {name: np.asarray(row[f"extra/{name}"]) for name in job.extra.values()}
+                extra = {name: np.asarray(row[fmt.extra_column(name)]) for name in job.extra.values()}
                 record = step_record(
                     trace,
                     _explanation(row, maps),

@@ -1,5 +1,5 @@
 """Write a LeRobot dataset in layout v3.0 with pyarrow and PyAV, as LeRobot 0.6.1's recorder lays it out, so that
-LeRobot's own `LeRobotDataset` (and `datasets.lerobot.open_dataset`) opens it.
+LeRobot's own `LeRobotDataset` (and `lerobot.dataset.open_dataset`) opens it.
 
     writer = create_dataset(root, fps=10, features={**cameras, **numeric, **OUTCOME_FEATURES}, robot_type="...")
     writer.add_frame({...})                      # one per step: every declared feature, nothing else
@@ -9,11 +9,13 @@ LeRobot's own `LeRobotDataset` (and `datasets.lerobot.open_dataset`) opens it.
 What lands on disk (paths as LeRobot names them):
 
 - `data/chunk-CCC/file-FFF.parquet`: one row per frame, one row group per episode; image cameras as PNG bytes.
-- `videos/<camera>/chunk-CCC/file-FFF.mp4`: video cameras, episodes one after another in the file, each encoded on
-  its own (AV1 through libsvtav1, yuv420p, keyframe every 2 frames: LeRobot's defaults) and starting on a keyframe.
+- `videos/<camera>/chunk-CCC/file-FFF.mp4`: video cameras, episodes one after another in the file (`lerobot.video`).
 - `meta/episodes/chunk-CCC/file-FFF.parquet`: one row per episode: its length, tasks, where its rows and video
-  segments are, and its statistics (`stats/<feature>/<stat>`).
+  segments are, and its statistics (`stats/<feature>/<stat>`, `lerobot.stats`).
 - `meta/tasks.parquet`, `meta/stats.json` (statistics over all episodes), `meta/info.json`.
+
+The jobs split as LeRobot splits them: this module the data and metadata files (LeRobot's dataset writer),
+`lerobot.stats` the statistics (its `compute_stats`), `lerobot.video` the videos (its `video_utils`).
 
 A file takes episodes until the next one would push it past `data_files_size_in_mb` / `video_files_size_in_mb`;
 then the next file index is used, and the next chunk after `chunks_size` files.
@@ -22,11 +24,6 @@ Every `save_episode` leaves a complete dataset: each file it changes is written 
 `.staging/`) and moved into place, the episode metadata and info.json last. A crash while an episode is recorded, or
 while it is saved, leaves the episodes saved before it readable. The price is that appending an episode rewrites the
 current data file and remuxes the current video files (LeRobot remuxes its video files the same way).
-
-Statistics follow LeRobot's definitions, so that its normalisers read the numbers they expect: per episode, min /
-max / mean / std and the 1, 10, 50, 90, 99 % quantiles from a 5000-bin histogram (cameras: per channel over a
-sample of the episode's frames, in [0, 1]); across episodes, count-weighted means and variances, and quantiles
-averaged with the counts as weights.
 
 Outcome features are ordinary features: `OUTCOME_FEATURES` declares them as `lerobot-eval --eval.recording=true`
 does (`next.reward` float32, `next.success` and `next.done` bool, each of shape [1]).
@@ -50,7 +47,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from PIL import Image
 
-from openpi_cam.datasets.lerobot import CAMERA_DTYPES, DatasetError, dataset_error
+from openpi_cam.lerobot.dataset import CAMERA_DTYPES, DatasetError, dataset_error
+from openpi_cam.lerobot.stats import Stats, camera_stats, feature_stats, merge_stats
+from openpi_cam.lerobot.video import VideoOptions, append_video, duration_s, encode_video, video_info
 
 CODEBASE_VERSION = "v3.0"
 DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
@@ -58,8 +57,6 @@ VIDEO_PATH = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.m
 EPISODES_PATH = "meta/episodes/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
 STAGING = ".staging"
 CAMERA_NAMES = ("height", "width", "channels")
-QUANTILES = (0.01, 0.10, 0.50, 0.90, 0.99)
-HISTOGRAM_BINS = 5000
 PNG_COMPRESS_LEVEL = 6  # what LeRobot uses for image-dtype cameras
 MB = 1024**2
 SUPPORTED_DTYPES = ("bool", "float32", "float64", *(f"{s}int{b}" for s in ("", "u") for b in (8, 16, 32, 64)))
@@ -105,137 +102,6 @@ DEFAULT_FEATURES: dict[str, Feature] = {
     "index": Feature("int64", (1,)),
     "task_index": Feature("int64", (1,)),
 }
-
-
-@dataclass(frozen=True)
-class VideoOptions:
-    """How video cameras are encoded; recorded in info.json as LeRobot records its encoder settings. The defaults
-    are LeRobot 0.6.1's. `preset` None: 12 for libsvtav1, the encoder's own default otherwise."""
-
-    codec: str = "libsvtav1"
-    pix_fmt: str = "yuv420p"
-    gop: int = 2
-    crf: int | None = 30
-    preset: int | str | None = None
-    fast_decode: int = 0
-
-    @property
-    def resolved_preset(self) -> int | str | None:
-        return 12 if self.preset is None and self.codec == "libsvtav1" else self.preset
-
-    def codec_options(self) -> dict[str, str]:
-        options = {"g": str(self.gop)}
-        if self.crf is not None:
-            options["crf"] = str(self.crf)
-        if self.resolved_preset is not None:
-            options["preset"] = str(self.resolved_preset)
-        if self.codec == "libsvtav1":
-            options["svtav1-params"] = f"fast-decode={max(0, min(2, self.fast_decode))}"
-        elif self.fast_decode and self.codec in ("libx264", "h264", "libx265", "hevc"):
-            options["tune"] = "fastdecode"
-        return options
-
-    def recorded(self) -> dict[str, Any]:
-        return {
-            "video.g": self.gop,
-            "video.crf": self.crf,
-            "video.preset": self.resolved_preset,
-            "video.fast_decode": self.fast_decode,
-            "video.video_backend": "pyav",
-            "video.extra_options": {},
-        }
-
-
-# --- statistics ------------------------------------------------------------------------------------------------
-
-Stats = dict[str, np.ndarray]
-
-
-def _quantile(histogram: np.ndarray, edges: np.ndarray, target: float) -> Any:
-    """Where the cumulative histogram reaches `target` counts, interpolated inside the bin (LeRobot's estimate:
-    a target in the first bin reads as the lowest edge)."""
-    cumulative = np.cumsum(histogram)
-    i = int(np.searchsorted(cumulative, target))
-    if i == 0:
-        return edges[0]
-    if i >= len(cumulative):
-        return edges[-1]
-    below = cumulative[i - 1]
-    inside = cumulative[i] - below
-    if inside == 0:
-        return edges[i]
-    return edges[i] + (target - below) / inside * (edges[i + 1] - edges[i])
-
-
-def _vector_stats(values: np.ndarray, count: int) -> Stats:
-    """Statistics per column of `values` [rows, columns]; `count` is what the rows stand for (frames)."""
-    values = values.astype(np.result_type(values.dtype, np.float32), copy=False)
-    if values.shape[0] < 2:
-        mean = np.mean(values, axis=0)
-        stats = {"min": values.min(axis=0), "max": values.max(axis=0), "mean": mean, "std": np.std(values, axis=0)}
-        return {**stats, "count": np.array([count])} | {_quantile_key(q): mean.copy() for q in QUANTILES}
-    low, high = values.min(axis=0), values.max(axis=0)
-    mean = np.mean(values, axis=0)
-    variance = np.mean(values**2, axis=0) - mean**2
-    quantiles: list[list[Any]] = [[] for _ in QUANTILES]
-    for column in range(values.shape[1]):
-        # the edges carry the data's dtype, as LeRobot's do; 1e-10 keeps the extremes inside the outer bins
-        edges = np.linspace(low[column] - 1e-10, high[column] + 1e-10, HISTOGRAM_BINS + 1)
-        histogram = np.histogram(values[:, column], bins=edges)[0].astype(np.float64)
-        for q, out in zip(QUANTILES, quantiles, strict=True):
-            out.append(_quantile(histogram, edges, q * values.shape[0]))
-    return {
-        "min": low,
-        "max": high,
-        "mean": mean,
-        "std": np.sqrt(np.maximum(0, variance)),
-        "count": np.array([count]),
-    } | {_quantile_key(q): np.array(out) for q, out in zip(QUANTILES, quantiles, strict=True)}
-
-
-def _quantile_key(q: float) -> str:
-    return f"q{int(q * 100):02d}"
-
-
-def _sampled(n: int) -> list[int]:
-    """The frames of an n-frame episode whose pixels enter a camera's statistics: all of them up to 100, then
-    n^0.75 spread evenly (at most 10,000)."""
-    count = max(min(n, 100), min(int(n**0.75), 10_000))
-    return np.round(np.linspace(0, n - 1, count)).astype(int).tolist()
-
-
-def _camera_stats(frames: list[np.ndarray]) -> Stats:
-    """Per-channel statistics in [0, 1], shape [3, 1, 1], over a sample of the frames (every k-th pixel of frames
-    300 px or larger, k bringing the long side near 150 px)."""
-    sample = np.stack([frames[i] for i in _sampled(len(frames))])
-    height, width = sample.shape[1:3]
-    if max(height, width) >= 300:
-        step = int(width / 150) if width > height else int(height / 150)
-        sample = sample[:, ::step, ::step]
-    stats = _vector_stats(sample.reshape(-1, sample.shape[-1]), len(sample))
-    return {key: value if key == "count" else value.reshape(-1, 1, 1) / 255.0 for key, value in stats.items()}
-
-
-def _merge_stats(a: Stats, b: Stats) -> Stats:
-    """Statistics of the union of two sets of frames from the statistics of each."""
-    means, counts = np.stack([a["mean"], b["mean"]]), np.stack([a["count"], b["count"]])
-    total = counts.sum(axis=0)
-    weights = counts.reshape(counts.shape + (1,) * (means.ndim - counts.ndim))
-    mean = (means * weights).sum(axis=0) / total
-    # each std squared in its own dtype before the two are stacked, as LeRobot does it: the float32 of an episode's
-    # camera statistics is then kept
-    variances = np.stack([a["std"] ** 2, b["std"] ** 2])
-    variance = ((variances + (means - mean) ** 2) * weights).sum(axis=0) / total
-    merged = {
-        "min": np.minimum(a["min"], b["min"]),
-        "max": np.maximum(a["max"], b["max"]),
-        "mean": mean,
-        "std": np.sqrt(variance),
-        "count": total,
-    }
-    for key in map(_quantile_key, QUANTILES):
-        merged[key] = (np.stack([a[key], b[key]]) * weights).sum(axis=0) / total
-    return merged
 
 
 # --- files -----------------------------------------------------------------------------------------------------
@@ -288,65 +154,6 @@ def _png(frame: np.ndarray) -> bytes:
     buffer = io.BytesIO()
     Image.fromarray(frame).save(buffer, format="PNG", compress_level=PNG_COMPRESS_LEVEL)
     return buffer.getvalue()
-
-
-def _encode_video(frames: list[np.ndarray], path: Path, fps: int, options: VideoOptions) -> None:
-    height, width = frames[0].shape[:2]
-    # SVT-AV1 prints a banner of some twenty lines to stderr for every encoder it opens unless SVT_LOG lowers its
-    # level; errors still show, and a level the user set wins
-    os.environ.setdefault("SVT_LOG", "1")
-    with av.open(str(path), "w", format="mp4") as container:
-        stream = container.add_stream(options.codec, rate=fps, options=options.codec_options())
-        stream.pix_fmt = options.pix_fmt
-        stream.width, stream.height = width, height
-        for frame in frames:
-            container.mux(stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")))
-        container.mux(stream.encode())
-
-
-def _duration_s(path: Path) -> float:
-    with av.open(str(path)) as container:
-        stream = container.streams.video[0]
-        if stream.duration is not None:
-            return float(stream.duration * stream.time_base)
-        return float(container.duration / av.time_base)
-
-
-def _append_video(head: Path, tail: Path, offset_s: float, out: Path) -> None:
-    """`head`'s packets before `offset_s`, then `tail`'s moved there, stream-copied into `out` (no re-encoding).
-    Packets of `head` past `offset_s` belong to an episode whose save failed after its video moved."""
-    with av.open(str(head)) as first, av.open(str(tail)) as second:
-        a, b = first.streams.video[0], second.streams.video[0]
-        if a.time_base != b.time_base or a.codec_context.name != b.codec_context.name:
-            raise dataset_error(f"cannot append a {b.codec_context.name} video in time base {b.time_base}", file=head)
-        offset = round(offset_s / a.time_base)
-        with av.open(str(out), "w", format="mp4", options={"movflags": "faststart"}) as container:
-            stream = container.add_stream_from_template(a, opaque=True)
-            stream.time_base = a.time_base
-            for source, shift in ((first.demux(a), 0), (second.demux(b), offset)):
-                for packet in source:
-                    if packet.dts is None or (shift == 0 and packet.pts >= offset):  # None: the demuxer's flush
-                        continue
-                    packet.pts += shift
-                    packet.dts += shift
-                    packet.stream = stream
-                    container.mux(packet)
-
-
-def _video_info(path: Path, options: VideoOptions) -> dict[str, Any]:
-    """info.json's `info` of a video camera: what the encoded stream says, then the encoder settings."""
-    with av.open(str(path)) as container:
-        stream = container.streams.video[0]
-        info = {
-            "video.height": stream.height,
-            "video.width": stream.width,
-            "video.codec": stream.codec.canonical_name,
-            "video.pix_fmt": stream.pix_fmt,
-            "video.fps": int(stream.base_rate),
-            "video.channels": len(av.VideoFormat(stream.pix_fmt).components),
-            "has_audio": bool(container.streams.audio),
-        }
-    return info | options.recorded() | {"is_depth_map": False}
 
 
 def _next_file(chunk: int, file: int, chunks_size: int) -> tuple[int, int]:
@@ -578,56 +385,92 @@ class DatasetWriter:
         return pa.Table.from_arrays(arrays, schema=self._schema)
 
     def _write_episode(self, episode: int, frame_tasks: list[str]) -> None:
-        """Stages every file the episode changes, moves them into place, then advances the writer's state: a failure
-        before the last move leaves the state as it was, so that saving again rewrites the same files."""
+        """Stages every file the episode changes (its data, its videos, its statistics, then the metadata), moves them
+        into place, then advances the writer's state: a failure before the last move leaves the state as it was, so
+        that saving again rewrites the same files."""
         writes: dict[Path, Path | bytes] = {}  # final path -> staged file or content, in the order they move
         episode_tasks = list(dict.fromkeys(frame_tasks))
         tasks = self.tasks + [t for t in episode_tasks if t not in self.tasks]
         if len(tasks) > len(self.tasks):
             writes[self.root / "meta" / "tasks.parquet"] = self._staged_table("tasks.parquet", _tasks_table(tasks))
         columns = self._columns(episode, [tasks.index(t) for t in frame_tasks])
-        n = len(self._frames)
-        chunks_size, data_mb, video_mb = (
-            self._info[key] for key in ("chunks_size", "data_files_size_in_mb", "video_files_size_in_mb")
+        data, row = self._stage_data(columns, writes)
+        info = json.loads(json.dumps(self._info))
+        videos = self._stage_videos(episode, row, info, writes)
+        episode_stats = self._episode_stats(columns)
+        meta, rows = self._stage_episode_row(
+            {"episode_index": episode, "tasks": episode_tasks, "length": len(self._frames), **row},
+            episode_stats,
+            writes,
         )
+        stats = {
+            name: merge_stats(self.stats[name], value) if name in self.stats else value
+            for name, value in episode_stats.items()
+        }
+        writes[self.root / "meta" / "stats.json"] = _json(
+            {name: {key: value.tolist() for key, value in s.items()} for name, s in stats.items()}
+        )
+        info |= {
+            "total_episodes": episode + 1,
+            "total_frames": self.num_frames + len(self._frames),
+            "total_tasks": len(tasks),
+            "splits": {"train": f"0:{episode + 1}"},
+        }
+        writes[self.root / "meta" / "info.json"] = _json(info)
 
-        # a file takes the episode unless its size, grown by the episode's share at the file's size per frame so far,
-        # would reach the limit (LeRobot's rule)
+        self._commit(writes)
+        self.tasks, self.stats, self._info = tasks, stats, info
+        self._data, self._meta, self._meta_rows = data, meta, rows
+        self._videos |= videos
+
+    def _next_slot(self, slot: _Slot) -> _Slot:
+        return _Slot(*_next_file(slot.chunk, slot.file, self._info["chunks_size"]))
+
+    def _stage_data(self, columns: dict[str, np.ndarray], writes: dict[Path, Path | bytes]) -> tuple[_Slot, dict]:
+        """The data file with the episode's rows appended (or a new file), and the episode row's data fields. A file
+        takes the episode unless its size, grown by the episode's share at the file's size per frame so far, would
+        reach the limit (LeRobot's rule)."""
+        n = len(self._frames)
         data = self._data
         previous = self._path(DATA_PATH, data) if data.episodes else None
-        if previous and previous.stat().st_size / MB * (1 + n / data.frames) >= data_mb:
-            data, previous = _Slot(*_next_file(data.chunk, data.file, chunks_size)), None
+        if previous and previous.stat().st_size / MB * (1 + n / data.frames) >= self._info["data_files_size_in_mb"]:
+            data, previous = self._next_slot(data), None
         writes[self._path(DATA_PATH, data)] = self._staged_data(self._episode_table(columns), previous, data.episodes)
-        row: dict[str, Any] = {
-            "episode_index": episode,
-            "tasks": episode_tasks,
-            "length": n,
+        row = {
             "data/chunk_index": data.chunk,
             "data/file_index": data.file,
             "dataset_from_index": self.num_frames,
             "dataset_to_index": self.num_frames + n,
         }
+        return dataclasses.replace(data, episodes=data.episodes + 1, frames=data.frames + n), row
 
-        info = json.loads(json.dumps(self._info))
+    def _stage_videos(
+        self, episode: int, row: dict[str, Any], info: dict[str, Any], writes: dict[Path, Path | bytes]
+    ) -> dict[str, _Slot]:
+        """Each video camera's episode encoded and appended to the camera's current file (or a new one past the
+        size limit); its segment goes into the episode `row`, and the first episode's stream into `info`."""
         videos = {}
         for name in self.videos:
             encoded = self._staging / f"{name}.episode.mp4"
             try:
-                _encode_video([frame.values[name] for frame in self._frames], encoded, self.fps, self.video)
+                encode_video([frame.values[name] for frame in self._frames], encoded, self.fps, self.video)
             except av.FFmpegError as e:
                 raise dataset_error(
                     f"video encoding failed ({e})", file=self.root, episode=episode, feature=name
                 ) from e
             slot = self._videos[name]
             path = self._path(VIDEO_PATH, slot, video_key=name)
-            if slot.episodes and (path.stat().st_size + encoded.stat().st_size) / MB >= video_mb:
-                slot = _Slot(*_next_file(slot.chunk, slot.file, chunks_size))
+            if (
+                slot.episodes
+                and (path.stat().st_size + encoded.stat().st_size) / MB >= self._info["video_files_size_in_mb"]
+            ):
+                slot = self._next_slot(slot)
             staged = encoded
             if slot.episodes:
                 staged = self._staging / f"{name}.mp4"
-                _append_video(path, encoded, slot.end_s, staged)
+                append_video(path, encoded, slot.end_s, staged)
             writes[self._path(VIDEO_PATH, slot, video_key=name)] = staged
-            end_s = slot.end_s + _duration_s(encoded)
+            end_s = slot.end_s + duration_s(encoded)
             row |= {
                 f"videos/{name}/chunk_index": slot.chunk,
                 f"videos/{name}/file_index": slot.file,
@@ -636,47 +479,33 @@ class DatasetWriter:
             }
             videos[name] = dataclasses.replace(slot, episodes=slot.episodes + 1, end_s=end_s)
             if episode == 0:
-                info["features"][name]["info"] = _video_info(encoded, self.video)
+                info["features"][name]["info"] = video_info(encoded, self.video)
+        return videos
 
-        episode_stats = self._episode_stats(columns)
-        for name, stats in episode_stats.items():
-            row |= {f"stats/{name}/{key}": value.tolist() for key, value in stats.items()}
+    def _stage_episode_row(
+        self, row: dict[str, Any], episode_stats: dict[str, Stats], writes: dict[Path, Path | bytes]
+    ) -> tuple[_Slot, list[dict[str, Any]]]:
+        """The episode metadata file with the episode's row (its statistics included) appended, or a new file."""
+        row = row | {
+            f"stats/{name}/{key}": value.tolist() for name, s in episode_stats.items() for key, value in s.items()
+        }
         meta, rows = self._meta, self._meta_rows
         path = self._path(EPISODES_PATH, meta)
-        if meta.episodes and path.stat().st_size / MB * (1 + 1 / meta.episodes) >= data_mb:
-            meta, rows = _Slot(*_next_file(meta.chunk, meta.file, chunks_size)), []
+        if meta.episodes and path.stat().st_size / MB * (1 + 1 / meta.episodes) >= self._info["data_files_size_in_mb"]:
+            meta, rows = self._next_slot(meta), []
         rows = [*rows, row | {"meta/episodes/chunk_index": meta.chunk, "meta/episodes/file_index": meta.file}]
         writes[self._path(EPISODES_PATH, meta)] = self._staged_table("episodes.parquet", pa.Table.from_pylist(rows))
-
-        stats = {
-            name: _merge_stats(self.stats[name], value) if name in self.stats else value
-            for name, value in episode_stats.items()
-        }
-        writes[self.root / "meta" / "stats.json"] = _json(
-            {name: {key: value.tolist() for key, value in s.items()} for name, s in stats.items()}
-        )
-        info |= {
-            "total_episodes": episode + 1,
-            "total_frames": self.num_frames + n,
-            "total_tasks": len(tasks),
-            "splits": {"train": f"0:{episode + 1}"},
-        }
-        writes[self.root / "meta" / "info.json"] = _json(info)
-
-        self._commit(writes)
-        self.tasks, self.stats, self._info = tasks, stats, info
-        self._data = dataclasses.replace(data, episodes=data.episodes + 1, frames=data.frames + n)
-        self._meta, self._meta_rows = dataclasses.replace(meta, episodes=meta.episodes + 1), rows
-        self._videos |= videos
+        return dataclasses.replace(meta, episodes=meta.episodes + 1), rows
 
     def _episode_stats(self, columns: dict[str, np.ndarray]) -> dict[str, Stats]:
+        """Each feature's statistics over the episode (`lerobot.stats`), in the features' order."""
         stats = {}
         for name, feature in self.features.items():
             if feature.is_camera:
-                stats[name] = _camera_stats([frame.values[name] for frame in self._frames])
+                stats[name] = camera_stats([frame.values[name] for frame in self._frames])
             else:
                 values = columns[name]
-                stats[name] = _vector_stats(values.reshape(len(values), -1), len(values))
+                stats[name] = feature_stats(values.reshape(len(values), -1), len(values))
         return stats
 
     def _staged_data(self, table: pa.Table, previous: Path | None, episodes: int) -> Path:
@@ -794,6 +623,5 @@ __all__ = [
     "DatasetError",
     "DatasetWriter",
     "Feature",
-    "VideoOptions",
     "create_dataset",
 ]

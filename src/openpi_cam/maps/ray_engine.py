@@ -4,9 +4,9 @@ Ray Data holds the episodes still to do (one block each) and runs `map_batches` 
 actors: each actor loads its own copy of the model once (`EpisodeExplainer`), takes one episode at a time, explains it
 and writes its shard itself, and hands back a small summary row. The driver only plans (which episodes, the maps
 dataset's info.json), gathers the rows and writes meta/summary.json. Rows, shards and info.json are the local engine's
-(`datasets.explain.run_local`): the same `EpisodeExplainer` makes them.
+(`maps.explain.run_local`): the same `EpisodeExplainer` makes them.
 
-Exactly once: an episode's shard has a fixed path and is written atomically (`datasets.maps_dataset`), so an episode
+Exactly once: an episode's shard has a fixed path and is written atomically (`maps.dataset`), so an episode
 that is done again (a retried task after its actor died, a resumed job) replaces its shard instead of adding rows, and
 a worker killed while writing leaves only a hidden temporary file that readers never list.
 
@@ -33,8 +33,9 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.datasets import maps_dataset as fmt
-from openpi_cam.datasets.explain import (
+from openpi_cam.lerobot.dataset import DatasetError, LeRobotDataset, open_dataset
+from openpi_cam.maps import dataset as fmt
+from openpi_cam.maps.explain import (
     DatasetJob,
     EpisodeExplainer,
     EpisodeResult,
@@ -44,7 +45,6 @@ from openpi_cam.datasets.explain import (
     prepare_output,
     selected_episodes,
 )
-from openpi_cam.datasets.lerobot import DatasetError, LeRobotDataset, open_dataset
 from openpi_cam.vocabulary import DEFAULT_TARGETS
 
 log = logging.getLogger(__name__)

@@ -37,16 +37,16 @@ Definitions (the frame's map of a camera normalised to sum 1 is `p`; the camera'
   (the group summary of each outcome's frames), and how well each episode figure finds the failures
   (`outcome_views`).
 
-Reading needs pyarrow and numpy only (no JAX): the maps are read an episode at a time, twice (once for the prior,
-once for each frame's distance to it), so memory holds the rows but never every map.
+Each view is one accumulator over the typed frames `MapsDataset.episode_frames` reads (`_FrameRows`, `_Prior`,
+`_HotPatches`, `_SpotChecks`, `_Conditions`, then `_PriorFit` against the prior); `compute_views` feeds them and
+assembles the summaries. Reading needs pyarrow and numpy only (no JAX): the maps are read an episode at a time, twice
+(once for the prior, once for each frame's distance to it), so memory holds the rows but never every map.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-import pathlib
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -56,31 +56,21 @@ import numpy as np
 from openpi_cam.cam.faithfulness import client_box_cells, nuisance_mass_ratio
 from openpi_cam.cam.outcomes import finding
 from openpi_cam.cam.run_format import RELIANCE_PROMPT
-from openpi_cam.datasets.maps_dataset import (
+from openpi_cam.maps.dataset import (
     CHECK_RANDOM,
     EPISODE_LENGTH,
     EPISODE_SUCCESS,
-    OUTCOME_COLUMNS,
+    EpisodeFrames,
     MapsDataset,
     MapsInfo,
-    check_column,
-    map_array,
-    map_column,
-    reliance_columns,
 )
 from openpi_cam.viz.overlay import reduce_tokens
 from openpi_cam.viz.stats import camera_stats, mean_score
 from openpi_cam.viz.text import finite_mean
 
-FRAME_COLUMNS = ("index", "episode_index", "frame_index", "timestamp", "task", "target", "score", "malformed")
 # The carried feature (`--extra FEATURE=target_box`) holding the task region: a box (x0, y0, x1, y1) in the client
 # image of the dataset's first camera, as the demo records `observation.target_box`.
 TARGET_BOX = "target_box"
-# The carried feature (`--extra FEATURE=perturbation`) naming the condition each episode ran under, as the demo records
-# its perturbation's index: with outcomes, failed and successful episodes are also set side by side per condition.
-GROUP = "perturbation"
-# Where the demo names its perturbations, beside the recorded dataset (`openpi-cam demo --record`).
-GROUP_NAMES_FILE = "meta/demo_episodes.json"
 OUTCOMES = ("success", "failure")  # the order failed and successful episodes are set side by side in
 
 
@@ -91,6 +81,11 @@ class ViewOptions:
     # The early-warning figures read each episode's first this many explained frames. 1: the first request alone,
     # which every episode has, so the figures cannot tell a short episode from a long one.
     early_frames: int = 1
+    # The carried feature (`--extra FEATURE=NAME`, by its NAME) whose value names the condition each episode ran under
+    # (the demo's perturbation index): with outcomes, failed and successful episodes are also set side by side per
+    # condition. None: no conditions.
+    group: str | None = None
+    group_names: tuple[str, ...] = ()  # the conditions' names, indexed by the feature's value
 
 
 @dataclasses.dataclass(frozen=True)
@@ -181,15 +176,6 @@ def episode_ranking(values: Mapping[int, float]) -> list[tuple[int, float, float
 
 
 @dataclasses.dataclass
-class _Camera:
-    """What pass one gathers of a camera over the dataset."""
-
-    prior_sum: np.ndarray  # [Hp, Wp] sum of the normalised maps
-    hot_counts: np.ndarray  # [Hp, Wp] frames whose top-k holds the patch
-    frames: int = 0  # valid frames with positive mass
-
-
-@dataclasses.dataclass
 class DatasetViews:
     """A maps dataset's per-frame rows and dataset-level views of one kind of map (see the module docstring)."""
 
@@ -207,7 +193,8 @@ class DatasetViews:
     checks: list[dict[str, Any]]  # per kind and camera: the spot checks' summary
     info: MapsInfo
     outcomes: dict[str, Any] | None = None  # `outcome_views`, when the source records outcomes
-    groups: list[dict[str, Any]] | None = None  # `group_views`, when the source records outcomes and carries GROUP
+    # per condition (`_Conditions.views`), when the source records outcomes and carries `ViewOptions.group`
+    groups: list[dict[str, Any]] | None = None
 
     def summary(self) -> dict[str, Any]:
         """The dataset-level views as plain JSON data."""
@@ -246,16 +233,6 @@ class DatasetViews:
         }
 
 
-def _frame_maps(table: Any, kind: str, cameras: Sequence[str], grids: Mapping[str, tuple[int, int]]) -> dict:
-    return {c: displayable(map_array(table.column(map_column(kind, c)), grids[c])) for c in cameras}
-
-
-def camera_validity(cameras_json: Sequence[str | None], cameras: Sequence[str]) -> dict[str, np.ndarray]:
-    """camera -> bool [N]: whether the model saw the camera in each frame (`cameras` column; absent: it did)."""
-    parsed = [json.loads(text) if text else {} for text in cameras_json]
-    return {c: np.array([bool(p.get(c, {}).get("valid", True)) for p in parsed], bool) for c in cameras}
-
-
 def _finite_or_none(x: Any) -> Any:
     return None if isinstance(x, float) and not math.isfinite(x) else x
 
@@ -269,26 +246,70 @@ def _check_figures(top: Any, randoms: Any) -> tuple[float, float, float]:
     return top, float(np.median(drops)), max(drops)
 
 
+def _nuisance(box: Sequence[float] | None, cameras: Mapping[str, Any], camera: str, m: np.ndarray) -> float | None:
+    """The nuisance mass ratio of `camera`'s map where the frame carries the task region's box (given in that
+    camera's client image); None without one."""
+    if box is None:
+        return None
+    cells = client_box_cells(box, cameras.get(camera, {}).get("geometry"), m.shape, None)
+    return None if cells is None else nuisance_mass_ratio(m, cells)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Shown:
+    """An episode's frames with each camera's map as the renderers draw it (`displayable`), normalised to sum 1, and
+    which frames take part in the views (the model saw the camera and the map has positive mass)."""
+
+    frames: EpisodeFrames
+    maps: dict[str, np.ndarray]  # camera -> [N, Hp, Wp]
+    p: dict[str, np.ndarray]  # camera -> [N, Hp, Wp], zeros without mass
+    valid: dict[str, np.ndarray]  # camera -> bool [N]
+    use: dict[str, np.ndarray]  # camera -> bool [N]
+
+    @classmethod
+    def of(cls, frames: EpisodeFrames) -> _Shown:
+        maps = {c: displayable(m) for c, m in frames.maps.items()}
+        valid = {c: frames.valid(c) for c in maps}
+        normalised_maps = {c: normalised(m) for c, m in maps.items()}
+        p = {c: n[0] for c, n in normalised_maps.items()}
+        return cls(frames, maps, p, valid, {c: valid[c] & normalised_maps[c][1] for c in maps})
+
+
+class _FrameRows:
+    """The per-frame rows: each frame's dataset columns and, per camera, the run statistics' figures of its map, its
+    nuisance mass (None without a task region) and this kind's spot check (the prior's columns stay None until
+    `_PriorFit` fills them)."""
+
+    def __init__(self, kind: str, box: str | None) -> None:
+        self.kind, self.box = kind, box
+        self.rows: list[dict[str, Any]] = []
+
+    def add(self, shown: _Shown) -> None:
+        frames, cameras = shown.frames, list(shown.maps)
+        for i, meta in enumerate(frames.meta):
+            maps = {c: shown.maps[c][i] for c in cameras}
+            valid = {c: bool(shown.valid[c][i]) for c in cameras}
+            box = frames.extra[self.box][i] if self.box is not None else None
+            nuisance = _nuisance(box, frames.cameras[i], cameras[0], maps[cameras[0]])
+            checks = {c: (frames.checks[self.kind][c][i], frames.checks[CHECK_RANDOM][c][i]) for c in cameras}
+            self.rows.append(_frame_row(meta, maps, valid, checks, {cameras[0]: nuisance}))
+
+
 def _frame_row(
     meta: Mapping[str, Any],
     maps: Mapping[str, np.ndarray],
     valid: Mapping[str, bool],
-    checks: Mapping[str, Any],
-    kind: str,
+    checks: Mapping[str, tuple[Any, Any]],
     nuisance: Mapping[str, float | None],
 ) -> dict[str, Any]:
-    """One frame's row: its dataset columns and, per camera, the run statistics' figures of its map, its nuisance
-    mass (None without a task region) and its spot check (the prior's columns stay None until pass two fills
-    them)."""
+    """One frame's row (`_FrameRows`); `checks`: per camera the top patch's drop and the random patches' drops."""
     total = sum(float(m.sum()) for c, m in maps.items() if valid[c])
     per_camera = {c: camera_stats(m, valid[c], total) for c, m in maps.items()}
     best = max(per_camera.items(), key=lambda kv: kv[1].share, default=None)
     row: dict[str, Any] = dict(meta)
     row["dominant"] = best[0] if best is not None and best[1].share > 0 else None
     for c, cs in per_camera.items():
-        top, rand_median, rand_max = _check_figures(
-            checks[check_column(kind, c)], checks[check_column(CHECK_RANDOM, c)]
-        )
+        top, rand_median, rand_max = _check_figures(*checks[c])
         row |= {
             f"{c}/valid": cs.valid,
             f"{c}/share": cs.share,
@@ -309,113 +330,197 @@ def _frame_row(
     return row
 
 
+class _Prior:
+    """The positional prior: per camera the mean normalised map over the frames that take part."""
+
+    def __init__(self, grids: Mapping[str, tuple[int, int]]) -> None:
+        self.sums = {c: np.zeros(g) for c, g in grids.items()}
+        self.frames = dict.fromkeys(grids, 0)
+
+    def add(self, shown: _Shown) -> None:
+        for c, use in shown.use.items():
+            self.sums[c] += shown.p[c][use].sum(axis=0)
+            self.frames[c] += int(use.sum())
+
+    def mean(self) -> dict[str, np.ndarray]:
+        return {c: total / self.frames[c] if self.frames[c] else np.zeros_like(total) for c, total in self.sums.items()}
+
+
+class _HotPatches:
+    """Per camera and patch, the share of the frames that take part whose top-k holds it, and the flagged ones."""
+
+    def __init__(self, grids: Mapping[str, tuple[int, int]], options: ViewOptions) -> None:
+        self.options = options
+        self.k = {c: top_k(g[0] * g[1], options.top_fraction) for c, g in grids.items()}
+        self.counts = {c: np.zeros(g, np.int64) for c, g in grids.items()}
+        self.frames = dict.fromkeys(grids, 0)
+
+    def add(self, shown: _Shown) -> None:
+        for c, use in shown.use.items():
+            self.counts[c] += in_top_k(shown.maps[c][use], self.k[c]).sum(axis=0)
+            self.frames[c] += int(use.sum())
+
+    def rates(self) -> dict[str, np.ndarray]:
+        return {c: n / self.frames[c] if self.frames[c] else np.zeros(n.shape) for c, n in self.counts.items()}
+
+    def flagged(self) -> dict[str, list[HotPatch]]:
+        return {c: flag_hot(c, rates, self.options.hot_threshold) for c, rates in self.rates().items()}
+
+
+class _SpotChecks:
+    """Per kind and camera, the figures of every frame whose spot check has a top patch and random patches
+    (`check_summary`)."""
+
+    def __init__(self, kinds: Sequence[str]) -> None:
+        self.kinds = list(kinds)
+        self.figures: dict[tuple[str, str], list[tuple[float, float, float, int]]] = {}
+
+    def add(self, shown: _Shown) -> None:
+        checks = shown.frames.checks
+        for i in range(len(shown.frames)):
+            for kind in self.kinds:
+                for c in shown.maps:
+                    randoms = checks[CHECK_RANDOM][c][i] or []
+                    top, rand_median, rand_max = _check_figures(checks[kind][c][i], randoms)
+                    if math.isfinite(top) and math.isfinite(rand_median):
+                        count = sum(1 for d in randoms if d is not None and math.isfinite(d))
+                        self.figures.setdefault((kind, c), []).append((top, rand_median, rand_max, count))
+
+
+class _Conditions:
+    """With outcomes and `ViewOptions.group`: each episode's condition, and per (condition, failed, camera) the sum of
+    the normalised maps of the frames that take part and their count."""
+
+    def __init__(self, grids: Mapping[str, tuple[int, int]], group: str | None) -> None:
+        self.grids, self.group = grids, group
+        self.episode_group: dict[int, int] = {}
+        self.maps: dict[tuple[int, bool, str], list[Any]] = {}
+
+    def add(self, shown: _Shown) -> None:
+        frames = shown.frames
+        if self.group is None or not len(frames):
+            return
+        group = self.episode_group[frames.episode] = int(np.asarray(frames.extra[self.group][0]).reshape(-1)[0])
+        for c, use in shown.use.items():
+            total = self.maps.setdefault((group, _failed(frames.meta), c), [np.zeros(self.grids[c]), 0])
+            total[0] = total[0] + shown.p[c][use].sum(axis=0)
+            total[1] += int(use.sum())
+
+    def views(
+        self, by_episode: Mapping[int, Sequence[Mapping[str, Any]]], cameras: Sequence[str], names: Sequence[str]
+    ) -> list[dict[str, Any]]:
+        """Per condition (named by `names` where its value indexes them): its episodes and successes, failed and
+        successful episodes side by side (the group summary of each outcome's frames) and each camera's mean
+        normalised map over each outcome's frames (None where the outcome has no frame with mass)."""
+        out = []
+        for group in sorted(set(self.episode_group.values())):
+            episodes = [e for e in sorted(by_episode) if self.episode_group.get(e) == group]
+            mean_maps = {}
+            for name in OUTCOMES:
+                mean_maps[name] = {}
+                for c in cameras:
+                    total, frames = self.maps.get((group, name == "failure", c), (None, 0))
+                    mean_maps[name][c] = (total / frames).tolist() if frames else None
+            out.append(
+                {
+                    self.group: group,
+                    "name": names[group] if 0 <= group < len(names) else None,
+                    "episodes": len(episodes),
+                    "successes": sum(not _failed(by_episode[e]) for e in episodes),
+                    "by_outcome": by_outcome(by_episode, episodes, cameras),
+                    "mean_maps": mean_maps,
+                }
+            )
+        return out
+
+
+class _PriorFit:
+    """Pass two: each frame's map against the prior into its row (cosine, R^2, total-variation distance, whether its
+    peak sits on a flagged patch), and per camera the sums of the pooled R^2."""
+
+    def __init__(
+        self, prior: Mapping[str, np.ndarray], hot: Mapping[str, Sequence[HotPatch]], rows: list[dict[str, Any]]
+    ) -> None:
+        self.prior, self.rows = prior, rows
+        self.hot_cells = {c: {(h.row, h.col) for h in flagged} for c, flagged in hot.items()}
+        self.sums = {c: {"sse": 0.0, "sst": 0.0} for c in prior}
+        self.first = 0  # the row of the next episode's first frame
+
+    def add(self, shown: _Shown) -> None:
+        for c, use in shown.use.items():
+            cosine, r2, distance, sse, sst = prior_fit(shown.p[c], self.prior[c])
+            self.sums[c]["sse"] += float(sse[use].sum())
+            self.sums[c]["sst"] += float(sst[use].sum())
+            for i in np.nonzero(use)[0]:
+                row = self.rows[self.first + i]
+                row[f"{c}/prior_cosine"] = _finite_or_none(float(cosine[i]))
+                row[f"{c}/prior_r2"] = _finite_or_none(float(r2[i]))
+                row[f"{c}/prior_distance"] = float(distance[i])
+                row[f"{c}/peak_on_hot"] = (row[f"{c}/peak_row"], row[f"{c}/peak_col"]) in self.hot_cells[c]
+        self.first += len(shown.frames)
+
+    def summary(self, frames: Mapping[str, int]) -> dict[str, dict[str, Any]]:
+        """Per camera the dataset-level fit; `frames`: the frames that took part in the prior."""
+        fit = {}
+        for c, sums in self.sums.items():
+            cos = [x for row in self.rows if (x := row[f"{c}/prior_cosine"]) is not None]
+            fit[c] = {
+                "frames": frames[c],
+                "mean_cosine": finite_mean(cos),
+                "median_cosine": _finite_or_none(float(np.median(cos))) if cos else None,
+                "pooled_r2": 1.0 - sums["sse"] / sums["sst"] if sums["sst"] > 0 else None,
+                "mean_distance": finite_mean(row[f"{c}/prior_distance"] for row in self.rows),
+                "peak_on_hot": finite_mean(p for row in self.rows if (p := row[f"{c}/peak_on_hot"]) is not None),
+            }
+        return fit
+
+
 def compute_views(
     ds: MapsDataset, kind: str, options: ViewOptions = ViewOptions(), episodes: Sequence[int] | None = None
 ) -> DatasetViews:
     """Per-frame rows and the dataset-level views of `kind`'s maps over `episodes` (default: every written one)."""
-    if kind not in ds.kinds:
-        raise ValueError(f"this maps dataset has no {kind!r} maps (it holds {', '.join(ds.kinds) or 'none'})")
-    cameras = ds.cameras
-    grids = {c: ds.grid(c) for c in cameras}
+    ds.require_kind(kind)
+    cameras, grids = ds.cameras, {c: ds.grid(c) for c in ds.cameras}
     episodes = list(ds.episodes if episodes is None else episodes)
-    acc = {c: _Camera(np.zeros(grids[c]), np.zeros(grids[c], np.int64)) for c in cameras}
-    k = {c: top_k(grids[c][0] * grids[c][1], options.top_fraction) for c in cameras}
-    check_cols = [check_column(kd, c) for kd in ds.kinds for c in cameras]
-    check_cols += [check_column(CHECK_RANDOM, c) for c in cameras]
-    row_columns = [*FRAME_COLUMNS, *(OUTCOME_COLUMNS if ds.info.outcome is not None else ())]
-    row_columns += reliance_columns(ds.info) if ds.info.reliance else []
-    box_column = f"extra/{TARGET_BOX}" if TARGET_BOX in ds.info.extra.values() else None
-    grouped = ds.info.outcome is not None and GROUP in ds.info.extra.values()
-    columns = [*row_columns, "cameras", *(map_column(kind, c) for c in cameras), *check_cols]
-    columns += [box_column] if box_column else []
-    columns += [f"extra/{GROUP}"] if grouped else []
-    episode_group: dict[int, int] = {}
-    # (group, failed, camera) -> [sum of normalised maps, frames]
-    group_maps: dict[tuple[int, bool, str], list[Any]] = {}
-    rows: list[dict[str, Any]] = []
-    check_acc: dict[tuple[str, str], list[tuple[float, float, float, int]]] = {}
-    # Pass one: the run statistics' per-map figures per frame, the prior's sums and the top-k counts.
+    carried = ds.info.extra.values()
+    box = TARGET_BOX if TARGET_BOX in carried else None
+    group = options.group if ds.info.outcome is not None and options.group in carried else None
+    rows, prior, hot = _FrameRows(kind, box), _Prior(grids), _HotPatches(grids, options)
+    checks, conditions = _SpotChecks(ds.kinds), _Conditions(grids, group)
     for episode in episodes:
-        table = ds.table(episode, columns)
-        maps = _frame_maps(table, kind, cameras, grids)
-        cameras_json = table.column("cameras").to_pylist()
-        valid = camera_validity(cameras_json, cameras)
-        meta = table.select(row_columns).to_pylist()
-        checks = {col: table.column(col).to_pylist() for col in check_cols}
-        boxes = table.column(box_column).to_pylist() if box_column else [None] * table.num_rows
-        if grouped and table.num_rows:
-            episode_group[episode] = int(np.asarray(table.column(f"extra/{GROUP}")[0].as_py()).reshape(-1)[0])
-        for c in cameras:
-            p, has_mass = normalised(maps[c])
-            use = valid[c] & has_mass
-            acc[c].prior_sum += p[use].sum(axis=0)
-            acc[c].frames += int(use.sum())
-            acc[c].hot_counts += in_top_k(maps[c][use], k[c]).sum(axis=0)
-            if episode in episode_group:
-                key = (episode_group[episode], _failed(meta), c)
-                total = group_maps.setdefault(key, [np.zeros(grids[c]), 0])
-                total[0] = total[0] + p[use].sum(axis=0)
-                total[1] += int(use.sum())
-        for i, m in enumerate(meta):
-            rows.append(
-                _frame_row(
-                    m,
-                    {c: maps[c][i] for c in cameras},
-                    {c: bool(valid[c][i]) for c in cameras},
-                    {col: values[i] for col, values in checks.items()},
-                    kind,
-                    _nuisance(boxes[i], cameras_json[i], cameras[0], maps[cameras[0]][i], grids[cameras[0]]),
-                )
-            )
-            for kd in ds.kinds:
-                for c in cameras:
-                    randoms = checks[check_column(CHECK_RANDOM, c)][i] or []
-                    top, rand_median, rand_max = _check_figures(checks[check_column(kd, c)][i], randoms)
-                    if math.isfinite(top) and math.isfinite(rand_median):
-                        count = sum(1 for d in randoms if d is not None and math.isfinite(d))
-                        check_acc.setdefault((kd, c), []).append((top, rand_median, rand_max, count))
-    prior = {c: acc[c].prior_sum / acc[c].frames if acc[c].frames else np.zeros(grids[c]) for c in cameras}
-    rates = {c: acc[c].hot_counts / acc[c].frames if acc[c].frames else np.zeros(grids[c]) for c in cameras}
-    hot = {c: flag_hot(c, rates[c], options.hot_threshold) for c in cameras}
-    hot_cells = {c: {(h.row, h.col) for h in hot[c]} for c in cameras}
-    # Pass two: each frame against the prior.
-    sums = {c: {"sse": 0.0, "sst": 0.0} for c in cameras}
-    first = 0
+        shown = _Shown.of(ds.episode_frames(episode, kind, checks=True, extra=[n for n in (box, group) if n]))
+        for view in (rows, prior, hot, checks, conditions):
+            view.add(shown)
+    flagged = hot.flagged()
+    fit = _PriorFit(prior.mean(), flagged, rows.rows)
     for episode in episodes:
-        table = ds.table(episode, ["cameras", *(map_column(kind, c) for c in cameras)])
-        maps = _frame_maps(table, kind, cameras, grids)
-        valid = camera_validity(table.column("cameras").to_pylist(), cameras)
-        for c in cameras:
-            p, has_mass = normalised(maps[c])
-            use = valid[c] & has_mass
-            cosine, r2, distance, sse, sst = prior_fit(p, prior[c])
-            sums[c]["sse"] += float(sse[use].sum())
-            sums[c]["sst"] += float(sst[use].sum())
-            for i in np.nonzero(use)[0]:
-                row = rows[first + i]
-                row[f"{c}/prior_cosine"] = _finite_or_none(float(cosine[i]))
-                row[f"{c}/prior_r2"] = _finite_or_none(float(r2[i]))
-                row[f"{c}/prior_distance"] = float(distance[i])
-                row[f"{c}/peak_on_hot"] = (row[f"{c}/peak_row"], row[f"{c}/peak_col"]) in hot_cells[c]
-        first += table.num_rows
-    fit = {}
-    for c in cameras:
-        cos = [row[f"{c}/prior_cosine"] for row in rows]
-        fit[c] = {
-            "frames": acc[c].frames,
-            "mean_cosine": finite_mean(cos),
-            "median_cosine": _finite_or_none(float(np.median([x for x in cos if x is not None])))
-            if any(x is not None for x in cos)
-            else None,
-            "pooled_r2": 1.0 - sums[c]["sse"] / sums[c]["sst"] if sums[c]["sst"] > 0 else None,
-            "mean_distance": finite_mean(row[f"{c}/prior_distance"] for row in rows),
-            "peak_on_hot": finite_mean(row[f"{c}/peak_on_hot"] for row in rows if row[f"{c}/peak_on_hot"] is not None),
-        }
+        fit.add(_Shown.of(ds.episode_frames(episode, kind)))
     by_episode: dict[int, list[dict[str, Any]]] = {}
-    by_task: dict[str, list[dict[str, Any]]] = {}
-    for row in rows:
+    for row in rows.rows:
         by_episode.setdefault(int(row["episode_index"]), []).append(row)
-        by_task.setdefault(str(row["task"]), []).append(row)
+    return DatasetViews(
+        kind=kind,
+        cameras=cameras,
+        camera_sources=dict(ds.info.camera_sources),
+        options=options,
+        rows=rows.rows,
+        prior=prior.mean(),
+        hot_rate=hot.rates(),
+        hot=flagged,
+        fit=fit.summary(prior.frames),
+        episodes=_ranked_episodes(by_episode, episodes, cameras),
+        tasks=_task_rows(rows.rows, cameras),
+        checks=check_summary(checks.figures),
+        info=ds.info,
+        outcomes=outcome_views(by_episode, cameras, options) if ds.info.outcome is not None else None,
+        groups=conditions.views(by_episode, cameras, options.group_names) if group is not None else None,
+    )
+
+
+def _ranked_episodes(
+    by_episode: Mapping[int, Sequence[Mapping[str, Any]]], episodes: Sequence[int], cameras: Sequence[str]
+) -> list[dict[str, Any]]:
+    """The episode ranking (`episode_ranking` by `episode_entropy`), each with its figures and group summary."""
     entropies = {e: episode_entropy(by_episode.get(e, []), cameras) for e in episodes}
     ranked = []
     for rank, (episode, entropy, z) in enumerate(episode_ranking(entropies), start=1):
@@ -433,70 +538,17 @@ def compute_views(
                 **group_summary(group, cameras),
             }
         )
-    task_rows = [
+    return ranked
+
+
+def _task_rows(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str]) -> list[dict[str, Any]]:
+    by_task: dict[str, list[Mapping[str, Any]]] = {}
+    for row in rows:
+        by_task.setdefault(str(row["task"]), []).append(row)
+    return [
         {"task": task, "episodes": len({int(row["episode_index"]) for row in group}), **group_summary(group, cameras)}
         for task, group in sorted(by_task.items())
     ]
-    return DatasetViews(
-        kind=kind,
-        cameras=cameras,
-        camera_sources=dict(ds.info.camera_sources),
-        options=options,
-        rows=rows,
-        prior=prior,
-        hot_rate=rates,
-        hot=hot,
-        fit=fit,
-        episodes=ranked,
-        tasks=task_rows,
-        checks=check_summary(check_acc),
-        info=ds.info,
-        outcomes=outcome_views(by_episode, cameras, options) if ds.info.outcome is not None else None,
-        groups=group_views(by_episode, episode_group, group_maps, cameras, group_names(ds.info.source))
-        if grouped
-        else None,
-    )
-
-
-def group_names(source: str) -> list[str]:
-    """The demo's perturbation names of a recorded dataset (its GROUP_NAMES_FILE), or none where it has no such file."""
-    try:
-        listed = json.loads((pathlib.Path(source) / GROUP_NAMES_FILE).read_text())
-        return [str(name) for name in listed["perturbations"]]
-    except (OSError, ValueError, KeyError, TypeError):
-        return []
-
-
-def group_views(
-    by_episode: Mapping[int, Sequence[Mapping[str, Any]]],
-    episode_group: Mapping[int, int],
-    group_maps: Mapping[tuple[int, bool, str], Sequence[Any]],
-    cameras: Sequence[str],
-    names: Sequence[str],
-) -> list[dict[str, Any]]:
-    """Per condition (the GROUP value of an episode, named by `names` where it indexes them): its episodes and
-    successes, failed and successful episodes side by side (the group summary of each outcome's frames) and each
-    camera's mean normalised map over each outcome's frames (None where the outcome has no frame with mass)."""
-    out = []
-    for group in sorted(set(episode_group.values())):
-        episodes = [e for e in sorted(by_episode) if episode_group.get(e) == group]
-        mean_maps = {}
-        for name in OUTCOMES:
-            mean_maps[name] = {}
-            for c in cameras:
-                total, frames = group_maps.get((group, name == "failure", c), (None, 0))
-                mean_maps[name][c] = (total / frames).tolist() if frames else None
-        out.append(
-            {
-                GROUP: group,
-                "name": names[group] if 0 <= group < len(names) else None,
-                "episodes": len(episodes),
-                "successes": sum(not _failed(by_episode[e]) for e in episodes),
-                "by_outcome": by_outcome(by_episode, episodes, cameras),
-                "mean_maps": mean_maps,
-            }
-        )
-    return out
 
 
 def _failed(rows: Sequence[Mapping[str, Any]]) -> bool:
@@ -514,17 +566,6 @@ def by_outcome(
         chosen = [e for e in episodes if _failed(by_episode[e]) == (name == "failure")]
         out[name] = {"episodes": len(chosen), **group_summary([row for e in chosen for row in by_episode[e]], cameras)}
     return out
-
-
-def _nuisance(
-    box: Sequence[float] | None, cameras_json: str | None, camera: str, m: np.ndarray, grid: tuple[int, int]
-) -> dict[str, float | None]:
-    """{camera: the nuisance mass ratio of its map} for the camera the task region's box is given in."""
-    if box is None:
-        return {}
-    geometry = (json.loads(cameras_json) if cameras_json else {}).get(camera, {}).get("geometry")
-    cells = client_box_cells(box, geometry, grid, None)
-    return {} if cells is None else {camera: nuisance_mass_ratio(m, cells)}
 
 
 def _frames_mean(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str], field: str) -> float:

@@ -5,7 +5,7 @@ Each connection is one episode and each answered request one frame of it: the re
 [3, H, W] and float frames are converted as the side channel stores them) and its other numeric values, under their
 keys with "/" written "." (LeRobot's feature names hold no "/"; `cam_extra/` values, e.g. `next.success`, are kept
 the same way), the prompt as the frame's task, and the served chunk: its first row as `action` and the whole chunk
-(row-major) as `action.chunk`. The features are the first recorded frame's (`datasets.rollouts.RolloutRecorder`); a
+(row-major) as `action.chunk`. The features are the first recorded frame's (`lerobot.rollouts.RolloutRecorder`); a
 later request whose values do not fit them (another camera size, a missing key) is answered as always and not
 recorded, counted under `skipped_<Error>` in `/stats`.
 
@@ -27,11 +27,12 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.cam.records import EXTRA_PREFIX, client_frame_uint8
 from openpi_cam.counters import WarnOnceCounter
-from openpi_cam.datasets.lerobot import DatasetError
-from openpi_cam.datasets.rollouts import RolloutRecorder
+from openpi_cam.image_tools import client_frame_uint8
+from openpi_cam.lerobot.dataset import DatasetError
+from openpi_cam.lerobot.rollouts import RolloutRecorder
 from openpi_cam.nested import flatten_dict
+from openpi_cam.vocabulary import EXTRA_PREFIX
 
 logger = logging.getLogger(__name__)
 

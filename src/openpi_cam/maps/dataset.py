@@ -28,6 +28,7 @@ Reading needs pyarrow and numpy only, so the commands that read maps (`stats`, `
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import pathlib
 import secrets
@@ -50,6 +51,9 @@ SUMMARY_JSON = "meta/summary.json"
 DATA_DIR = "data"
 EPISODES_PER_CHUNK = 1000
 CHECK_RANDOM = "random"  # `check/random/<camera>`: the random patches' drops
+# What every row says of its frame, whatever the maps: where it sits in the source and what was explained.
+FRAME_COLUMNS = ("index", "episode_index", "frame_index", "timestamp", "task", "target", "score", "malformed")
+CAMERAS_COLUMN = "cameras"  # JSON: per model camera its validity and letterbox geometry
 # info.json fields, besides the model and the explanation options, that must match to add episodes to a maps dataset.
 SOURCE_KEYS = ("source", "source_version", "recorded_actions", "keys", "every", "nested_keys", "outcome", "reward")
 # Each row's episode, when the source records outcomes: its length in source frames, whether it succeeded, its return.
@@ -60,7 +64,7 @@ OUTCOME_COLUMNS = (EPISODE_LENGTH, EPISODE_SUCCESS, EPISODE_RETURN)
 @dataclasses.dataclass(frozen=True)
 class MapsInfo:
     """A maps dataset's meta/info.json: what was explained and how. JSON-only (the viewers read it without JAX):
-    `model` is a `policies.model_spec.ModelSpec` and `options` a `vocabulary.ExplainOptions` as they encode
+    `model` is a `checkpoints.model_spec.ModelSpec` and `options` a `vocabulary.ExplainOptions` as they encode
     themselves, with the job's `batch_size` beside the options."""
 
     source: str  # the LeRobot dataset's folder
@@ -133,6 +137,11 @@ def check_column(kind: str, camera: str) -> str:
     return f"check/{kind}/{camera}"
 
 
+def extra_column(name: str) -> str:
+    """The column of a carried feature (`DatasetJob.extra`: dataset feature -> name)."""
+    return f"extra/{name}"
+
+
 def map_array(column: pa.ChunkedArray, grid: tuple[int, int]) -> np.ndarray:
     """A `<kind>/<camera>` column as float32 [rows, Hp, Wp], or [rows, T, Hp, Wp] for per-token targets."""
     hp, wp = grid
@@ -176,25 +185,19 @@ def schema(info: MapsInfo) -> pa.Schema:
     """The shards' schema, fixed by info.json: one column per map kind and camera, per spot-check figure, per extra."""
     cameras, kinds = info.cameras, info.kinds
     score = pa.list_(pa.float64()) if info.scores_per_row != 1 else pa.float64()
-    fields = [
-        pa.field("index", pa.int64()),
-        pa.field("episode_index", pa.int64()),
-        pa.field("frame_index", pa.int64()),
-        pa.field("timestamp", pa.float64()),
-        pa.field("task", pa.string()),
-        pa.field("target", pa.string()),
-        pa.field("score", score),
-        pa.field("malformed", pa.string()),
+    frame_types = (pa.int64(), pa.int64(), pa.int64(), pa.float64(), pa.string(), pa.string(), score, pa.string())
+    fields = [pa.field(name, kind) for name, kind in zip(FRAME_COLUMNS, frame_types, strict=True)]
+    fields += [
         pa.field("actions", pa.list_(pa.float32())),
         pa.field("explain_ms", pa.float64()),
-        pa.field("cameras", pa.string()),
+        pa.field(CAMERAS_COLUMN, pa.string()),
         pa.field("details", pa.string()),
         pa.field("check", pa.string()),
     ]
     fields += [pa.field(map_column(k, c), pa.list_(pa.float32())) for k in kinds for c in cameras]
     fields += [pa.field(check_column(k, c), pa.float64()) for k in kinds for c in cameras]
     fields += [pa.field(check_column(CHECK_RANDOM, c), pa.list_(pa.float64())) for c in cameras]
-    fields += [pa.field(f"extra/{name}", pa.list_(pa.float64())) for name in info.extra.values()]
+    fields += [pa.field(extra_column(name), pa.list_(pa.float64())) for name in info.extra.values()]
     if info.reliance:
         fields += [pa.field("reliance", pa.string())]
         fields += [pa.field(column, pa.float64()) for column in reliance_columns(info)]
@@ -226,6 +229,27 @@ def written_episodes(root: pathlib.Path) -> set[int]:
     """Episodes whose shard is complete (temporary files of an interrupted write are not shards)."""
     data = pathlib.Path(root) / DATA_DIR
     return {int(p.stem.split("_")[1]) for p in data.glob("chunk-*/episode_*.parquet")} if data.is_dir() else set()
+
+
+@dataclasses.dataclass(frozen=True)
+class EpisodeFrames:
+    """One episode's explained frames, typed, column by column in `index` order: what each frame says of itself
+    (`meta`: `FRAME_COLUMNS`, then the outcome and reliance columns the dataset has), what the model saw of each
+    camera, one kind's maps and, where asked, the spot checks and carried features (`MapsDataset.episode_frames`)."""
+
+    episode: int
+    meta: list[dict[str, Any]]
+    cameras: list[dict[str, Any]]  # per frame: the `cameras` JSON (model camera -> its validity, geometry)
+    maps: dict[str, np.ndarray]  # model camera -> float32 [N, Hp, Wp] (or [N, T, Hp, Wp] for per-token targets)
+    checks: dict[str, dict[str, list[Any]]]  # kind (and CHECK_RANDOM) -> camera -> per frame its drop (drops)
+    extra: dict[str, list[Any]]  # carried name -> per frame its value
+
+    def __len__(self) -> int:
+        return len(self.meta)
+
+    def valid(self, camera: str) -> np.ndarray:
+        """bool [N]: whether the model saw the camera in each frame (a camera the JSON leaves out: it did)."""
+        return np.array([bool(c.get(camera, {}).get("valid", True)) for c in self.cameras], bool)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -271,6 +295,43 @@ class MapsDataset:
 
     def rows(self, episode: int | None = None) -> Iterator[dict[str, Any]]:
         yield from self.table(episode).to_pylist()
+
+    @property
+    def meta_columns(self) -> list[str]:
+        """`EpisodeFrames.meta`'s columns: the frame's own, then its episode's outcome and its reliance figures where
+        the dataset has them."""
+        outcomes = OUTCOME_COLUMNS if self.info.outcome is not None else ()
+        return [*FRAME_COLUMNS, *outcomes, *(reliance_columns(self.info) if self.info.reliance else ())]
+
+    def require_kind(self, kind: str) -> None:
+        if kind not in self.kinds:
+            raise ValueError(f"this maps dataset has no {kind!r} maps (it holds {', '.join(self.kinds) or 'none'})")
+
+    def episode_frames(
+        self, episode: int, kind: str, *, checks: bool = False, extra: Sequence[str] = ()
+    ) -> EpisodeFrames:
+        """One episode's frames with `kind`'s maps, every kind's spot checks (`checks`) and the carried features named
+        in `extra`, read in one pass over its shard."""
+        self.require_kind(kind)
+        cameras, meta = self.cameras, self.meta_columns
+        check_columns = (
+            {k: {c: check_column(k, c) for c in cameras} for k in (*self.kinds, CHECK_RANDOM)} if checks else {}
+        )
+        columns = [*meta, CAMERAS_COLUMN, *(map_column(kind, c) for c in cameras)]
+        columns += [column for per_camera in check_columns.values() for column in per_camera.values()]
+        columns += [extra_column(name) for name in extra]
+        table = self.table(episode, columns)
+        return EpisodeFrames(
+            episode=episode,
+            meta=table.select(meta).to_pylist(),
+            cameras=[json.loads(text) if text else {} for text in table.column(CAMERAS_COLUMN).to_pylist()],
+            maps={c: map_array(table.column(map_column(kind, c)), self.grid(c)) for c in cameras},
+            checks={
+                k: {c: table.column(column).to_pylist() for c, column in per_camera.items()}
+                for k, per_camera in check_columns.items()
+            },
+            extra={name: table.column(extra_column(name)).to_pylist() for name in extra},
+        )
 
 
 def _read_shard(path: pathlib.Path, columns: list[str] | None, shards: pa.Schema) -> pa.Table:

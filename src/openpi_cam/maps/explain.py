@@ -1,9 +1,9 @@
 """Explaining a LeRobot dataset into a maps dataset (`openpi-cam explain DATASET_DIR`).
 
-An episode is the unit of work: its frames are decoded forward once (`datasets.lerobot`), every selected frame is
+An episode is the unit of work: its frames are decoded forward once (`lerobot.dataset`), every selected frame is
 served to the policy as a robot would send it (one `infer_traced` call each, exactly as served), the traced calls are
 explained `batch_size` at a time, each explanation gets its spot check, and the episode's rows are written as one
-shard (`datasets.maps_dataset`). The local engine runs episodes in a loop; the Ray engine (`datasets.ray_engine`) runs
+shard (`maps.dataset`). The local engine runs episodes in a loop; the Ray engine (`maps.ray_engine`) runs
 the same `EpisodeExplainer` in an actor per worker, so both write the same rows.
 """
 
@@ -22,12 +22,12 @@ import numpy as np
 from openpi_cam.cam.batching import data_mesh, explain_batch
 from openpi_cam.cam.records import resume_mismatch
 from openpi_cam.cam.run_format import Reliance, SpotCheck, dumps
-from openpi_cam.datasets import maps_dataset as fmt
-from openpi_cam.datasets.lerobot import DatasetError, LeRobotDataset, open_dataset
-from openpi_cam.datasets.lerobot_writer import REWARD, SUCCESS
+from openpi_cam.checkpoints.model_spec import ModelSpec
+from openpi_cam.lerobot.dataset import DatasetError, LeRobotDataset, open_dataset
+from openpi_cam.lerobot.writer import REWARD, SUCCESS
+from openpi_cam.maps import dataset as fmt
 from openpi_cam.nested import unflatten_dict
 from openpi_cam.policies.family import ExplainSkipped, Explanation, resolve_target
-from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.policies.policy import InferenceTrace, Policy
 from openpi_cam.vocabulary import DATASET_ACTIONS, ExplainOptions
 
@@ -123,7 +123,7 @@ def outcome_features(ds: LeRobotDataset, job: DatasetJob) -> tuple[str | None, s
 
 
 def episode_outcome(ds: LeRobotDataset, episode: int, outcome: str, reward: str | None) -> dict[str, Any]:
-    """The `episode_*` columns of one episode (`maps_dataset.OUTCOME_COLUMNS`), read from all its frames."""
+    """The `episode_*` columns of one episode (`maps.dataset.OUTCOME_COLUMNS`), read from all its frames."""
     frames = list(ds.frames(episode, features=[outcome] if reward is None else [outcome, reward]))
     rewards = None if reward is None else [np.asarray(f[reward], np.float64).sum() for f in frames]
     return {
@@ -203,7 +203,7 @@ def frame_row(
     job: DatasetJob,
     explain_ms: float,
 ) -> dict[str, Any]:
-    """The maps-dataset row of one explained frame (`datasets.maps_dataset` lists the columns)."""
+    """The maps-dataset row of one explained frame (`maps.dataset` lists the columns)."""
     score = explanation.score
     row: dict[str, Any] = {
         "index": int(frame["index"]),
@@ -216,7 +216,7 @@ def frame_row(
         "malformed": trace.malformed_reason,
         "actions": _flat(response["actions"]),
         "explain_ms": round(explain_ms, 3),
-        "cameras": dumps(
+        fmt.CAMERAS_COLUMN: dumps(
             {
                 camera: {
                     **values,
@@ -239,7 +239,7 @@ def frame_row(
             row[fmt.check_column(kind, camera)] = None if figures is None else figures.top_patch_drop.get(kind)
         row[fmt.check_column(fmt.CHECK_RANDOM, camera)] = None if figures is None else list(figures.random_patch_drops)
     for feature, name in job.extra.items():
-        row[f"extra/{name}"] = _flat(frame[feature], np.float64)
+        row[fmt.extra_column(name)] = _flat(frame[feature], np.float64)
     if info.reliance:
         measured = {} if reliance is None else reliance.figures()
         row["reliance"] = None if reliance is None else dumps(reliance.to_json())

@@ -1,8 +1,8 @@
-"""A maps dataset's rows beside the frames they explain: what the overlay videos (`datasets.render`) and the Rerun
-recording (`datasets.rerun`) both draw from.
+"""A maps dataset's rows beside the frames they explain: what the overlay videos (`maps.render`) and the Rerun
+recording (`maps.rerun`) both draw from.
 
 The frames are decoded again from the LeRobot dataset the maps were computed from (`MapsInfo.source`, read with
-`datasets.lerobot`), only those the maps dataset lists, and each row's `index` and `frame_index` are checked against
+`lerobot.dataset`), only those the maps dataset lists, and each row's `index` and `frame_index` are checked against
 the source's, so a map is never drawn over another frame.
 """
 
@@ -16,9 +16,9 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.datasets.lerobot import LeRobotDataset, open_dataset
-from openpi_cam.datasets.maps_dataset import MapsDataset, map_array, map_column
-from openpi_cam.datasets.views import camera_validity, displayable
+from openpi_cam.lerobot.dataset import LeRobotDataset, open_dataset
+from openpi_cam.maps.dataset import MapsDataset
+from openpi_cam.maps.views import displayable
 
 
 def select_episodes(ds: MapsDataset, episodes: Sequence[int] | None) -> list[int]:
@@ -66,21 +66,17 @@ class EpisodeRows:
 
 
 def episode_rows(ds: MapsDataset, episode: int, kind: str) -> EpisodeRows:
-    columns = ["index", "frame_index", "timestamp", "task", "score", "cameras"]
-    table = ds.table(episode, [*columns, *(map_column(kind, c) for c in ds.cameras)])
-    cols = {name: table.column(name).to_pylist() for name in columns}
-    validity = camera_validity(cols["cameras"], ds.cameras)
-    valid = [{c: bool(v[i]) for c, v in validity.items()} for i in range(table.num_rows)]
-    maps = {c: displayable(map_array(table.column(map_column(kind, c)), ds.grid(c))) for c in ds.cameras}
+    frames = ds.episode_frames(episode, kind)
+    validity = {c: frames.valid(c) for c in ds.cameras}
     return EpisodeRows(
         episode=episode,
-        index=[int(i) for i in cols["index"]],
-        frame_index=[int(f) for f in cols["frame_index"]],
-        timestamp=[float(t) for t in cols["timestamp"]],
-        task=[str(t) for t in cols["task"]],
-        score=cols["score"],
-        valid=valid,
-        maps=maps,
+        index=[int(m["index"]) for m in frames.meta],
+        frame_index=[int(m["frame_index"]) for m in frames.meta],
+        timestamp=[float(m["timestamp"]) for m in frames.meta],
+        task=[str(m["task"]) for m in frames.meta],
+        score=[m["score"] for m in frames.meta],
+        valid=[{c: bool(v[i]) for c, v in validity.items()} for i in range(len(frames))],
+        maps={c: displayable(m) for c, m in frames.maps.items()},
     )
 
 

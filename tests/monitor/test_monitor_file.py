@@ -1,0 +1,149 @@
+"""The monitor file (a round trip that scores alike, bad files refused in one line) and the running episode score
+(live, one step at a time, equal to the offline score of the whole episode)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from monitor_support import FEATURE, episode, episodes
+from one_line import assert_one_line
+
+from openpi_cam.monitor import monitor_file
+from openpi_cam.monitor.fit import FitOptions, fit_monitor
+from openpi_cam.monitor.monitor_file import Monitor
+
+
+@pytest.fixture(scope="module")
+def monitors() -> dict[str, Monitor]:
+    data = episodes(0, 30, 30)
+    return {
+        "probe": fit_monitor(data, FitOptions(kind="probe", inputs=(FEATURE, "stac"), temporal=True)),
+        "mahalanobis": fit_monitor(data, FitOptions(kind="mahalanobis", inputs=(FEATURE,), max_dims=4)),
+        "stac": fit_monitor(data, FitOptions(kind="stac", execution_horizon=5)),
+    }
+
+
+def _steps(e) -> list[dict[str, np.ndarray]]:
+    return [{name: column[t] for name, column in e.columns.items()} for t in range(len(e.columns["stac"]))]
+
+
+@pytest.mark.parametrize("kind", ["probe", "mahalanobis", "stac"])
+def test_a_saved_monitor_loads_to_the_same_scores(monitors, kind, tmp_path):
+    monitor = monitors[kind]
+    path = monitor_file.save(monitor, tmp_path / "monitor.json")
+    loaded = monitor_file.load(path)
+    assert monitor_file.to_json(loaded) == monitor_file.to_json(monitor)
+    fresh = episode(np.random.default_rng(9), False)
+    x = fresh.matrix(monitor.inputs)
+    # float64 arrays survive JSON exactly, so the scores are the same numbers, not merely close ones
+    np.testing.assert_array_equal(loaded.score_steps(x), monitor.score_steps(x))
+    assert loaded.threshold == monitor.threshold and loaded.execution_horizon == monitor.execution_horizon
+
+
+@pytest.mark.parametrize("kind", ["probe", "mahalanobis", "stac"])
+def test_the_running_score_is_the_offline_score_step_by_step(monitors, kind):
+    """What the side channel computes one call at a time equals what a maps dataset computes over the episode,
+    the temporal probe's running mean and a first step without STAC included."""
+    monitor = monitors[kind]
+    e = episode(np.random.default_rng(10), False, onset=3, drift=4.0)
+    offline = monitor.score_steps(e.matrix(monitor.inputs))
+    running = monitor.episode()
+    live = [running.update(step) for step in _steps(e)]
+    np.testing.assert_array_equal(live, offline)  # the same numbers (NaN where STAC has none)
+    assert running.score == np.nanmax(offline) and running.steps == len(offline)
+    crossed = np.flatnonzero(offline > monitor.threshold)
+    assert running.flagged_at == (int(crossed[0]) if crossed.size else None)
+    assert running.flagged  # a failure drifting far from step 3 on is caught by every monitor here
+
+
+def test_a_step_scored_alone_is_scored_as_in_its_episode(monitors):
+    monitor = monitors["mahalanobis"]
+    e = episode(np.random.default_rng(12), True)
+    assert [monitor.score(step) for step in _steps(e)] == list(monitor.score_steps(e.matrix(monitor.inputs)))
+    with pytest.raises(ValueError) as err:
+        monitors["probe"].score(_steps(e)[0])  # temporal: its score needs the episode so far
+    assert_one_line(err.value, "temporal", "Monitor.episode()")
+
+
+def test_a_monitor_that_never_flags_saves_its_threshold_as_null(monitors, tmp_path):
+    monitor = monitors["stac"]
+    never = Monitor(kind="stac", inputs=monitor.inputs, threshold=math.inf, alpha=0.01)
+    path = monitor_file.save(never, tmp_path / "never.json")
+    assert json.loads(path.read_text())["threshold"] is None
+    running = monitor_file.load(path).episode()
+    running.update({"stac": 1e300})
+    assert not running.flagged
+
+
+def test_a_step_without_a_monitor_input_is_refused_in_one_line(monitors):
+    step = _steps(episode(np.random.default_rng(11), True))[1]
+    with pytest.raises(ValueError) as e:
+        monitors["probe"].episode().update({FEATURE: step[FEATURE]})
+    assert_one_line(e.value, "'stac'")
+    with pytest.raises(ValueError) as e:
+        monitors["probe"].episode().update({FEATURE: step[FEATURE][:3], "stac": 0.1})
+    assert_one_line(e.value, FEATURE, "3 values", "expects 6")
+
+
+def _corrupt(data: dict, change: str) -> dict | str:
+    if change == "truncated":
+        return json.dumps(data)[:200]
+    if change == "format":
+        data["format"] = "something else"
+    elif change == "version":
+        data["format_version"] = 99
+    elif change == "kind":
+        data["kind"] = "vibes"
+    elif change == "weights":
+        data["probe"]["weights"] = data["probe"]["weights"][:-1]
+    elif change == "ragged":
+        data["basis"]["components"] = [[0.0], [1.0, 2.0]]
+    elif change == "scale":
+        data["basis"]["scale"][0] = 0.0
+    elif change == "basis":
+        del data["basis"]
+    elif change == "alpha":
+        data["alpha"] = 1.5
+    elif change == "threshold":
+        data["threshold"] = "high"
+    elif change == "inputs":
+        data["inputs"].append(dict(data["inputs"][0]))
+    return data
+
+
+@pytest.mark.parametrize(
+    ("change", "named"),
+    [
+        ("truncated", "not a JSON monitor file"),
+        ("format", "something else"),
+        ("version", "format_version 99"),
+        ("kind", "vibes"),
+        ("weights", "probe.weights"),
+        ("ragged", "basis.components"),
+        ("scale", "basis.scale"),
+        ("basis", "basis"),
+        ("alpha", "alpha 1.5"),
+        ("threshold", "threshold 'high'"),
+        ("inputs", "twice"),
+    ],
+)
+def test_a_bad_monitor_file_is_refused_in_one_line_naming_it(monitors, tmp_path, change, named):
+    data = monitor_file.to_json(monitors["probe"])
+    data["basis"]["components"] = [list(data["basis"]["mean"])]  # a projection, so its shape can go wrong
+    data["probe"]["weights"] = [0.0]
+    bad = _corrupt(json.loads(json.dumps(data)), change)
+    path = Path(tmp_path / "monitor.json")
+    path.write_text(bad if isinstance(bad, str) else json.dumps(bad))
+    with pytest.raises(ValueError) as e:
+        monitor_file.load(path)
+    assert_one_line(e.value, str(path), named)
+
+
+def test_a_missing_monitor_file_is_refused_in_one_line(tmp_path):
+    with pytest.raises(ValueError) as e:
+        monitor_file.load(tmp_path / "absent.json")
+    assert_one_line(e.value, "absent.json", "no such monitor file")

@@ -1,0 +1,240 @@
+"""Fitting a failure monitor: each estimator against an independent computation (SciPy, the paper's formula, a
+general-purpose optimiser), the conformal threshold against its guarantee in seeded simulations, and the whole fit
+against fresh episodes from the same synthetic distribution."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from monitor_support import FEATURE, episodes
+from one_line import assert_one_line
+from scipy import optimize
+from scipy.spatial import distance
+
+from openpi_cam.auroc import roc_auc
+from openpi_cam.monitor import monitor_file
+from openpi_cam.monitor.fit import (
+    Episode,
+    FitOptions,
+    conformal_threshold,
+    episode_max,
+    fit_basis,
+    fit_logistic,
+    fit_mahalanobis,
+    fit_monitor,
+    leading_directions,
+    ledoit_wolf,
+    split_episodes,
+)
+
+
+def test_mahalanobis_without_shrinkage_equals_scipys():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(50, 4)) @ rng.normal(size=(4, 4)) + [1.0, -2.0, 0.5, 3.0]
+    basis = fit_basis(x, max_dims=8)  # 4 inputs: standardised, not projected
+    scorer, rho = fit_mahalanobis(basis, x, shrinkage=0.0)
+    assert basis.components is None and rho == 0.0 and scorer.residual_variance == 0.0
+    # the fit's covariance is the sample covariance with ddof 0 (bias=True); the distance is invariant under the
+    # standardisation, so it equals SciPy's in the raw coordinates up to round-off (a 4 x 4 well-conditioned inverse)
+    inverse = np.linalg.inv(np.cov(x.T, bias=True))
+    points = rng.normal(size=(5, 4)) * 3
+    ours = scorer.score(basis.apply(points))
+    theirs = [distance.mahalanobis(p, x.mean(axis=0), inverse) for p in points]
+    assert ours == pytest.approx(theirs, rel=1e-9)
+
+
+def test_ledoit_wolf_follows_its_formula_and_shrinks_when_it_should():
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(30, 8)) @ rng.normal(size=(8, 8))
+    cov, rho = ledoit_wolf(x)
+    # Ledoit and Wolf's lemma written out term by term (the module uses an algebraic shortcut for the scatter)
+    c = x - x.mean(axis=0)
+    n, p = c.shape
+    s = c.T @ c / n
+    mu = np.trace(s) / p
+    d2 = ((s - mu * np.eye(p)) ** 2).sum()
+    b2 = sum(((np.outer(row, row) - s) ** 2).sum() for row in c) / n**2
+    expected = min(b2, d2) / d2
+    assert rho == pytest.approx(expected, rel=1e-10)
+    assert cov == pytest.approx((1 - expected) * s + expected * mu * np.eye(p), rel=1e-10)
+    # isotropic data seen through few rows: most of S's departure from mu I is noise, so it shrinks hard; strongly
+    # correlated data seen through many rows: S is trustworthy, so it barely shrinks
+    assert ledoit_wolf(rng.normal(size=(10, 8)))[1] > 0.5
+    assert ledoit_wolf(rng.normal(size=(5000, 3)) @ np.array([[1, 0.9, 0.9], [0, 0.4, 0], [0, 0, 0.4]]))[1] < 0.01
+
+
+def test_the_basis_projects_onto_the_leading_principal_directions():
+    rng = np.random.default_rng(2)
+    latent = rng.normal(size=(400, 3)) * [3.0, 2.0, 1.0]  # three directions of distinct variance, then noise
+    x = latent @ rng.normal(size=(3, 20)) + rng.normal(scale=0.01, size=(400, 20))
+    basis = fit_basis(x, max_dims=3)
+    z = (x - x.mean(axis=0)) / x.std(axis=0)
+    _, eigenvectors = np.linalg.eigh(np.cov(z.T, bias=True))
+    top = eigenvectors[:, ::-1][:, :3]
+    assert basis.components is not None and basis.components.shape == (3, 20)
+    # the same directions up to sign, each with its largest entry positive
+    assert np.abs(basis.components @ top) == pytest.approx(np.eye(3), abs=1e-6)
+    rows = np.arange(3)
+    assert (basis.components[rows, np.abs(basis.components).argmax(axis=1)] > 0).all()
+    # a missing input is imputed by its mean: it moves nothing
+    probe = x[:1].copy()
+    probe[0, 4] = np.nan
+    filled = x[:1].copy()
+    filled[0, 4] = basis.mean[4]
+    assert basis.apply(probe) == pytest.approx(basis.apply(filled))
+
+
+def test_the_randomised_directions_capture_what_the_exact_ones_do():
+    """On a spectrum with no gap to speak of (singular values 1 / i), the k directions found capture the variance
+    the exact top k capture: measured above 0.99999 of it for k = 5, 10, 32 on this matrix; asserted at 0.9999."""
+    rng = np.random.default_rng(6)
+    u = np.linalg.qr(rng.normal(size=(400, 300)))[0]
+    v = np.linalg.qr(rng.normal(size=(600, 300)))[0]
+    a = (u / np.arange(1, 301)) @ v.T
+    exact = np.linalg.svd(a, full_matrices=False)[2]
+    for k in (5, 10, 32):
+        found = leading_directions(a, k)
+        assert found @ found.T == pytest.approx(np.eye(k), abs=1e-10)
+        assert ((a @ found.T) ** 2).sum() / ((a @ exact[:k].T) ** 2).sum() > 0.9999
+
+
+def _toy_probe_data(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    z = rng.normal(size=(200, 3))
+    side = z @ np.array([1.5, -1.0, 0.5]) + 0.3
+    z = z[np.abs(side) > 0.5][:120]  # separable by a plane, with a margin
+    failed = side[np.abs(side) > 0.5][:120] > 0
+    weights = rng.uniform(0.2, 2.0, size=len(z))
+    return z, failed, weights
+
+
+def test_the_probe_separates_a_separable_set():
+    z, failed, weights = _toy_probe_data(np.random.default_rng(3))
+    probe = fit_logistic(z, failed, weights, l2=1e-3)
+    assert ((probe.score(z) > 0) == failed).all()
+
+
+def test_the_probe_is_the_minimum_a_general_optimiser_finds():
+    z, failed, weights = _toy_probe_data(np.random.default_rng(4))
+    l2 = 0.1
+    probe = fit_logistic(z, failed, weights, l2=l2)
+    w = weights / weights.sum()
+    x = np.hstack([z, np.ones((len(z), 1))])
+    penalty = np.array([l2, l2, l2, 0.0])
+
+    def objective(theta: np.ndarray) -> tuple[float, np.ndarray]:
+        m = x @ theta
+        value = (w * (np.logaddexp(0, m) - failed * m)).sum() + 0.5 * (penalty * theta**2).sum()
+        return value, x.T @ (w * (_expit(m) - failed)) + penalty * theta
+
+    result = optimize.minimize(objective, np.zeros(4), jac=True, method="BFGS", options={"gtol": 1e-11})
+    # the objective is strictly convex; both solvers stop at gradients below 1e-10, so their minimisers agree far
+    # inside the stated 1e-6 (the Hessian's smallest eigenvalue bounds the distance by |gradient| / eigenvalue)
+    assert np.append(probe.weights, probe.bias) == pytest.approx(result.x, abs=1e-6)
+
+
+def _expit(m: np.ndarray) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-m))
+
+
+def test_the_probe_refuses_one_class_in_one_line():
+    with pytest.raises(ValueError) as e:
+        fit_logistic(np.zeros((4, 2)), np.zeros(4, bool))
+    assert_one_line(e.value, "both failed and successful")
+
+
+def test_the_conformal_threshold_is_the_stated_order_statistic():
+    maxima = np.arange(9.0, 0.0, -1.0)  # 9..1, unsorted on purpose
+    assert conformal_threshold(maxima, 0.2) == 8.0  # k = ceil(10 x 0.8) = 8
+    assert conformal_threshold(maxima, 0.05) == math.inf  # k = ceil(9.5) = 10 > 9: never flag
+    # n = 19, alpha = 0.1: k = ceil(20 x 0.9) = 18, although 20 x 0.9 is 18.000000000000004 in binary
+    assert conformal_threshold(np.arange(1.0, 20.0), 0.1) == 18.0
+    # an episode with no score never flags: it counts as the lowest maximum
+    assert conformal_threshold([math.nan, 2.0, 1.0, 3.0], 0.4) == 2.0  # k = ceil(3) = 3 of (-inf, 1, 2, 3)
+    assert episode_max(np.array([np.nan, 0.5, -1.0])) == 0.5 and episode_max(np.array([np.nan])) == -math.inf
+
+
+def test_the_conformal_false_alarm_rate_on_fresh_successes_is_at_most_alpha():
+    """Seeded simulation of the guarantee: R calibration sets of n successful episodes (T step scores each), and m
+    fresh successful episodes per set, all drawn alike; a fresh episode is a false alarm when its maximum step
+    score exceeds the set's threshold."""
+    rng = np.random.default_rng(5)
+    alpha, n, m, steps, sets = 0.1, 30, 50, 20, 4000
+    calibration = rng.normal(size=(sets, n, steps)).max(axis=2)
+    fresh = rng.normal(size=(sets, m, steps)).max(axis=2)
+    thresholds = np.array([conformal_threshold(c, alpha) for c in calibration])
+    rate = float((fresh > thresholds[:, None]).mean())
+    k = math.ceil((n + 1) * (1 - alpha) - 1e-9)
+    # margin: 3 standard errors of the mean rate over the sets; a set's rate varies as Beta(n + 1 - k, k) (the
+    # threshold's own draw) plus the binomial spread of m fresh episodes (at most 1 / (4m))
+    a, b = n + 1 - k, k
+    per_set = a * b / ((a + b) ** 2 * (a + b + 1)) + 1 / (4 * m)
+    margin = 3 * math.sqrt(per_set / sets)
+    assert rate <= alpha + margin
+    # and not conservative beyond the theory: the expected rate is 1 - k / (n + 1) >= alpha - 1 / (n + 1), which a
+    # quantile one place too high or low would miss by 1 / (n + 1)
+    assert abs(rate - (1 - k / (n + 1))) <= margin
+
+
+def test_a_fitted_monitor_keeps_its_false_alarm_rate_on_fresh_successes():
+    """The whole fit, scorer and split and threshold, over several seeds: the mean false-alarm rate on fresh
+    successful episodes from the same distribution stays within alpha plus 3 standard errors. A 30-wide input over
+    15 training successes: the distance is smaller on the steps it was fitted on than on new ones, so a threshold
+    calibrated on the training episodes would flag fresh successes far more often than alpha."""
+    alpha, fresh_n, seeds = 0.1, 200, 20
+    rates, expected = [], []
+    for seed in range(seeds):
+        data = episodes(seed, 30, 10, steps=12, noise_dims=24)
+        monitor = fit_monitor(data, FitOptions(kind="mahalanobis", alpha=alpha, seed=seed, inputs=(FEATURE,)))
+        fresh = episodes(1000 + seed, fresh_n, 0, steps=12, noise_dims=24)
+        maxima = [episode_max(monitor.score_steps(e.matrix(monitor.inputs))) for e in fresh]
+        rates.append(np.mean([monitor.flags(s) for s in maxima]))
+        n = monitor.fit["calibration_episodes"]
+        expected.append((n, math.ceil((n + 1) * (1 - alpha) - 1e-9)))
+    (n, k), *_ = expected
+    a, b = n + 1 - k, k
+    margin = 3 * math.sqrt((a * b / ((a + b) ** 2 * (a + b + 1)) + 1 / (4 * fresh_n)) / seeds)
+    assert np.mean(rates) <= alpha + margin
+
+
+def test_a_fitted_probe_finds_fresh_failures():
+    train = episodes(10, 40, 40)
+    test = episodes(11, 40, 40)
+    for kind in ("probe", "mahalanobis", "stac"):
+        monitor = fit_monitor(train, FitOptions(kind=kind, inputs=(FEATURE, "stac") if kind == "probe" else ()))
+        maxima = [episode_max(monitor.score_steps(e.matrix(monitor.inputs))) for e in test]
+        failed = [not e.success for e in test]
+        assert roc_auc(failed, maxima) > 0.9, kind
+        flagged = np.array([monitor.flags(s) for s in maxima])
+        assert flagged[np.array(failed)].mean() > 0.5, kind  # most failures are caught at alpha = 0.1
+
+
+def test_the_fit_is_reproducible_from_its_seed():
+    data = episodes(20, 30, 10)
+    options = FitOptions(kind="probe", inputs=(FEATURE, "stac"), temporal=True, seed=7)
+    first, again = fit_monitor(data, options), fit_monitor(data, options)
+    assert monitor_file.to_json(first) == monitor_file.to_json(again)
+    other = fit_monitor(data, dataclasses.replace(options, seed=8))
+    assert monitor_file.to_json(other) != monitor_file.to_json(first)
+    training, calibration = split_episodes([e.success for e in data], 0.5, 7)
+    assert calibration.size == 15 and not set(training) & set(calibration)
+    assert all(data[i].success for i in calibration) and {30, 39} <= set(training)  # failures all train
+
+
+def test_fit_refuses_what_it_cannot_fit_in_one_line():
+    data = episodes(30, 5, 5)
+    with pytest.raises(ValueError) as e:
+        fit_monitor(data, FitOptions(inputs=("features/wrist",)))
+    assert_one_line(e.value, "features/wrist")
+    ragged = [*data[:-1], Episode({**data[-1].columns, "stac": data[-1].columns["stac"][:-2]}, False)]
+    with pytest.raises(ValueError) as e:
+        fit_monitor(ragged, FitOptions(inputs=(FEATURE, "stac")))
+    assert_one_line(e.value, f"episode {len(data) - 1}", "different step counts")
+    with pytest.raises(ValueError) as e:
+        fit_monitor(data[4:], FitOptions())
+    assert_one_line(e.value, "1 successful episodes")
+    with pytest.raises(ValueError) as e:
+        fit_monitor(data, FitOptions(kind="stac", inputs=(FEATURE,)))
+    assert_one_line(e.value, "stac", FEATURE)
