@@ -49,7 +49,7 @@ from serve_process import free_port, wait_healthy
 
 from openpi_cam import cli
 from openpi_cam.cli import train_demo
-from openpi_cam.demo import train
+from openpi_cam.demo import metaworld_data, metaworld_sim, train
 from openpi_cam.policies import demo_metaworld, demo_reach
 from openpi_cam.serving import msgpack_numpy
 
@@ -338,7 +338,10 @@ EXPLAIN_RUN_CASES: dict[str, tuple[Case, ...]] = {
     **model_cases(EXPLAIN_RUN, run_model),
     "--target": (Changes(EXPLAIN_RUN, ("--target", "chunk"), run_option("target")),),
     "--action-index": (Changes(EXPLAIN_RUN, ("--action-index", "2"), run_option("action_index")),),
-    "--maps": (Changes(EXPLAIN_RUN, ("--maps", "gradnorm"), run_option("maps")),),
+    "--maps": (
+        Changes(EXPLAIN_RUN, ("--maps", "gradnorm"), run_option("maps")),
+        Changes(EXPLAIN_RUN, ("--maps", "lrp"), run_option("maps")),  # the relevance kind, asked for by name only
+    ),
     "--baseline": (Changes(EXPLAIN_RUN, ("--baseline", "blur"), run_option("baseline")),),
     "--occlusion-region": (Changes(EXPLAIN_RUN, ("--occlusion-region", "2"), run_option("occlusion_region")),),
     "--occlusion-masks": (Changes(EXPLAIN_RUN, ("--occlusion-masks", "8"), run_option("occlusion_masks")),),
@@ -564,6 +567,11 @@ def record_folders(o: Output) -> list[str]:
     return sorted({p.split("/")[0] for p in o.paths("rec*/meta/info.json")})
 
 
+def drain_logged(o: Output) -> list[str]:
+    """How long the server said it lets the policy drain (its log lines without their time stamps)."""
+    return [line.split("closing the policy", 1)[1] for line in o.err.splitlines() if "closing the policy" in line]
+
+
 def side_channel_off(flag: str, value: str | None) -> Refused:
     return Refused("serve", (*SERVE_OFF, flag, *(() if value is None else (value,))))
 
@@ -586,9 +594,10 @@ CAM_FLAGS = {
     "--cam.settle-ms": ("2.5", "settle_ms"),
     "--cam.device": ("0", "device"),
     "--cam.max-steps": ("5", "max_steps"),
-    "--cam.max-mb": ("1.5", "max_bytes"),
-    "--cam.max-extra-value-kb": ("2", "max_extra_value_bytes"),
-    "--cam.max-extra-kb": ("4", "max_extra_bytes"),
+    "--cam.max-mb": ("1.5", "max_mb"),
+    "--cam.max-extra-value-kb": ("2", "max_extra_value_kb"),
+    "--cam.max-extra-kb": ("4", "max_extra_kb"),
+    "--cam.stats-window": ("5", "stats_window"),
 }
 SERVE_CASES: dict[str, tuple[Case, ...]] = {
     "--port": (Changes(SERVE, ("--port", "{port}"), serving_line),),
@@ -641,14 +650,16 @@ SERVE_CASES: dict[str, tuple[Case, ...]] = {
     "--default-prompt": (Changes(SERVE, ("--default-prompt", "reach the red block"), seen("without_prompt")),),
     "--cam.every-k": (Changes(SERVE, ("--cam.every-k", "2"), cam_option("every_k")),),
     "--cam.dir": (Changes(SERVE, ("--cam.dir", "{scratch}/cam2"), cam_folders), side_channel_off("--cam.dir", "x")),
-    # Off, the side channel drains nothing, but the server still waits this long for the policy to close.
-    "--cam.drain-timeout": (
-        Changes(SERVE, ("--cam.drain-timeout", "7"), cam_option("drain_timeout")),
+    # The server's own: how long it lets the served policy drain on SIGTERM, with the side channel on or off (off,
+    # under its earlier spelling `--cam.drain-timeout`).
+    "--drain-timeout": (
+        Changes(SERVE, ("--drain-timeout", "7"), drain_logged),
         Changes(
             Run("serve", ("--host", "127.0.0.1", "--port", "{port}", "--no-warm-up"), slow=True),
             ("--cam.drain-timeout", "7"),
-            lambda o: [ln for ln in o.err.splitlines() if "closing the policy" in ln],
+            drain_logged,
         ),
+        Refused("serve", (*SERVE_OFF, "--drain-timeout", "-1")),
     ),
     **{
         flag: (
@@ -672,6 +683,10 @@ DEMO_EXPLAIN = Run(
 )
 DEMO_EXPLAIN_ALONE = dataclasses.replace(DEMO_EXPLAIN, together=False)
 NO_EXPLAIN = ("--no-explain", *DEMO_ARGS)
+# Meta-World driven by a stand-in for the multi-task pi0.5 (`{mt05}`: the one-task pi0.5's weights and statistics
+# under the multi-task robot's asset id), so that no case needs the multi-task models' own assets.
+MT05 = ("--sim", "metaworld", "--model", "pi05", "--assets", "{mt05}")
+DEMO_METAWORLD = Run("demo", (*NO_EXPLAIN, "--record", "{scratch}/rec", *MT05), slow=True)
 
 
 def episodes(key: str) -> Callable[[Output], Any]:
@@ -703,9 +718,20 @@ DEMO_CASES: dict[str, tuple[Case, ...]] = {
     "--perturb": (Changes(DEMO_DRIVE, ("--perturb", "hue=45", "dim=0.5"), episodes("perturbation")),),
     "--model": (
         Changes(DEMO_DRIVE_ALONE, ("--model", "pi05"), recorded_actions),
-        Refused("demo", ("--sim", "metaworld", "--model", "pi05")),
+        # Meta-World's family: pi0-FAST (the default) cannot serve the pi0.5 weights that pi0.5 serves.
+        Changes(Run("demo", (*NO_EXPLAIN, *MT05[:2], *MT05[4:]), slow=True, fails=True), MT05[2:4], exit_status),
     ),
-    "--sim": (Changes(DEMO_DRIVE_ALONE, ("--sim", "metaworld"), recorded("rec/meta/info.json", "robot_type")),),
+    "--sim": (
+        Changes(
+            Run("demo", (*NO_EXPLAIN, "--record", "{scratch}/rec", "--model", "pi05"), slow=True),
+            ("--sim", "metaworld", "--assets", "{mt05}"),
+            recorded("rec/meta/info.json", "robot_type"),
+        ),
+    ),
+    "--task": (
+        Changes(DEMO_METAWORLD, ("--task", "reach-v3"), episodes("task")),
+        Refused("demo", ("--task", "reach-v3")),
+    ),
     "--explain": (Changes(DEMO_EXPLAIN_ALONE, ("--no-explain",), lambda o: o.paths("*/*/run.json")),),
     "--out": (
         Changes(
@@ -841,8 +867,12 @@ TRAIN_DEMO_ARGS = _args_flags(
     tuple(a for pair in zip(TRAIN_ARGS[::2], TRAIN_ARGS[1::2], strict=True) if pair[0] != "--probe-every" for a in pair)
 )
 TRAIN_DEMO = Run("train_demo", TRAIN_DEMO_ARGS, slow=True)
-METAWORLD = ("--sim", "metaworld", "--data", "{scratch}/expert", "--record.episodes", "2")
+# Two episodes of one task (its three phrasings cycled), recorded at the multi-task robot's size.
+METAWORLD = ("--sim", "metaworld", "--data", "{scratch}/expert", "--record.episodes", "2", "--record.tasks",
+             metaworld_sim.TASK)  # fmt: skip
 TRAIN_METAWORLD = Run("train_demo", (*METAWORLD, *TRAIN_DEMO_ARGS), slow=True)
+TRAIN_METAWORLD_PI05 = Run("train_demo", (*METAWORLD, *TRAIN_DEMO_ARGS, "--args.model", "pi05"), slow=True)
+EXPERT_CAMERA = recorded("expert/meta/info.json", "features", metaworld_data.BASE_FEATURE, "shape")
 
 
 def expert_states(episode: int | None) -> Callable[[Output], Any]:
@@ -859,9 +889,21 @@ def expert_states(episode: int | None) -> Callable[[Output], Any]:
     return probe
 
 
+def expert_tasks(o: Output) -> list[str]:
+    """The instructions of the expert's episodes."""
+    import pyarrow.parquet as pq
+
+    (path,) = sorted(o.root.glob("expert/meta/tasks.parquet"))
+    return sorted(str(v) for column in pq.read_table(path).to_pydict().values() for v in column)
+
+
 TRAIN_DEMO_CASES: dict[str, tuple[Case, ...]] = {
     **{"--args." + flag[2:]: (Delegates(),) for flag in TRAIN_CASES},
-    "--sim": (Changes(TRAIN_DEMO, METAWORLD, paths()),),
+    "--sim": (
+        Changes(TRAIN_DEMO, METAWORLD, paths()),
+        # Button press alone: the one-task pi0.5 at the one-task robot's size.
+        Changes(TRAIN_METAWORLD_PI05, ("--sim", "metaworld-button"), EXPERT_CAMERA),
+    ),
     "--data": (
         Changes(TRAIN_METAWORLD, ("--data", "{scratch}/other"), top_folders),
         Refused("train_demo", ("--data", "{scratch}/expert")),
@@ -873,6 +915,9 @@ TRAIN_DEMO_CASES: dict[str, tuple[Case, ...]] = {
     "--record.seed": (Changes(TRAIN_METAWORLD, ("--record.seed", "7"), expert_states(0)),),
     "--record.noise": (Changes(TRAIN_METAWORLD, ("--record.noise", "0.1"), expert_states(None)),),
     "--record.clean-every": (Changes(TRAIN_METAWORLD, ("--record.clean-every", "1"), expert_states(None)),),
+    "--record.tasks": (Changes(TRAIN_METAWORLD, ("--record.tasks", "reach-v3"), expert_tasks),),
+    "--record.image-size": (Changes(TRAIN_METAWORLD, ("--record.image-size", "32"), EXPERT_CAMERA),),
+    "--record.phrasings": (Changes(TRAIN_METAWORLD, ("--record.phrasings", "1"), expert_tasks),),
 }
 
 CASES: dict[str, dict[str, tuple[Any, ...]]] = {
@@ -960,6 +1005,7 @@ class Runner:
             "{records}",
             "{cutvideo}",
             "{trained}",
+            "{mt05}",
         ):
             if name in arg:
                 arg = arg.replace(name, str(self._shared_input(name)))
@@ -978,6 +1024,7 @@ class Runner:
                 "{records}": lambda: _policy_records(folder / "records"),
                 "{cutvideo}": lambda: _cut_video(folder / "cut"),
                 "{trained}": lambda: self._trained(folder),
+                "{mt05}": lambda: _multitask_stand_in(demo_metaworld.ASSETS_METAWORLD, folder / "mt05"),
             }[name]()
         return self._shared[name]
 
@@ -986,6 +1033,15 @@ class Runner:
         argv = [a.replace("{scratch}/model", str(out)) for a in TRAIN_ARGS]
         assert train.main(argv) == 0
         return out
+
+
+def _multitask_stand_in(src: Path, dst: Path) -> Path:
+    """A linked copy of the one-task Meta-World pi0.5 whose statistics sit under the multi-task robot's asset id:
+    a folder the multi-task pi0.5's config serves (the same robot, state and actions)."""
+    copy = _linked_copy(src, dst)
+    assets = copy / "checkpoint" / "assets"
+    (assets / demo_metaworld.ASSET_ID).rename(assets / demo_metaworld.MT_ASSET_ID)
+    return copy
 
 
 def _policy_records(folder: Path) -> Path:

@@ -132,13 +132,14 @@ def _unused(args: train.TrainArgs, sim: str, data: Path | None, record: RecordAr
     if sim == "reach" and (data is not None or recording):
         given = ", ".join((["--data"] if data is not None else []) + recording)
         return f"{given}: Meta-World's expert episodes: add --sim metaworld"
-    fixed = ("model", "probe_every", "contrast_pairs")  # Meta-World's: its pi0.5, no probe, its recorded frames
-    if sim == "metaworld" and any(getattr(args, n) != getattr(DEFAULT_TRAIN, n) for n in fixed):
-        return "--args.model, --args.probe-every, --args.contrast-pairs: Meta-World trains its pi0.5 on its frames"
-    trained = dataclasses.replace(args, model="pi05") if sim == "metaworld" else args
-    if refused := trained.unused():
+    # The reaching task's alone: Meta-World trains on its recorded frames, where the binding probe has no scenes.
+    fixed = [f"--args.{n.replace('_', '-')}" for n in ("probe_every", "contrast_pairs")
+             if getattr(args, n) != getattr(DEFAULT_TRAIN, n)]  # fmt: skip
+    if sim != "reach" and fixed:
+        return f"{', '.join(fixed)}: the reaching task's; --sim {sim} trains on its recorded frames"
+    if refused := args.unused():
         return refused.replace("--", "--args.")
-    if sim == "metaworld" and recording and data is not None and is_lerobot_dataset(data):
+    if sim != "reach" and recording and data is not None and is_lerobot_dataset(data):
         return f"{', '.join(recording)}: {data} holds its expert episodes already (a new folder records them)"
     return None
 

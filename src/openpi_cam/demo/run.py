@@ -250,14 +250,23 @@ class DemoResult:
     faithfulness: dict[str, Any] | None = None  # `cam.faithfulness_run.evaluate_run`'s report
 
 
+class UnfitModel(ValueError):
+    """The model folder cannot be served as the model `--model` and `--sim` choose (e.g. `--assets` holds another
+    family's weights)."""
+
+
 def run_demo(opts: DemoOptions, sink: RolloutSink | None = None) -> DemoResult:
     """Serves, drives (recording every step into `sink`), renders and scores; raises OSError when the side channel
-    cannot create its run directory, ImportError when `--sim metaworld` lacks its extra."""
+    cannot create its run directory or the model's files are missing, ImportError when `--sim metaworld` lacks its
+    extra, UnfitModel when the model's folder does not hold the chosen model."""
     t0 = time.time()
     if opts.sim == "metaworld":
         metaworld_sim.require_simulator()
     model = ModelSpec.demo(opts.bundled_model, opts.assets)
-    policy = model.create()
+    try:
+        policy = model.create()
+    except ValueError as e:
+        raise UnfitModel(f"--model {opts.model} (--sim {opts.sim}: {opts.bundled_model}): {e}") from None
     options = CAMOptions(
         every_k=1,
         dir=opts.out,
