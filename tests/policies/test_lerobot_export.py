@@ -121,7 +121,7 @@ def test_a_bfloat16_export_is_the_float32_folder_with_its_weights_stored_in_bflo
     stats = next(bf16.glob("policy_preprocessor_step_*.safetensors"))
     assert {v.dtype for v in load_file(str(stats)).values()} == {np.dtype(np.float32)}
     assert ModelSpec(bf16).resolved().dtype == "bfloat16"
-    ours, reference = ModelSpec(bf16).create(), create_policy(None, f32, dtype="bfloat16")
+    ours, reference = ModelSpec(bf16).create(), create_lerobot_policy(f32, dtype="bfloat16")
     for obs, noise in demo_frames(2):
         request = {demo_reach.LEROBOT_KEYS[k]: v for k, v in obs.items() if k in demo_reach.LEROBOT_KEYS}
         request["prompt"] = obs["prompt"]
