@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from command_inputs import explained_dataset, served_run
 from demo_inputs import demo_observation
 from paths import GOLDEN_DIR
 
@@ -263,3 +264,17 @@ def demo_pi05_lerobot(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("lerobot") / "demo_pi05"
     assert export.main(out, ModelSpec(config="demo_reach_pi05")) == 0
     return out
+
+
+@pytest.fixture(scope="session")
+def served_run_dir(tmp_path_factory, demo_policy) -> Path:
+    """A run the side channel wrote for the bundled pi0-FAST (two requests, defaults, raw and model frames): read by
+    the command-line tests, never written (copy it first)."""
+    return served_run(tmp_path_factory.mktemp("served_run"), demo_policy)
+
+
+@pytest.fixture(scope="session")
+def demo_maps_dir(tmp_path_factory) -> Path:
+    """`explain-dataset` of the demo dataset's first two episodes with the bundled model: read by the command-line
+    tests, never written (copy it first)."""
+    return explained_dataset(tmp_path_factory.mktemp("demo_maps") / "demo.maps")

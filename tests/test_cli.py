@@ -1,6 +1,7 @@
 """The command line takes no flag it would ignore: `explain` routes SOURCE to the command that takes it, each explain
 command refuses the other's flags, `serve` refuses side-channel flags with the side channel off, `render` refuses a
-maps dataset's flag for a run, and earlier spellings still parse. All of it is refused before a model loads."""
+maps dataset's flag for a run, the viewers name a folder they cannot read in one line, and earlier spellings still
+parse. All of it is refused before a model loads."""
 
 from __future__ import annotations
 
@@ -60,6 +61,13 @@ def test_serve_refuses_side_channel_flags_with_the_side_channel_off(capsys):
 def test_render_refuses_episodes_for_a_run(tmp_path, capsys):
     assert _exit_code(["render", str(tmp_path), "--episodes", "0"]) == 2
     assert "--episodes selects a maps dataset's episodes" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", ["stats", "render"])
+def test_the_viewers_name_a_folder_that_is_neither_a_run_nor_a_maps_dataset(command, tmp_path, capsys):
+    assert _exit_code([command, str(tmp_path)]) == 1
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line == f"openpi-cam {command}: {tmp_path} is not a CAM run directory (no run.json)"
 
 
 @pytest.mark.parametrize(

@@ -245,20 +245,24 @@ def _record_rollouts(ctx: Context, command: str) -> None:
     assert len(dataset.episodes) == 12 and {"next.success", "next.reward", "next.done"} <= set(dataset.features)
     listed = json.loads((ctx.workdir / "rollouts" / "meta" / "demo_episodes.json").read_text())
     assert listed["perturbations"] == ["clean", "hue=45", "absent"] and len(listed["episodes"]) == 12
+    # the perturbations in turn, each episode's outcome recorded: a prompt naming an absent block is never reached
+    episodes = listed["episodes"]
+    assert [e["perturbation"] for e in episodes] == listed["perturbations"] * 4
+    assert not any(e["success"] for e in episodes if e["perturbation"] == "absent")
 
 
 def _explain_rollouts(ctx: Context, command: str) -> None:
     shell(ctx, command)
     table = pq.read_table(next((ctx.workdir / "rollouts.maps").glob("data/*/*.parquet")))
-    assert {"episode_success", "episode_length"} <= set(table.column_names)
+    assert {"episode_success", "episode_length", "extra/target_box"} <= set(table.column_names)
     assert any(c.startswith("reliance") for c in table.column_names), table.column_names
+    assert all(i % 5 == 0 for i in table.column("frame_index").to_pylist())  # --every-k 5
 
 
 def _dataset_views(ctx: Context, command: str) -> None:
     if "failures.json" in command:  # the rollouts': outcomes and how well each figure finds the failures
         shell(ctx, command)
-        outcomes = json.loads((ctx.workdir / "failures.json").read_text())["summary"]["outcomes"]
-        assert outcomes["episodes"] == 12 and "length" in outcomes["failure_finding"]
+        _failure_views(ctx, json.loads((ctx.workdir / "failures.json").read_text()))
         return
     shell(ctx, command)
     lerobot = "lerobot_views" in command
@@ -266,6 +270,30 @@ def _dataset_views(ctx: Context, command: str) -> None:
     dataset = open_dataset(SHARED_DIR / "lerobot" / "demo_reach_v30_video")
     episodes = dataset.episodes if lerobot else range(4)
     assert views["summary"]["frames"] == sum(dataset.episode_length(e) for e in episodes)
+
+
+def _failure_views(ctx: Context, views: dict) -> None:
+    """What the README's "Finding failures" says the views of the recorded rollouts hold."""
+    episodes = json.loads((ctx.workdir / "rollouts" / "meta" / "demo_episodes.json").read_text())["episodes"]
+    succeeded = {e["episode_index"]: e["success"] for e in episodes}
+    # rows carry their episode's outcome
+    assert all(row["episode_success"] == succeeded[row["episode_index"]] for row in views["frames"])
+    outcomes = views["summary"]["outcomes"]
+    failures = sum(not s for s in succeeded.values())
+    assert (outcomes["episodes"], outcomes["failures"]) == (12, failures) and 0 < failures < 12
+    # failed episodes beside successful ones
+    assert set(outcomes["by_outcome"]) == {"success", "failure"}
+    # each figure's failure-finding ROC AUC (share, entropy, nuisance mass, reliance), next to the episode length's
+    figures = ("entropy", "length", "base_0_rgb/mean_share", "base_0_rgb/mean_nuisance_mass",
+               "base_0_rgb/mean_reliance_score", "prompt/mean_reliance_score")  # fmt: skip
+    for figure in figures:
+        assert 0.0 <= outcomes["failure_finding"][figure]["auroc"] <= 1.0, figure
+    # and from the first request alone, where the length says nothing
+    early = outcomes["early_warning"]
+    assert early["frames"] == 1 and "length" not in early["figures"] and "entropy" in early["figures"]
+    # episodes ranked most diffuse maps first
+    entropies = [e["entropy"] for e in views["summary"]["episode_ranking"]]
+    assert len(entropies) == 12 and entropies == sorted(entropies, reverse=True)
 
 
 def _golden(ctx: Context, command: str) -> None:

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import pathlib
 import sys
 from collections.abc import Callable
@@ -24,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from openpi_cam.errors import BadFile, load_json, one_line, reading
 from openpi_cam.model import gemma, pi0, pi0_fast_maps, pi0_maps
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.pi0 import Pi0
@@ -299,7 +299,7 @@ def run_golden(
     folder = pathlib.Path(folder)
     if not (folder / "config.json").is_file() and list(folder.glob("*_param_tree.json")):
         return _run_param_trees(folder, verbose)
-    config = json.loads((folder / "config.json").read_text())
+    config = load_json(folder / "config.json")
     if "pi0_config" in config:
         return _run_flow_golden(folder, config, verbose)
     data_cfg = config.get("pi0_fast_config", {})
@@ -313,14 +313,9 @@ def run_golden(
     )
     cameras = list(config["camera_keys"])
     max_steps = int(config.get("max_decoding_steps", 256))
-    case_files = sorted(folder.glob("case_*.npz"))
-    if not case_files:
-        raise FileNotFoundError(f"no case_*.npz files in {folder}")
     results: list[Comparison] = []
-    for path in case_files:
-        with np.load(path, allow_pickle=False) as npz:
-            case = {k: npz[k] for k in npz.files}
-        for comp in check_case(model, path.stem, case, cameras, max_steps=max_steps, tol=tolerances):
+    for name, case in read_cases(folder):
+        for comp in check_case(model, name, case, cameras, max_steps=max_steps, tol=tolerances):
             results.append(comp)
             if verbose:
                 print(comp.line(), flush=True)
@@ -333,9 +328,14 @@ def read_cases(folder: pathlib.Path) -> list[tuple[str, dict]]:
         raise FileNotFoundError(f"no case_*.npz files in {folder}")
     cases = []
     for path in case_files:
-        with np.load(path, allow_pickle=False) as npz:
-            cases.append((path.stem, {k: npz[k] for k in npz.files}))
+        cases.append((path.stem, read_npz(path)))
     return cases
+
+
+def read_npz(path: pathlib.Path) -> dict[str, np.ndarray]:
+    """Every array of a golden's `.npz` file."""
+    with reading(path, "npz file"), np.load(path, allow_pickle=False) as npz:
+        return {k: npz[k] for k in npz.files}
 
 
 def _run_flow_golden(folder: pathlib.Path, config: dict, verbose: bool) -> list[Comparison]:
@@ -364,7 +364,7 @@ def _run_param_trees(folder: pathlib.Path, verbose: bool) -> list[Comparison]:
     describe (`jax.eval_shape`, no weights) has exactly upstream's paths and shapes."""
     results = []
     for path in sorted(folder.glob("*_param_tree.json")):
-        upstream = {k: tuple(v["shape"]) for k, v in json.loads(path.read_text())["leaves"].items()}
+        upstream = {k: tuple(v["shape"]) for k, v in load_json(path)["leaves"].items()}
         gemma_cfg, expert, siglip, pi05 = pi0.pi0_architecture_from_params(upstream)
         cfg = pi0.Pi0Config(gemma_cfg, expert, siglip, pi05)
         ours = flatten_dict(jax.eval_shape(functools.partial(pi0.init_params, cfg), jax.random.key(0)))
@@ -390,8 +390,11 @@ def check_folder(folder: pathlib.Path, run: Callable[[pathlib.Path], list[Compar
     (1 on any mismatch or unreadable input)."""
     try:
         results = (run or run_golden)(folder)
+    except BadFile as e:  # its message names the file and what is wrong
+        print(f"FAIL cannot check {folder}: {e}")
+        return 1
     except Exception as e:  # unreadable input is a failure of the check, reported in one line
-        print(f"FAIL cannot check {folder}: {type(e).__name__}: {e}")
+        print(f"FAIL cannot check {folder}: {type(e).__name__}: {one_line(e)}")
         return 1
     failed = [r for r in results if not r.ok]
     print(f"{len(results) - len(failed)} passed, {len(failed)} failed")

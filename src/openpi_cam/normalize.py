@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from openpi_cam.errors import reading
+
 NORM_STATS_FILENAME = "norm_stats.json"
 
 
@@ -32,14 +34,19 @@ class NormStats:
 
     @classmethod
     def from_json_dict(cls, d: Mapping, *, where: str = "norm stats") -> NormStats:
+        if not isinstance(d, Mapping):
+            raise ValueError(f"{where}: expected an object of statistics, got {type(d).__name__}")
         missing = [name for name in ("mean", "std") if d.get(name) is None]
         if missing:
             raise ValueError(f"{where}: missing {', '.join(missing)}")
         # float64 like upstream (pydantic/numpydantic parse JSON numbers into float64 arrays).
-        arrays = {
-            f.name: None if d.get(f.name) is None else np.asarray(d[f.name], dtype=np.float64)
-            for f in dataclasses.fields(cls)
-        }
+        try:
+            arrays = {
+                f.name: None if d.get(f.name) is None else np.asarray(d[f.name], dtype=np.float64)
+                for f in dataclasses.fields(cls)
+            }
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{where}: {e}") from None
         return cls(**arrays)
 
 
@@ -57,10 +64,8 @@ def serialize_norm_stats(stats: Mapping[str, NormStats]) -> str:
 
 
 def deserialize_norm_stats(text: str, *, where: str = "norm stats") -> dict[str, NormStats]:
-    try:
+    with reading(where, "JSON file"):
         data = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{where}: not valid JSON ({e})") from e
     if not isinstance(data, dict) or not isinstance(data.get("norm_stats"), dict):
         raise ValueError(f'{where}: expected a JSON object with a "norm_stats" mapping')
     return {k: NormStats.from_json_dict(v, where=f"{where} [{k}]") for k, v in data["norm_stats"].items()}
@@ -73,7 +78,9 @@ def load_norm_stats(path: str | Path) -> dict[str, NormStats]:
         path = path / NORM_STATS_FILENAME
     if not path.is_file():
         raise FileNotFoundError(f"norm stats file not found: expected {path}")
-    return deserialize_norm_stats(path.read_text(), where=str(path))
+    with reading(path, "JSON file"):
+        text = path.read_text()
+    return deserialize_norm_stats(text, where=str(path))
 
 
 def load_checkpoint_norm_stats(checkpoint_dir: str | Path, asset_id: str) -> dict[str, NormStats]:

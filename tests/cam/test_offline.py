@@ -23,6 +23,7 @@ import lerobot_cases
 import numpy as np
 import pytest
 from cam_support import assert_pairwise_different, demo_obs, policy_part
+from one_line import assert_one_line
 from paths import REPO_ROOT
 
 from openpi_cam import cli
@@ -42,6 +43,7 @@ from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.cli import explain_run
 from openpi_cam.cli.options import ExplainFlags
+from openpi_cam.errors import BadFile
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import ExplainSkipped, Explanation
 from openpi_cam.policies.libero import make_libero_example
@@ -349,7 +351,12 @@ def test_logger_resume_after_a_crash_continues_seq_and_repairs_the_index(tmp_pat
 
     assert (run_dir / "steps" / "00000003.npz").read_bytes() == b"not a zip"
     assert (run_dir / "run.json").read_text() == run_json
-    run = load_run(run_dir)
+    with pytest.raises(BadFile) as refused:  # read as a run, the unreadable step is named
+        load_run(run_dir)
+    assert_one_line(refused.value, "00000003.npz", "not a readable step file")
+    run = load_run(run_dir, skip_unreadable=True)
+    (problem,) = run.problems
+    assert problem.startswith("steps/00000003.npz: not a readable step file (") and "\n" not in problem
     assert [s.seq for s in run.steps] == [0, 1, 2, 4, 5]
     assert [s.meta.step for s in run.steps] == [0, 1, 2, 10, 11]
     assert all(s.meta.run_id == run_dir.name for s in run.steps)

@@ -114,6 +114,23 @@ def explained(recorded, tmp_path_factory):
     return out
 
 
+def test_outcome_names_the_feature_an_episodes_success_is_read_from(recorded, tmp_path):
+    """`--outcome FEATURE`: an episode succeeded when any of its frames has FEATURE true. Here the perturbation's
+    index, true on the `absent` episodes, which all fail by `next.success`: the rows follow the feature named."""
+    root, result = recorded
+    out = tmp_path / "by_perturbation.maps"
+    options = ["--maps", "gradcam", "gradnorm", "--target", "action-token", "--check-patches", "2", "--batch-size", "4"]
+    cli.main(["explain-dataset", str(root), "--out", str(out), "--outcome", PERTURBATION_FEATURE, "--every-k", "100",
+              *options, "--no-progress"])  # fmt: skip
+    maps = open_maps_dataset(out)
+    assert maps.info.outcome == PERTURBATION_FEATURE
+    by_feature = {i: e["perturbation"] != PERTURB[0] for i, e in enumerate(result.episodes)}
+    assert by_feature != {i: e["success"] for i, e in enumerate(result.episodes)}  # not what next.success says
+    rows = maps.table(columns=["episode_index", "episode_success"]).to_pylist()
+    assert {r["episode_index"] for r in rows} == set(by_feature)
+    assert all(r["episode_success"] == by_feature[r["episode_index"]] for r in rows)
+
+
 def _counted_outcomes(root) -> dict[int, tuple[int, bool, float]]:
     """(length, success, return) of every episode, counted from the LeRobot dataset's frames."""
     ds = open_dataset(root)
@@ -158,8 +175,10 @@ def test_stats_show_failures_beside_successes_and_how_well_each_figure_finds_the
         assert group["cameras"]["base_0_rgb"]["mean_share"] == pytest.approx(np.mean(shares), rel=1e-12)
         nuisance = [r["base_0_rgb/nuisance_mass"] for r in rows]
         assert group["cameras"]["base_0_rgb"]["mean_nuisance_mass"] == pytest.approx(np.mean(nuisance), rel=1e-12)
-    # AUROC by hand over the episode ranking's own figures
-    for figure in ("distance", "length"):
+    # AUROC by hand over the episode ranking's own figures: its entropy (what ranks the episodes), the distance to the
+    # prior and the length
+    assert all(ranked[e]["entropy"] is not None for e in ranked)
+    for figure in ("entropy", "distance", "length"):
         auc = _pair_auc(failed, {e: ranked[e][figure] for e in ranked})
         assert outcomes["failure_finding"][figure]["auroc"] == pytest.approx(auc)
     # early warning: the same from each episode's first explained frame (length is no figure there)

@@ -28,6 +28,7 @@ from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.cli import export as export_cli
 from openpi_cam.lerobot.export import export_lerobot
 from openpi_cam.lerobot.policy import create_lerobot_policy
+from openpi_cam.model.safetensors_weights import read_tensor_infos
 from openpi_cam.normalize import load_checkpoint_norm_stats, save_norm_stats
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.checkpoint_format import checkpoint_format
@@ -105,6 +106,37 @@ def test_the_demo_pi05_round_trips_through_a_lerobot_folder(tmp_path):
     back = create_lerobot_policy(out, dtype="float32")
     original = model_spec.create_demo_policy("pi05", dtype="float32")
     assert_round_trip(original, back, demo_frames(4), demo_reach.LEROBOT_KEYS)
+
+
+def test_a_bfloat16_export_is_the_float32_folder_with_its_weights_stored_in_bfloat16(tmp_path):
+    """`--dtype bfloat16`: LeRobot's `dtype` field says bfloat16 and every weight is stored in it, the statistics stay
+    float32; read back, the folder computes in bfloat16 and serves exactly what the float32 folder serves in
+    bfloat16 (the same weights, rounded once to bfloat16 either way)."""
+    assert export_cli.main(tmp_path / "f32", ModelSpec(config="demo_reach_pi05")) == 0
+    assert export_cli.main(tmp_path / "bf16", ModelSpec(config="demo_reach_pi05", dtype="bfloat16")) == 0
+    f32, bf16 = tmp_path / "f32", tmp_path / "bf16"
+    assert json.loads((bf16 / "config.json").read_text())["dtype"] == "bfloat16"
+    assert json.loads((f32 / "config.json").read_text())["dtype"] == "float32"  # the default: LeRobot's
+    assert {info.dtype for info in read_tensor_infos(bf16 / "model.safetensors").values()} == {"BF16"}
+    stats = next(bf16.glob("policy_preprocessor_step_*.safetensors"))
+    assert {v.dtype for v in load_file(str(stats)).values()} == {np.dtype(np.float32)}
+    assert ModelSpec(bf16).resolved().dtype == "bfloat16"
+    ours, reference = ModelSpec(bf16).create(), create_lerobot_policy(f32, dtype="bfloat16")
+    for obs, noise in demo_frames(2):
+        request = {demo_reach.LEROBOT_KEYS[k]: v for k, v in obs.items() if k in demo_reach.LEROBOT_KEYS}
+        request["prompt"] = obs["prompt"]
+        np.testing.assert_array_equal(
+            ours.infer(request, noise=noise)["actions"], reference.infer(request, noise=noise)["actions"]
+        )
+
+
+def test_a_lerobot_folder_has_no_place_for_a_fast_tokenizer_or_a_default_prompt(tmp_path, capsys):
+    for flags, flag in ((ModelSpec(default_prompt="reach"), "--default-prompt"),
+                        (ModelSpec(fast_tokenizer=demo_reach.FAST_TOKENIZER), "--fast-tokenizer")):  # fmt: skip
+        assert export_cli.main(tmp_path / "out", flags) == 2
+        (line,) = capsys.readouterr().err.splitlines()
+        assert line.startswith(f"openpi-cam export: {flag}: a LeRobot pi0 / pi0.5 folder")
+    assert not (tmp_path / "out").exists()
 
 
 def test_a_pi0_round_trips_with_its_mean_std_statistics_and_newline_prompt(tmp_path):

@@ -19,6 +19,7 @@ import pytest
 from lerobot_cases import CAMERAS, cases, request
 from one_line import assert_one_line
 from paths import GOLDEN_DIR
+from safetensors.numpy import load_file, save_file
 from safetensors_edit import edit_safetensors, read_tensor
 from shared_copies import edit_json, writable_copy
 
@@ -214,6 +215,19 @@ def test_a_bad_weight_is_named(tmp_path, edit, names):
     assert_one_line(raised.value, *names)
 
 
+def test_a_weight_of_no_float_type_is_named(tmp_path):
+    """A tensor stored as integers (a quantised or corrupted export) is refused before any weight is read, naming the
+    tensor and its dtype."""
+    folder = copy_folder(tmp_path)
+    tensors = load_file(str(PI05 / "model.safetensors"))
+    tensors[Q_PROJ] = tensors[Q_PROJ].astype(np.int32)
+    (folder / "model.safetensors").unlink()
+    save_file(tensors, str(folder / "model.safetensors"))
+    with pytest.raises(ValueError) as raised:
+        policy_of(folder)
+    assert_one_line(raised.value, Q_PROJ, "dtype I32", "expected a float type")
+
+
 def test_an_unknown_processor_step_or_type_is_named(tmp_path):
     folder = copy_folder(tmp_path)
     edit_json(folder / "policy_preprocessor.json", lambda d: d["steps"].insert(2, {"registry_name": "crop_processor"}))
@@ -233,6 +247,18 @@ def test_an_unknown_processor_step_or_type_is_named(tmp_path):
         with pytest.raises(ValueError) as raised:
             policy_of(folder)
         assert_one_line(raised.value, *words)
+
+
+def test_a_tokenizer_length_other_than_the_configs_is_refused_naming_both(tmp_path):
+    """LeRobot builds the tokenizer step from `tokenizer_max_length`: a folder whose two values disagree is refused
+    before its weights are read, naming both values and both files (either file may be the edited one)."""
+    folder = copy_folder(tmp_path)
+    edit_json(folder / "policy_preprocessor.json", lambda p: p["steps"][5]["config"].update(max_length=64))
+    with pytest.raises(ValueError) as raised:
+        policy_of(folder)
+    assert_one_line(
+        raised.value, "config.json", "tokenizer_max_length 200", "policy_preprocessor.json", "max_length 64"
+    )
 
 
 def test_the_tokenizer_is_found_in_the_folder_then_the_hugging_face_cache_and_never_downloaded(tmp_path, monkeypatch):

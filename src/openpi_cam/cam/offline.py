@@ -32,6 +32,7 @@ from openpi_cam.cam.batching import data_mesh, explain_batch
 from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.records import split_extra, step_record
 from openpi_cam.cam.run_format import RUN_JSON, load_run
+from openpi_cam.errors import BadFile, reading
 from openpi_cam.nested import unflatten_dict
 from openpi_cam.policies.family import ExplainSkipped
 from openpi_cam.policies.policy import Policy
@@ -95,7 +96,10 @@ def iter_policy_records(folder: pathlib.Path, nested: bool) -> Iterator[Replay]:
         raise FileNotFoundError(f"no step_N.npy policy records in {folder}")
     for n, path in files:
         # Upstream stores each record as a pickled object array: only open records from a source you trust.
-        record = np.load(path, allow_pickle=True).item()
+        with reading(path, "policy record"):
+            record = np.load(path, allow_pickle=True).item()
+        if not isinstance(record, dict):
+            raise BadFile(f"{path}: holds a {type(record).__name__}, not a policy record's dict")
         obs, extra = split_extra(record_observation(record, nested))
         actions = record.get("outputs/actions")
         yield Replay(path.name, "records", n, obs, extra, None if actions is None else np.asarray(actions))
@@ -137,7 +141,7 @@ def iter_run_steps(run_dir: pathlib.Path) -> Iterator[Replay]:
 
 def explained_sources(run_dir: pathlib.Path) -> set[str]:
     """Source ids already explained in a run (complete step files only)."""
-    run = load_run(run_dir, load_arrays=False)
+    run = load_run(run_dir, load_arrays=False, skip_unreadable=True)
     return {str(s.meta.extra[SOURCE_KEY]) for s in run.steps if SOURCE_KEY in s.meta.extra}
 
 

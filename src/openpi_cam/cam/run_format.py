@@ -19,11 +19,13 @@ import pathlib
 import re
 import secrets
 import zipfile
+import zlib
 from collections.abc import Iterable, Mapping
 from typing import Any
 
 import numpy as np
 
+from openpi_cam.errors import BadFile, load_json, reading, unreadable
 from openpi_cam.vocabulary import MAP_KIND_INFO
 
 log = logging.getLogger(__name__)
@@ -46,7 +48,8 @@ META_KEY = "meta"
 
 _STEP_FILE_RE = re.compile(r"^(\d{8,})\.npz$")
 # What np.load and the meta lookup raise for a damaged or foreign step file.
-_UNREADABLE = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile)
+_UNREADABLE = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error)
+STEP_FILE_KIND = "step file"  # what `errors.reading` calls a step file that cannot be read
 
 
 def step_file(seq: int) -> str:
@@ -599,7 +602,8 @@ class CAMStep:
 
     def arrays(self) -> StepArrays:
         if self._arrays is None:
-            with np.load(self.file, allow_pickle=False) as npz:
+            # The scan read the meta only: a member damaged further in shows here.
+            with reading(self.file, STEP_FILE_KIND, KeyError), np.load(self.file, allow_pickle=False) as npz:
                 self._arrays = _split_arrays(npz)
         return self._arrays
 
@@ -702,7 +706,7 @@ def scan_steps(
                 meta = _read_meta(npz)
                 arrays = _split_arrays(npz) if load_arrays or seq not in index else None
         except _UNREADABLE as e:
-            problems.append(f"{path.relative_to(run_dir)}: {e}")
+            problems.append(f"{path.relative_to(run_dir)}: {unreadable(STEP_FILE_KIND, e)}")
             continue
         steps.append(CAMStep(seq, StepMeta.from_json(meta), path, arrays if load_arrays else None))
         # arrays were read above whenever the index lacks this step
@@ -725,23 +729,28 @@ def _rebuilt_manifest(
 
 
 def read_run_info(run_dir: pathlib.Path) -> dict[str, Any]:
-    run_info = read_json(run_dir / RUN_JSON)
-    if run_info is None:
-        raise FileNotFoundError(f"{run_dir} is not a CAM run directory (no readable {RUN_JSON})")
+    if not (run_dir / RUN_JSON).is_file():
+        raise FileNotFoundError(f"{run_dir} is not a CAM run directory (no {RUN_JSON})")
+    run_info = load_json(run_dir / RUN_JSON)
     version = run_info.get("schema_version")
     if not isinstance(version, int) or version > SCHEMA_VERSION:
         log.warning("%s has schema_version %r; this reader knows up to %d", run_dir, version, SCHEMA_VERSION)
     return run_info
 
 
-def load_run(run_dir: str | os.PathLike[str], *, load_arrays: bool = True) -> CAMRun:
+def load_run(run_dir: str | os.PathLike[str], *, load_arrays: bool = True, skip_unreadable: bool = False) -> CAMRun:
     """Reads a run directory, including one whose writer was killed; never writes to it.
 
-    `manifest` is manifest.json when it lists exactly the step files present, otherwise one rebuilt in memory.
+    `manifest` is manifest.json when it lists exactly the step files present, otherwise one rebuilt in memory. A step
+    file that cannot be read is a `BadFile` naming it, unless `skip_unreadable` (the run's `problems` then list
+    them, as a resumed logger and `rebuild_manifest` do).
     """
     run_dir = pathlib.Path(run_dir)
     run_info = read_run_info(run_dir)
     steps, entries, problems = scan_steps(run_dir, load_arrays=load_arrays)
+    if problems and not skip_unreadable:
+        more = f" (and {len(problems) - 1} more unreadable step files)" if len(problems) > 1 else ""
+        raise BadFile(f"{run_dir}{os.sep}{problems[0]}{more}")
     manifest = read_json(run_dir / MANIFEST_JSON)
     if not _manifest_is_current(manifest, [s.seq for s in steps]):
         manifest = _rebuilt_manifest(run_info, manifest, entries)

@@ -124,7 +124,7 @@ def resolve_source(spec: ModelSpec) -> ModelSource:
         config = spec.config or demo_reach.DEMO_CONFIG.name
         if config not in BUNDLED_MODELS:
             raise ValueError(
-                f"config {config!r} needs --checkpoint-dir (the bundled models serve {sorted(BUNDLED_MODELS)})"
+                f"--config {config} needs --checkpoint-dir (the bundled models serve {sorted(BUNDLED_MODELS)})"
             )
         name = BUNDLED_MODELS[config]
         return BundledModel(name, BUNDLED_ASSETS[name] / demo_reach.CHECKPOINT.name, installed=True)
@@ -210,15 +210,16 @@ class ModelSpec:
         return paligemma, fast
 
     def create(self, *, stop_at_action_end: bool = False, rng: jax.Array | None = None) -> Policy:
+        """The policy; a FAST tokenizer named for a model of another family is refused (it would go unread)."""
         spec = self.resolved()
         paligemma, fast = self.tokenizers()
         match self.source:
             case LeRobotFolder(checkpoint=folder):
-                return create_lerobot_policy(
+                policy = create_lerobot_policy(
                     folder, paligemma_tokenizer=paligemma, dtype=spec.dtype, default_prompt=spec.default_prompt, rng=rng
                 )
             case BundledModel(checkpoint=folder) | OpenPICheckpoint(checkpoint=folder) as source:
-                return create_policy(
+                policy = create_policy(
                     source.config,
                     folder,
                     paligemma_tokenizer=paligemma,
@@ -229,6 +230,10 @@ class ModelSpec:
                     max_decoding_steps=_decoding_budget(source.config),
                     rng=rng,
                 )
+        if self.fast_tokenizer is not None and policy.model.family != "pi0_fast":  # given, and nothing would read it
+            family = policy.model.family
+            raise ValueError(f"--fast-tokenizer {self.fast_tokenizer}: a {family} model has no FAST tokenizer")
+        return policy
 
     def dataset_keys(self) -> tuple[dict[str, str], bool]:
         """How a LeRobot dataset feeds this model: observation key -> dataset feature (with `actions`, the recorded

@@ -11,6 +11,8 @@ import sys
 
 import tyro
 
+from openpi_cam.errors import BadFile
+
 # name -> (module, one-line help). Each module defines `main`, a function with tyro-parsable arguments.
 COMMANDS: dict[str, tuple[str, str]] = {
     "serve": ("openpi_cam.cli.serve", "serve a pi0-FAST, pi0 or pi0.5 checkpoint (OpenPI or LeRobot) over websockets"),
@@ -52,6 +54,10 @@ def main(argv: list[str] | None = None) -> None:
             print(module.USAGE)
             raise SystemExit(0 if rest[:1] in (["-h"], ["--help"]) else 2)
         name, module = routed, importlib.import_module(COMMANDS[routed][0])
-    result = tyro.cli(module.main, args=rest, prog=f"openpi-cam {name}")
+    try:
+        result = tyro.cli(module.main, args=rest, prog=f"openpi-cam {name}")
+    except BadFile as e:  # a user's file its library could not read: named in one line, wherever it was read
+        print(f"openpi-cam {name}: {e}", file=sys.stderr)
+        raise SystemExit(1) from None
     if isinstance(result, int) and result != 0:
         raise SystemExit(result)

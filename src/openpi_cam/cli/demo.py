@@ -12,7 +12,7 @@ import tyro
 from openpi_cam.cam.faithfulness_run import format_report
 from openpi_cam.cam.outcomes import wilson_interval
 from openpi_cam.demo.recorded import recorded_episodes_file
-from openpi_cam.demo.run import ROLLOUT_FPS, ROLLOUT_FPS_METAWORLD, DemoOptions, run_demo
+from openpi_cam.demo.run import ROLLOUT_FPS, ROLLOUT_FPS_METAWORLD, DemoOptions, UnfitModel, run_demo
 from openpi_cam.lerobot.dataset import DatasetError
 from openpi_cam.lerobot.rollouts import RolloutRecorder
 from openpi_cam.policies import demo_metaworld, demo_reach
@@ -33,6 +33,9 @@ def main(opts: tyro.conf.OmitArgPrefixes[DemoOptions] = DEFAULT, record: pathlib
             (`perturbation`) and `next.reward` / `next.success` / `next.done`; `meta/demo_episodes.json` names each
             episode's perturbation, seed and outcome.
     """
+    if ignored := opts.ignored():
+        print(f"openpi-cam demo: {', '.join(ignored)}: {'; '.join(dict.fromkeys(ignored.values()))}")
+        return 2
     if record is not None and record.exists() and (not record.is_dir() or any(record.iterdir())):
         print(f"openpi-cam demo: --record {record} exists and is not an empty folder")
         return 1
@@ -45,7 +48,7 @@ def main(opts: tyro.conf.OmitArgPrefixes[DemoOptions] = DEFAULT, record: pathlib
     try:
         with recorder or contextlib.nullcontext():
             result = run_demo(opts, sink=recorder)
-    except (OSError, DatasetError, ImportError) as e:
+    except (OSError, DatasetError, ImportError, UnfitModel) as e:
         print(f"openpi-cam demo: {e}")
         return 1
     if record is not None:

@@ -52,7 +52,8 @@ def main(
 
     Args:
         source: a LeRobot dataset folder (holds meta/info.json; layouts v2.1 and v3.0).
-        model: the model to explain with (default: the bundled demo model).
+        model: the model to explain with (default: the bundled demo model; no `--default-prompt`: every frame's task
+            is its prompt).
         out: the maps dataset to write or add to (default: `SOURCE_NAME.maps` in the current folder).
         explanation: what the maps explain and which kinds each frame carries (all four by default); `--target
             dataset-actions` (pi0-FAST) explains the recorded chunk instead of the model's own.
@@ -77,6 +78,8 @@ def main(
             raise ValueError(f"--workers must be >= 1, got {workers}")
         if engine == "local" and (workers != 1 or ray_address is not None):
             raise ValueError("--workers and --ray-address run the Ray engine: add --engine ray")
+        if model.default_prompt is not None:
+            raise ValueError("--default-prompt: every frame of a LeRobot dataset has its task, which is its prompt")
         spec = model.resolved()
         overrides = parse_pairs(keys, "--keys")
         mapping, nested = dataset_keys(spec, overrides)

@@ -55,10 +55,14 @@ def main(
         save_frames: which camera frames to store next to the maps (`raw`/`both` keep the run replayable).
         batch_size: observations explained per model call, split over all local devices.
         max_steps: explain at most this many observations not yet in the run (resume later for the rest).
-        nested_keys: read PolicyRecorder keys `a/b` as nested dicts (ALOHA's `images/...`) instead of flat keys.
+        nested_keys: read PolicyRecorder keys `a/b` as nested dicts (ALOHA's `images/...`) instead of flat keys;
+            refused for a model whose robot reads flat keys (every config but ALOHA's).
         rerun: also write the finished run as a Rerun recording (.rrd; needs the `rerun` extra).
         progress: show progress on stderr.
     """
+    if nested_keys and (source / RUN_JSON).is_file():
+        print(f"openpi-cam {COMMAND}: --nested-keys reads PolicyRecorder records; {source} is a run", file=sys.stderr)
+        return 2
     resume_dir = resume if resume is not None else (out if (out / RUN_JSON).is_file() else None)
     if resume_dir is not None and not (resume_dir / RUN_JSON).is_file():
         print(f"openpi-cam {COMMAND}: --resume {resume_dir} is not a CAM run directory", file=sys.stderr)
@@ -70,6 +74,10 @@ def main(
             recorded = load_run(source, load_arrays=False).run_info.get("config") or {}
             model = ModelSpec.from_json(recorded).overridden_by(model)
             stop_at_action_end = bool(recorded.get("stop_at_action_end", False))
+        if nested_keys and not model.dataset_keys()[1]:  # its robot finds `a/b` keys flat or nested alike
+            name = model.resolved().config or "a LeRobot policy"
+            print(f"openpi-cam {COMMAND}: --nested-keys: {name} reads flat keys (ALOHA's nest)", file=sys.stderr)
+            return 2
         policy = model.create(stop_at_action_end=stop_at_action_end)
         try:
             target = resolve_target(policy.explainer, explanation.target)
@@ -81,15 +89,18 @@ def main(
             ReplayOptions, save_frames=save_frames, batch_size=batch_size, max_steps=max_steps
         )
         run_config = {"command": COMMAND, **model.resolved().to_json(), "source": str(source.resolve())}
-        run_options = {**options.to_json(), "save_frames": save_frames}
+        run_options = {**options.to_json(), "save_frames": save_frames, "batch_size": batch_size}
         if resume_dir is not None:
-            run_info = load_run(resume_dir, load_arrays=False).run_info
+            run_info = load_run(resume_dir, load_arrays=False, skip_unreadable=True).run_info
             old_config, old_options = run_info.get("config") or {}, run_info.get("options") or {}
             diffs = resume_mismatch(old_config, old_options, model, options)
             if old_config.get("source") != run_config["source"]:
                 diffs.insert(0, f"source: {old_config.get('source')!r} != {run_config['source']!r}")
             if diffs:
-                print(f"openpi-cam {COMMAND}: cannot resume {resume_dir}, settings differ: {diffs}", file=sys.stderr)
+                print(
+                    f"openpi-cam {COMMAND}: --resume {resume_dir}: cannot resume, settings differ: {diffs}",
+                    file=sys.stderr,
+                )
                 return 2
             cam_logger = CAMLogger.resume(resume_dir)
         else:

@@ -51,7 +51,8 @@ def main(
 
     Args:
         run_dir: a CAM run directory, or a maps dataset (`max_steps` of its frames, default 64, served again).
-        model: the model that made the run; default: the one the run records (each flag given replaces its field).
+        model: the model that made the run; default: the one the run records (each flag given replaces its field;
+            no `--default-prompt`: every step has its prompt).
         randomize: which weights the randomisation test re-initialises (`llm`: the language model and action
             expert, SigLIP kept; `all`; `none` skips the test).
         baseline: what deletion paints with: the baseline the run's ig / occlusion maps used (`run`), or one named.
@@ -63,6 +64,14 @@ def main(
             figures beside it.
         progress: show progress on stderr.
     """
+    if model.default_prompt is not None:
+        print("openpi-cam faithfulness: --default-prompt: every step re-scored has its prompt (a run's steps their "
+              "model inputs, a maps dataset's frames their tasks)", file=sys.stderr)  # fmt: skip
+        return 2
+    if randomize == "none" and batch_size != FaithfulnessOptions.batch_size:
+        print("openpi-cam faithfulness: --batch-size sizes the randomised model's calls: --randomize none makes none",
+              file=sys.stderr)  # fmt: skip
+        return 2
     opts = FaithfulnessOptions(
         randomize=randomize, baseline=baseline, max_steps=None, random_orders=random_orders, batch_size=batch_size
     )

@@ -70,7 +70,11 @@ def main(
     if episodes is not None:
         print("openpi-cam render: --episodes selects a maps dataset's episodes; RUN_DIR is a run", file=sys.stderr)
         return 2
-    run = load_run(run_dir, load_arrays=False)
+    try:
+        run = load_run(run_dir, load_arrays=False)
+    except FileNotFoundError as e:  # not a run (nor a maps dataset): named in one line
+        print(f"openpi-cam render: {e}", file=sys.stderr)
+        return 1
     out_dir = pathlib.Path(out) if out is not None else default_render_dir(run_dir, kind)
     opts = RenderOptions(
         map=kind,

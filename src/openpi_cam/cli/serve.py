@@ -46,6 +46,8 @@ class SideChannelFlags(SideChannelSettings, ExplainFlags):
 
 
 SIDE_CHANNEL_OFF = SideChannelFlags()
+DEFAULT_MAX_BATCH = 8
+DEFAULT_RECORD_FPS = 10
 
 
 class StartupError(Exception):
@@ -70,9 +72,9 @@ def main(
     cam: SideChannelFlags = SIDE_CHANNEL_OFF,
     warm_up: bool = True,
     batch_window_ms: float | None = None,
-    max_batch: int = 8,
+    max_batch: int = DEFAULT_MAX_BATCH,
     record: Path | None = None,
-    record_fps: int = 10,
+    record_fps: int = DEFAULT_RECORD_FPS,
     drain_timeout: Annotated[float, tyro.conf.arg(aliases=("--cam.drain-timeout",))] = 5.0,
 ) -> int:
     """Serve an OpenPI checkpoint (pi0-FAST, pi0 or pi0.5) over websockets (openpi-client compatible), optionally
@@ -163,6 +165,8 @@ def _check_side_channel_flags(flags: SideChannelFlags) -> None:
 
 def _check_batching(batch_window_ms: float | None, max_batch: int) -> None:
     """Batched serving runs (and warms up) one program per power-of-two batch size up to --max-batch."""
+    if batch_window_ms is None and max_batch != DEFAULT_MAX_BATCH:
+        raise StartupError("--max-batch sizes batched calls: add --batch-window-ms MS", 2)
     if batch_window_ms is not None and (batch_window_ms < 0 or max_batch < 1 or max_batch & (max_batch - 1)):
         raise StartupError(
             f"need --batch-window-ms >= 0 and --max-batch a power of two, got {batch_window_ms} and {max_batch}", 2
@@ -265,6 +269,8 @@ def _warm_up(served: Policy | CAMPolicy, policy: Policy, batch_window_ms: float 
 
 
 def _check_recording(root: Path | None, fps: int) -> None:
+    if root is None and fps != DEFAULT_RECORD_FPS:
+        raise StartupError("--record-fps is the recorded dataset's rate: add --record DIR", 2)
     if root is not None and root.exists() and any(root.iterdir()):
         raise StartupError(f"--record {root} exists and is not empty: name a new folder", 2)
     if fps < 1:

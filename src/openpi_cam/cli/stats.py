@@ -39,7 +39,12 @@ def main(
     if is_maps_dataset(run_dir):
         return _dataset_stats(run_dir, format, out, kind)
     try:
-        steps = view_steps(load_run(run_dir, load_arrays=False).steps, kind)
+        run = load_run(run_dir, load_arrays=False)
+    except FileNotFoundError as e:  # not a run (nor a maps dataset): named in one line
+        print(f"openpi-cam stats: {e}", file=sys.stderr)
+        return 1
+    try:
+        steps = view_steps(run.steps, kind)
     except MissingMaps as e:
         print(f"openpi-cam stats: {e}", file=sys.stderr)
         return 2

@@ -125,6 +125,25 @@ DEFAULT_TRAIN = train.TrainArgs()
 DEFAULT_RECORD = RecordArgs()
 
 
+def _unused(args: train.TrainArgs, sim: str, data: Path | None, record: RecordArgs) -> str | None:
+    """What the flags given leave without effect (and the command refuses), or None."""
+    recording = [f"--record.{f.name.replace('_', '-')}" for f in dataclasses.fields(record)
+                 if getattr(record, f.name) != getattr(DEFAULT_RECORD, f.name)]  # fmt: skip
+    if sim == "reach" and (data is not None or recording):
+        given = ", ".join((["--data"] if data is not None else []) + recording)
+        return f"{given}: Meta-World's expert episodes: add --sim metaworld"
+    # The reaching task's alone: Meta-World trains on its recorded frames, where the binding probe has no scenes.
+    fixed = [f"--args.{n.replace('_', '-')}" for n in ("probe_every", "contrast_pairs")
+             if getattr(args, n) != getattr(DEFAULT_TRAIN, n)]  # fmt: skip
+    if sim != "reach" and fixed:
+        return f"{', '.join(fixed)}: the reaching task's; --sim {sim} trains on its recorded frames"
+    if refused := args.unused():
+        return refused.replace("--", "--args.")
+    if sim != "reach" and recording and data is not None and is_lerobot_dataset(data):
+        return f"{', '.join(recording)}: {data} holds its expert episodes already (a new folder records them)"
+    return None
+
+
 def main(
     args: train.TrainArgs = DEFAULT_TRAIN,
     sim: Literal["reach", "metaworld", "metaworld-button"] = "reach",
@@ -140,6 +159,9 @@ def main(
         data: metaworld: the LeRobot dataset of expert episodes, recorded there first if the folder is absent or empty.
         record: metaworld: the expert episodes to record.
     """
+    if refused := _unused(args, sim, data, record):
+        print(f"train_demo: {refused}")
+        return 2
     if sim == "reach":
         train.train(args)
         return 0

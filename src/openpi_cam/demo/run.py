@@ -205,6 +205,19 @@ class DemoOptions:
         """The bundled model that serves (`model_spec.BUNDLED_CONFIGS`)."""
         return METAWORLD_MODELS[self.model] if self.sim == "metaworld" else self.model
 
+    def ignored(self) -> dict[str, str]:
+        """The flags given (other than their defaults) that the other flags leave without effect: flag -> why. The
+        command refuses them, so that no flag is accepted and then ignored."""
+        flags = {}
+        changed = [f.name for f in dataclasses.fields(self) if getattr(self, f.name) != f.default]
+        spelled = {name: _flag(name, getattr(self, name)) for name in changed}
+        if not self.explain:
+            why = "--no-explain explains nothing (no run, maps, renders or faithfulness)"
+            flags |= {spelled[name]: why for name in changed if name in _EXPLAINED}
+        elif not self.render and "videos" in changed:
+            flags[spelled["videos"]] = "--no-render writes no videos"
+        return flags
+
     def __post_init__(self) -> None:
         if not self.perturb:
             raise ValueError("--perturb needs at least one perturbation (clean: none)")
@@ -217,6 +230,16 @@ class DemoOptions:
             raise ValueError("--task names Meta-World tasks: it needs --sim metaworld")
 
 
+# What only an explained run uses (the run's folder, the maps, their renders and faithfulness).
+_EXPLAINED = ("out", "target", "render", "videos", "maps", "faithfulness", "baseline", "ig_space")
+
+
+def _flag(field: str, value: object) -> str:
+    """How the command line spells a field set to `value` (`--no-render` for a switch turned off)."""
+    name = field.replace("_", "-")
+    return f"--no-{name}" if value is False else f"--{name}"
+
+
 @dataclasses.dataclass
 class DemoResult:
     run_dir: pathlib.Path | None  # None: the side channel was off
@@ -227,14 +250,23 @@ class DemoResult:
     faithfulness: dict[str, Any] | None = None  # `cam.faithfulness_run.evaluate_run`'s report
 
 
+class UnfitModel(ValueError):
+    """The model folder cannot be served as the model `--model` and `--sim` choose (e.g. `--assets` holds another
+    family's weights)."""
+
+
 def run_demo(opts: DemoOptions, sink: RolloutSink | None = None) -> DemoResult:
     """Serves, drives (recording every step into `sink`), renders and scores; raises OSError when the side channel
-    cannot create its run directory, ImportError when `--sim metaworld` lacks its extra."""
+    cannot create its run directory or the model's files are missing, ImportError when `--sim metaworld` lacks its
+    extra, UnfitModel when the model's folder does not hold the chosen model."""
     t0 = time.time()
     if opts.sim == "metaworld":
         metaworld_sim.require_simulator()
     model = ModelSpec.demo(opts.bundled_model, opts.assets)
-    policy = model.create()
+    try:
+        policy = model.create()
+    except ValueError as e:
+        raise UnfitModel(f"--model {opts.model} (--sim {opts.sim}: {opts.bundled_model}): {e}") from None
     options = CAMOptions(
         every_k=1,
         dir=opts.out,

@@ -15,8 +15,9 @@ import dataclasses
 import functools
 import json
 import shutil
+import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Literal
 
@@ -24,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+import tyro
 
 from openpi_cam.checkpoints import model_spec
 from openpi_cam.demo import bundled, make_tokenizers, metaworld_loop, metaworld_sim, sim
@@ -71,6 +73,19 @@ class TrainArgs:
     eval_episodes: int = 30
     log_every: int = 250
     probe_every: int = 500  # log the binding probe (`quality.binding_probe`) every this many steps; 0: never
+
+    def unused(self) -> str | None:
+        """The fields set (other than their defaults) that the others leave without effect, or None: what the
+        training commands refuse rather than ignore."""
+        finetune = [f"--{n.replace('_', '-')}" for n in ("finetune_lr", "finetune_warmup") if self._changed(n)]
+        if finetune and (self.finetune_steps == 0 or self.model == "pi05"):
+            return f"{', '.join(finetune)}: no finetune phase runs (--finetune-steps 0, or pi0.5, which has none)"
+        if self.model == "pi05" and self._changed("decode_offset"):
+            return "--decode-offset: pi0.5 has no action tokens to place"
+        return None
+
+    def _changed(self, name: str) -> bool:
+        return getattr(self, name) != getattr(TrainArgs, name)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -255,7 +270,16 @@ def train_phase(params: dict, cfg: ModelConfig, batches: Batches, phase: Phase, 
     return params, float(np.mean(losses[-args.log_every :]))
 
 
-if __name__ == "__main__":
-    import tyro
+def main(argv: Sequence[str] | None = None) -> int:
+    """`python -m openpi_cam.demo.train [FLAGS]`: the flags are `TrainArgs`; ones the others leave without effect are
+    refused in one line."""
+    args = tyro.cli(TrainArgs, args=argv)
+    if refused := args.unused():
+        print(f"openpi_cam.demo.train: {refused}", file=sys.stderr)
+        return 2
+    train(args)
+    return 0
 
-    train(tyro.cli(TrainArgs))
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -40,6 +40,8 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 from PIL import Image
 
+from openpi_cam.errors import BadFile, load_json
+
 CAMERA_DTYPES = ("video", "image")
 # Columns every frame carries, whether or not the caller asked for them.
 ALWAYS = ("index", "episode_index", "frame_index", "timestamp", "task_index")
@@ -47,7 +49,7 @@ V2_VERSIONS = ("v2.0", "v2.1")
 V3_VERSIONS = ("v3.0",)
 
 
-class DatasetError(ValueError):
+class DatasetError(BadFile):
     """A dataset that cannot be read as asked. The message is one line naming the file, episode and feature."""
 
 
@@ -409,8 +411,10 @@ def open_dataset(root: str | Path, *, tolerance_s: float | None = None) -> LeRob
     if not info_path.is_file():
         raise dataset_error("missing meta/info.json: not a LeRobot dataset root", file=info_path)
     try:
-        info = json.loads(info_path.read_text())
-    except (OSError, ValueError) as e:
+        info = load_json(info_path)
+    except BadFile as e:
+        raise DatasetError(str(e)) from e
+    except OSError as e:
         raise dataset_error(f"unreadable info.json ({e})", file=info_path) from e
     version = info.get("codebase_version")
     if version not in V2_VERSIONS + V3_VERSIONS:

@@ -25,7 +25,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import sentencepiece
 from safetensors.numpy import save_file
 
 from openpi_cam.lerobot.policy import ACTION, OBS_IMAGES, OBS_STATE
@@ -44,9 +43,10 @@ from openpi_cam.policies.checkpoint_format import (
 )
 from openpi_cam.policies.config import PolicyConfig, resolve_config
 from openpi_cam.policies.robot import GenericInputs, GenericOutputs
-from openpi_cam.tokenizers.paligemma import PALIGEMMA_HUB_ID, resolve_paligemma_tokenizer_path
+from openpi_cam.tokenizers.paligemma import PALIGEMMA_HUB_ID, load_paligemma_tokenizer, resolve_paligemma_tokenizer_path
 
 TOKENIZER_DIR = "tokenizer"
+EXPORT_DTYPES = ("float32", "bfloat16")  # the values of LeRobot's pi0 / pi0.5 `dtype` field
 # What LeRobot's converted PaliGemma tokenizer declares; transformers builds it from tokenizer.model.
 TOKENIZER_CONFIG = {
     "tokenizer_class": "GemmaTokenizer",
@@ -109,9 +109,9 @@ def plan_export(cfg: PolicyConfig) -> ExportPlan:
     return ExportPlan(cameras, blank, robot.state_dim, cfg.outputs[0].action_dim)
 
 
-def lerobot_config(cfg: PolicyConfig, plan: ExportPlan, model: Pi0) -> dict[str, Any]:
+def lerobot_config(cfg: PolicyConfig, plan: ExportPlan, model: Pi0, dtype: str = "float32") -> dict[str, Any]:
     """config.json of the exported policy: LeRobot's fields, the sizes named as its variants (the real ones are in
-    the weights and, for sizes it lacks, the sizes record)."""
+    the weights and, for sizes it lacks, the sizes record), `dtype` the policy's compute dtype."""
     res = model.config.siglip.image_size
     empty = {f"{OBS_IMAGES}empty_camera_{i}": [3, res, res] for i in range(len(plan.blank))}
     quantiles = cfg.use_quantile_norm
@@ -125,7 +125,7 @@ def lerobot_config(cfg: PolicyConfig, plan: ExportPlan, model: Pi0) -> dict[str,
         "output_features": {ACTION: {"type": "ACTION", "shape": [plan.action_dim]}},
         "paligemma_variant": "gemma_2b",
         "action_expert_variant": "gemma_300m",
-        "dtype": "float32",
+        "dtype": dtype,
         "chunk_size": cfg.action_horizon,
         "n_action_steps": cfg.action_horizon,
         "max_state_dim": model.config.action_dim,
@@ -201,11 +201,16 @@ def export_lerobot(
     out_dir: str | Path,
     *,
     paligemma_tokenizer: str | Path | None = None,
+    dtype: str = "float32",
 ) -> Path:
     """Writes `checkpoint_dir` (OpenPI orbax, served by `config`) as a LeRobot policy folder `out_dir` (new or empty).
     `paligemma_tokenizer`: the SentencePiece model copied into the folder's `tokenizer/` (None: the folder names
-    PaliGemma's Hub tokenizer, as LeRobot's own folders do)."""
+    PaliGemma's Hub tokenizer, as LeRobot's own folders do). `dtype`: the policy's dtype, LeRobot's `dtype` field
+    (float32 or bfloat16): the weights are stored in it (LeRobot's loader casts each into its parameter's dtype), the
+    normaliser statistics stay float32."""
     checkpoint_dir, out = Path(checkpoint_dir), Path(out_dir)
+    if dtype not in EXPORT_DTYPES:
+        raise ValueError(f"dtype {dtype!r}: a LeRobot pi0 / pi0.5 policy is one of {', '.join(EXPORT_DTYPES)}")
     cfg = resolve_config(config)
     if (kind := checkpoint_format(checkpoint_dir)) != "orbax":
         raise ValueError(f"{checkpoint_dir} is a {kind} checkpoint; export reads OpenPI orbax checkpoints")
@@ -223,13 +228,13 @@ def export_lerobot(
     tokenizer_name = PALIGEMMA_HUB_ID
     if paligemma_tokenizer is not None:
         source = resolve_paligemma_tokenizer_path(paligemma_tokenizer)
-        sentencepiece.SentencePieceProcessor(model_file=str(source))  # a readable SentencePiece model
+        load_paligemma_tokenizer(source)  # a readable SentencePiece model
         tokenizer_name = TOKENIZER_DIR
-    config_json = lerobot_config(cfg, plan, model)
+    config_json = lerobot_config(cfg, plan, model, dtype)
     pre, post = _pipelines(cfg, config_json, tokenizer_name)
     out.mkdir(parents=True, exist_ok=True)
     (out / CONFIG_FILE).write_text(json.dumps(config_json, indent=4))
-    save_safetensors_params(out / WEIGHTS_FILE, model.params, model.config, lm_heads=True)
+    save_safetensors_params(out / WEIGHTS_FILE, model.params, model.config, dtype=dtype, lm_heads=True)
     for pipeline, filename in ((pre, PREPROCESSOR_FILE), (post, POSTPROCESSOR_FILE)):
         (out / filename).write_text(json.dumps(pipeline, indent=2))
         for step in pipeline["steps"]:

@@ -4,12 +4,12 @@
 
 from __future__ import annotations
 
-import json
 import pathlib
 
 import numpy as np
 
 from openpi_cam import golden
+from openpi_cam.errors import load_json
 from openpi_cam.lerobot.policy import OBS_STATE, TASK, TOKEN_MASK, TOKENS, LeRobotParts, build_lerobot
 from openpi_cam.policies.checkpoint_format import CONFIG_FILE
 from openpi_cam.policies.policy import Policy
@@ -20,7 +20,8 @@ LEROBOT_CASES = "cases.npz"
 def is_lerobot_golden(folder: pathlib.Path) -> bool:
     if not (folder / LEROBOT_CASES).is_file() or not (folder / CONFIG_FILE).is_file():
         return False
-    return json.loads((folder / CONFIG_FILE).read_text()).get("type") is not None
+    config = load_json(folder / CONFIG_FILE, object)
+    return isinstance(config, dict) and config.get("type") is not None
 
 
 def _text(case: str, name: str, got: str, want: str) -> golden.Comparison:
@@ -79,8 +80,7 @@ def run_lerobot_golden(folder: pathlib.Path, verbose: bool = True) -> list[golde
     linear function of the first frame's chunk w.r.t. the first camera's model-space image."""
     parts = build_lerobot(folder, dtype="float32")
     policy = parts.policy()
-    with np.load(folder / LEROBOT_CASES, allow_pickle=False) as npz:
-        arrays = {k: npz[k] for k in npz.files}
+    arrays = golden.read_npz(folder / LEROBOT_CASES)
     variation = golden.lerobot_variation(
         arrays["meta/batch2_row_vs_single_maxdiff"], arrays["batch2/action_normalized"]
     )

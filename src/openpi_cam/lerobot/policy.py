@@ -20,7 +20,6 @@ post-processed chunk: `chunk_size` rows of the action feature's dims.
 from __future__ import annotations
 
 import dataclasses
-import json
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
@@ -31,7 +30,7 @@ import numpy as np
 import sentencepiece
 from safetensors.numpy import load_file
 
-from openpi_cam.errors import InvalidRequest
+from openpi_cam.errors import InvalidRequest, load_json, reading
 from openpi_cam.image_tools import resize_with_pad_torch_bilinear, unit_to_uint8
 from openpi_cam.model.pi0 import MAX_PERIOD, MIN_PERIOD, Pi0
 from openpi_cam.policies.checkpoint_format import (
@@ -117,10 +116,7 @@ class LeRobotConfig:
     @classmethod
     def read(cls, path: Path) -> LeRobotConfig:
         where = str(path)
-        try:
-            data = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as e:
-            raise ValueError(f"{where}: not readable as JSON ({e})") from e
+        data = load_json(path)
         kind = data.get("type")
         if kind in FAST_TYPES:
             raise ValueError(
@@ -132,11 +128,13 @@ class LeRobotConfig:
         periods = (data.get("min_period", MIN_PERIOD), data.get("max_period", MAX_PERIOD))
         if periods != (MIN_PERIOD, MAX_PERIOD):
             raise ValueError(f"{where}: time embedding periods {periods} differ from pi0's {(MIN_PERIOD, MAX_PERIOD)}")
+        inputs = _features(data.get("input_features", {}), f"{where}: input_features")
+        outputs = _features(data.get("output_features", {}), f"{where}: output_features")
         try:
             return cls(
                 type=kind,
-                input_features=_features(data.get("input_features", {}), f"{where}: input_features"),
-                output_features=_features(data.get("output_features", {}), f"{where}: output_features"),
+                input_features=inputs,
+                output_features=outputs,
                 chunk_size=int(data["chunk_size"]),
                 max_state_dim=int(data.get("max_state_dim", 32)),
                 max_action_dim=int(data.get("max_action_dim", 32)),
@@ -149,6 +147,8 @@ class LeRobotConfig:
             )
         except KeyError as e:
             raise ValueError(f"{where}: missing {e.args[0]!r}") from None
+        except (AttributeError, TypeError, ValueError) as e:  # a field of another JSON type than LeRobot writes
+            raise ValueError(f"{where}: {e}") from None
 
     @property
     def empty_camera_names(self) -> tuple[str, ...]:
@@ -188,11 +188,8 @@ class StepSpec:
 
 def read_pipeline(path: Path) -> list[StepSpec]:
     where = str(path)
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise ValueError(f"{where}: not readable as JSON ({e})") from e
-    steps = data.get("steps") if isinstance(data, dict) else None
+    data = load_json(path)
+    steps = data.get("steps")
     if not isinstance(steps, list):
         raise ValueError(f"{where}: no 'steps' list")
     out = []
@@ -212,7 +209,9 @@ def read_stats(folder: Path, spec: StepSpec, where: str) -> dict[str, dict[str, 
     if not path.is_file():
         raise FileNotFoundError(f"{where}: step {spec.name}'s statistics {path} are missing")
     stats: dict[str, dict[str, np.ndarray]] = {}
-    for key, value in load_file(str(path)).items():
+    with reading(path, "safetensors file"):
+        tensors = load_file(str(path))
+    for key, value in tensors.items():
         feature, _, stat = key.rpartition(".")
         stats.setdefault(feature, {})[stat] = np.asarray(value, np.float32)
     return stats
@@ -767,6 +766,13 @@ def build_lerobot(
     tokenizer = next((s for s in pre if isinstance(s, Tokenize)), None)
     if tokenizer is None:
         raise ValueError(f"{folder / PREPROCESSOR_FILE}: no tokenizer_processor step")
+    if tokenizer.max_length != cfg.tokenizer_max_length:
+        # LeRobot builds the tokenizer step from the config's value, so folders that disagree were edited by hand:
+        # which length the model was trained with cannot be told.
+        raise ValueError(
+            f"{folder / CONFIG_FILE}: tokenizer_max_length {cfg.tokenizer_max_length}, but "
+            f"{folder / PREPROCESSOR_FILE}'s tokenizer_processor pads to max_length {tokenizer.max_length}"
+        )
     post = pipeline_steps(folder, post_specs, "postprocessor", before=pre)
     if cfg.image_resolution[0] != cfg.image_resolution[1]:
         raise ValueError(f"{folder / CONFIG_FILE}: image_resolution {cfg.image_resolution} is not square")

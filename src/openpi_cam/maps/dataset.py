@@ -40,6 +40,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from openpi_cam.cam.run_format import RELIANCE_PROMPT, dumps
+from openpi_cam.errors import BadFile, load_json, reading
 
 FORMAT = "openpi-cam maps dataset"
 # 2: the model as the command line names it (`model`), the explanation options in one encoding (`options`).
@@ -151,13 +152,16 @@ def map_array(column: pa.ChunkedArray, grid: tuple[int, int]) -> np.ndarray:
 
 
 def is_maps_dataset(path: pathlib.Path) -> bool:
+    """Whether `path` holds a maps dataset's info.json; one that cannot be read as a JSON object counts, so that
+    opening it names what is wrong with the file instead of calling the folder something else."""
     info = pathlib.Path(path) / INFO_JSON
     if not info.is_file():
         return False
     try:
-        return json.loads(info.read_text()).get("format") == FORMAT
-    except (OSError, ValueError):
-        return False
+        data = load_json(info)
+    except (OSError, BadFile):
+        return True
+    return data.get("format") == FORMAT
 
 
 def _write_atomic(path: pathlib.Path, write: Any) -> None:
@@ -272,7 +276,7 @@ class MapsDataset:
 
     def summary(self) -> dict[str, Any]:
         path = self.root / SUMMARY_JSON
-        return json.loads(path.read_text()) if path.is_file() else {}
+        return load_json(path) if path.is_file() else {}
 
     def table(self, episode: int | None = None, columns: Sequence[str] | None = None) -> pa.Table:
         """The rows of one episode or of all of them, sorted by `index`."""
@@ -282,7 +286,7 @@ class MapsDataset:
         if not paths:
             return schema(self.info).empty_table()
         cols, shards = None if columns is None else list(columns), schema(self.info)
-        table = pa.concat_tables([pq.read_table(p, columns=cols, schema=shards) for p in paths])
+        table = pa.concat_tables([_read_shard(p, cols, shards) for p in paths])
         return table.sort_by("index") if "index" in table.column_names else table
 
     def maps(self, kind: str, camera: str, episode: int | None = None) -> np.ndarray:
@@ -330,8 +334,13 @@ class MapsDataset:
         )
 
 
+def _read_shard(path: pathlib.Path, columns: list[str] | None, shards: pa.Schema) -> pa.Table:
+    with reading(path, "parquet file"):
+        return pq.read_table(path, columns=columns, schema=shards)
+
+
 def open_maps_dataset(root: str | pathlib.Path) -> MapsDataset:
     root = pathlib.Path(root)
     if not is_maps_dataset(root):
         raise FileNotFoundError(f"{root} is not a maps dataset (no {INFO_JSON} with format {FORMAT!r})")
-    return MapsDataset(root, MapsInfo.from_json(json.loads((root / INFO_JSON).read_text())))
+    return MapsDataset(root, MapsInfo.from_json(load_json(root / INFO_JSON)))

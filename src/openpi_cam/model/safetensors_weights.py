@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from safetensors import safe_open
 
+from openpi_cam.errors import reading
 from openpi_cam.model.config import (
     GemmaConfig,
     Pi0Config,
@@ -219,7 +220,7 @@ def read_tensor_infos(path: str | pathlib.Path) -> dict[str, TensorInfo]:
     path = pathlib.Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"weights not found: {path}")
-    with safe_open(str(path), framework="np") as f:
+    with reading(path, "safetensors file"), safe_open(str(path), framework="np") as f:
         infos = {}
         for key in f.keys():  # noqa: SIM118  (safe_open is not a mapping)
             piece = f.get_slice(key)
@@ -357,7 +358,7 @@ def check_tensors(infos: Mapping[str, TensorInfo], cfg: Pi0Config, prefix: str, 
 
 def _read_tensor(path: pathlib.Path, key: str) -> np.ndarray:
     # Opened per tensor: closing unmaps the file, so its pages leave the process's resident set at once.
-    with safe_open(str(path), framework="np") as f:
+    with reading(path, "safetensors file"), safe_open(str(path), framework="np") as f:
         return f.get_tensor(key)
 
 

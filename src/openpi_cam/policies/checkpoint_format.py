@@ -9,6 +9,7 @@ import json
 from pathlib import Path
 from typing import Any, Literal
 
+from openpi_cam.errors import load_json
 from openpi_cam.model.config import Pi0Config
 from openpi_cam.model.safetensors_weights import LEROBOT_HEADS, HeadCounts
 
@@ -29,11 +30,7 @@ LEROBOT_SIZES = Pi0Config()  # gemma_2b, gemma_300m and PaliGemma's SigLIP: the 
 
 def _lerobot_type(config: Path) -> str | None:
     """A LeRobot policy config's `type`; None for another JSON file (OpenPI's export writes a config without one)."""
-    try:
-        data = json.loads(config.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise ValueError(f"{config}: not readable as JSON ({e})") from e
-    kind = data.get("type") if isinstance(data, dict) else None
+    kind = load_json(config).get("type")
     return kind if isinstance(kind, str) else None
 
 
@@ -70,11 +67,12 @@ def read_head_counts(folder: Path) -> HeadCounts:
     path = folder / SIZES_RECORD
     if not path.is_file():
         return LEROBOT_HEADS
+    record = load_json(path)
     try:
-        tiny = json.loads(path.read_text())["tiny"]
+        tiny = record["tiny"]
         gemma = {int(tiny[stack]["num_heads"]) for stack in ("vlm", "expert")}
         siglip = int(tiny["siglip"]["num_attention_heads"])
-    except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+    except (KeyError, TypeError, ValueError) as e:
         raise ValueError(f"{path}: no readable 'tiny' sizes ({type(e).__name__}: {e})") from e
     if len(gemma) != 1:
         raise ValueError(f"{path}: the language model and the expert attend jointly, but their head counts differ")

@@ -5,12 +5,12 @@ and policy run on a LeRobot policy folder are `lerobot.golden`'s."""
 
 from __future__ import annotations
 
-import json
 import pathlib
 
 import numpy as np
 
 from openpi_cam import golden
+from openpi_cam.errors import load_json
 from openpi_cam.policies.policy import Policy, create_policy
 
 
@@ -40,7 +40,7 @@ def check_policy_case(policy: Policy, name: str, d: dict, prompt: str) -> list[g
 
 def run_policy_golden(folder: pathlib.Path, verbose: bool = True) -> list[golden.Comparison]:
     """Every case of a policy golden folder, served by the config the folder names, float32 as its reference."""
-    info = json.loads((folder / "case.json").read_text())
+    info = load_json(folder / "case.json")
     policy = create_policy(
         info["config_name"],
         folder / "checkpoint",

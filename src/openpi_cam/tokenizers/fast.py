@@ -19,6 +19,8 @@ import scipy.fft
 from tokenizers import Tokenizer, decoders, models, pre_tokenizers, processors
 from tokenizers.trainers import BpeTrainer
 
+from openpi_cam.errors import load_json, reading
+
 logger = logging.getLogger(__name__)
 
 TOKENIZER_FILE: Final = "tokenizer.json"
@@ -45,13 +47,16 @@ class FastProcessorConfig:
         missing = [key for key in ("scale", "vocab_size", "min_token") if key not in data]
         if missing:
             raise ValueError(f"{source} lacks required keys {missing}")
-        return cls(
-            scale=data["scale"],
-            vocab_size=int(data["vocab_size"]),
-            min_token=int(data["min_token"]),
-            action_dim=data.get("action_dim"),
-            time_horizon=data.get("time_horizon"),
-        )
+        try:
+            return cls(
+                scale=data["scale"],
+                vocab_size=int(data["vocab_size"]),
+                min_token=int(data["min_token"]),
+                action_dim=data.get("action_dim"),
+                time_horizon=data.get("time_horizon"),
+            )
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{source}: {e}") from None
 
     def to_json_dict(self) -> dict[str, Any]:
         return {"processor_class": "UniversalActionProcessor", **dataclasses.asdict(self)}
@@ -107,8 +112,11 @@ class FastActionTokenizer:
         if missing:
             raise FileNotFoundError(f"FAST tokenizer directory {directory} lacks {missing}")
         config_path = directory / PROCESSOR_CONFIG_FILE
-        config = FastProcessorConfig.from_json_dict(json.loads(config_path.read_text()), source=str(config_path))
-        return cls(Tokenizer.from_file(str(directory / TOKENIZER_FILE)), config)
+        config = FastProcessorConfig.from_json_dict(load_json(config_path), source=str(config_path))
+        # The tokenizers library raises a bare Exception for a file it cannot parse.
+        with reading(directory / TOKENIZER_FILE, "tokenizer file", Exception):
+            bpe = Tokenizer.from_file(str(directory / TOKENIZER_FILE))
+        return cls(bpe, config)
 
     def save(self, directory: str | Path) -> Path:
         """Write `tokenizer.json` and `processor_config.json` so that `load` gives back an equal tokenizer."""

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import sentencepiece
 
+from openpi_cam.errors import reading
 from openpi_cam.tokenizers.fast import huggingface_hub_cache
 
 OPENPI_DATA_HOME_ENV = "OPENPI_DATA_HOME"
@@ -62,4 +63,5 @@ def hf_cached_file(repo_id: str, filename: str) -> Path | None:
 def load_paligemma_tokenizer(path: str | Path | None = None) -> sentencepiece.SentencePieceProcessor:
     """Load the SentencePiece model found by `resolve_paligemma_tokenizer_path`."""
     resolved = resolve_paligemma_tokenizer_path(path)
-    return sentencepiece.SentencePieceProcessor(model_proto=resolved.read_bytes())
+    with reading(resolved, "SentencePiece model", RuntimeError):  # SentencePiece's parse errors are RuntimeErrors
+        return sentencepiece.SentencePieceProcessor(model_proto=resolved.read_bytes())
