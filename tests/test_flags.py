@@ -907,6 +907,8 @@ TRAIN_DEMO_CASES: dict[str, tuple[Case, ...]] = {
     "--data": (
         Changes(TRAIN_METAWORLD, ("--data", "{scratch}/other"), top_folders),
         Refused("train_demo", ("--data", "{scratch}/expert")),
+        # A second folder is read, never recorded into: one that holds no dataset is refused before anything runs.
+        Refused("train_demo", ("--sim", "metaworld", "--data", "{scratch}/expert", "{scratch}/absent")),
     ),
     "--record.episodes": (
         Changes(TRAIN_METAWORLD, ("--record.episodes", "3"), recorded("expert/meta/info.json", "total_episodes")),

@@ -155,13 +155,26 @@ def test_the_training_command_records_the_expert_as_lerobot_and_trains_a_servabl
         data, RecordArgs(episodes=2, tasks=(metaworld_sim.TASK,), seed=7, clean_every=2, image_size=64, phrasings=1)
     )
     steps = [s for e in range(2) for s in metaworld_data.expert_episode(7 + e, 0.3 * (e % 2))]
-    demos = read_demonstrations(data)
+    demos = read_demonstrations([data])
     assert len(demos) == len(steps) and list(np.unique(demos.episode_index)) == [0, 1]
     np.testing.assert_array_equal(demos.actions, np.stack([s.frame[metaworld_data.ACTION_FEATURE] for s in steps]))
     np.testing.assert_array_equal(demos.base_image, np.stack([s.frame[metaworld_data.BASE_FEATURE] for s in steps]))
     assert set(demos.prompt) == {"press the button"}
+    # A second dataset (`--data A B`) continues the episode numbering: its episode 0 is the third, and the last chunk
+    # of the first dataset's last episode repeats that episode's last action instead of running into the next.
+    more = tmp_path / "more"
+    record_expert(more, RecordArgs(episodes=1, tasks=(metaworld_sim.TASK,), seed=9, image_size=64, phrasings=1))
+    both = read_demonstrations([data, more])
+    extra = list(metaworld_data.expert_episode(9, 0.0))
+    assert len(both) == len(steps) + len(extra) and list(np.unique(both.episode_index)) == [0, 1, 2]
+    np.testing.assert_array_equal(both.episode_index[len(steps) :], 2)
+    last = both.chunk(len(steps) - 1, 3)
+    np.testing.assert_array_equal(last, np.repeat(demos.actions[-1:], 3, axis=0))
+    np.testing.assert_array_equal(
+        both.actions[len(steps) :], np.stack([s.frame[metaworld_data.ACTION_FEATURE] for s in extra])
+    )
     args = train.TrainArgs(model="pi05", out=out, steps=2, batch_size=4, log_every=1, eval_episodes=0)
-    assert train_demo.main(args, sim="metaworld-button", data=data) == 0
+    assert train_demo.main(args, sim="metaworld-button", data=(data, more)) == 0
     policy = create_demo_policy("metaworld", assets=out)
     with MetaWorldSim(0) as sim:
         obs = bundled.policy_input(bundled.client_observation(sim.frame()))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Literal
 
@@ -115,9 +116,15 @@ def record_expert(root: Path, args: RecordArgs) -> None:
                 print(f"episode {done}/{total} ({task}): {wins} successes, {time.time() - t0:.0f}s", flush=True)
 
 
-def read_demonstrations(root: Path) -> metaworld_data.Demonstrations:
-    dataset = open_dataset(root)
-    frames = [frame for episode in dataset.episodes for frame in dataset.frames(episode)]
+def read_demonstrations(roots: Sequence[Path]) -> metaworld_data.Demonstrations:
+    """The expert frames of every dataset in `roots`, in that order; episodes numbered on across datasets (each
+    dataset counts its own from 0, and a chunk must not run from one dataset's episode into another's)."""
+    frames: list[dict] = []
+    for root in roots:
+        offset = frames[-1]["episode_index"] + 1 if frames else 0
+        dataset = open_dataset(root)
+        for episode in dataset.episodes:
+            frames += [{**f, "episode_index": offset + int(f["episode_index"])} for f in dataset.frames(episode)]
     return metaworld_data.Demonstrations.from_frames(frames, [frame["task"] for frame in frames])
 
 
@@ -125,12 +132,12 @@ DEFAULT_TRAIN = train.TrainArgs()
 DEFAULT_RECORD = RecordArgs()
 
 
-def _unused(args: train.TrainArgs, sim: str, data: Path | None, record: RecordArgs) -> str | None:
+def _unused(args: train.TrainArgs, sim: str, data: tuple[Path, ...], record: RecordArgs) -> str | None:
     """What the flags given leave without effect (and the command refuses), or None."""
     recording = [f"--record.{f.name.replace('_', '-')}" for f in dataclasses.fields(record)
                  if getattr(record, f.name) != getattr(DEFAULT_RECORD, f.name)]  # fmt: skip
-    if sim == "reach" and (data is not None or recording):
-        given = ", ".join((["--data"] if data is not None else []) + recording)
+    if sim == "reach" and (data or recording):
+        given = ", ".join((["--data"] if data else []) + recording)
         return f"{given}: Meta-World's expert episodes: add --sim metaworld"
     # The reaching task's alone: Meta-World trains on its recorded frames, where the binding probe has no scenes.
     fixed = [f"--args.{n.replace('_', '-')}" for n in ("probe_every", "contrast_pairs")
@@ -139,15 +146,17 @@ def _unused(args: train.TrainArgs, sim: str, data: Path | None, record: RecordAr
         return f"{', '.join(fixed)}: the reaching task's; --sim {sim} trains on its recorded frames"
     if refused := args.unused():
         return refused.replace("--", "--args.")
-    if sim != "reach" and recording and data is not None and is_lerobot_dataset(data):
-        return f"{', '.join(recording)}: {data} holds its expert episodes already (a new folder records them)"
+    if sim != "reach" and recording and data and is_lerobot_dataset(data[0]):
+        return f"{', '.join(recording)}: {data[0]} holds its expert episodes already (a new folder records them)"
+    if missing := [str(d) for d in data[1:] if not is_lerobot_dataset(d)]:
+        return f"--data {' '.join(missing)}: no LeRobot dataset there (only the first folder is recorded into)"
     return None
 
 
 def main(
     args: train.TrainArgs = DEFAULT_TRAIN,
     sim: Literal["reach", "metaworld", "metaworld-button"] = "reach",
-    data: Path | None = None,
+    data: tuple[Path, ...] = (),
     record: RecordArgs = DEFAULT_RECORD,
 ) -> int:
     """Train a demo model.
@@ -156,7 +165,8 @@ def main(
         args: the training run (as `python -m openpi_cam.demo.train`); `--args.model` picks the family.
         sim: which simulator's task: the synthetic reaching task, Meta-World's six tasks (the multi-task pi0.5 or
             pi0-FAST) or Meta-World's button press alone (the one-task pi0.5).
-        data: metaworld: the LeRobot dataset of expert episodes, recorded there first if the folder is absent or empty.
+        data: metaworld: the LeRobot datasets of expert episodes, trained on together; the first is recorded first
+            if its folder is absent or empty (`--record.*`), the others must hold datasets.
         record: metaworld: the expert episodes to record.
     """
     if refused := _unused(args, sim, data, record):
@@ -169,14 +179,14 @@ def main(
     if args.model not in models.configs:
         print(f"train_demo: --sim {sim} trains {', '.join(models.configs)}, not --args.model {args.model}")
         return 2
-    if data is None:
+    if not data:
         print(f"train_demo: --sim {sim} needs --data DIR (the expert episodes' LeRobot dataset)")
         return 2
     record = with_defaults(record, models)
-    if not is_lerobot_dataset(data):
-        record_expert(data, record)
+    if not is_lerobot_dataset(data[0]):
+        record_expert(data[0], record)
     demos = read_demonstrations(data)
-    print(f"{len(demos)} frames in {len(np.unique(demos.episode_index))} episodes from {data}", flush=True)
+    print(f"{len(demos)} frames in {len(np.unique(demos.episode_index))} episodes from {', '.join(map(str, data))}")
     train.train(
         args,
         demonstrations=demos,

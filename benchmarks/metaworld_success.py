@@ -1,0 +1,115 @@
+"""Closed-loop success of the bundled multi-task Meta-World models, per model, task and perturbation.
+
+    python benchmarks/metaworld_success.py [--models pi05 pi0_fast] [--tasks all held-out] [--episodes 40]
+        [--perturb clean "prompt=open the door"] [--workers N] [--out FILE]
+
+Each (model, task, perturbation) runs the episodes `openpi-cam demo --sim metaworld --model M --task T --perturb P
+--num-episodes N --no-explain` runs: scene seeds `--seed` .. `--seed` + N - 1, the task's own step budget, `execute`
+actions of each chunk, both cameras at the demo's size. The policy is called in process rather than over the websocket
+(the server returns the same actions; `tests/serving` holds that), so that the episodes can spread over `--workers`
+processes, each with its own copy of the models on the CPU. Prints a markdown table with Wilson 95% intervals and
+the machine, and writes the figures as JSON to `--out`. Needs the `metaworld` extra.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import os
+import time
+from collections.abc import Sequence
+
+from bench_serving import machine_line
+
+_POLICIES: dict[str, object] = {}
+
+
+def _episode(job: tuple[str, str, str, int, int]) -> tuple[str, str, str, bool, int]:
+    """One episode in a worker: (model, task, perturbation, seed, execute) -> (model, task, perturbation, success,
+    steps)."""
+    from openpi_cam.checkpoints import model_spec
+    from openpi_cam.demo import bundled, metaworld_loop, metaworld_sim
+    from openpi_cam.demo.run import METAWORLD_CAMERA_SIZE, METAWORLD_MODELS
+
+    model, task, perturb, seed, execute = job
+    if model not in _POLICIES:
+        _POLICIES[model] = model_spec.create_demo_policy(METAWORLD_MODELS[model])
+    policy = _POLICIES[model]
+
+    def infer(obs: dict) -> dict:
+        return policy.infer(bundled.policy_input(obs))
+
+    out = metaworld_loop.run_episode(
+        infer,
+        seed,
+        metaworld_sim.Perturbation.parse(perturb),
+        task=task,
+        execute=execute,
+        image_size=METAWORLD_CAMERA_SIZE,
+    )
+    return model, task, perturb, bool(out["success"]), int(out["steps"])
+
+
+def expand_tasks(names: Sequence[str]) -> tuple[str, ...]:
+    from openpi_cam.demo.run import TASK_GROUPS
+
+    return tuple(dict.fromkeys(t for name in names for t in TASK_GROUPS.get(name, (name,))))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--models", nargs="+", default=["pi05", "pi0_fast"], choices=["pi05", "pi0_fast"])
+    parser.add_argument("--tasks", nargs="+", default=["all"], help="task names, or the groups all / held-out")
+    parser.add_argument("--perturb", nargs="+", default=["clean"])
+    parser.add_argument("--episodes", type=int, default=40)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--execute", type=int, default=5)
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    parser.add_argument("--out", default=None)
+    args = parser.parse_args()
+
+    from openpi_cam.cam.outcomes import wilson_interval
+
+    tasks = expand_tasks(args.tasks)
+    # Episode-major, so that a run cut short has as many episodes of every row as it could.
+    jobs = [
+        (m, t, p, args.seed + e, args.execute)
+        for e in range(args.episodes)
+        for m in args.models
+        for t in tasks
+        for p in args.perturb
+    ]
+    load_before, t0 = os.getloadavg(), time.time()
+    # The tiny models run on the CPU, one thread per worker: the workers are the parallelism (on a machine with an
+    # accelerator, every worker would otherwise claim its memory).
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")
+    os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false")
+    results = []
+    with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
+        for result in pool.imap_unordered(_episode, jobs):
+            results.append(result)
+            if args.out:  # every episode as it ends: a run stopped early keeps what it measured
+                with open(args.out, "w") as f:
+                    json.dump({"episodes": results, "seed": args.seed, "wall_s": time.time() - t0}, f)
+    wall = time.time() - t0
+    rows = []
+    print("| model | task | perturbation | successes | rate | 95% interval |")
+    print("| --- | --- | --- | --- | --- | --- |")
+    for m in args.models:
+        for t in tasks:
+            for p in args.perturb:
+                wins = [r[3] for r in results if r[:3] == (m, t, p)]
+                low, high = wilson_interval(sum(wins), len(wins))
+                rows.append({"model": m, "task": t, "perturbation": p, "successes": sum(wins), "episodes": len(wins)})
+                rate = sum(wins) / len(wins)
+                print(f"| {m} | {t} | {p} | {sum(wins)}/{len(wins)} | {rate:.2f} | {low:.2f}-{high:.2f} |")
+    machine = machine_line(load_before, os.getloadavg())
+    print(f"\n{len(jobs)} episodes in {wall:.0f} s over {args.workers} workers; {machine}")
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump({"rows": rows, "episodes": results, "seed": args.seed, "wall_s": wall, "machine": machine}, f)
+
+
+if __name__ == "__main__":
+    main()
