@@ -1,6 +1,6 @@
 """Closed-loop success of the bundled multi-task Meta-World models, per model, task and perturbation.
 
-    python benchmarks/metaworld_success.py [--models pi05 pi0_fast] [--tasks all held-out] [--episodes 40]
+    python benchmarks/metaworld_success.py [--models pi05 pi0_fast pi05=DIR] [--tasks all held-out] [--episodes 40]
         [--perturb clean "prompt=open the door"] [--workers N] [--out FILE]
 
 Each (model, task, perturbation) runs the episodes `openpi-cam demo --sim metaworld --model M --task T --perturb P
@@ -8,7 +8,8 @@ Each (model, task, perturbation) runs the episodes `openpi-cam demo --sim metawo
 actions of each chunk, both cameras at the demo's size. The policy is called in process rather than over the websocket
 (the server returns the same actions; `tests/serving` holds that), so that the episodes can spread over `--workers`
 processes, each with its own copy of the models on the CPU. Prints a markdown table with Wilson 95% intervals and
-the machine, and writes the figures as JSON to `--out`. Needs the `metaworld` extra.
+the machine, and writes the figures as JSON to `--out`. A model `FAMILY=DIR` is that family's bundled model with the
+weights and tokenizers of DIR instead (a candidate before it ships). Needs the `metaworld` extra.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import argparse
 import json
 import multiprocessing
 import os
+import pathlib
 import time
 from collections.abc import Sequence
 
@@ -34,7 +36,9 @@ def _episode(job: tuple[str, str, str, int, int]) -> tuple[str, str, str, bool, 
 
     model, task, perturb, seed, execute = job
     if model not in _POLICIES:
-        _POLICIES[model] = model_spec.create_demo_policy(METAWORLD_MODELS[model])
+        family, _, assets = model.partition("=")
+        folder = {"assets": pathlib.Path(assets)} if assets else {}
+        _POLICIES[model] = model_spec.create_demo_policy(METAWORLD_MODELS[family], **folder)
     policy = _POLICIES[model]
 
     def infer(obs: dict) -> dict:
@@ -59,7 +63,7 @@ def expand_tasks(names: Sequence[str]) -> tuple[str, ...]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--models", nargs="+", default=["pi05", "pi0_fast"], choices=["pi05", "pi0_fast"])
+    parser.add_argument("--models", nargs="+", default=["pi05", "pi0_fast"], help="pi05, pi0_fast or FAMILY=DIR")
     parser.add_argument("--tasks", nargs="+", default=["all"], help="task names, or the groups all / held-out")
     parser.add_argument("--perturb", nargs="+", default=["clean"])
     parser.add_argument("--episodes", type=int, default=40)
@@ -71,6 +75,10 @@ def main() -> None:
 
     from openpi_cam.cam.outcomes import wilson_interval
 
+    for model in args.models:
+        family, _, assets = model.partition("=")
+        if family not in ("pi05", "pi0_fast") or (assets and not pathlib.Path(assets, "checkpoint").is_dir()):
+            parser.error(f"--models {model}: pi05, pi0_fast, or FAMILY=DIR with a model folder (DIR/checkpoint)")
     tasks = expand_tasks(args.tasks)
     # Episode-major, so that a run cut short has as many episodes of every row as it could.
     jobs = [
