@@ -411,10 +411,11 @@ def test_run_figures_on_a_hand_made_run(tmp_path):
 
 
 def test_short_demo_run_is_readable(tmp_path):
-    """`openpi-cam demo` end to end at toy length: a readable run of every map kind with the client's ground truth,
-    the episode file, a report per kind listing every step, and the faithfulness report of the run. One call: each
-    logged step costs every kind's maps and their faithfulness re-scoring, and a second step proves nothing more."""
-    result = run_demo(DemoOptions(out=tmp_path, num_episodes=1, max_calls=1, seed=3))
+    """`openpi-cam demo` end to end at toy length: a readable run of every map kind (those the demo leaves out by
+    default asked for) with the client's ground truth, the episode file, a report per kind listing every step, and
+    the faithfulness report of the run. One call: each logged step costs every kind's maps and their faithfulness
+    re-scoring, and a second step proves nothing more."""
+    result = run_demo(DemoOptions(out=tmp_path, num_episodes=1, max_calls=1, seed=3, maps=MAP_KINDS))
     run = load_run(result.run_dir)
     (episode,) = result.episodes
     assert json.loads((result.run_dir / quality.EPISODES_FILE).read_text()) == result.episodes
@@ -445,6 +446,7 @@ def test_short_demo_run_is_readable(tmp_path):
     report = result.faithfulness
     assert report["steps_evaluated"] == len(run.steps) and report["score_replay_max_abs_diff"] < 1e-4
     assert report["cameras"]["base_0_rgb"]["kinds"]["occlusion"]["deletion_k1"]["median"] == pytest.approx(1.0)
+    assert set(report["cameras"]["base_0_rgb"]["kinds"]) == {*MAP_KINDS, "random"}
 
 
 def _has_colour(image: np.ndarray, colours: Any) -> np.ndarray:

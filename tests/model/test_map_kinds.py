@@ -450,6 +450,56 @@ def test_random_mode_is_the_iss_of_its_masks(demo):
         np.testing.assert_allclose(res.by_kind["occlusion"][camera], expected, atol=SCORE_ATOL)
 
 
+def test_rise_beside_occlusion_estimates_each_patchs_effect_on_an_additive_score():
+    """`collect` with a family whose score is additive over the painted patches (drop = sum of their effects, two
+    cameras with effects of their own, 3 x 5 grid so that no axis lines up with another): occlusion's maps are the
+    effects exactly and rise's, from the same call, estimate them: every patch within 4 standard errors (for the
+    conditional-mean difference of an additive score the error's std is sqrt(sum of the other effects' squares / N),
+    here 0.04) and the three large effects ranked first in their order."""
+    grid, cameras = (3, 5), ("a", "b")
+    rng = np.random.default_rng(4)
+    effects = rng.normal(0.0, 0.1, (2, *grid))
+    effects[0, 1, 3], effects[0, 2, 0], effects[0, 0, 4] = 3.0, 2.0, 1.0
+    effects[1, 0, 0], effects[1, 2, 4], effects[1, 1, 1] = 3.0, 2.0, 1.0
+    calls = []
+
+    def run(kinds, options, inputs, first):
+        calls.append((kinds, np.asarray(inputs.cams)))
+        painted = np.asarray(inputs.masks, np.float64)  # [K, 3, 5]
+        drops = np.einsum("khw,khw->k", painted, effects[np.asarray(inputs.cams)])
+        return {"occlusion_scores": (10.0 - drops)[:, None, None]}  # [K, T = 1, B = 1]
+
+    n = 4096
+    res = baseline_maps.collect(run, cameras, grid, ("occlusion", "rise"), MapOptions(rise_masks=n, mask_chunk=7))
+    assert [kinds for kinds, _ in calls] == [("occlusion",)]  # one program re-runs both kinds' variants
+    for c, camera in enumerate(cameras):
+        np.testing.assert_allclose(res["occlusion"][camera][0, 0], effects[c], atol=1e-9)
+        rise = res["rise"][camera][0, 0]
+        others = np.sqrt((np.sum(effects[c] ** 2) - effects[c] ** 2) / n)
+        assert np.all(np.abs(rise - effects[c]) <= 4 * others), np.abs(rise - effects[c]) / others
+        np.testing.assert_array_equal(np.argsort(-rise.ravel())[:3], np.argsort(-effects[c].ravel())[:3])
+
+
+def test_rise_is_the_iss_of_its_masks_rescored(demo):
+    """The rise kind through the model: its maps are the conditional-mean differences (`attribution.iss_map`) of the
+    scores a user gets re-scoring its masks (drawn from the options' seed over the patch grid), for every row."""
+    # 16 masks: as many variants as exhaustive occlusion, so the program of the other tests is reused (IG at its
+    # first try rides along for the same reason).
+    options = dataclasses.replace(SHARED_OPTIONS, rise_masks=16, seed=5)
+    weights = maps.chunk_weights(demo.chunk_rows, 2, demo.generated.shape[1])[0]
+    kinds = ("ig", "rise")
+    res = maps.maps_for_chunk(demo.model, demo.obs, demo.generated, demo.chunk_rows, kinds=kinds, options=options)
+    masks = attribution.random_region_masks((4, 4), 1, 16, options.rise_keep_prob, options.seed)
+    with_reference = np.concatenate([np.zeros((1, 4, 4), bool), masks])
+    scores = maps.rescore_masks(
+        demo.model, demo.obs, demo.generated, dict.fromkeys(DEMO_CAMERAS, with_reference), weights=weights
+    )
+    for camera in DEMO_CAMERAS:
+        expected = attribution.iss_map(masks, scores[camera][:1] - scores[camera][1:])  # [B, 4, 4]
+        np.testing.assert_allclose(res.by_kind["rise"][camera], expected, atol=SCORE_ATOL)
+        assert np.abs(expected).max() > 100 * SCORE_ATOL
+
+
 @pytest.mark.slow
 def test_ig_completeness_on_the_demo_model_at_the_default_steps(demo):
     """The 2% target at the default options, for a chunk and a token target (measured worst case over 100 scenes in

@@ -75,11 +75,12 @@ def object_pointing(cam_map: np.ndarray, boxes: list[tuple[int, ...]], image_siz
 
 
 def run_figures(run_dir: Path, image_size: int = task.TaskConfig().image_size) -> dict[str, Any]:
-    """Success rate (from the demo's episode file) and, per map kind, the pointing game over every logged step."""
+    """Success rate (from the demo's episode file) and, per map kind the run carries, the pointing game over every
+    logged step."""
     run = load_run(run_dir)
     labelled = [s for s in run.steps if s.extra.get("target_box") is not None]
     per_kind = {}
-    for kind in MAP_KINDS:
+    for kind in (k for k in MAP_KINDS if any(k in s.map_kinds for s in run.steps)):
         hit, cell_chance, area_chance, on_block, block_chance = [], [], [], [], []
         for step in labelled:
             extra = step.extra

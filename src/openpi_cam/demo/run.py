@@ -24,7 +24,7 @@ from openpi_cam.demo.perturb import Perturbation
 from openpi_cam.policies.model_spec import ModelSpec
 from openpi_cam.serving.server import start_server_in_thread
 from openpi_cam.viz.render import RenderOptions, default_render_dir, render_run
-from openpi_cam.vocabulary import MAP_KINDS, Baseline, IgSpace, MapKind, MapOptions, Target
+from openpi_cam.vocabulary import COMPARED_KINDS, Baseline, IgSpace, MapKind, MapOptions, Target
 
 
 def run_episodes(
@@ -147,8 +147,8 @@ class DemoOptions:
     model: Literal["pi0_fast", "pi05"] = "pi0_fast"
     # the folder holding the model (checkpoint/) and its tokenizers; default: the bundled ones of `model`.
     assets: pathlib.Path | None = None
-    # which map kinds the side channel computes (all four, so that the faithfulness table compares them).
-    maps: tuple[MapKind, ...] = MAP_KINDS
+    # which map kinds the side channel computes (default: the four the faithfulness table compares; others by name).
+    maps: tuple[MapKind, ...] = COMPARED_KINDS
     # re-score every step afterwards and report how faithful each map kind is.
     faithfulness: bool = True
     # the frame `ig` starts from and `occlusion` (and the faithfulness deletion) paints with.
