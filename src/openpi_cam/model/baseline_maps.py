@@ -69,12 +69,21 @@ def with_images(obs: Observation, images: Mapping[str, jax.Array]) -> Observatio
     return dataclasses.replace(obs, images=dict(images))
 
 
+def balanced_chunk(variants: int, chunk: int) -> int:
+    """How many variants run vectorised at once: as few chunks as `chunk` at a time allows, made as even as possible,
+    so that padding the variants to whole chunks adds fewer than one variant per chunk (34 variants at 16 at a time
+    run as 3 chunks of 12, not 3 of 16 with 14 no-op re-runs)."""
+    chunks = -(-variants // chunk)
+    return -(-variants // chunks)
+
+
 def _painted_scores(params, obs, cfg, score_fn, E, images, base, cams, masks, chunk) -> jax.Array:
     """Scores with camera cams[k]'s patches masks[k] replaced by its baseline frame, that camera re-encoded by SigLIP
-    and the others' tokens kept. cams int32 [K], masks bool [K, Hp, Wp], K a multiple of `chunk` -> [K, T, B].
+    and the others' tokens kept. cams int32 [K], masks bool [K, Hp, Wp], K padded by `variants` -> [K, T, B].
 
-    A chunk of variants runs vectorised (forward only, so `vmap` is safe here); the chunks run one after another
-    (`lax.map`), which bounds memory at chunk x B model runs for any number of masks."""
+    A chunk of variants (`balanced_chunk` of K and `chunk`) runs vectorised (forward only, so `vmap` is safe here);
+    the chunks run one after another (`lax.map`), which bounds memory at chunk x B model runs for any number of
+    masks."""
     name = next(iter(obs.images))
     select = jnp.arange(E.shape[1])[None, :, None, None]  # [1, C, 1, 1]
 
@@ -84,6 +93,7 @@ def _painted_scores(params, obs, cfg, score_fn, E, images, base, cams, masks, ch
         return score_fn(jnp.where(select == cam, tokens, E))
 
     k = cams.shape[0]
+    chunk = balanced_chunk(k, chunk)
     # Under a data mesh the variants of each chunk are spread over the devices (they never interact).
     chunked_cams = spread(cams.reshape(k // chunk, chunk), 1)
     chunked_masks = spread(masks.reshape(k // chunk, chunk, *masks.shape[1:]), 1)
@@ -154,7 +164,7 @@ def occlusion_masks(grid: tuple[int, int], options: MapOptions) -> np.ndarray:
 
 def variants(per_camera: Sequence[np.ndarray | None], chunk: int) -> tuple[BaselineInputs, list[slice]]:
     """Flattens per-camera mask stacks into one variant list (the inputs' cams [K] and masks [K, Hp, Wp]) padded
-    with no-op variants to a multiple of `chunk`; slice c selects camera c's variants."""
+    with no-op variants to whole chunks of `balanced_chunk(variants, chunk)`; slice c selects camera c's variants."""
     cams, masks, where, start = [], [], [], 0
     for c, m in enumerate(per_camera):
         m = np.zeros((0,), bool) if m is None else np.asarray(m, bool)
@@ -164,7 +174,7 @@ def variants(per_camera: Sequence[np.ndarray | None], chunk: int) -> tuple[Basel
         where.append(slice(start, start + len(m)))
         start += len(m)
     cams, masks = np.concatenate(cams), np.concatenate(masks)
-    pad = -len(cams) % chunk
+    pad = -len(cams) % balanced_chunk(len(cams), chunk)
     cams = np.concatenate([cams, np.zeros(pad, np.int32)])
     masks = np.concatenate([masks, np.zeros((pad, *masks.shape[1:]), bool)])
     return BaselineInputs(cams=jnp.asarray(cams), masks=jnp.asarray(masks)), where
@@ -196,17 +206,25 @@ def painted_masks(grid: tuple[int, int], kinds: Sequence[str], options: MapOptio
     return masks
 
 
+def camera_validity(obs: Observation) -> np.ndarray:
+    """bool [C]: whether each camera (in camera order) is valid in some row of the batch (host-side)."""
+    return np.stack([np.asarray(obs.image_masks[c], bool).reshape(-1) for c in obs.images]).any(axis=1)
+
+
 def collect(
     run: RunFn,
     cameras: Sequence[str],
     grid: tuple[int, int],
     kinds: Sequence[str],
     options: MapOptions,
+    valid: Sequence[bool] | None = None,
 ) -> dict[str, Any]:
     """Runs the family's program `run(program kinds, compiled options, inputs, first_call)` for the requested baseline
     kinds and turns its output into maps; every array keeps the program's leading [T, B] axes. The program knows
     two kinds: "ig" and "occlusion", which re-runs every painted variant of the inputs: occlusion's and rise's masks
-    of every camera, after one unpainted reference per camera, in one call. An IG refinement runs the IG-only
+    of every camera valid in some row (`valid`, bool per camera; None: all), after one unpainted reference per
+    camera, in one call. A camera masked in every row is not re-run: the model does not read it, so painting it
+    cannot move the score, and its occlusion and rise maps are zeros. An IG refinement runs the IG-only
     program: the first call's own when it asked for IG alone (its first-call outputs computed again, a forward pass
     beside the refinement's backward ones, rather than a second compilation).
 
@@ -215,25 +233,31 @@ def collect(
     kinds = tuple(k for k in BASELINE_KINDS if k in kinds)
     inputs, where = BaselineInputs(), None
     masks = painted_masks(grid, kinds, options)
-    painting = bool(masks)
+    valid = np.ones(len(cameras), bool) if valid is None else np.asarray(valid, bool)
+    painting = bool(masks) and bool(valid.any())
     program = tuple(k for k in ("ig", "occlusion") if k in kinds or (k == "occlusion" and painting))
     if "ig" in kinds:
         inputs = ig_inputs(options, options.ig_steps)
     if painting:
         reference = np.zeros((1, *grid), bool)  # every camera's drops against its own unpainted re-run
         stack = np.concatenate([reference, *masks.values()])
-        painted, where = variants([stack] * len(cameras), options.mask_chunk)
+        painted, where = variants([stack if v else None for v in valid], options.mask_chunk)
         inputs = inputs._replace(cams=painted.cams, masks=painted.masks)
     out = run(program, compiled_options(options, program), inputs, True)
     core = ("ig", "ig_score", "ig_baseline_score", "occlusion_scores")
     res: dict[str, Any] = {k: np.asarray(v) for k, v in out.items() if k not in core}
     if painting:
         scores = np.asarray(out["occlusion_scores"], np.float64)  # [K, T, B]
-        drops = {c: scores[s][:1] - scores[s][1:] for c, s in zip(cameras, where, strict=True)}
+        drops = {c: scores[s][:1] - scores[s][1:] for c, s, v in zip(cameras, where, valid, strict=True) if v}
         start = 0
         for kind, m in masks.items():
             reduce = region_map if kind == "occlusion" and options.occlusion_mode == "regions" else iss_map
-            res[kind] = {c: reduce(m, d[start : start + len(m)]).astype(np.float32) for c, d in drops.items()}
+            res[kind] = {
+                c: reduce(m, drops[c][start : start + len(m)]).astype(np.float32)
+                if c in drops
+                else np.zeros((*scores.shape[1:], *grid), np.float32)  # not read by the model: no drop
+                for c in cameras
+            }
             start += len(m)
     if "ig" in out:
         steps, best, last_error = options.ig_steps, None, np.inf

@@ -301,7 +301,8 @@ def _baseline_outputs(
             logits=logits and base_outputs and first,
         )
 
-    extra = baseline_maps.collect(run, tuple(obs.images), model.config.siglip.grid, kinds, options)
+    valid = baseline_maps.camera_validity(obs)
+    extra = baseline_maps.collect(run, tuple(obs.images), model.config.siglip.grid, kinds, options, valid)
     ig_steps = extra.pop("ig_steps", None)
     return _map_tree(rows, extra), ig_steps
 

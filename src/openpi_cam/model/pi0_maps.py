@@ -165,7 +165,7 @@ def maps_for_actions(
                 base_outputs=first_outputs and first,
             )
 
-        extra = baseline_maps.collect(run, cams, grid, kinds, options)
+        extra = baseline_maps.collect(run, cams, grid, kinds, options, baseline_maps.camera_validity(obs))
         batch_first = {k: {c: np.moveaxis(m, 0, 1) for c, m in extra[k].items()} for k in BASELINE_KINDS if k in extra}
         by_kind.update(batch_first)
         if "ig_check" in extra:
