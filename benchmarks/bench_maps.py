@@ -1,10 +1,13 @@
 """What each map kind costs next to the inference it explains, on a bundled demo model, measured side by side.
 
 For `--scenes` fresh demo scenes (after one compile scene), times `policy.infer` and one explanation per kind set
-(gradcam + gradnorm share a backward pass; ig; occlusion; all four) through the family's explainer, exactly what the
-side channel runs per explained request, and the spot check the side channel adds to the gradcam + gradnorm
-explanation (each map's top patch and `--check-patches` random patches re-scored, `cam.spot_check`), interleaved
-scene by scene so that machine load hits every row alike. Prints medians and the ratio explanation / inference.
+(gradcam + gradnorm share a backward pass, gradxinput rides on it; taylor continues it through SigLIP; smoothgrad;
+ig; occlusion; rise; all four compared kinds) through the family's explainer, exactly what the side channel runs per
+explained request, and the spot check the side channel adds to the gradcam + gradnorm explanation (each map's top
+patch and `--check-patches` random patches re-scored, `cam.spot_check`), interleaved scene by scene so that machine
+load hits every row alike. Prints medians, the ratio explanation / inference and the cost in backward-pass
+equivalents: each row's time over the gradcam + gradnorm pass's on the same scene, the median over scenes (steadier
+under load than a ratio of medians).
 
     python benchmarks/bench_maps.py                       # pi0-FAST demo model, target chunk
     python benchmarks/bench_maps.py --model pi05 --target action
@@ -33,10 +36,15 @@ from openpi_cam.model import attribution, baseline_maps
 from openpi_cam.policies import model_spec
 from openpi_cam.vocabulary import DEFAULT_PATCHES, ExplainOptions
 
+GRADIENT_PASS = "gradcam+gradnorm"
 KIND_SETS = {
-    "gradcam+gradnorm": ("gradcam", "gradnorm"),
+    GRADIENT_PASS: ("gradcam", "gradnorm"),
+    "+gradxinput": ("gradcam", "gradnorm", "gradxinput"),
+    "taylor": ("taylor",),
+    "smoothgrad": ("smoothgrad",),
     "ig": ("ig",),
     "occlusion": ("occlusion",),
+    "rise": ("rise",),
     "all four": ("gradcam", "gradnorm", "ig", "occlusion"),
 }
 
@@ -87,7 +95,7 @@ def main() -> None:
                 row[name] = time.perf_counter() - t0
             if name in ig_steps and scene_index > 0:
                 ig_steps[name].append(explanation.details["ig_completeness"]["steps"])
-            if name == "gradcam+gradnorm":
+            if name == GRADIENT_PASS:
                 t0 = time.perf_counter()
                 options, patches = request.map_options, args.check_patches
                 check = check_trace(explainer, trace, explanation, options, patches=patches, seed=0)
@@ -100,12 +108,14 @@ def main() -> None:
 
     cpu = f"{os.cpu_count()} CPU cores" if sys.platform != "darwin" else platform.processor()
     model = f"{args.model} demo model ({args.dtype}), target {args.target}"
-    print(f"{model}, {args.scenes} scenes, {platform.machine()}, {cpu}")
+    load = ", load average {:.1f} {:.1f} {:.1f} at the end".format(*os.getloadavg())
+    print(f"{model}, {args.scenes} scenes, {platform.machine()}, {cpu}{load}")
     infer = statistics.median(times["infer"])
-    print(f"{'':>18} {'median ms':>10} {'x inference':>12}")
+    print(f"{'':>18} {'median ms':>10} {'x inference':>12} {'x gradient pass':>16}")
     for name, values in times.items():
         med = statistics.median(values)
-        print(f"{name:>18} {med * 1e3:10.1f} {med / infer:12.1f}")
+        passes = statistics.median(v / g for v, g in zip(values, times[GRADIENT_PASS], strict=True))
+        print(f"{name:>18} {med * 1e3:10.1f} {med / infer:12.1f} {passes:16.2f}")
     for name, used in ig_steps.items():
         if used:
             counts = dict(zip(*np.unique(used, return_counts=True), strict=True))
