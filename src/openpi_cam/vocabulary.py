@@ -52,6 +52,15 @@ class MapOptions:
     keep_prob: float = 0.5  # probability that a region keeps its pixels in a random mask
     seed: int = 0  # seed of the random masks (host-side; changing it does not recompile)
     mask_chunk: int = 16  # variants re-scored per vectorised chunk (bounds memory: chunk x B model runs at once)
+    # SmoothGrad: the gradient averaged over this many copies of the image tokens with Gaussian noise of std
+    # smoothgrad_sigma x the spread of each channel over the camera's tokens (noise drawn from `seed`).
+    smoothgrad_samples: int = 16
+    smoothgrad_sigma: float = 0.5
+    # RISE: random masks per camera over the patch grid, each patch kept with probability rise_keep_prob (drawn from
+    # `seed`). Chosen on the demo models (docs/MAP_KINDS.md): agreement with exhaustive occlusion levels off at 64
+    # masks, and keeping 3 of 4 patches tracks single-patch occlusion more closely than RISE's 1 of 2.
+    rise_masks: int = 64
+    rise_keep_prob: float = 0.75
 
     def __post_init__(self):
         if self.baseline not in BASELINES:
@@ -68,24 +77,40 @@ class MapOptions:
             raise ValueError("ig_tolerance must be >= 0 and ig_max_steps >= ig_steps")
         if self.ig_rule == "trapezoid" and self.ig_steps < 2:
             raise ValueError("the trapezoid rule needs at least 2 steps")
-        if not 0.0 < self.keep_prob < 1.0 or self.random_masks < 2:
-            raise ValueError("random masks need 0 < keep_prob < 1 and at least 2 masks")
+        if not 0.0 < min(self.keep_prob, self.rise_keep_prob) <= max(self.keep_prob, self.rise_keep_prob) < 1.0:
+            raise ValueError("random masks need a keep probability strictly between 0 and 1")
+        if self.random_masks < 2 or self.rise_masks < 2:
+            raise ValueError("random masks need at least 2 masks")
+        if self.smoothgrad_samples < 1 or self.smoothgrad_sigma < 0:
+            raise ValueError("smoothgrad needs at least 1 sample and a noise level >= 0")
 
 
 # The maps the model layer computes. gradcam: Grad-CAM as the founding spec defines it; gradnorm: the per-token
 # gradient norm from the same backward pass; ig: integrated gradients from the baseline frame's tokens; occlusion:
 # the score's drop when a region is painted with the baseline frame and the model re-run; lrp: AttnLRP relevance,
-# propagated through the language model and SigLIP to the pixels by one modified backward pass (`model.lrp`).
-MapKind = Literal["gradcam", "gradnorm", "ig", "occlusion", "lrp"]
+# propagated through the language model and SigLIP to the pixels by one modified backward pass (`model.lrp`);
+# gradxinput: gradient x input per token, from the gradient pass too; taylor: the first-order estimate of occlusion's
+# drop, the pixel gradient dotted with (frame - baseline frame) per patch; smoothgrad: the gradient norm of the
+# gradient averaged over noisy copies of the tokens; rise: random patch masks painted with the baseline frame (RISE),
+# each patch's score with it kept against painted.
+MapKind = Literal["gradcam", "gradnorm", "ig", "occlusion", "lrp", "gradxinput", "taylor", "smoothgrad", "rise"]
 MAP_KINDS: tuple[MapKind, ...] = get_args(MapKind)
-GRADIENT_KINDS: tuple[MapKind, ...] = ("gradcam", "gradnorm")  # one backward pass per explained score gives both
-BASELINE_KINDS: tuple[MapKind, ...] = ("ig", "occlusion")  # compare the frame with a baseline frame
-RELEVANCE_KINDS: tuple[MapKind, ...] = ("lrp",)  # one backward pass of their own per score, with modified rules
-# What a live side channel computes unless told otherwise: the kinds at the cost of one backward pass.
-DEFAULT_KINDS: tuple[MapKind, ...] = GRADIENT_KINDS
+# What a family's gradient program computes: one backward pass per explained score to the image tokens gives
+# gradcam, gradnorm and gradxinput; taylor continues that pass through SigLIP to the pixels; smoothgrad adds
+# `MapOptions.smoothgrad_samples` backward passes at noisy tokens.
+GRADIENT_KINDS: tuple[MapKind, ...] = ("gradcam", "gradnorm", "gradxinput", "taylor", "smoothgrad")
+# What the baseline program computes: IG's path from the baseline frame and the batched re-runs of painted frames.
+BASELINE_KINDS: tuple[MapKind, ...] = ("ig", "occlusion", "rise")
+# One backward pass of their own per score, with modified rules (`model.lrp`), in a program of their own.
+RELEVANCE_KINDS: tuple[MapKind, ...] = ("lrp",)
+# The kinds whose maps depend on `MapOptions` (an explained step records its options beside them).
+OPTION_KINDS: tuple[MapKind, ...] = ("taylor", "smoothgrad", *BASELINE_KINDS)
+# What a live side channel computes unless told otherwise: Grad-CAM and the gradient norm, one backward pass.
+DEFAULT_KINDS: tuple[MapKind, ...] = ("gradcam", "gradnorm")
 # What the offline commands (`explain-run`, `explain-dataset`) and the demo compute unless told otherwise: the kinds
-# their reports compare. `lrp` is asked for by name until a bench measures it against them.
-COMPARED_KINDS: tuple[MapKind, ...] = (*GRADIENT_KINDS, *BASELINE_KINDS)
+# their reports compare. Spelled out rather than built from the groups, so that a kind added to a group stays out of
+# the defaults, asked for by name, until a bench measures it against these (lrp, gradxinput, taylor, smoothgrad, rise).
+COMPARED_KINDS: tuple[MapKind, ...] = ("gradcam", "gradnorm", "ig", "occlusion")
 # What render, the reports and the demo draw unless told otherwise: the map that measured most faithful on the demo
 # models at the cost of one backward pass (docs/MAP_KINDS.md, "Which map to trust").
 DEFAULT_MAP_KIND: MapKind = "gradnorm"
@@ -135,6 +160,34 @@ MAP_KIND_INFO: dict[MapKind, KindInfo] = {
         "with rules that conserve it (one modified backward pass), summed per patch: signed (positive supports the "
         "score). The relevance of a step adds up to its score less what biases and softmaxes absorb.",
     ),
+    "gradxinput": KindInfo(
+        "gradxinput/",
+        "gradient x input (token level, signed)",
+        "Gradient x input at each image token: the gradient's dot product with the token, from the same backward "
+        "pass as the gradient norm. Signed: it is the linear term of scaling the token to zero, which no camera "
+        "produces, so it mixes what the patch shows with how large its token is.",
+    ),
+    "taylor": KindInfo(
+        "taylor/",
+        "occlusion's first-order (Taylor) estimate",
+        "The first-order estimate of occlusion: the pixel gradient times (frame - baseline frame), summed over each "
+        "patch. Signed like occlusion (positive: painting the patch would lower the score); exact where the score is "
+        "linear in the patch's pixels, one backward pass through SigLIP instead of a re-run per patch.",
+    ),
+    "smoothgrad": KindInfo(
+        "smoothgrad/",
+        "SmoothGrad (noise-averaged gradient norm)",
+        "SmoothGrad: the gradient norm per image token of the gradient averaged over noisy copies of the tokens. "
+        "Unsigned sensitivity like the gradient norm, less sensitive to the gradient's local jitter; several "
+        "backward passes.",
+    ),
+    "rise": KindInfo(
+        "rise/",
+        "RISE (random masks, baseline-painted)",
+        "RISE: the explained score re-run with random patch masks painted with the baseline frame; each patch's map "
+        "is the mean score with it kept minus the mean score with it painted, which estimates occlusion's drop "
+        "where patches act additively. Signed; one forward per mask and camera.",
+    ),
 }
 
 
@@ -173,7 +226,16 @@ EXTRA_PREFIX = "cam_extra/"
 DEFAULT_PATCHES = 4
 _O = TypeVar("_O", bound="ExplainOptions")
 # What runs made before an option was recorded used.
-_UNRECORDED = {"ig_space": "tokens", "occlusion_region": 1, "occlusion_masks": 0, "reliance": False}
+_UNRECORDED = {
+    "ig_space": "tokens",
+    "occlusion_region": 1,
+    "occlusion_masks": 0,
+    "reliance": False,
+    "smoothgrad_samples": MapOptions.smoothgrad_samples,
+    "smoothgrad_sigma": MapOptions.smoothgrad_sigma,
+    "rise_masks": MapOptions.rise_masks,
+    "rise_keep_prob": MapOptions.rise_keep_prob,
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -189,7 +251,7 @@ class ExplainOptions:
     action_index: int = 0  # pi0-FAST: which action token ("action-token"); pi0 / pi0.5: which horizon step ("action")
     action_dim_index: int = 0  # pi0 / pi0.5: which action dimension ("action")
     maps: tuple[MapKind, ...] = DEFAULT_KINDS
-    map_options: MapOptions = dataclasses.field(default_factory=MapOptions)  # of the "ig" / "occlusion" kinds
+    map_options: MapOptions = dataclasses.field(default_factory=MapOptions)  # of the `OPTION_KINDS`
     check_patches: int = DEFAULT_PATCHES  # 0: no spot check
     reliance: bool = False  # measure camera and prompt reliance: one re-run per camera and one for the prompt
 
@@ -224,6 +286,10 @@ class ExplainOptions:
             "ig_space": o.ig_space,
             "occlusion_region": o.occlusion_region,
             "occlusion_masks": o.random_masks if o.occlusion_mode == "random" else 0,
+            "smoothgrad_samples": o.smoothgrad_samples,
+            "smoothgrad_sigma": o.smoothgrad_sigma,
+            "rise_masks": o.rise_masks,
+            "rise_keep_prob": o.rise_keep_prob,
             "check_patches": self.check_patches,
             "reliance": self.reliance,
         }
@@ -236,6 +302,10 @@ class ExplainOptions:
             baseline=data.get("baseline", MapOptions.baseline),
             ig_space=data["ig_space"],
             occlusion_region=int(data["occlusion_region"]),
+            smoothgrad_samples=int(data["smoothgrad_samples"]),
+            smoothgrad_sigma=float(data["smoothgrad_sigma"]),
+            rise_masks=int(data["rise_masks"]),
+            rise_keep_prob=float(data["rise_keep_prob"]),
         )
         if masks := int(data["occlusion_masks"]):
             map_options = dataclasses.replace(map_options, occlusion_mode="random", random_masks=masks)

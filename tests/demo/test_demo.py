@@ -412,10 +412,10 @@ def test_run_figures_on_a_hand_made_run(tmp_path):
 
 
 def test_short_demo_run_is_readable(tmp_path):
-    """`openpi-cam demo` end to end at toy length: a readable run of every map kind (`lrp`, which the demo leaves out
-    by default, asked for) with the client's ground truth, the episode file, a report per kind listing every step, and
-    the faithfulness report of the run. One call: each logged step costs every kind's maps and their faithfulness
-    re-scoring, and a second step proves nothing more."""
+    """`openpi-cam demo` end to end at toy length: a readable run of every map kind (those the demo leaves out by
+    default, `lrp` and the four kinds after it, asked for) with the client's ground truth, the episode file, a report
+    per kind listing every step, and the faithfulness report of the run. One call: each logged step costs every
+    kind's maps and their faithfulness re-scoring, and a second step proves nothing more."""
     result = run_demo(DemoOptions(out=tmp_path, num_episodes=1, max_calls=1, seed=3, maps=MAP_KINDS))
     run = load_run(result.run_dir)
     (episode,) = result.episodes

@@ -44,9 +44,10 @@ class ExplainFlags:
     target: Target | None = None
     # pi0-FAST: which action token (`action-token`); pi0 / pi0.5: `H,D`, dimension D at horizon step H (`action`).
     action_index: str = "0"
-    # which kinds of map each explained step carries (README, "Which map to trust"): `gradcam` and `gradnorm` cost one
-    # backward pass together; `ig` and `occlusion` cost several inferences each; `lrp` (AttnLRP relevance at the
-    # pixels) one backward pass of its own, through SigLIP too.
+    # which kinds of map each explained step carries (README, "Which map to trust"): `gradcam`, `gradnorm` and
+    # `gradxinput` cost one backward pass together, `taylor` continues it through SigLIP; `smoothgrad` costs
+    # --smoothgrad-samples backward passes; `ig`, `occlusion` and `rise` cost several inferences each; `lrp` (AttnLRP
+    # relevance at the pixels) one backward pass of its own, through SigLIP too.
     maps: tuple[MapKind, ...] = DEFAULT_KINDS
     # the frame `ig` starts from and `occlusion` paints with: the frame's mean colour or a Gaussian-blurred copy.
     baseline: Baseline = MapOptions.baseline
@@ -55,6 +56,13 @@ class ExplainFlags:
     # 0: every `occlusion` region once; M > 0: M random region masks per camera, scored with the Interventional
     # Significance Score (for large grids).
     occlusion_masks: int = 0
+    # `smoothgrad`: how many noisy copies of the image tokens, and the noise's std in units of each channel's spread
+    # over the camera's tokens.
+    smoothgrad_samples: int = MapOptions.smoothgrad_samples
+    smoothgrad_sigma: float = MapOptions.smoothgrad_sigma
+    # `rise`: random patch masks per camera (each a re-run), and the probability that a mask keeps a patch.
+    rise_masks: int = MapOptions.rise_masks
+    rise_keep_prob: float = MapOptions.rise_keep_prob
     # where the `ig` path runs: between the SigLIP tokens of the baseline frame and the frame, or between the frames'
     # pixels, through SigLIP.
     ig_space: IgSpace = MapOptions.ig_space
@@ -75,7 +83,15 @@ class ExplainFlags:
         """The options these flags name; `target`, when given, stands for the flag's (a family's resolved one)."""
         if self.occlusion_masks < 0:
             raise ValueError(f"occlusion_masks must be >= 0 (0: every region once), got {self.occlusion_masks}")
-        map_options = MapOptions(baseline=self.baseline, occlusion_region=self.occlusion_region, ig_space=self.ig_space)
+        map_options = MapOptions(
+            baseline=self.baseline,
+            occlusion_region=self.occlusion_region,
+            ig_space=self.ig_space,
+            smoothgrad_samples=self.smoothgrad_samples,
+            smoothgrad_sigma=self.smoothgrad_sigma,
+            rise_masks=self.rise_masks,
+            rise_keep_prob=self.rise_keep_prob,
+        )
         if self.occlusion_masks:
             map_options = dataclasses.replace(map_options, occlusion_mode="random", random_masks=self.occlusion_masks)
         index, dim_index = parse_action_index(self.action_index)
