@@ -52,6 +52,7 @@ from openpi_cam.cli import train_demo
 from openpi_cam.demo import metaworld_data, metaworld_sim, train
 from openpi_cam.policies import demo_metaworld, demo_reach
 from openpi_cam.serving import msgpack_numpy
+from openpi_cam.vocabulary import MAP_KIND_INFO
 
 # ---------------------------------------------------------------------------------------------------- the parsers
 
@@ -284,6 +285,28 @@ def step_files(o: Output) -> list[str]:
     return o.paths("runs/*/steps/*.npz")
 
 
+# One step explained with the kinds the added options shape (compiled: slow): each of those flags alone changes the
+# maps of the kind that reads it. Alone, since a kind's two options move the same maps.
+EXPLAIN_KINDS = Run(
+    "explain-run",
+    ("{run}", "--out", "{scratch}/runs", "--max-steps", "1", "--maps", "smoothgrad", "rise", "--check-patches", "0"),
+    slow=True,
+)
+
+
+def step_maps(kind: str) -> Callable[[Output], dict[str, Any]]:
+    """The `kind` maps of every step written, per step file and camera."""
+
+    def probe(o: Output) -> dict[str, Any]:
+        prefix, maps = MAP_KIND_INFO[kind].prefix, {}
+        for path in sorted(o.root.glob("runs/*/steps/*.npz")):
+            with np.load(path, allow_pickle=False) as npz:
+                maps |= {f"{path.name} {k}": npz[k].tolist() for k in npz.files if k.startswith(prefix)}
+        return maps
+
+    return probe
+
+
 def step_checks(o: Output) -> list[Any]:
     """The spot check of every step written (its meta's `check`)."""
     checks = []
@@ -346,6 +369,10 @@ EXPLAIN_RUN_CASES: dict[str, tuple[Case, ...]] = {
     "--occlusion-region": (Changes(EXPLAIN_RUN, ("--occlusion-region", "2"), run_option("occlusion_region")),),
     "--occlusion-masks": (Changes(EXPLAIN_RUN, ("--occlusion-masks", "8"), run_option("occlusion_masks")),),
     "--ig-space": (Changes(EXPLAIN_RUN, ("--ig-space", "pixels"), run_option("ig_space")),),
+    "--smoothgrad-samples": (Changes(EXPLAIN_KINDS, ("--smoothgrad-samples", "4"), step_maps("smoothgrad")),),
+    "--smoothgrad-sigma": (Changes(EXPLAIN_KINDS, ("--smoothgrad-sigma", "0.25"), step_maps("smoothgrad")),),
+    "--rise-masks": (Changes(EXPLAIN_KINDS, ("--rise-masks", "32"), step_maps("rise")),),
+    "--rise-keep-prob": (Changes(EXPLAIN_KINDS, ("--rise-keep-prob", "0.5"), step_maps("rise")),),
     "--check-patches": (Changes(EXPLAIN_STEP, ("--check-patches", "2"), step_checks),),
     "--reliance": (Changes(EXPLAIN_RUN, ("--reliance",), run_option("reliance")),),
 }
@@ -445,6 +472,16 @@ EXPLAIN_DATASET_CASES: dict[str, tuple[Case, ...]] = {
         Changes(EXPLAIN_DATASET, ("--occlusion-masks", "8"), maps_info("options", "occlusion_masks")),
     ),
     "--ig-space": (Changes(EXPLAIN_DATASET, ("--ig-space", "pixels"), maps_info("options", "ig_space")),),
+    "--smoothgrad-samples": (
+        Changes(EXPLAIN_DATASET, ("--smoothgrad-samples", "4"), maps_info("options", "smoothgrad_samples")),
+    ),
+    "--smoothgrad-sigma": (
+        Changes(EXPLAIN_DATASET, ("--smoothgrad-sigma", "0.25"), maps_info("options", "smoothgrad_sigma")),
+    ),
+    "--rise-masks": (Changes(EXPLAIN_DATASET, ("--rise-masks", "32"), maps_info("options", "rise_masks")),),
+    "--rise-keep-prob": (
+        Changes(EXPLAIN_DATASET, ("--rise-keep-prob", "0.5"), maps_info("options", "rise_keep_prob")),
+    ),
     "--check-patches": (Changes(EXPLAIN_DATASET, ("--check-patches", "1"), maps_rows("check")),),
     "--reliance": (Changes(EXPLAIN_DATASET, ("--reliance",), maps_rows("reliance")),),
 }
@@ -586,6 +623,10 @@ CAM_FLAGS = {
     "--cam.occlusion-region": ("2", "occlusion_region"),
     "--cam.occlusion-masks": ("8", "occlusion_masks"),
     "--cam.ig-space": ("pixels", "ig_space"),
+    "--cam.smoothgrad-samples": ("4", "smoothgrad_samples"),
+    "--cam.smoothgrad-sigma": ("0.25", "smoothgrad_sigma"),
+    "--cam.rise-masks": ("32", "rise_masks"),
+    "--cam.rise-keep-prob": ("0.5", "rise_keep_prob"),
     "--cam.check-patches": ("1", "check_patches"),
     "--cam.reliance": (None, "reliance"),
     "--cam.save-frames": ("both", "save_frames"),
