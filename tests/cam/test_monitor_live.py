@@ -242,3 +242,29 @@ def test_a_demo_model_serves_with_its_own_monitor_unless_told_otherwise(monitor,
     assert serve._monitor(spec, other, False).monitor.threshold == 1.0  # --monitor names another
     # an OpenPI checkpoint or LeRobot folder has no monitor of its own
     assert ModelSpec(checkpoint_dir=GOLDEN_DIR / "tiny_policy_droid" / "checkpoint").default_monitor() is None
+
+
+def test_a_fleet_call_under_the_monitor_serves_each_row_its_own_actions_and_scores_each_connection(
+    demo_policy, monitor, tmp_path
+):
+    """Batched serving (`--batch-window-ms`): one model call for several connections' requests, each answered as
+    plain serving answers it, and each row scored in its own connection's stream (as its lone calls score)."""
+    connections = _connections(3, 2)
+    expected = [_scores(monitor, demo_policy, c) for c in connections]
+    plain = [[msgpack_numpy.packb(strip_timing(demo_policy.infer(o))) for o in c] for c in connections]
+    wrapped = wrap_policy_with_cam(
+        demo_policy, CAMOptions(every_k=0, dir=tmp_path, monitor_response=True), monitor=LiveMonitor(monitor, "m.json")
+    )
+    try:
+        for t in range(2):
+            rows = [c[t] for c in connections]
+            contexts = [RequestContext(f"conn{c}", t) for c in range(3)]
+            for c, response in enumerate(wrapped.infer_batch(rows, contexts)):
+                response = strip_timing(response)
+                # the features of a batched row are a lone request's to float32 rounding (batched matrix products
+                # sum in another order), so its score is too: measured 1e-7 of the score here
+                assert response.pop("monitor")["score"] == pytest.approx(expected[c][t], rel=1e-5)
+                assert msgpack_numpy.packb(response) == plain[c][t]  # the actions themselves are the same bits
+    finally:
+        wrapped.close(60)
+    assert wrapped.stats()["monitor"]["calls_scored"] == 6
