@@ -1,5 +1,6 @@
 """What a served call gives a failure monitor (`InferenceTrace.signals`), computed by the served call itself: the
-response is the one without signals, to the bit, in both families, for one request and for a batched fleet call;
+response is the one without signals, to the bit, in both families, for one request and (slow tier; the fast tier's
+fleet call is the monitored server's, tests/cam/test_monitor_live.py) for a batched fleet call;
 and each signal is the quantity it names, checked against the same quantity computed along another path (a full
 last-layer pass, the recorded decode logits, a teacher-forced replay, the denoising's recorded last step).
 
@@ -54,7 +55,7 @@ def _spans(cameras, per_camera: int, length: int) -> dict[str, tuple[int, int]]:
     return spans | {"prompt": (len(spans) * per_camera, length)}
 
 
-def test_pi0_fast_signals_leave_the_served_call_unchanged_alone_and_in_a_fleet(demo_policy):
+def test_pi0_fast_signals_leave_the_served_call_unchanged(demo_policy):
     observations = [demo_observation(s) for s in SEEDS]
     plain = [demo_policy.infer_traced(o) for o in observations]
     assert len({p[0]["actions"].tobytes() for p in plain}) == len(SEEDS)
@@ -63,12 +64,28 @@ def test_pi0_fast_signals_leave_the_served_call_unchanged_alone_and_in_a_fleet(d
         np.testing.assert_array_equal(traced.output, trace.output)
         np.testing.assert_array_equal(signalled["actions"], response["actions"])
         assert trace.signals == {}  # none unless asked
-    fleet = demo_policy.infer_batch_traced(observations, signals=True)
-    for (response, trace), (batched, batch_trace) in zip(plain, fleet, strict=True):
-        # pi0-FAST's batched rows decode as if alone: the same tokens, so the same actions, as one request served
+
+
+@pytest.mark.slow
+def test_signals_leave_a_fleet_calls_actions_unchanged(demo_policy, demo_pi05_policy):
+    """The batched rows of a fleet call (`infer_batch_traced`): pi0-FAST's decode as if alone, so with signals they
+    are the lone requests' without; pi0.5's, from one noise stream drawn twice, are the same batch's without."""
+    observations = [demo_observation(s) for s in SEEDS]
+    alone = [demo_policy.infer_traced(o) for o in observations]
+    for (response, trace), (batched, batch_trace) in zip(
+        alone, demo_policy.infer_batch_traced(observations, signals=True), strict=True
+    ):
         np.testing.assert_array_equal(batch_trace.output, trace.output)
         np.testing.assert_array_equal(batched["actions"], response["actions"])
-        assert set(batch_trace.signals) == set(demo_policy.infer_traced(observations[0], signals=True)[1].signals)
+        assert {PROMPT_FEATURES, ACTION_FEATURES, TOKEN_ENTROPIES} <= set(batch_trace.signals)
+    policy = demo_pi05_policy
+    rng = policy._rng
+    without = policy.infer_batch_traced(observations)
+    policy._rng = rng
+    for (a, ta), (b, tb) in zip(without, policy.infer_batch_traced(observations, signals=True), strict=True):
+        np.testing.assert_array_equal(tb.sample_inputs["noise"], ta.sample_inputs["noise"])
+        np.testing.assert_array_equal(b["actions"], a["actions"])
+        assert {PROMPT_FEATURES, ACTION_FEATURES, NORMALIZED_CHUNK} <= set(tb.signals)
 
 
 def test_pi0_fast_signals_are_the_pooled_last_layer_the_token_entropies_and_the_action_tokens(demo_policy):
@@ -112,7 +129,7 @@ def test_the_chunk_is_the_normalised_one_the_decoder_gives_over_the_robots_dimen
     assert not np.array_equal(chunk, response["actions"])  # before unnormalisation
 
 
-def test_flow_signals_leave_the_served_call_unchanged_alone_and_in_a_fleet(demo_pi05_policy):
+def test_flow_signals_leave_the_served_call_unchanged(demo_pi05_policy):
     policy = demo_pi05_policy
     observations = [demo_observation(s) for s in SEEDS]
     plain = [policy.infer_traced(o, noise=_noise(policy, s)) for o, s in zip(observations, SEEDS, strict=True)]
@@ -121,15 +138,6 @@ def test_flow_signals_leave_the_served_call_unchanged_alone_and_in_a_fleet(demo_
         signalled, traced = policy.infer_traced(obs, noise=_noise(policy, seed), signals=True)
         np.testing.assert_array_equal(traced.output, trace.output)
         np.testing.assert_array_equal(signalled["actions"], response["actions"])
-    # a fleet call draws each row's noise from the policy's stream: the same stream twice, with and without signals
-    rng = policy._rng
-    without = policy.infer_batch_traced(observations)
-    policy._rng = rng
-    with_signals = policy.infer_batch_traced(observations, signals=True)
-    for (a, ta), (b, tb) in zip(without, with_signals, strict=True):
-        np.testing.assert_array_equal(tb.sample_inputs["noise"], ta.sample_inputs["noise"])
-        np.testing.assert_array_equal(b["actions"], a["actions"])
-        assert set(tb.signals) >= {PROMPT_FEATURES, ACTION_FEATURES, NORMALIZED_CHUNK}
 
 
 def test_flow_signals_are_the_prefix_pass_pooled_and_the_last_euler_steps_expert_outputs(demo_pi05_policy):
