@@ -221,6 +221,17 @@ SAVE_FRAMES: tuple[str, ...] = ("none", "raw", "model", "both")
 # (the step's `extra` metadata, a recorded frame's features: e.g. the demo's ground-truth target box).
 EXTRA_PREFIX = "cam_extra/"
 
+# What a served call leaves for a failure monitor when asked (`InferenceTrace.signals`, each [..] of one request):
+# last-layer features pooled per span, `features/<camera>`, `features/prompt` and `features/actions` (float32 [D]);
+# pi0-FAST's per-token entropies of its generation (float32 [S]) with the flags of its action tokens (bool [S]); and
+# the action chunk in the model's normalised units (`chunk`, [H, A] over the robot's action dimensions).
+FEATURES_PREFIX = "features/"
+PROMPT_FEATURES = FEATURES_PREFIX + "prompt"
+ACTION_FEATURES = FEATURES_PREFIX + "actions"
+TOKEN_ENTROPIES = "token_entropies"
+ACTION_TOKENS = "action_tokens"
+NORMALIZED_CHUNK = "chunk"
+
 # Random single patches of each explained step's spot check (`cam.spot_check`): with each kind's top patch and the
 # unpainted score, 1 + kinds + 4 re-runs per camera in one call.
 DEFAULT_PATCHES = 4

@@ -61,6 +61,8 @@ BUNDLED_ASSETS = {
     "metaworld_mt_pi0_fast": demo_metaworld.ASSETS_MT_PI0_FAST,
 }
 BUNDLED_MODELS = {config.name: model for model, config in BUNDLED_CONFIGS.items()}  # config name -> bundled model
+# A demo model's failure monitor, beside its checkpoint: `serve` and `demo` use it by default when it is there.
+MONITOR_FILE = "monitor.json"
 # What must be the same for new steps to join a run or maps dataset (tokenizer files may move between machines).
 _OUTPUT_FIELDS = ("checkpoint_dir", "config", "dtype")
 
@@ -208,6 +210,14 @@ class ModelSpec:
             paligemma = paligemma or self.checkpoint.parent / demo_reach.PALIGEMMA_TOKENIZER.name
             fast = fast or self.checkpoint.parent / demo_reach.FAST_TOKENIZER.name
         return paligemma, fast
+
+    def default_monitor(self) -> pathlib.Path | None:
+        """The failure monitor a demo model ships beside its checkpoint (`<assets>/monitor.json`, as its tokenizers
+        are), when it is there; None otherwise, and for every other model (name one with `--monitor`)."""
+        if not isinstance(self.source, BundledModel):
+            return None
+        path = self.checkpoint.parent / MONITOR_FILE
+        return path if path.is_file() else None
 
     def create(self, *, stop_at_action_end: bool = False, rng: jax.Array | None = None) -> Policy:
         """The policy; a FAST tokenizer named for a model of another family is refused (it would go unread)."""

@@ -20,7 +20,14 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from openpi_cam.model.attribution import IgCompleteness
 from openpi_cam.model.init import randomized
 from openpi_cam.model.observation import Observation
-from openpi_cam.vocabulary import ExplainOptions, MapOptions, Target
+from openpi_cam.vocabulary import (
+    ACTION_FEATURES,
+    FEATURES_PREFIX,
+    PROMPT_FEATURES,
+    ExplainOptions,
+    MapOptions,
+    Target,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -124,13 +131,25 @@ class OutputDecoder(Protocol):
 
 
 class Sampler(Protocol):
-    """A family's inference over B requests: (raw output [B, ...], what else was drawn, e.g. {"noise": [B, H, A]}).
-    Row i is what sampling request i alone with `rngs[i]` gives (B = 1 is upstream's call); `noise` None draws it
-    from the rngs as upstream does."""
+    """A family's inference over B requests: (raw output [B, ...], what else was drawn, e.g. {"noise": [B, H, A]},
+    and with `signals` what a failure monitor reads of the same call, each [B, ...] under `vocabulary`'s names:
+    pooled last-layer features and, for pi0-FAST, the token entropies and action-token flags; {} without). Row i is
+    what sampling request i alone with `rngs[i]` gives (B = 1 is upstream's call); `noise` None draws it from the
+    rngs as upstream does. The raw output is the same with signals or without."""
 
     def __call__(
-        self, rngs: Sequence[jax.Array], observation: Observation, noise: np.ndarray | None
-    ) -> tuple[np.ndarray, dict[str, np.ndarray]]: ...
+        self, rngs: Sequence[jax.Array], observation: Observation, noise: np.ndarray | None, *, signals: bool = False
+    ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]: ...
+
+
+def feature_signals(pooled: Mapping[str, Any]) -> dict[str, np.ndarray]:
+    """A model's pooled features (`cameras`: camera -> [B, D], `prompt` and, where present, `actions` [B, D]) under
+    their signal names (`features/<camera>`, `features/prompt`, `features/actions`), float32 on the host."""
+    named = {FEATURES_PREFIX + camera: x for camera, x in pooled["cameras"].items()}
+    named[PROMPT_FEATURES] = pooled["prompt"]
+    if "actions" in pooled:
+        named[ACTION_FEATURES] = pooled["actions"]
+    return {name: np.asarray(x, np.float32) for name, x in named.items()}
 
 
 def baseline_details(completeness: IgCompleteness | None, options: MapOptions | None, index: Any) -> dict[str, Any]:

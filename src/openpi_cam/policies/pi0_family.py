@@ -31,6 +31,7 @@ from openpi_cam.policies.family import (
     ModelExplainer,
     Sampler,
     baseline_details,
+    feature_signals,
     resolve_target,
 )
 from openpi_cam.tokenizers.paligemma import load_paligemma_tokenizer
@@ -123,11 +124,12 @@ class FlowParts:
 
 def flow_sampler(model: Pi0) -> Sampler:
     """The family's `Sampler`: each row's noise drawn as upstream's `sample_actions` draws it for a batch of one from
-    that request's key, or the caller's `noise` [horizon, action dim]; returns the chunk and the noise."""
+    that request's key, or the caller's `noise` [horizon, action dim]; returns the chunk, the noise and, asked, the
+    pooled features of the same call."""
 
     def sample(
-        rngs: Sequence[jax.Array], observation: Observation, noise: np.ndarray | None
-    ) -> tuple[np.ndarray, dict]:
+        rngs: Sequence[jax.Array], observation: Observation, noise: np.ndarray | None, *, signals: bool = False
+    ) -> tuple[np.ndarray, dict, dict]:
         shape = (observation.state.shape[0], model.config.action_horizon, model.config.action_dim)
         if noise is None:
             drawn = jnp.concatenate([jax.random.normal(rng, (1, *shape[1:])) for rng in rngs])
@@ -137,8 +139,11 @@ def flow_sampler(model: Pi0) -> Sampler:
             )
         else:
             drawn = jnp.asarray(noise, jnp.float32).reshape(shape)
-        actions = jax.block_until_ready(model.sample_actions(rngs[0], observation, noise=drawn))
-        return np.asarray(actions), {"noise": np.asarray(drawn)}
+        if not signals:
+            actions = jax.block_until_ready(model.sample_actions(rngs[0], observation, noise=drawn))
+            return np.asarray(actions), {"noise": np.asarray(drawn)}, {}
+        actions, recorded = jax.block_until_ready(model.sample_with_signals(observation, drawn))
+        return np.asarray(actions), {"noise": np.asarray(drawn)}, feature_signals(jax.device_get(recorded))
 
     return sample
 

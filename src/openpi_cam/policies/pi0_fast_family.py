@@ -30,13 +30,21 @@ from openpi_cam.policies.family import (
     ModelExplainer,
     Sampler,
     baseline_details,
+    feature_signals,
     resolve_target,
 )
 from openpi_cam.tokenizers.fast import FastActionTokenizer, resolve_fast_tokenizer_dir
 from openpi_cam.tokenizers.paligemma import load_paligemma_tokenizer
 from openpi_cam.tokenizers.pi0_fast import Pi0FastTokenizer
 from openpi_cam.transforms import ExtractFASTActions, TokenizeFASTInputs
-from openpi_cam.vocabulary import DEFAULT_TARGETS, FALLBACK_TARGET, ExplainOptions, MapOptions
+from openpi_cam.vocabulary import (
+    ACTION_TOKENS,
+    DEFAULT_TARGETS,
+    FALLBACK_TARGET,
+    TOKEN_ENTROPIES,
+    ExplainOptions,
+    MapOptions,
+)
 
 TOKEN_TARGETS = ("action-token", "all-action-tokens")  # one score per explained token
 SEQUENCE_TARGETS = ("chunk", FALLBACK_TARGET)  # one score: a sum of log-probabilities
@@ -186,6 +194,28 @@ def _step_matrix(plans: Sequence[_RowPlan | ExplainSkipped], rows: Sequence[int]
     return steps
 
 
+def generation_signals(
+    tokenizer: Pi0FastTokenizer, generated: np.ndarray, recorded: Mapping[str, Any]
+) -> dict[str, np.ndarray]:
+    """What a failure monitor reads of B generations (`Pi0FAST.sample_with_signals`'s arrays on the host): the
+    pooled prefix features, `features/actions` (the mean of the pre-logits that chose each action token, float32 [D];
+    NaN for a generation without action tokens), each token's entropy and the flags of the action tokens (the
+    tokens `extract_actions` reads, as the explainer's targets find them)."""
+    hidden = np.asarray(recorded["hidden"])
+    flags = np.zeros(generated.shape, bool)
+    pooled = np.full((generated.shape[0], hidden.shape[-1]), np.nan, np.float32)
+    for b, row in enumerate(generated):
+        steps = np.asarray(tokenizer.action_token_steps(row), np.int64)
+        flags[b, steps] = True
+        if steps.size:
+            pooled[b] = hidden[b, steps].astype(np.float64).mean(axis=0)
+    return {
+        **feature_signals({**recorded, "actions": pooled}),
+        TOKEN_ENTROPIES: np.asarray(recorded["entropy"], np.float32),
+        ACTION_TOKENS: flags,
+    }
+
+
 @dataclasses.dataclass(frozen=True)
 class FastParts:
     """What `create_policy` needs from the family, built from local files only."""
@@ -224,16 +254,19 @@ def build_pi0_fast(
     stop_ids = tuple(tokenizer.end_of_action_token_ids) if stop_at_action_end else ()
 
     def sample(
-        rngs: Sequence[jax.Array], observation: Observation, noise: np.ndarray | None
-    ) -> tuple[np.ndarray, dict]:
+        rngs: Sequence[jax.Array], observation: Observation, noise: np.ndarray | None, *, signals: bool = False
+    ) -> tuple[np.ndarray, dict, dict]:
         if noise is not None:
             raise InvalidRequest("pi0-FAST decodes tokens: it takes no noise")
         # Greedy decoding draws nothing from the rng; `rows_alone` ends each row at its own EOS, as if served alone
         # (for one row it is upstream's loop).
-        tokens = model.sample_actions(
-            rngs[0], observation, max_decoding_steps=max_decoding_steps, stop_token_ids=stop_ids, rows_alone=True
-        )
-        return np.asarray(jax.block_until_ready(tokens)).astype(np.int32), {}
+        decoding = {"max_decoding_steps": max_decoding_steps, "stop_token_ids": stop_ids, "rows_alone": True}
+        if not signals:
+            tokens = model.sample_actions(rngs[0], observation, **decoding)
+            return np.asarray(jax.block_until_ready(tokens)).astype(np.int32), {}, {}
+        tokens, recorded = model.sample_with_signals(rngs[0], observation, **decoding)
+        generated = np.asarray(jax.block_until_ready(tokens)).astype(np.int32)
+        return generated, {}, generation_signals(tokenizer, generated, jax.device_get(recorded))
 
     decoder = ExtractFASTActions(tokenizer, action_horizon=config.action_horizon, action_dim=config.action_dim)
     return FastParts(
