@@ -50,6 +50,9 @@ from serve_process import free_port, wait_healthy
 from openpi_cam import cli
 from openpi_cam.cli import train_demo
 from openpi_cam.demo import metaworld_data, metaworld_sim, train
+from openpi_cam.monitor import monitor_file
+from openpi_cam.monitor.fit import Episode, FitOptions, fit_monitor
+from openpi_cam.monitor.signals import STAC
 from openpi_cam.policies import demo_metaworld, demo_reach
 from openpi_cam.serving import msgpack_numpy
 from openpi_cam.vocabulary import MAP_KIND_INFO
@@ -66,6 +69,8 @@ def _parsers() -> dict[str, Callable[..., Any]]:
         loaded = importlib.import_module(module)
         if hasattr(loaded, "main"):  # `explain` routes to explain-run or explain-dataset, whose flags are theirs
             parsers[name] = loaded.main
+        for word, function in getattr(loaded, "SUBCOMMANDS", {}).items():  # `openpi-cam monitor fit`
+            parsers[f"{name} {word}"] = function
     return parsers | {"train_demo": train_demo.main, "demo.train": train.TrainArgs}
 
 
@@ -75,7 +80,7 @@ def _run_in_process(command: str, argv: list[str]) -> int:
         return train.main(argv)
     if command == "train_demo":
         return int(tyro.cli(train_demo.main, args=argv))
-    cli.main([command, *argv])
+    cli.main([*command.split(" "), *argv])
     return 0
 
 
@@ -484,6 +489,13 @@ EXPLAIN_DATASET_CASES: dict[str, tuple[Case, ...]] = {
     ),
     "--check-patches": (Changes(EXPLAIN_DATASET, ("--check-patches", "1"), maps_rows("check")),),
     "--reliance": (Changes(EXPLAIN_DATASET, ("--reliance",), maps_rows("reliance")),),
+    # One frame per episode: no STAC, so the STAC monitor scores nothing, but every row carries its episode's flag.
+    "--monitor": (Changes(EXPLAIN_DATASET, ("--monitor", "{monitor}"), maps_rows("monitor/flag")),),
+    "--monitor-features": (Changes(EXPLAIN_DATASET, ("--monitor-features",), maps_rows("monitor/features/prompt")),),
+    "--execution-horizon": (
+        Changes(EXPLAIN_DATASET, ("--execution-horizon", "3"), maps_info("execution_horizon")),
+        Refused("explain-dataset", (str(DEMO_DATASET), "--execution-horizon", "0", "--no-progress")),
+    ),
 }
 
 # ------------------------------------------------------------------------------------------------ faithfulness
@@ -690,6 +702,15 @@ SERVE_CASES: dict[str, tuple[Case, ...]] = {
     "--dtype": (Changes(SERVE, ("--dtype", "bfloat16"), cam_model("dtype")),),
     "--default-prompt": (Changes(SERVE, ("--default-prompt", "reach the red block"), seen("without_prompt")),),
     "--cam.every-k": (Changes(SERVE, ("--cam.every-k", "2"), cam_option("every_k")),),
+    "--monitor": (
+        Changes(SERVE, ("--monitor", "{monitor}"), lambda o: o.seen["stats"]["policy"].get("monitor")),
+        Refused("serve", (*SERVE_OFF, "--monitor", "{scratch}/none.json")),
+    ),
+    # The response's keys: the monitor's is added only when asked for.
+    "--cam.monitor-response": (
+        Changes(SERVE, ("--cam.monitor-response",), seen("response_keys")),
+        Refused("serve", (*SERVE_OFF, "--cam.monitor-response")),
+    ),
     "--cam.dir": (Changes(SERVE, ("--cam.dir", "{scratch}/cam2"), cam_folders), side_channel_off("--cam.dir", "x")),
     # The server's own: how long it lets the served policy drain on SIGTERM, with the side channel on or off (off,
     # under its earlier spelling `--cam.drain-timeout`).
@@ -813,6 +834,58 @@ DEMO_CASES: dict[str, tuple[Case, ...]] = {
     ),
     "--assets": (
         Changes(DEMO_EXPLAIN, ("--assets", "{democopy}"), recorded("*/*/run.json", "config", "checkpoint_dir")),
+    ),
+}
+
+# ------------------------------------------------------------------------------------------------- monitor fit
+
+# Fitted on the bundled pi0-FAST's labelled rollouts (`{featured}`); numbers only, no model: the flags of a group at
+# once. The rollouts are made once, by the demo and explain-dataset (compiled: slow).
+FEATURED = ("{featured}", "--out", "{scratch}/monitor.json")
+MONITOR_FIT = Run("monitor fit", FEATURED, together=True, slow=True)
+MONITOR_FIT_ALONE = dataclasses.replace(MONITOR_FIT, together=False)
+MAHALANOBIS_FIT = Run("monitor fit", (*FEATURED, "--kind", "mahalanobis"), slow=True)
+# Refused before any dataset is read: a flag another kind reads.
+NOTHING = ("nothing.maps", "--out", "{scratch}/monitor.json")
+
+
+def fitted(*keys: str) -> Callable[[Output], Any]:
+    return recorded("*.json", *keys)
+
+
+MONITOR_FIT_CASES: dict[str, tuple[Case, ...]] = {
+    "--out": (Changes(MONITOR_FIT, ("--out", "{scratch}/other.json"), paths("*.json")),),
+    "--kind": (Changes(MONITOR_FIT_ALONE, ("--kind", "mahalanobis"), fitted("kind")),),
+    "--inputs": (
+        Changes(
+            MONITOR_FIT,
+            ("--inputs", "features/prompt", "stac"),
+            lambda o: [i["name"] for i in o.json("*.json")["inputs"]],
+        ),
+    ),
+    # Wider inputs than --max-dims: the projection keeps that many directions (by default, one fewer than the
+    # training steps).
+    "--max-dims": (
+        Changes(MONITOR_FIT, ("--max-dims", "4"), lambda o: len(o.json("*.json")["basis"]["components"])),
+        Refused("monitor fit", (*NOTHING, "--kind", "stac", "--max-dims", "4")),
+    ),
+    "--alpha": (Changes(MONITOR_FIT, ("--alpha", "0.25"), fitted("alpha")),),
+    # The successful episodes held out to set the threshold: a fifth of them is fewer than the default half.
+    "--calibration-share": (
+        Changes(MONITOR_FIT, ("--calibration-share", "0.2"), fitted("fit", "calibration_episodes")),
+    ),
+    "--seed": (Changes(MONITOR_FIT, ("--seed", "3"), fitted("fit", "seed")),),
+    "--l2": (
+        Changes(MONITOR_FIT, ("--l2", "0.5"), fitted("fit", "l2")),
+        Refused("monitor fit", (*NOTHING, "--kind", "mahalanobis", "--l2", "0.5")),
+    ),
+    "--temporal": (
+        Changes(MONITOR_FIT, ("--temporal",), fitted("temporal")),
+        Refused("monitor fit", (*NOTHING, "--kind", "stac", "--temporal")),
+    ),
+    "--shrinkage": (
+        Changes(MAHALANOBIS_FIT, ("--shrinkage", "0.5"), fitted("fit", "shrinkage")),
+        Refused("monitor fit", (*NOTHING, "--shrinkage", "0.5")),
     ),
 }
 
@@ -972,6 +1045,7 @@ CASES: dict[str, dict[str, tuple[Any, ...]]] = {
     "stats": STATS_CASES,
     "rebuild-manifest": {},
     "export": EXPORT_CASES,
+    "monitor fit": MONITOR_FIT_CASES,
     "train_demo": TRAIN_DEMO_CASES,
     "demo.train": TRAIN_CASES,
 }
@@ -1019,7 +1093,7 @@ class Runner:
     def output(self, command: str, args: tuple[str, ...], *, serving: bool = False) -> Output:
         key = (command, args)
         if key not in self._outputs:
-            root = self._tmp.mktemp(command.replace(".", "_"))
+            root = self._tmp.mktemp(command.replace(".", "_").replace(" ", "_"))
             argv = [self._place(a, root) for a in args]
             self._outputs[key] = serve_session(argv, root) if serving else in_process(command, argv, root)
         return self._outputs[key]
@@ -1047,6 +1121,8 @@ class Runner:
             "{cutvideo}",
             "{trained}",
             "{mt05}",
+            "{monitor}",
+            "{featured}",
         ):
             if name in arg:
                 arg = arg.replace(name, str(self._shared_input(name)))
@@ -1066,6 +1142,8 @@ class Runner:
                 "{cutvideo}": lambda: _cut_video(folder / "cut"),
                 "{trained}": lambda: self._trained(folder),
                 "{mt05}": lambda: _multitask_stand_in(demo_metaworld.ASSETS_METAWORLD, folder / "mt05"),
+                "{monitor}": lambda: _stac_monitor(folder / "stac_monitor.json"),
+                "{featured}": lambda: _featured_rollouts(folder),
             }[name]()
         return self._shared[name]
 
@@ -1083,6 +1161,24 @@ def _multitask_stand_in(src: Path, dst: Path) -> Path:
     assets = copy / "checkpoint" / "assets"
     (assets / demo_metaworld.ASSET_ID).rename(assets / demo_metaworld.MT_ASSET_ID)
     return copy
+
+
+def _stac_monitor(path: Path) -> Path:
+    """A STAC monitor (STAC-single is its score; any model gives it) with its threshold set on made-up successful
+    episodes. It names no execution horizon, so a command's own (`--execution-horizon`) stands beside it."""
+    episodes = [Episode({STAC: np.array([np.nan, 0.1 * k, 0.2 * k])}, True) for k in range(1, 5)]
+    return monitor_file.save(fit_monitor(episodes, FitOptions(kind="stac")), path)
+
+
+def _featured_rollouts(folder: Path) -> Path:
+    """The bundled pi0-FAST's recorded rollouts, clean and with the named block absent (successes and failures),
+    explained every 5th frame (the calls) with the monitor's features: what `monitor fit` fits on."""
+    rollouts, maps = folder / "rollouts", folder / "featured.maps"
+    cli.main(["demo", "--no-explain", "--num-episodes", "6", "--max-calls", "3", "--perturb", "clean", "absent",
+              "--record", str(rollouts)])  # fmt: skip
+    cli.main(["explain-dataset", str(rollouts), "--out", str(maps), "--every-k", "5", "--maps", "gradnorm",
+              "--check-patches", "0", "--monitor-features", "--no-progress"])  # fmt: skip
+    return maps
 
 
 def _policy_records(folder: Path) -> Path:
@@ -1157,7 +1253,9 @@ def serve_session(argv: list[str], root: Path) -> Output:
             frame = ws.recv(timeout=300)
             if isinstance(frame, str):  # an error is sent as text
                 return frame
-            return np.asarray(msgpack_numpy.unpackb(frame)["actions"]).round(4).tolist()
+            response = msgpack_numpy.unpackb(frame)
+            seen.setdefault("response_keys", sorted(response))
+            return np.asarray(response["actions"]).round(4).tolist()
 
         url = f"ws://127.0.0.1:{port}"
         with connect(url, additional_headers=headers, max_size=None, open_timeout=60) as ws:
