@@ -8,6 +8,9 @@ explanation and the command line validate against them.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import os
+import pathlib
 from collections.abc import Mapping, Sequence
 from typing import Any, Literal, TypeVar, get_args
 
@@ -76,11 +79,16 @@ class MapOptions:
 # gradient norm from the same backward pass; ig: integrated gradients from the baseline frame's tokens; occlusion:
 # the score's drop when a region is painted with the baseline frame and the model re-run; lrp: AttnLRP relevance,
 # propagated through the language model and SigLIP to the pixels by one modified backward pass (`model.lrp`).
-MapKind = Literal["gradcam", "gradnorm", "ig", "occlusion", "lrp"]
+# occlusion-head is not the model layer's: a small head fitted to the policy's own occlusion maps predicts occlusion
+# from other kinds' maps of the same call (`model.occlusion_head`, applied by the families).
+MapKind = Literal["gradcam", "gradnorm", "ig", "occlusion", "lrp", "occlusion-head"]
 MAP_KINDS: tuple[MapKind, ...] = get_args(MapKind)
 GRADIENT_KINDS: tuple[MapKind, ...] = ("gradcam", "gradnorm")  # one backward pass per explained score gives both
 BASELINE_KINDS: tuple[MapKind, ...] = ("ig", "occlusion")  # compare the frame with a baseline frame
 RELEVANCE_KINDS: tuple[MapKind, ...] = ("lrp",)  # one backward pass of their own per score, with modified rules
+# Computed by a head fitted offline from other kinds' maps of the same call (its inputs): no model pass of its own.
+OCCLUSION_HEAD: MapKind = "occlusion-head"
+HEAD_KINDS: tuple[MapKind, ...] = (OCCLUSION_HEAD,)
 # What a live side channel computes unless told otherwise: the kinds at the cost of one backward pass.
 DEFAULT_KINDS: tuple[MapKind, ...] = GRADIENT_KINDS
 # What the offline commands (`explain-run`, `explain-dataset`) and the demo compute unless told otherwise: the kinds
@@ -135,6 +143,14 @@ MAP_KIND_INFO: dict[MapKind, KindInfo] = {
         "with rules that conserve it (one modified backward pass), summed per patch: signed (positive supports the "
         "score). The relevance of a step adds up to its score less what biases and softmaxes absorb.",
     ),
+    "occlusion-head": KindInfo(
+        "head/",
+        "amortised occlusion (fitted head)",
+        "Amortised occlusion: a small head fitted offline to this policy's own occlusion maps predicts each patch's "
+        "occlusion drop from cheaper kinds' maps of the same call (`openpi-cam head fit`; its file names its inputs "
+        "and its held-out agreement with occlusion). Values are the predicted drop as a share of the camera's "
+        "largest one: compare patches within a camera, not across cameras.",
+    ),
 }
 
 
@@ -173,7 +189,37 @@ EXTRA_PREFIX = "cam_extra/"
 DEFAULT_PATCHES = 4
 _O = TypeVar("_O", bound="ExplainOptions")
 # What runs made before an option was recorded used.
-_UNRECORDED = {"ig_space": "tokens", "occlusion_region": 1, "occlusion_masks": 0, "reliance": False}
+_UNRECORDED = {
+    "ig_space": "tokens",
+    "occlusion_region": 1,
+    "occlusion_masks": 0,
+    "reliance": False,
+    "occlusion_head": None,
+    "occlusion_head_file": None,
+}
+# Recorded for the reader, not compared when adding to a run or maps dataset: the same head may move between machines.
+_NOT_COMPARED = ("occlusion_head_file",)
+
+
+@dataclasses.dataclass(frozen=True)
+class HeadRef:
+    """An occlusion head file (`model.occlusion_head`) as options name it: where it is read from, and the SHA-256 of
+    its bytes, which is its identity (steps join a run or maps dataset only with the head its earlier steps used)."""
+
+    path: str
+    sha256: str
+
+    @classmethod
+    def of(cls, path: str | os.PathLike[str]) -> HeadRef:
+        """The head file at `path`, hashed; a missing or unreadable file is refused in one line naming it."""
+        path = pathlib.Path(path).expanduser()
+        try:
+            data = path.read_bytes()
+        except OSError as e:
+            raise ValueError(
+                f"{path}: cannot read the occlusion head file ({e.strerror or type(e).__name__})"
+            ) from None
+        return cls(str(path.resolve()), hashlib.sha256(data).hexdigest())
 
 
 @dataclasses.dataclass(frozen=True)
@@ -192,6 +238,8 @@ class ExplainOptions:
     map_options: MapOptions = dataclasses.field(default_factory=MapOptions)  # of the "ig" / "occlusion" kinds
     check_patches: int = DEFAULT_PATCHES  # 0: no spot check
     reliance: bool = False  # measure camera and prompt reliance: one re-run per camera and one for the prompt
+    # the head the "occlusion-head" kind applies (None: the kind cannot be computed; `HeadRef.of` names a file)
+    occlusion_head: HeadRef | None = None
 
     def __post_init__(self) -> None:
         if self.target is not None and self.target not in TARGETS:
@@ -226,6 +274,8 @@ class ExplainOptions:
             "occlusion_masks": o.random_masks if o.occlusion_mode == "random" else 0,
             "check_patches": self.check_patches,
             "reliance": self.reliance,
+            "occlusion_head": None if self.occlusion_head is None else self.occlusion_head.sha256,
+            "occlusion_head_file": None if self.occlusion_head is None else self.occlusion_head.path,
         }
 
     @classmethod
@@ -239,6 +289,9 @@ class ExplainOptions:
         )
         if masks := int(data["occlusion_masks"]):
             map_options = dataclasses.replace(map_options, occlusion_mode="random", random_masks=masks)
+        head = None
+        if data["occlusion_head"]:
+            head = HeadRef(str(data["occlusion_head_file"] or ""), str(data["occlusion_head"]))
         return cls(
             target=data.get("target"),
             action_index=int(data.get("action_index", 0)),
@@ -247,9 +300,10 @@ class ExplainOptions:
             map_options=map_options,
             check_patches=int(data.get("check_patches", DEFAULT_PATCHES)),
             reliance=bool(data["reliance"]),
+            occlusion_head=head,
         )
 
     def mismatch(self, recorded: Mapping[str, Any]) -> list[str]:
         """What differs between these options and those a run or maps dataset recorded, one `key: old != new` each."""
         old, new = {**_UNRECORDED, **recorded}, self.to_json()
-        return [f"{k}: {old.get(k)!r} != {v!r}" for k, v in new.items() if old.get(k) != v]
+        return [f"{k}: {old.get(k)!r} != {v!r}" for k, v in new.items() if k not in _NOT_COMPARED and old.get(k) != v]
