@@ -45,7 +45,7 @@ def main(opts: tyro.conf.OmitArgPrefixes[DemoOptions] = DEFAULT, record: pathlib
     try:
         with recorder or contextlib.nullcontext():
             result = run_demo(opts, sink=recorder)
-    except (OSError, DatasetError, ImportError) as e:
+    except (OSError, DatasetError, ImportError, ValueError) as e:  # ValueError: an occlusion head that does not fit
         print(f"openpi-cam demo: {e}")
         return 1
     if record is not None:

@@ -39,10 +39,10 @@ class SideChannelFlags(SideChannelSettings, ExplainFlags):
     def __post_init__(self) -> None:
         ExplainFlags.__post_init__(self)  # builds the options, which check every flag
 
-    def options(self, target: Target | None = None) -> CAMOptions:
+    def options(self, target: Target | None = None, model: ModelSpec | None = None) -> CAMOptions:
         """The side channel's options; `target`, when given, stands for the flag's (the served family's resolved
-        target)."""
-        return super().options(target).extended(CAMOptions, **self.settings())
+        target); `model`, the served model (its own occlusion head)."""
+        return super().options(target, model).extended(CAMOptions, **self.settings())
 
 
 SIDE_CHANNEL_OFF = SideChannelFlags()
@@ -193,9 +193,9 @@ def _with_side_channel(
         raise StartupError(f"--cam.target {e}", 2) from None
     try:
         served = wrap_policy_with_cam(
-            policy, flags.options(target), run_config=run_config, checkpoint=str(model.checkpoint)
+            policy, flags.options(target, model), run_config=run_config, checkpoint=str(model.checkpoint)
         )
-    except ValueError as e:  # e.g. --cam.device names a device this machine does not have
+    except ValueError as e:  # e.g. --cam.device names a device this machine does not have, or a head of another model
         raise StartupError(str(e), 2) from None
     logger.info(
         "side channel: explaining every %d request(s) of each connection, target %s, runs under %s",

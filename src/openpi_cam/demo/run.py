@@ -24,7 +24,7 @@ from openpi_cam.demo.client import PolicyClient, RolloutSink
 from openpi_cam.demo.perturb import Perturbation
 from openpi_cam.serving.server import start_server_in_thread
 from openpi_cam.viz.render import RenderOptions, default_render_dir, render_run
-from openpi_cam.vocabulary import COMPARED_KINDS, Baseline, IgSpace, MapKind, MapOptions, Target
+from openpi_cam.vocabulary import COMPARED_KINDS, OCCLUSION_HEAD, Baseline, IgSpace, MapKind, MapOptions, Target
 
 
 def run_episodes(
@@ -147,8 +147,11 @@ class DemoOptions:
     model: Literal["pi0_fast", "pi05"] = "pi0_fast"
     # the folder holding the model (checkpoint/) and its tokenizers; default: the bundled ones of `model`.
     assets: pathlib.Path | None = None
-    # which map kinds the side channel computes (default: the four the faithfulness table compares; `lrp` by name).
+    # which map kinds the side channel computes (default: the four the faithfulness table compares; `lrp` and
+    # `occlusion-head` by name).
     maps: tuple[MapKind, ...] = COMPARED_KINDS
+    # the head file `occlusion-head` applies (`openpi-cam head fit`); default: the model's own, where it ships one.
+    head: pathlib.Path | None = None
     # re-score every step afterwards and report how faithful each map kind is.
     faithfulness: bool = True
     # the frame `ig` starts from and `occlusion` (and the faithfulness deletion) paints with.
@@ -175,6 +178,8 @@ class DemoOptions:
         if not self.perturb:
             raise ValueError("--perturb needs at least one perturbation (clean: none)")
         self.perturbations  # noqa: B018  (refused as the flags are parsed)
+        if self.head is not None and OCCLUSION_HEAD not in self.maps:
+            raise ValueError(f"--head {self.head} given but {OCCLUSION_HEAD} is not among the maps: add it to --maps")
 
 
 @dataclasses.dataclass
@@ -189,7 +194,8 @@ class DemoResult:
 
 def run_demo(opts: DemoOptions, sink: RolloutSink | None = None) -> DemoResult:
     """Serves, drives (recording every step into `sink`), renders and scores; raises OSError when the side channel
-    cannot create its run directory, ImportError when `--sim metaworld` lacks its extra."""
+    cannot create its run directory, ImportError when `--sim metaworld` lacks its extra, ValueError when
+    `occlusion-head` has no head that fits the model."""
     t0 = time.time()
     if opts.sim == "metaworld":
         metaworld_sim.require_simulator()
@@ -202,6 +208,7 @@ def run_demo(opts: DemoOptions, sink: RolloutSink | None = None) -> DemoResult:
         target=opts.target,
         maps=opts.maps,
         map_options=MapOptions(baseline=opts.baseline, ig_space=opts.ig_space),
+        occlusion_head=model.occlusion_head(opts.head) if OCCLUSION_HEAD in opts.maps else None,
         queue_size=max(64, opts.num_episodes * opts.calls),  # room for every request: the demo logs each one
     )
     demo = {
