@@ -26,8 +26,8 @@ def _rho(value: float | None) -> str:
 
 
 def format_figures(head: OcclusionHead) -> str:
-    """The fit's held-out figures as a table: per camera, the head's and each input kind's top-1 agreement and
-    Spearman correlation with occlusion."""
+    """The fit's held-out figures as a table: per camera, the top-1 agreement and Spearman correlation with
+    occlusion of the head, the position prior and each input kind alone."""
     record: dict[str, Any] = head.fit
     figures = record["figures"]["held_out"]
     examples, options = record["examples"], record["options"]
@@ -40,7 +40,8 @@ def format_figures(head: OcclusionHead) -> str:
         f"{'held-out, against occlusion':<34}{'top-1':>8}{'Spearman median':>17}{'mean':>7}{'maps':>6}",
     ]
     for camera, per_camera in [*figures["by_camera"].items(), ("all cameras", figures["all"])]:
-        rows = [("head", per_camera["head"])] + [(f"{k} alone", v) for k, v in per_camera["inputs"].items()]
+        rows = [("head", per_camera["head"]), ("position prior", per_camera["prior"])]
+        rows += [(f"{k} alone", v) for k, v in per_camera["inputs"].items()]
         for i, (name, f) in enumerate(rows):
             label = f"{camera if i == 0 else '':<16}{name:<18}"
             lines.append(

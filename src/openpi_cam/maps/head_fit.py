@@ -12,9 +12,11 @@ times the squared error, which pins the scale and offset the softmax leaves free
 of the camera's largest drop.
 
 Held-out figures, per camera and over all examples: top-1 agreement with occlusion (the share of examples whose
-highest patch is occlusion's) and Spearman's correlation with occlusion (median and mean), for the head and for each
-input kind alone. Deletion needs the model to re-score painted frames, so it is not measured here: explain frames
-with the kind and run `openpi-cam faithfulness` on them.
+highest patch is occlusion's) and Spearman's correlation with occlusion (median and mean), for the head, for each
+input kind alone, and for the position prior (the fitting episodes' mean occlusion map per camera: where occlusion
+tends to fall, whatever the frame; a head that only matches it has learnt the place, not read its inputs).
+Deletion needs the model to re-score painted frames, so it is not measured here: explain frames with the kind and
+run `openpi-cam faithfulness` on them.
 """
 
 from __future__ import annotations
@@ -53,7 +55,9 @@ class HeadFitOptions:
     learning_rate: float = 1e-2
     temperature: float = 0.1  # of the listwise softmax, in units of the camera's largest normalised value (1)
     mse_weight: float = 1.0
-    weight_decay: float = 1e-4  # L2 on the weights (not the biases)
+    # L2 on the weights (not the biases): on ~100-frame dev sets (docs/MAP_KINDS.md) 1e-2 held out as well as or
+    # better than 1e-4, a linear head or fewer steps, which the small data sets' over-fitting favours
+    weight_decay: float = 1e-2
     holdout: float = 0.25  # share of the episodes held out
     seed: int = 0  # the initialisation and the split
 
@@ -276,9 +280,21 @@ def _agreement(predicted: np.ndarray, target: np.ndarray, grid: tuple[int, int])
     }
 
 
-def evaluate(head: OcclusionHead, examples: HeadExamples) -> dict[str, Any]:
-    """The head's and each input kind's agreement with occlusion on `examples`, per camera and over all (the head
-    applied as served: `OcclusionHead.forward`)."""
+def position_prior(examples: HeadExamples) -> np.ndarray:
+    """[C, N]: each camera's mean normalised occlusion map over `examples` (zeros for a camera without any): the
+    map that says only where occlusion tends to fall, which a head must beat to have read its inputs."""
+    prior = np.zeros((len(examples.cameras), examples.target.shape[1]))
+    for index in range(len(examples.cameras)):
+        rows = examples.camera == index
+        if rows.any():
+            prior[index] = examples.target[rows].mean(axis=0)
+    return prior
+
+
+def evaluate(head: OcclusionHead, examples: HeadExamples, prior: np.ndarray) -> dict[str, Any]:
+    """The agreement with occlusion on `examples`, per camera and over all, of the head (applied as served:
+    `OcclusionHead.forward`), of each input kind alone and of `prior` ([C, N], `position_prior` of the fitting
+    examples)."""
     predicted = np.empty_like(examples.target)
     for index in range(len(head.cameras)):
         rows = examples.camera == index
@@ -287,6 +303,7 @@ def evaluate(head: OcclusionHead, examples: HeadExamples) -> dict[str, Any]:
     def figures(rows: np.ndarray) -> dict[str, Any]:
         return {
             "head": _agreement(predicted[rows], examples.target[rows], head.grid),
+            "prior": _agreement(prior[examples.camera[rows]], examples.target[rows], head.grid),
             "inputs": {
                 kind: _agreement(examples.inputs[rows, :, k], examples.target[rows], head.grid)
                 for k, kind in enumerate(examples.kinds)
@@ -316,9 +333,10 @@ def fit(paths: Sequence[pathlib.Path], options: HeadFitOptions) -> OcclusionHead
         "final_loss": loss,
     }
     head = head_from(examples, weights, record)
+    prior = position_prior(examples.subset(fitting))
     figures = {
-        "held_out": evaluate(head, examples.subset(held)),
-        "fitting": evaluate(head, examples.subset(fitting)),
+        "held_out": evaluate(head, examples.subset(held), prior),
+        "fitting": evaluate(head, examples.subset(fitting), prior),
         "deletion": DELETION_NOT_MEASURED,
     }
     # as the file holds it (tuples as lists), so that a head and its saved copy are equal
