@@ -36,14 +36,21 @@ def format_figures(head: OcclusionHead) -> str:
         f"{' '.join(head.inputs)}, {'linear' if not head.hidden else f'{head.hidden} hidden units'}",
         f"fitted on {examples['fitting']} camera maps; held out: {examples['held_out']} camera maps of "
         f"{len(record['held_out_episodes'])} of {record['episodes']} episodes (seed {options['seed']})",
-        "",
-        f"{'held-out, against occlusion':<34}{'top-1':>8}{'Spearman median':>17}{'mean':>7}{'maps':>6}",
     ]
-    for camera, per_camera in [*figures["by_camera"].items(), ("all cameras", figures["all"])]:
+    cameras = [*figures["by_camera"].items(), ("all cameras", figures["all"])]
+    width = max(len(c) for c, _ in cameras) + 2
+    lines += [
+        "",
+        f"{'held-out, against occlusion':<{width + 18}}{'top-1':>8}{'Spearman median':>17}{'mean':>7}{'maps':>6}",
+    ]
+    for camera, per_camera in cameras:
+        if not per_camera["head"]["examples"]:
+            lines.append(f"{camera:<{width}}no held-out maps (never valid, or occlusion all zeros)")
+            continue
         rows = [("head", per_camera["head"]), ("position prior", per_camera["prior"])]
         rows += [(f"{k} alone", v) for k, v in per_camera["inputs"].items()]
         for i, (name, f) in enumerate(rows):
-            label = f"{camera if i == 0 else '':<16}{name:<18}"
+            label = f"{camera if i == 0 else '':<{width}}{name:<18}"
             lines.append(
                 f"{label}{_percent(f['top1']):>8}{_rho(f['spearman_median']):>17}{_rho(f['spearman_mean']):>7}"
                 f"{f['examples']:>6}"
