@@ -48,8 +48,11 @@ def _stats(values: list[float | None], percent: bool = False) -> str:
 
 
 def _table(per_seed: list[dict[str, Any]], title: str) -> list[str]:
-    lines = [title, f"{'camera':<14}{'map':<18}{'top-1, mean [range]':>24}{'Spearman median, mean [range]':>32}"]
+    width = max(len(c) for c in per_seed[0]["by_camera"]) + 2
+    lines = [title, f"{'camera':<{width}}{'map':<18}{'top-1, mean [range]':>24}{'Spearman median, mean [range]':>32}"]
     for camera in per_seed[0]["by_camera"]:
+        if not per_seed[0]["by_camera"][camera]["head"]["examples"]:
+            continue  # never valid (pi0.5's blank right wrist)
         names = ["head", "prior", *per_seed[0]["by_camera"][camera]["inputs"]]
         for i, name in enumerate(names):
 
@@ -60,7 +63,7 @@ def _table(per_seed: list[dict[str, Any]], title: str) -> list[str]:
             top1 = _stats([pick(f)["top1"] for f in per_seed], percent=True)
             rho = _stats([pick(f)["spearman_median"] for f in per_seed])
             label = {"head": "head", "prior": "position prior"}.get(name, f"{name} alone")
-            lines.append(f"{camera if i == 0 else '':<14}{label:<18}{top1:>24}{rho:>32}")
+            lines.append(f"{camera if i == 0 else '':<{width}}{label:<18}{top1:>24}{rho:>32}")
     return lines
 
 
@@ -93,11 +96,11 @@ def main() -> None:
         held_out.append(evaluate(head, examples.subset(held_rows), prior))
         fitting.append(evaluate(head, examples.subset(fit_rows), prior))
     seconds = time.perf_counter() - t0
-    frames = len(examples) // max(1, len(examples.cameras))
+    per_camera = ", ".join(f"{c} {int(np.sum(examples.camera == i))}" for i, c in enumerate(examples.cameras))
     print(
-        f"{examples.model.get('config')} ({examples.family}), {examples.target_name} maps: {len(examples)} camera maps "
-        f"(~{frames} frames) of {len(examples.episodes)} episodes; inputs {' '.join(base.inputs)}, hidden "
-        f"{base.hidden}, {len(args.seeds)} seeds, holdout {base.holdout}"
+        f"{examples.model.get('config')} ({examples.family}), {examples.target_name} maps of {len(examples.episodes)} "
+        f"episodes ({per_camera}); inputs {' '.join(base.inputs)}, hidden {base.hidden}, weight decay "
+        f"{base.weight_decay}, {len(args.seeds)} seeds, holdout {base.holdout}"
     )
     print(
         f"machine: {platform.machine()} {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}; {seconds:.0f} s"
