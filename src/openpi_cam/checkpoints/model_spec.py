@@ -277,8 +277,8 @@ class ModelSpec:
             path = self.assets() / occlusion_head.HEAD_FILE
             if not path.is_file():
                 raise ValueError(
-                    f"occlusion-head needs a head file: --head FILE (fit one with `openpi-cam head fit`); the model "
-                    f"ships none ({path})"
+                    f"occlusion-head needs a head file: --head FILE (serve: --cam.head FILE); `openpi-cam head fit` "
+                    f"fits one; the model ships none ({path})"
                 )
         ref = HeadRef.of(path)
         head = occlusion_head.load_ref(ref)

@@ -123,7 +123,9 @@ def request_head(explainer: Explainer, request: ExplainOptions) -> occlusion_hea
     if OCCLUSION_HEAD not in request.maps:
         return None
     if request.occlusion_head is None:
-        raise ValueError(f"{OCCLUSION_HEAD} needs a head file: --head FILE (fit one with `openpi-cam head fit`)")
+        raise ValueError(
+            f"{OCCLUSION_HEAD} needs a head file: --head FILE (serve: --cam.head FILE); `openpi-cam head fit` fits one"
+        )
     head = occlusion_head.load_ref(request.occlusion_head)
     if head.family != explainer.family or head.target != request.target:
         raise ValueError(
