@@ -8,6 +8,9 @@ explanation and the command line validate against them.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import os
+import pathlib
 from collections.abc import Mapping, Sequence
 from typing import Any, Literal, TypeVar, get_args
 
@@ -93,7 +96,11 @@ class MapOptions:
 # drop, the pixel gradient dotted with (frame - baseline frame) per patch; smoothgrad: the gradient norm of the
 # gradient averaged over noisy copies of the tokens; rise: random patch masks painted with the baseline frame (RISE),
 # each patch's score with it kept against painted.
-MapKind = Literal["gradcam", "gradnorm", "ig", "occlusion", "lrp", "gradxinput", "taylor", "smoothgrad", "rise"]
+# occlusion-head is not the model layer's: a small head fitted to the policy's own occlusion maps predicts occlusion
+# from other kinds' maps of the same call (`model.occlusion_head`, applied by the families).
+MapKind = Literal[
+    "gradcam", "gradnorm", "ig", "occlusion", "lrp", "gradxinput", "taylor", "smoothgrad", "rise", "occlusion-head"
+]
 MAP_KINDS: tuple[MapKind, ...] = get_args(MapKind)
 # What a family's gradient program computes: one backward pass per explained score to the image tokens gives
 # gradcam, gradnorm and gradxinput; taylor continues that pass through SigLIP to the pixels; smoothgrad adds
@@ -103,13 +110,21 @@ GRADIENT_KINDS: tuple[MapKind, ...] = ("gradcam", "gradnorm", "gradxinput", "tay
 BASELINE_KINDS: tuple[MapKind, ...] = ("ig", "occlusion", "rise")
 # One backward pass of their own per score, with modified rules (`model.lrp`), in a program of their own.
 RELEVANCE_KINDS: tuple[MapKind, ...] = ("lrp",)
+# Computed by a head fitted offline from other kinds' maps of the same call (its inputs): no model pass of its own.
+# The model computes its inputs' maps in their groups' programs (`policies.family.model_kinds`), and records the
+# options where an input reads them.
+OCCLUSION_HEAD: MapKind = "occlusion-head"
+HEAD_KINDS: tuple[MapKind, ...] = (OCCLUSION_HEAD,)
+# What the model layer's programs compute (`model.pi0_fast_maps`, `model.pi0_maps`): every kind but the head's.
+MODEL_KINDS: tuple[MapKind, ...] = (*GRADIENT_KINDS, *RELEVANCE_KINDS, *BASELINE_KINDS)
 # The kinds whose maps depend on `MapOptions` (an explained step records its options beside them).
 OPTION_KINDS: tuple[MapKind, ...] = ("taylor", "smoothgrad", *BASELINE_KINDS)
 # What a live side channel computes unless told otherwise: Grad-CAM and the gradient norm, one backward pass.
 DEFAULT_KINDS: tuple[MapKind, ...] = ("gradcam", "gradnorm")
 # What the offline commands (`explain-run`, `explain-dataset`) and the demo compute unless told otherwise: the kinds
 # their reports compare. Spelled out rather than built from the groups, so that a kind added to a group stays out of
-# the defaults, asked for by name, until a bench measures it against these (lrp, gradxinput, taylor, smoothgrad, rise).
+# the defaults, asked for by name, until a bench measures it against these (lrp, gradxinput, taylor, smoothgrad, rise,
+# occlusion-head).
 COMPARED_KINDS: tuple[MapKind, ...] = ("gradcam", "gradnorm", "ig", "occlusion")
 # What render, the reports and the demo draw unless told otherwise: the map that measured most faithful on the demo
 # models at the cost of one backward pass (docs/MAP_KINDS.md, "Which map to trust").
@@ -188,15 +203,24 @@ MAP_KIND_INFO: dict[MapKind, KindInfo] = {
         "is the mean score with it kept minus the mean score with it painted, which estimates occlusion's drop "
         "where patches act additively. Signed; one forward per mask and camera.",
     ),
+    "occlusion-head": KindInfo(
+        "head/",
+        "amortised occlusion (fitted head)",
+        "Amortised occlusion: a small head fitted offline to this policy's own occlusion maps predicts each patch's "
+        "occlusion drop from cheaper kinds' maps of the same call (`openpi-cam head fit`; its file names its inputs "
+        "and its held-out agreement with occlusion). Values are the predicted drop as a share of the camera's "
+        "largest one: compare patches within a camera, not across cameras.",
+    ),
 }
 
 
-def check_kinds(kinds: Sequence[str]) -> tuple[MapKind, ...]:
-    """The requested kinds, deduplicated in order; an unknown or empty selection is an error naming the choices."""
+def check_kinds(kinds: Sequence[str], choices: Sequence[MapKind] = MAP_KINDS) -> tuple[MapKind, ...]:
+    """The requested kinds, deduplicated in order; a kind not among `choices` or an empty selection is an error
+    naming the choices (the model layer's are `MODEL_KINDS`: a kind it would accept and not compute is refused)."""
     kinds = tuple(dict.fromkeys(kinds))
-    unknown = [k for k in kinds if k not in MAP_KINDS]
+    unknown = [k for k in kinds if k not in choices]
     if unknown or not kinds:
-        raise ValueError(f"map kinds must be a non-empty selection of {MAP_KINDS}, got {list(kinds)}")
+        raise ValueError(f"map kinds must be a non-empty selection of {tuple(choices)}, got {list(kinds)}")
     return kinds  # type: ignore[return-value]
 
 
@@ -246,7 +270,32 @@ _UNRECORDED = {
     "smoothgrad_sigma": MapOptions.smoothgrad_sigma,
     "rise_masks": MapOptions.rise_masks,
     "rise_keep_prob": MapOptions.rise_keep_prob,
+    "occlusion_head": None,
+    "occlusion_head_file": None,
 }
+# Recorded for the reader, not compared when adding to a run or maps dataset: the same head may move between machines.
+_NOT_COMPARED = ("occlusion_head_file",)
+
+
+@dataclasses.dataclass(frozen=True)
+class HeadRef:
+    """An occlusion head file (`model.occlusion_head`) as options name it: where it is read from, and the SHA-256 of
+    its bytes, which is its identity (steps join a run or maps dataset only with the head its earlier steps used)."""
+
+    path: str
+    sha256: str
+
+    @classmethod
+    def of(cls, path: str | os.PathLike[str]) -> HeadRef:
+        """The head file at `path`, hashed; a missing or unreadable file is refused in one line naming it."""
+        path = pathlib.Path(path).expanduser()
+        try:
+            data = path.read_bytes()
+        except OSError as e:
+            raise ValueError(
+                f"{path}: cannot read the occlusion head file ({e.strerror or type(e).__name__})"
+            ) from None
+        return cls(str(path.resolve()), hashlib.sha256(data).hexdigest())
 
 
 @dataclasses.dataclass(frozen=True)
@@ -265,6 +314,8 @@ class ExplainOptions:
     map_options: MapOptions = dataclasses.field(default_factory=MapOptions)  # of the `OPTION_KINDS`
     check_patches: int = DEFAULT_PATCHES  # 0: no spot check
     reliance: bool = False  # measure camera and prompt reliance: one re-run per camera and one for the prompt
+    # the head the "occlusion-head" kind applies (None: the kind cannot be computed; `HeadRef.of` names a file)
+    occlusion_head: HeadRef | None = None
 
     def __post_init__(self) -> None:
         if self.target is not None and self.target not in TARGETS:
@@ -303,6 +354,8 @@ class ExplainOptions:
             "rise_keep_prob": o.rise_keep_prob,
             "check_patches": self.check_patches,
             "reliance": self.reliance,
+            "occlusion_head": None if self.occlusion_head is None else self.occlusion_head.sha256,
+            "occlusion_head_file": None if self.occlusion_head is None else self.occlusion_head.path,
         }
 
     @classmethod
@@ -320,6 +373,9 @@ class ExplainOptions:
         )
         if masks := int(data["occlusion_masks"]):
             map_options = dataclasses.replace(map_options, occlusion_mode="random", random_masks=masks)
+        head = None
+        if data["occlusion_head"]:
+            head = HeadRef(str(data["occlusion_head_file"] or ""), str(data["occlusion_head"]))
         return cls(
             target=data.get("target"),
             action_index=int(data.get("action_index", 0)),
@@ -328,9 +384,10 @@ class ExplainOptions:
             map_options=map_options,
             check_patches=int(data.get("check_patches", DEFAULT_PATCHES)),
             reliance=bool(data["reliance"]),
+            occlusion_head=head,
         )
 
     def mismatch(self, recorded: Mapping[str, Any]) -> list[str]:
         """What differs between these options and those a run or maps dataset recorded, one `key: old != new` each."""
         old, new = {**_UNRECORDED, **recorded}, self.to_json()
-        return [f"{k}: {old.get(k)!r} != {v!r}" for k, v in new.items() if old.get(k) != v]
+        return [f"{k}: {old.get(k)!r} != {v!r}" for k, v in new.items() if k not in _NOT_COMPARED and old.get(k) != v]

@@ -676,24 +676,35 @@ def test_spread_splits_the_axis_over_the_ambient_mesh_only():
 # ---------------------------------------------------------------------------------------------------------------
 # Every kind in one call
 
-# The groups of kinds, each computed by a program of its own: the gradient program (`gradient_maps`), AttnLRP's
-# (`lrp_maps`) and the baseline program (`baseline_maps`). Small counts keep the one-call tests cheap (SmoothGrad's
-# samples are data; RISE's masks and IG's points change no kind but their own).
+# The groups of kinds the model computes, each by a program of its own: the gradient program (`gradient_maps`),
+# AttnLRP's (`lrp_maps`) and the baseline program (`baseline_maps`). Small counts keep the one-call tests cheap
+# (SmoothGrad's samples are data; RISE's masks and IG's points change no kind but their own).
 KIND_GROUPS = (vocabulary.GRADIENT_KINDS, vocabulary.RELEVANCE_KINDS, vocabulary.BASELINE_KINDS)
 EVERY_KIND_OPTIONS = MapOptions(ig_steps=4, ig_tolerance=0.0, smoothgrad_samples=2, rise_masks=8)
 
 
 def test_the_groups_hold_every_kind_once():
-    """A kind outside every group would be accepted and never computed; a kind in two would run twice."""
-    grouped = [k for group in KIND_GROUPS for k in group]
+    """A kind outside every group would be accepted and never computed; a kind in two would run twice. The model's
+    programs compute the kinds of its groups (`MODEL_KINDS`); `occlusion-head` (`HEAD_KINDS`) is the families', the
+    head applied to its inputs' maps."""
+    grouped = [k for group in (*KIND_GROUPS, vocabulary.HEAD_KINDS) for k in group]
     assert sorted(grouped) == sorted(vocabulary.MAP_KINDS)
+    assert sorted(vocabulary.MODEL_KINDS) == sorted(k for group in KIND_GROUPS for k in group)
+
+
+def test_the_model_refuses_the_head_kind(demo):
+    """Asked of the model itself, `occlusion-head` would be accepted and never computed: refused, naming the kinds
+    the model computes."""
+    with pytest.raises(ValueError, match="non-empty selection of") as refused:
+        maps.maps_for_chunk(demo.model, demo.obs, demo.generated, demo.chunk_rows, kinds=vocabulary.HEAD_KINDS)
+    assert "occlusion-head" in str(refused.value) and "rise" in str(refused.value)
 
 
 def assert_groups_reproduced(every, alone: dict, cameras, shape) -> None:
     """`every` (all kinds in one call) against `alone` (group -> that group's kinds in a call of their own): the
     gradient and relevance kinds run the same compiled program either way, bit for bit; the baseline kinds' program
     also returns the score when no gradient program ran, a different compilation: SCORE_ATOL."""
-    assert set(every.by_kind) == set(vocabulary.MAP_KINDS)
+    assert set(every.by_kind) == set(vocabulary.MODEL_KINDS)
     assert every.options == EVERY_KIND_OPTIONS  # the kinds that read the options record them
     for group, res in alone.items():
         for kind in group:
@@ -714,8 +725,8 @@ def assert_groups_reproduced(every, alone: dict, cameras, shape) -> None:
 
 @pytest.mark.parametrize("target", [pytest.param("tokens", marks=pytest.mark.slow), "chunk"])
 def test_every_kind_in_one_pi0_fast_call_is_each_groups_own(demo, target):
-    """The demo pi0-FAST, two rows: every kind of `MAP_KINDS` asked for at once, for three token logits per row and
-    for a per-row chunk of log-probabilities, gives each kind the maps its group gives alone."""
+    """The demo pi0-FAST, two rows: every kind the model computes (`MODEL_KINDS`) asked for at once, for three token
+    logits per row and for a per-row chunk of log-probabilities, gives each kind the maps its group gives alone."""
     if target == "tokens":
         steps = np.stack([s[:3] for s in demo.action_steps])  # [B, T] per row
 
@@ -733,14 +744,14 @@ def test_every_kind_in_one_pi0_fast_call_is_each_groups_own(demo, target):
             )
 
         shape = (2, 4, 4)
-    every = explain(vocabulary.MAP_KINDS)
+    every = explain(vocabulary.MODEL_KINDS)
     assert_groups_reproduced(every, {g: explain(g) for g in KIND_GROUPS}, DEMO_CAMERAS, shape)
     if target == "tokens":
         assert every.logits is not None and every.logits.shape[:2] == (2, 3)
 
 
 def test_every_kind_in_one_pi05_call_is_each_groups_own(demo_pi05_policy):
-    """The demo pi0.5 (its third camera blank): every kind at once for one action dimension and the whole chunk
+    """The demo pi0.5 (its third camera blank): every model kind at once for one action dimension and the whole chunk
     gives each kind the maps its group gives alone, and the actions the call served."""
     from demo_inputs import demo_observation
 
@@ -756,22 +767,23 @@ def test_every_kind_in_one_pi05_call_is_each_groups_own(demo_pi05_policy):
             policy.model, trace.observation, noise, targets, kinds=kinds, options=EVERY_KIND_OPTIONS
         )
 
-    every = explain(vocabulary.MAP_KINDS)
+    every = explain(vocabulary.MODEL_KINDS)
     cameras = tuple(trace.observation.images)
     assert_groups_reproduced(every, {g: explain(g) for g in KIND_GROUPS}, cameras, (1, 2, 4, 4))
     np.testing.assert_allclose(every.actions[0], np.asarray(trace.output), rtol=1e-5, atol=1e-6)
 
 
 def test_kinds_beyond_the_compared_four_are_asked_for_by_name_only():
-    """No default computes or draws `lrp` or the four kinds added after it: the side channel's kinds, the offline
-    commands', the demo's on either simulator, and the kind the viewers draw (until a bench chooses the defaults)."""
+    """No default computes or draws `lrp`, the four kinds added after it or `occlusion-head`: the side channel's kinds,
+    the offline commands', the demo's on either simulator, and the kind the viewers draw (until a bench chooses the
+    defaults)."""
     from openpi_cam.cli.options import EVERY_KIND, ExplainFlags
     from openpi_cam.demo.run import DemoOptions
 
     assert vocabulary.DEFAULT_KINDS == ("gradcam", "gradnorm")
     assert vocabulary.COMPARED_KINDS == ("gradcam", "gradnorm", "ig", "occlusion")
     by_name = set(vocabulary.MAP_KINDS) - set(vocabulary.COMPARED_KINDS)
-    assert by_name == {"lrp", "gradxinput", "taylor", "smoothgrad", "rise"}
+    assert by_name == {"lrp", "gradxinput", "taylor", "smoothgrad", "rise", "occlusion-head"}
     defaults = (
         vocabulary.DEFAULT_KINDS,
         ExplainFlags().maps,

@@ -94,7 +94,7 @@ def main(
         spec = model.resolved()
         overrides = parse_pairs(keys, "--keys")
         mapping, nested = dataset_keys(spec, overrides)
-        options, recorded = explanation.options(), None
+        options, recorded = explanation.options(model=spec), None
         if options.target == DATASET_ACTIONS:
             recorded = recorded_actions_feature(spec, overrides)
             if recorded is None:

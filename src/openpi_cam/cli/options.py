@@ -5,16 +5,22 @@ Allowed values come from `openpi_cam.vocabulary`."""
 from __future__ import annotations
 
 import dataclasses
-from typing import Literal
+import pathlib
+from typing import ClassVar, Literal
 
 from openpi_cam.checkpoints.model_spec import ModelSpec
+from openpi_cam.model import occlusion_head
 from openpi_cam.vocabulary import (
     BASELINES,
     COMPARED_KINDS,
+    DATASET_ACTIONS,
     DEFAULT_KINDS,
     DEFAULT_PATCHES,
+    DEFAULT_TARGETS,
+    OCCLUSION_HEAD,
     Baseline,
     ExplainOptions,
+    HeadRef,
     IgSpace,
     MapKind,
     MapOptions,
@@ -39,6 +45,9 @@ class ExplainFlags:
     """What each explained step explains and which maps it carries (`ExplainOptions`). `serve` nests these under
     `--cam.`, the explain commands take them unprefixed; they are checked as the command line is parsed."""
 
+    # how the command line spells these flags, for messages that name one (`serve`'s are `--cam.` flags)
+    FLAG_PREFIX: ClassVar[str] = "--"
+
     # which score the maps explain; default: the model family's own (pi0-FAST `action-token`, pi0 / pi0.5 `chunk`).
     # A pi0-FAST generation without action tokens is explained with `generated-tokens` whatever this says.
     target: Target | None = None
@@ -47,8 +56,12 @@ class ExplainFlags:
     # which kinds of map each explained step carries (README, "Which map to trust"): `gradcam`, `gradnorm` and
     # `gradxinput` cost one backward pass together, `taylor` continues it through SigLIP; `smoothgrad` costs
     # --smoothgrad-samples backward passes; `ig`, `occlusion` and `rise` cost several inferences each; `lrp` (AttnLRP
-    # relevance at the pixels) one backward pass of its own, through SigLIP too.
+    # relevance at the pixels) one backward pass of its own, through SigLIP too; `occlusion-head` (occlusion predicted
+    # by a head fitted to the policy's own occlusion maps, `openpi-cam head fit`) its inputs' passes.
     maps: tuple[MapKind, ...] = DEFAULT_KINDS
+    # the head file `occlusion-head` applies (`openpi-cam head fit`); default: the model's own (`occlusion_head.json`
+    # in its assets), where it ships one.
+    head: pathlib.Path | None = None
     # the frame `ig` starts from and `occlusion` paints with: the frame's mean colour or a Gaussian-blurred copy.
     baseline: Baseline = MapOptions.baseline
     # side of an `occlusion` region in patches (1: every patch alone, C x (N + 1) re-runs per step).
@@ -79,8 +92,10 @@ class ExplainFlags:
         # included: `serve`'s flags build CAMOptions here).
         self.options()
 
-    def options(self, target: Target | None = None) -> ExplainOptions:
-        """The options these flags name; `target`, when given, stands for the flag's (a family's resolved one)."""
+    def options(self, target: Target | None = None, model: ModelSpec | None = None) -> ExplainOptions:
+        """The options these flags name; `target`, when given, stands for the flag's (a family's resolved one);
+        `model`, the model they explain, whose own occlusion head stands in for `--head` (without it, as the command
+        line is parsed, the head is checked only where `--head` names one)."""
         if self.occlusion_masks < 0:
             raise ValueError(f"occlusion_masks must be >= 0 (0: every region once), got {self.occlusion_masks}")
         map_options = MapOptions(
@@ -103,7 +118,30 @@ class ExplainFlags:
             map_options=map_options,
             check_patches=self.check_patches,
             reliance=self.reliance,
+            occlusion_head=self._head(target or self.target, model),
         )
+
+    def _head(self, target: Target | None, model: ModelSpec | None) -> HeadRef | None:
+        """The head `occlusion-head` applies, checked against the model and the target (one line when it does not
+        fit); None when the kind is not asked for."""
+        if OCCLUSION_HEAD not in self.maps:
+            if self.head is not None:
+                flag = self.FLAG_PREFIX
+                raise ValueError(
+                    f"{flag}head {self.head} given but {OCCLUSION_HEAD} is not among the maps: add it to {flag}maps"
+                )
+            return None
+        if model is None:
+            return None if self.head is None else HeadRef.of(self.head)
+        ref = model.occlusion_head(self.head)
+        head = occlusion_head.load_ref(ref)
+        explained = target or DEFAULT_TARGETS[head.family]
+        explained = "chunk" if explained == DATASET_ACTIONS else explained  # the recorded chunk is explained as one
+        if head.target != explained:
+            raise ValueError(
+                f"{ref.path}: the occlusion head was fitted on {head.target} maps; these explain {explained}"
+            )
+        return ref
 
 
 # The explain commands' default: every kind their reports compare, since offline there is no robot to keep waiting.

@@ -14,7 +14,7 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, ClassVar
 
 import tyro
 
@@ -38,13 +38,15 @@ class SideChannelFlags(SideChannelSettings, ExplainFlags):
     (`ExplainFlags`), then the side channel's own settings, generated from `SideChannelSettings` field by field (one
     name, unit and default each)."""
 
+    FLAG_PREFIX: ClassVar[str] = "--cam."
+
     def __post_init__(self) -> None:
         ExplainFlags.__post_init__(self)  # builds the options, which check every flag
 
-    def options(self, target: Target | None = None) -> CAMOptions:
+    def options(self, target: Target | None = None, model: ModelSpec | None = None) -> CAMOptions:
         """The side channel's options; `target`, when given, stands for the flag's (the served family's resolved
-        target)."""
-        return super().options(target).extended(CAMOptions, **self.settings())
+        target); `model`, the served model (its own occlusion head)."""
+        return super().options(target, model).extended(CAMOptions, **self.settings())
 
 
 SIDE_CHANNEL_OFF = SideChannelFlags()
@@ -235,9 +237,13 @@ def _with_side_channel(
         raise StartupError(f"--cam.target {e}", 2) from None
     try:
         served = wrap_policy_with_cam(
-            policy, flags.options(target), run_config=run_config, checkpoint=str(model.checkpoint), monitor=live
+            policy,
+            flags.options(target, model),
+            run_config=run_config,
+            checkpoint=str(model.checkpoint),
+            monitor=live,
         )
-    except ValueError as e:  # e.g. --cam.device names a device this machine does not have
+    except ValueError as e:  # e.g. --cam.device names a device this machine does not have, or a head of another model
         raise StartupError(str(e), 2) from None
     if flags.every_k:
         logger.info(

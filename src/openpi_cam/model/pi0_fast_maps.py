@@ -55,6 +55,7 @@ from openpi_cam.vocabulary import (
     BASELINE_KINDS,
     DEFAULT_KINDS,
     GRADIENT_KINDS,
+    MODEL_KINDS,
     OPTION_KINDS,
     RELEVANCE_KINDS,
     MapOptions,
@@ -529,7 +530,7 @@ def _explain_tokens(
 ) -> MapResult:
     """Token targets: the logit of targets[b, k] (the generated token, or a counterfactual) at each decode step k of
     `steps`, replaying `generated`; `squeeze` drops the token axis of a single step."""
-    kinds, options = check_kinds(kinds), options or MapOptions()
+    kinds, options = check_kinds(kinds, MODEL_KINDS), options or MapOptions()
     batch = generated.shape[0]
     steps, shared, steps_tb = _token_steps(steps, batch, generated.shape[1])
     t = steps.shape[1]
@@ -654,7 +655,7 @@ def _explain_chunk(
 ) -> MapResult:
     """A chunk target given as `chunk_weights` returns it: weights [B, S], the explained steps of each row and
     whether every row explains the same ones."""
-    kinds, options = check_kinds(kinds), options or MapOptions()
+    kinds, options = check_kinds(kinds, MODEL_KINDS), options or MapOptions()
     batch = generated.shape[0]
     padded = np.full((batch, max(r.size for r in rows)), -1, np.int32)
     for b, r in enumerate(rows):

@@ -30,6 +30,7 @@ from openpi_cam.vocabulary import (
     BASELINE_KINDS,
     DEFAULT_KINDS,
     GRADIENT_KINDS,
+    MODEL_KINDS,
     OPTION_KINDS,
     RELEVANCE_KINDS,
     MapOptions,
@@ -152,7 +153,7 @@ def maps_for_actions(
     pass of its own per target."""
     cfg = model.config
     targets = _checked_targets(cfg, targets)
-    kinds, options = check_kinds(kinds), options or MapOptions()
+    kinds, options = check_kinds(kinds, MODEL_KINDS), options or MapOptions()
     obs = preprocess(obs, cfg)
     noise = jnp.asarray(noise, jnp.float32)
     cams, grid, n = tuple(obs.images), cfg.siglip.grid, cfg.siglip.num_tokens

@@ -32,6 +32,10 @@ from openpi_cam.policies.family import (
     Sampler,
     baseline_details,
     feature_signals,
+    head_details,
+    model_kinds,
+    request_head,
+    requested_maps,
     resolve_target,
 )
 from openpi_cam.tokenizers.paligemma import load_paligemma_tokenizer
@@ -69,15 +73,21 @@ class FlowExplainer(ModelExplainer):
             if not (target[0] < cfg.action_horizon and target[1] < cfg.action_dim):
                 reason = f"action {target} requested, the chunk is [{cfg.action_horizon}, {cfg.action_dim}]"
                 return [ExplainSkipped("action_index_out_of_range", reason)] * len(outputs)
+        head = request_head(self, request)
+        kinds = model_kinds(request, head)
         res = maps_for_actions(
-            self.model, observation, sample_inputs["noise"], [target], kinds=request.maps, options=request.map_options
+            self.model, observation, sample_inputs["noise"], [target], kinds=kinds, options=request.map_options
         )
         replay_diff = np.abs(res.actions - np.asarray(outputs, np.float32)).max(axis=(1, 2))
         grid = list(self.camera_grid)
         return [
             Explanation(
                 target=request.target,
-                maps={k: {c: np.asarray(m[b, 0], np.float32) for c, m in res.by_kind[k].items()} for k in request.maps},
+                maps=requested_maps(
+                    request,
+                    head,
+                    {k: {c: np.asarray(m[b, 0], np.float32) for c, m in res.by_kind[k].items()} for k in kinds},
+                ),
                 score=float(res.score[b, 0]),
                 cameras={
                     c: {"valid": bool(res.valid[c][b]), "grid": grid, "span": list(res.spans[c])} for c in res.cameras
@@ -86,6 +96,7 @@ class FlowExplainer(ModelExplainer):
                     "action_index": None if target == CHUNK else list(target),
                     "replay_max_abs_diff": float(replay_diff[b]),
                     **baseline_details(res.ig_completeness, res.options, (b, 0)),
+                    **head_details(request, head),
                 },
             )
             for b in range(len(outputs))

@@ -21,6 +21,7 @@ from openpi_cam.errors import InvalidRequest
 from openpi_cam.model import pi0_fast_maps
 from openpi_cam.model.config import EOS_TOKEN
 from openpi_cam.model.observation import Observation
+from openpi_cam.model.occlusion_head import OcclusionHead
 from openpi_cam.model.pi0_fast import Pi0FAST
 from openpi_cam.model.pi0_fast_maps import MapResult
 from openpi_cam.policies.config import PolicyConfig
@@ -31,6 +32,10 @@ from openpi_cam.policies.family import (
     Sampler,
     baseline_details,
     feature_signals,
+    head_details,
+    model_kinds,
+    request_head,
+    requested_maps,
     resolve_target,
 )
 from openpi_cam.tokenizers.fast import FastActionTokenizer, resolve_fast_tokenizer_dir
@@ -110,7 +115,8 @@ class FastExplainer(ModelExplainer):
         results: list[Explanation | ExplainSkipped | None] = [
             p if isinstance(p, ExplainSkipped) else None for p in plans
         ]
-        maps_args = {"kinds": request.maps, "options": request.map_options}
+        head = request_head(self, request)
+        maps_args = {"kinds": model_kinds(request, head), "options": request.map_options}
         token_rows = [b for b, p in enumerate(plans) if isinstance(p, _RowPlan) and p.target in TOKEN_TARGETS]
         sequence_rows = [b for b, p in enumerate(plans) if isinstance(p, _RowPlan) and p.target in SEQUENCE_TARGETS]
         # Each group is one model call over the whole batch (rows outside it ride along on a harmless step), so that
@@ -120,15 +126,17 @@ class FastExplainer(ModelExplainer):
                 self.model, observation, generated, _step_matrix(plans, token_rows), **maps_args, logits=False
             )
             for b in token_rows:
-                results[b] = self._row(res, b, plans[b], request)  # type: ignore[arg-type]
+                results[b] = self._row(res, b, plans[b], request, head)  # type: ignore[arg-type]
         if sequence_rows:
             lists = [p.steps if b in sequence_rows else np.zeros(1, np.int32) for b, p in enumerate(plans)]
             res = pi0_fast_maps.maps_for_chunk(self.model, observation, generated, lists, **maps_args)
             for b in sequence_rows:
-                results[b] = self._row(res, b, plans[b], request)  # type: ignore[arg-type]
+                results[b] = self._row(res, b, plans[b], request, head)  # type: ignore[arg-type]
         return [r for r in results if r is not None]
 
-    def _row(self, res: MapResult, b: int, plan: _RowPlan, request: ExplainOptions) -> Explanation:
+    def _row(
+        self, res: MapResult, b: int, plan: _RowPlan, request: ExplainOptions, head: OcclusionHead | None
+    ) -> Explanation:
         t = plan.steps.size
         if plan.target in SEQUENCE_TARGETS:
             index: Any = b
@@ -148,12 +156,19 @@ class FastExplainer(ModelExplainer):
         }
         return Explanation(
             target=plan.target,
-            maps={k: {c: np.asarray(m[index], np.float32) for c, m in res.by_kind[k].items()} for k in request.maps},
+            maps=requested_maps(
+                request,
+                head,
+                {
+                    k: {c: np.asarray(m[index], np.float32) for c, m in per_camera.items()}
+                    for k, per_camera in res.by_kind.items()
+                },
+            ),
             score=score,
             cameras={
                 c: {"valid": bool(res.valid[c][b]), "grid": grid, "span": list(res.spans[c])} for c in res.cameras
             },
-            details=details | baseline_details(res.ig_completeness, res.options, index),
+            details=details | baseline_details(res.ig_completeness, res.options, index) | head_details(request, head),
         )
 
     def rescore(
