@@ -43,11 +43,13 @@ import pytest
 import tyro
 from command_inputs import DEMO_DATASET, TARGET_BOX
 from demo_inputs import demo_observation
+from heads import planted_head, random_maps
 from paths import GOLDEN_DIR, REPO_ROOT
 from real_clients import http_get
 from serve_process import free_port, wait_healthy
 
 from openpi_cam import cli
+from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.cli import train_demo
 from openpi_cam.demo import metaworld_data, metaworld_sim, train
 from openpi_cam.monitor import monitor_file
@@ -69,8 +71,6 @@ def _parsers() -> dict[str, Callable[..., Any]]:
         loaded = importlib.import_module(module)
         if hasattr(loaded, "main"):  # `explain` routes to explain-run or explain-dataset, whose flags are theirs
             parsers[name] = loaded.main
-        for word, function in getattr(loaded, "SUBCOMMANDS", {}).items():  # `openpi-cam monitor fit`
-            parsers[f"{name} {word}"] = function
     return parsers | {"train_demo": train_demo.main, "demo.train": train.TrainArgs}
 
 
@@ -380,6 +380,11 @@ EXPLAIN_RUN_CASES: dict[str, tuple[Case, ...]] = {
     "--rise-keep-prob": (Changes(EXPLAIN_KINDS, ("--rise-keep-prob", "0.5"), step_maps("rise")),),
     "--check-patches": (Changes(EXPLAIN_STEP, ("--check-patches", "2"), step_checks),),
     "--reliance": (Changes(EXPLAIN_RUN, ("--reliance",), run_option("reliance")),),
+    # The head `occlusion-head` applies, recorded by its SHA-256 (a planted head: the demo pi0-FAST's, action-token).
+    "--head": (
+        Changes(EXPLAIN_RUN, ("--maps", "occlusion-head", "--head", "{head}"), run_option("occlusion_head")),
+        Refused("explain-run", ("{run}", "--out", "{scratch}/runs", "--max-steps", "0", "--head", "{head}")),
+    ),
 }
 
 # --------------------------------------------------------------------------------------------- explain-dataset
@@ -492,6 +497,14 @@ EXPLAIN_DATASET_CASES: dict[str, tuple[Case, ...]] = {
     # One frame per episode: no STAC, so the STAC monitor scores nothing, but every row carries its episode's flag.
     "--monitor": (Changes(EXPLAIN_DATASET, ("--monitor", "{monitor}"), maps_rows("monitor/flag")),),
     "--monitor-features": (Changes(EXPLAIN_DATASET, ("--monitor-features",), maps_rows("monitor/features/prompt")),),
+    "--head": (
+        Changes(
+            EXPLAIN_DATASET_ALONE,
+            ("--maps", "gradnorm", "occlusion-head", "--head", "{head}"),
+            maps_info("options", "occlusion_head"),
+        ),
+        Refused("explain-dataset", (str(DEMO_DATASET), "--head", "{head}", "--no-progress")),
+    ),
     "--execution-horizon": (
         Changes(EXPLAIN_DATASET, ("--execution-horizon", "3"), maps_info("execution_horizon")),
         Refused("explain-dataset", (str(DEMO_DATASET), "--execution-horizon", "0", "--no-progress")),
@@ -706,6 +719,15 @@ SERVE_CASES: dict[str, tuple[Case, ...]] = {
         Changes(SERVE, ("--monitor", "{monitor}"), lambda o: o.seen["stats"]["policy"].get("monitor")),
         Refused("serve", (*SERVE_OFF, "--monitor", "{scratch}/none.json")),
     ),
+    # With `occlusion-head` among the maps (the other flags of the group name theirs): the head the run records.
+    "--cam.head": (
+        Changes(
+            dataclasses.replace(SERVE, together=False),
+            ("--cam.maps", "gradnorm", "occlusion-head", "--cam.head", "{head}"),
+            cam_option("occlusion_head"),
+        ),
+        Refused("serve", (*SERVE_OFF, "--cam.head", "{head}")),
+    ),
     # The response's keys: the monitor's is added only when asked for.
     "--cam.monitor-response": (
         Changes(SERVE, ("--cam.monitor-response",), seen("response_keys")),
@@ -835,6 +857,15 @@ DEMO_CASES: dict[str, tuple[Case, ...]] = {
     "--assets": (
         Changes(DEMO_EXPLAIN, ("--assets", "{democopy}"), recorded("*/*/run.json", "config", "checkpoint_dir")),
     ),
+    # The demo explains the chunk: a head planted for it.
+    "--head": (
+        Changes(
+            DEMO_EXPLAIN_ALONE,
+            ("--maps", "gradnorm", "occlusion-head", "--head", "{chunkhead}"),
+            demo_option("occlusion_head"),
+        ),
+        Refused("demo", (*NO_EXPLAIN, "--head", "{chunkhead}")),
+    ),
 }
 
 # ------------------------------------------------------------------------------------------------- monitor fit
@@ -887,6 +918,37 @@ MONITOR_FIT_CASES: dict[str, tuple[Case, ...]] = {
         Changes(MAHALANOBIS_FIT, ("--shrinkage", "0.5"), fitted("fit", "shrinkage")),
         Refused("monitor fit", (*NOTHING, "--shrinkage", "0.5")),
     ),
+}
+
+# --------------------------------------------------------------------------------------------------- head fit
+
+# Fitted on a small maps dataset of random maps (`{headmaps}`, no model): the flags of the group at once, each probe
+# reading what the head file records of its flag (the held-out share as the maps it held out).
+HEAD_FIT = Run(
+    "head fit",
+    ("{headmaps}", "--out", "{scratch}/head.json", "--inputs", "gradnorm", "lrp", "--steps", "20"),
+    together=True,
+)
+
+
+def head_option(key: str) -> Callable[[Output], Any]:
+    return recorded("*.json", "fit", "options", key)
+
+
+HEAD_FIT_CASES: dict[str, tuple[Case, ...]] = {
+    "--out": (Changes(HEAD_FIT, ("--out", "{scratch}/other.json"), paths("*.json")),),
+    "--inputs": (Changes(HEAD_FIT, ("--inputs", "lrp"), recorded("*.json", "inputs")),),
+    "--hidden": (Changes(HEAD_FIT, ("--hidden", "0"), recorded("*.json", "hidden")),),
+    "--seed": (Changes(HEAD_FIT, ("--seed", "1"), head_option("seed")),),
+    "--holdout": (
+        Changes(HEAD_FIT, ("--holdout", "0.5"), recorded("*.json", "fit", "examples", "held_out")),
+        Refused("head fit", ("{headmaps}", "--out", "{scratch}/head.json", "--holdout", "1.5")),
+    ),
+    "--steps": (Changes(HEAD_FIT, ("--steps", "10"), head_option("steps")),),
+    "--learning-rate": (Changes(HEAD_FIT, ("--learning-rate", "0.05"), head_option("learning_rate")),),
+    "--temperature": (Changes(HEAD_FIT, ("--temperature", "0.3"), head_option("temperature")),),
+    "--mse-weight": (Changes(HEAD_FIT, ("--mse-weight", "0.5"), head_option("mse_weight")),),
+    "--weight-decay": (Changes(HEAD_FIT, ("--weight-decay", "0.1"), head_option("weight_decay")),),
 }
 
 # ---------------------------------------------------------------------------------------------------- training
@@ -1046,6 +1108,7 @@ CASES: dict[str, dict[str, tuple[Any, ...]]] = {
     "rebuild-manifest": {},
     "export": EXPORT_CASES,
     "monitor fit": MONITOR_FIT_CASES,
+    "head fit": HEAD_FIT_CASES,
     "train_demo": TRAIN_DEMO_CASES,
     "demo.train": TRAIN_CASES,
 }
@@ -1123,6 +1186,9 @@ class Runner:
             "{mt05}",
             "{monitor}",
             "{featured}",
+            "{head}",
+            "{chunkhead}",
+            "{headmaps}",
         ):
             if name in arg:
                 arg = arg.replace(name, str(self._shared_input(name)))
@@ -1144,6 +1210,9 @@ class Runner:
                 "{mt05}": lambda: _multitask_stand_in(demo_metaworld.ASSETS_METAWORLD, folder / "mt05"),
                 "{monitor}": lambda: _stac_monitor(folder / "stac_monitor.json"),
                 "{featured}": lambda: _featured_rollouts(folder),
+                "{head}": lambda: Path(planted_head(folder / "head.json", ModelSpec(), "action-token").path),
+                "{chunkhead}": lambda: Path(planted_head(folder / "head.json", ModelSpec(), "chunk").path),
+                "{headmaps}": lambda: random_maps(folder / "random.maps"),
             }[name]()
         return self._shared[name]
 
