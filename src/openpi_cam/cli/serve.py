@@ -174,7 +174,11 @@ def _monitor(model: ModelSpec, path: Path | None, off: bool) -> LiveMonitor | No
         raise StartupError("--monitor and --no-monitor name opposite things: give one", 2)
     if off:
         return None
-    path = path or model.default_monitor()
+    if path is None:
+        try:
+            path = model.default_monitor()
+        except (KeyError, ValueError, OSError):  # a model the flags cannot name: loading it reports why, in one line
+            return None
     if path is None:
         return None
     try:
