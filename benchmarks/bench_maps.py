@@ -1,12 +1,13 @@
 """What each map kind costs next to the inference it explains, on a bundled demo model, measured side by side.
 
 For `--scenes` fresh demo scenes (after one compile scene), times `policy.infer` and one explanation per kind set
-(gradcam + gradnorm share a backward pass; ig; occlusion; all four; lrp, its own modified backward pass through
-SigLIP too) through the family's explainer, exactly what the side channel runs per explained request, and the spot
-check the side channel adds to the gradcam + gradnorm explanation (each map's top patch and `--check-patches`
-random patches re-scored, `cam.spot_check`), interleaved scene by scene so that machine load hits every row alike.
-Prints medians, the ratio explanation / inference and the ratio to the gradient kinds' pass (backward-pass
-equivalents).
+(gradcam + gradnorm share a backward pass, gradxinput rides on it; taylor continues it through SigLIP; smoothgrad;
+ig; occlusion; rise; all four compared kinds; lrp, its own modified backward pass through SigLIP too) through the
+family's explainer, exactly what the side channel runs per explained request, and the spot check the side channel
+adds to the gradcam + gradnorm explanation (each map's top patch and `--check-patches` random patches re-scored,
+`cam.spot_check`), interleaved scene by scene so that machine load hits every row alike. Prints medians, the ratio
+explanation / inference and the cost in backward-pass equivalents: each row's time over the gradcam + gradnorm
+pass's on the same scene, the median over scenes (steadier under load than a ratio of medians).
 
     python benchmarks/bench_maps.py                       # pi0-FAST demo model, target chunk
     python benchmarks/bench_maps.py --model pi05 --target action
@@ -36,10 +37,15 @@ from openpi_cam.demo import bundled, task
 from openpi_cam.model import attribution, baseline_maps
 from openpi_cam.vocabulary import DEFAULT_PATCHES, ExplainOptions
 
+GRADIENT_PASS = "gradcam+gradnorm"
 KIND_SETS = {
-    "gradcam+gradnorm": ("gradcam", "gradnorm"),
+    GRADIENT_PASS: ("gradcam", "gradnorm"),
+    "+gradxinput": ("gradcam", "gradnorm", "gradxinput"),
+    "taylor": ("taylor",),
+    "smoothgrad": ("smoothgrad",),
     "ig": ("ig",),
     "occlusion": ("occlusion",),
+    "rise": ("rise",),
     "all four": ("gradcam", "gradnorm", "ig", "occlusion"),
     "lrp": ("lrp",),
 }
@@ -70,7 +76,7 @@ def main() -> None:
     args = parser.parse_args()
 
     policy = model_spec.create_demo_policy(model=args.model, dtype=args.dtype)
-    chosen = {name: KIND_SETS[name] for name in KIND_SETS if name in args.sets or name == "gradcam+gradnorm"}
+    chosen = {name: KIND_SETS[name] for name in KIND_SETS if name in args.sets or name == GRADIENT_PASS}
     kind_sets = {**chosen, **({"ig, no stall": ("ig",)} if args.compare_ig_stall else {})}
     explainer = policy.explainer
     rng = np.random.default_rng(args.seed)
@@ -94,7 +100,7 @@ def main() -> None:
                 row[name] = time.perf_counter() - t0
             if name in ig_steps and scene_index > 0:
                 ig_steps[name].append(explanation.details["ig_completeness"]["steps"])
-            if name == "gradcam+gradnorm":
+            if name == GRADIENT_PASS:
                 t0 = time.perf_counter()
                 options, patches = request.map_options, args.check_patches
                 check = check_trace(explainer, trace, explanation, options, patches=patches, seed=0)
@@ -107,17 +113,16 @@ def main() -> None:
 
     cpu = f"{os.cpu_count()} CPU cores" if sys.platform != "darwin" else platform.processor()
     model = f"{args.model} demo model ({args.dtype}), target {args.target}"
-    load = ", load average {:.1f} {:.1f} {:.1f}".format(*os.getloadavg()) if hasattr(os, "getloadavg") else ""
+    load = ""
+    if hasattr(os, "getloadavg"):
+        load = ", load average {:.1f} {:.1f} {:.1f} at the end".format(*os.getloadavg())
     print(f"{model}, {args.scenes} scenes, {platform.machine()}, {cpu}{load}")
     infer = statistics.median(times["infer"])
-    gradient = statistics.median(times["gradcam+gradnorm"])
     print(f"{'':>18} {'median ms':>10} {'x inference':>12} {'x gradient pass':>16}")
     for name, values in times.items():
         med = statistics.median(values)
-        print(f"{name:>18} {med * 1e3:10.1f} {med / infer:12.1f} {med / gradient:16.2f}")
-    if "lrp" in times:  # the same ratio per scene (both timed back to back on it): steadier under load
-        per_scene = [r / g for r, g in zip(times["lrp"], times["gradcam+gradnorm"], strict=True)]
-        print(f"lrp / gradient pass, median of per-scene ratios: {statistics.median(per_scene):.2f}")
+        passes = statistics.median(v / g for v, g in zip(values, times[GRADIENT_PASS], strict=True))
+        print(f"{name:>18} {med * 1e3:10.1f} {med / infer:12.1f} {passes:16.2f}")
     for name, used in ig_steps.items():
         if used:
             counts = dict(zip(*np.unique(used, return_counts=True), strict=True))

@@ -281,7 +281,8 @@ def autodiff_attention(fn):
 # `autodiff_attention` replaces `maps._token_gradient_maps` with this program while it runs.
 _TOKEN_GRADIENT_MAPS_FN = maps._token_gradient_maps.__wrapped__
 _AUTODIFF_TOKEN_GRADIENT_MAPS = jax.jit(
-    lambda *args, **kwargs: _TOKEN_GRADIENT_MAPS_FN(*args, **kwargs), static_argnames=("cfg", "decode_len", "logits")
+    lambda *args, **kwargs: _TOKEN_GRADIENT_MAPS_FN(*args, **kwargs),
+    static_argnames=("cfg", "decode_len", "logits", "program", "options"),
 )
 
 

@@ -43,15 +43,21 @@ import pytest
 import tyro
 from command_inputs import DEMO_DATASET, TARGET_BOX
 from demo_inputs import demo_observation
+from heads import planted_head, random_maps
 from paths import GOLDEN_DIR, REPO_ROOT
 from real_clients import http_get
 from serve_process import free_port, wait_healthy
 
 from openpi_cam import cli
+from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.cli import train_demo
 from openpi_cam.demo import metaworld_data, metaworld_sim, train
+from openpi_cam.monitor import monitor_file
+from openpi_cam.monitor.fit import Episode, FitOptions, fit_monitor
+from openpi_cam.monitor.signals import STAC
 from openpi_cam.policies import demo_metaworld, demo_reach
 from openpi_cam.serving import msgpack_numpy
+from openpi_cam.vocabulary import MAP_KIND_INFO
 
 # ---------------------------------------------------------------------------------------------------- the parsers
 
@@ -74,7 +80,7 @@ def _run_in_process(command: str, argv: list[str]) -> int:
         return train.main(argv)
     if command == "train_demo":
         return int(tyro.cli(train_demo.main, args=argv))
-    cli.main([command, *argv])
+    cli.main([*command.split(" "), *argv])
     return 0
 
 
@@ -284,6 +290,28 @@ def step_files(o: Output) -> list[str]:
     return o.paths("runs/*/steps/*.npz")
 
 
+# One step explained with the kinds the added options shape (compiled: slow): each of those flags alone changes the
+# maps of the kind that reads it. Alone, since a kind's two options move the same maps.
+EXPLAIN_KINDS = Run(
+    "explain-run",
+    ("{run}", "--out", "{scratch}/runs", "--max-steps", "1", "--maps", "smoothgrad", "rise", "--check-patches", "0"),
+    slow=True,
+)
+
+
+def step_maps(kind: str) -> Callable[[Output], dict[str, Any]]:
+    """The `kind` maps of every step written, per step file and camera."""
+
+    def probe(o: Output) -> dict[str, Any]:
+        prefix, maps = MAP_KIND_INFO[kind].prefix, {}
+        for path in sorted(o.root.glob("runs/*/steps/*.npz")):
+            with np.load(path, allow_pickle=False) as npz:
+                maps |= {f"{path.name} {k}": npz[k].tolist() for k in npz.files if k.startswith(prefix)}
+        return maps
+
+    return probe
+
+
 def step_checks(o: Output) -> list[Any]:
     """The spot check of every step written (its meta's `check`)."""
     checks = []
@@ -346,8 +374,17 @@ EXPLAIN_RUN_CASES: dict[str, tuple[Case, ...]] = {
     "--occlusion-region": (Changes(EXPLAIN_RUN, ("--occlusion-region", "2"), run_option("occlusion_region")),),
     "--occlusion-masks": (Changes(EXPLAIN_RUN, ("--occlusion-masks", "8"), run_option("occlusion_masks")),),
     "--ig-space": (Changes(EXPLAIN_RUN, ("--ig-space", "pixels"), run_option("ig_space")),),
+    "--smoothgrad-samples": (Changes(EXPLAIN_KINDS, ("--smoothgrad-samples", "4"), step_maps("smoothgrad")),),
+    "--smoothgrad-sigma": (Changes(EXPLAIN_KINDS, ("--smoothgrad-sigma", "0.25"), step_maps("smoothgrad")),),
+    "--rise-masks": (Changes(EXPLAIN_KINDS, ("--rise-masks", "32"), step_maps("rise")),),
+    "--rise-keep-prob": (Changes(EXPLAIN_KINDS, ("--rise-keep-prob", "0.5"), step_maps("rise")),),
     "--check-patches": (Changes(EXPLAIN_STEP, ("--check-patches", "2"), step_checks),),
     "--reliance": (Changes(EXPLAIN_RUN, ("--reliance",), run_option("reliance")),),
+    # The head `occlusion-head` applies, recorded by its SHA-256 (a planted head: the demo pi0-FAST's, action-token).
+    "--head": (
+        Changes(EXPLAIN_RUN, ("--maps", "occlusion-head", "--head", "{head}"), run_option("occlusion_head")),
+        Refused("explain-run", ("{run}", "--out", "{scratch}/runs", "--max-steps", "0", "--head", "{head}")),
+    ),
 }
 
 # --------------------------------------------------------------------------------------------- explain-dataset
@@ -445,8 +482,33 @@ EXPLAIN_DATASET_CASES: dict[str, tuple[Case, ...]] = {
         Changes(EXPLAIN_DATASET, ("--occlusion-masks", "8"), maps_info("options", "occlusion_masks")),
     ),
     "--ig-space": (Changes(EXPLAIN_DATASET, ("--ig-space", "pixels"), maps_info("options", "ig_space")),),
+    "--smoothgrad-samples": (
+        Changes(EXPLAIN_DATASET, ("--smoothgrad-samples", "4"), maps_info("options", "smoothgrad_samples")),
+    ),
+    "--smoothgrad-sigma": (
+        Changes(EXPLAIN_DATASET, ("--smoothgrad-sigma", "0.25"), maps_info("options", "smoothgrad_sigma")),
+    ),
+    "--rise-masks": (Changes(EXPLAIN_DATASET, ("--rise-masks", "32"), maps_info("options", "rise_masks")),),
+    "--rise-keep-prob": (
+        Changes(EXPLAIN_DATASET, ("--rise-keep-prob", "0.5"), maps_info("options", "rise_keep_prob")),
+    ),
     "--check-patches": (Changes(EXPLAIN_DATASET, ("--check-patches", "1"), maps_rows("check")),),
     "--reliance": (Changes(EXPLAIN_DATASET, ("--reliance",), maps_rows("reliance")),),
+    # One frame per episode: no STAC, so the STAC monitor scores nothing, but every row carries its episode's flag.
+    "--monitor": (Changes(EXPLAIN_DATASET, ("--monitor", "{monitor}"), maps_rows("monitor/flag")),),
+    "--monitor-features": (Changes(EXPLAIN_DATASET, ("--monitor-features",), maps_rows("monitor/features/prompt")),),
+    "--head": (
+        Changes(
+            EXPLAIN_DATASET_ALONE,
+            ("--maps", "gradnorm", "occlusion-head", "--head", "{head}"),
+            maps_info("options", "occlusion_head"),
+        ),
+        Refused("explain-dataset", (str(DEMO_DATASET), "--head", "{head}", "--no-progress")),
+    ),
+    "--execution-horizon": (
+        Changes(EXPLAIN_DATASET, ("--execution-horizon", "3"), maps_info("execution_horizon")),
+        Refused("explain-dataset", (str(DEMO_DATASET), "--execution-horizon", "0", "--no-progress")),
+    ),
 }
 
 # ------------------------------------------------------------------------------------------------ faithfulness
@@ -586,6 +648,10 @@ CAM_FLAGS = {
     "--cam.occlusion-region": ("2", "occlusion_region"),
     "--cam.occlusion-masks": ("8", "occlusion_masks"),
     "--cam.ig-space": ("pixels", "ig_space"),
+    "--cam.smoothgrad-samples": ("4", "smoothgrad_samples"),
+    "--cam.smoothgrad-sigma": ("0.25", "smoothgrad_sigma"),
+    "--cam.rise-masks": ("32", "rise_masks"),
+    "--cam.rise-keep-prob": ("0.5", "rise_keep_prob"),
     "--cam.check-patches": ("1", "check_patches"),
     "--cam.reliance": (None, "reliance"),
     "--cam.save-frames": ("both", "save_frames"),
@@ -649,6 +715,24 @@ SERVE_CASES: dict[str, tuple[Case, ...]] = {
     "--dtype": (Changes(SERVE, ("--dtype", "bfloat16"), cam_model("dtype")),),
     "--default-prompt": (Changes(SERVE, ("--default-prompt", "reach the red block"), seen("without_prompt")),),
     "--cam.every-k": (Changes(SERVE, ("--cam.every-k", "2"), cam_option("every_k")),),
+    "--monitor": (
+        Changes(SERVE, ("--monitor", "{monitor}"), lambda o: o.seen["stats"]["policy"].get("monitor")),
+        Refused("serve", (*SERVE_OFF, "--monitor", "{scratch}/none.json")),
+    ),
+    # With `occlusion-head` among the maps (the other flags of the group name theirs): the head the run records.
+    "--cam.head": (
+        Changes(
+            dataclasses.replace(SERVE, together=False),
+            ("--cam.maps", "gradnorm", "occlusion-head", "--cam.head", "{head}"),
+            cam_option("occlusion_head"),
+        ),
+        Refused("serve", (*SERVE_OFF, "--cam.head", "{head}")),
+    ),
+    # The response's keys: the monitor's is added only when asked for.
+    "--cam.monitor-response": (
+        Changes(SERVE, ("--cam.monitor-response",), seen("response_keys")),
+        Refused("serve", (*SERVE_OFF, "--cam.monitor-response")),
+    ),
     "--cam.dir": (Changes(SERVE, ("--cam.dir", "{scratch}/cam2"), cam_folders), side_channel_off("--cam.dir", "x")),
     # The server's own: how long it lets the served policy drain on SIGTERM, with the side channel on or off (off,
     # under its earlier spelling `--cam.drain-timeout`).
@@ -773,6 +857,98 @@ DEMO_CASES: dict[str, tuple[Case, ...]] = {
     "--assets": (
         Changes(DEMO_EXPLAIN, ("--assets", "{democopy}"), recorded("*/*/run.json", "config", "checkpoint_dir")),
     ),
+    # The demo explains the chunk: a head planted for it.
+    "--head": (
+        Changes(
+            DEMO_EXPLAIN_ALONE,
+            ("--maps", "gradnorm", "occlusion-head", "--head", "{chunkhead}"),
+            demo_option("occlusion_head"),
+        ),
+        Refused("demo", (*NO_EXPLAIN, "--head", "{chunkhead}")),
+    ),
+}
+
+# ------------------------------------------------------------------------------------------------- monitor fit
+
+# Fitted on the bundled pi0-FAST's labelled rollouts (`{featured}`); numbers only, no model: the flags of a group at
+# once. The rollouts are made once, by the demo and explain-dataset (compiled: slow).
+FEATURED = ("{featured}", "--out", "{scratch}/monitor.json")
+MONITOR_FIT = Run("monitor fit", FEATURED, together=True, slow=True)
+MONITOR_FIT_ALONE = dataclasses.replace(MONITOR_FIT, together=False)
+MAHALANOBIS_FIT = Run("monitor fit", (*FEATURED, "--kind", "mahalanobis"), slow=True)
+# Refused before any dataset is read: a flag another kind reads.
+NOTHING = ("nothing.maps", "--out", "{scratch}/monitor.json")
+
+
+def fitted(*keys: str) -> Callable[[Output], Any]:
+    return recorded("*.json", *keys)
+
+
+MONITOR_FIT_CASES: dict[str, tuple[Case, ...]] = {
+    "--out": (Changes(MONITOR_FIT, ("--out", "{scratch}/other.json"), paths("*.json")),),
+    "--kind": (Changes(MONITOR_FIT_ALONE, ("--kind", "mahalanobis"), fitted("kind")),),
+    "--inputs": (
+        Changes(
+            MONITOR_FIT,
+            ("--inputs", "features/prompt", "stac"),
+            lambda o: [i["name"] for i in o.json("*.json")["inputs"]],
+        ),
+    ),
+    # Wider inputs than --max-dims: the projection keeps that many directions (by default, one fewer than the
+    # training steps).
+    "--max-dims": (
+        Changes(MONITOR_FIT, ("--max-dims", "4"), lambda o: len(o.json("*.json")["basis"]["components"])),
+        Refused("monitor fit", (*NOTHING, "--kind", "stac", "--max-dims", "4")),
+    ),
+    "--alpha": (Changes(MONITOR_FIT, ("--alpha", "0.25"), fitted("alpha")),),
+    # The successful episodes held out to set the threshold: a fifth of them is fewer than the default half.
+    "--calibration-share": (
+        Changes(MONITOR_FIT, ("--calibration-share", "0.2"), fitted("fit", "calibration_episodes")),
+    ),
+    "--seed": (Changes(MONITOR_FIT, ("--seed", "3"), fitted("fit", "seed")),),
+    "--l2": (
+        Changes(MONITOR_FIT, ("--l2", "0.5"), fitted("fit", "l2")),
+        Refused("monitor fit", (*NOTHING, "--kind", "mahalanobis", "--l2", "0.5")),
+    ),
+    "--temporal": (
+        Changes(MONITOR_FIT, ("--temporal",), fitted("temporal")),
+        Refused("monitor fit", (*NOTHING, "--kind", "stac", "--temporal")),
+    ),
+    "--shrinkage": (
+        Changes(MAHALANOBIS_FIT, ("--shrinkage", "0.5"), fitted("fit", "shrinkage")),
+        Refused("monitor fit", (*NOTHING, "--shrinkage", "0.5")),
+    ),
+}
+
+# --------------------------------------------------------------------------------------------------- head fit
+
+# Fitted on a small maps dataset of random maps (`{headmaps}`, no model): the flags of the group at once, each probe
+# reading what the head file records of its flag (the held-out share as the maps it held out).
+HEAD_FIT = Run(
+    "head fit",
+    ("{headmaps}", "--out", "{scratch}/head.json", "--inputs", "gradnorm", "lrp", "--steps", "20"),
+    together=True,
+)
+
+
+def head_option(key: str) -> Callable[[Output], Any]:
+    return recorded("*.json", "fit", "options", key)
+
+
+HEAD_FIT_CASES: dict[str, tuple[Case, ...]] = {
+    "--out": (Changes(HEAD_FIT, ("--out", "{scratch}/other.json"), paths("*.json")),),
+    "--inputs": (Changes(HEAD_FIT, ("--inputs", "lrp"), recorded("*.json", "inputs")),),
+    "--hidden": (Changes(HEAD_FIT, ("--hidden", "0"), recorded("*.json", "hidden")),),
+    "--seed": (Changes(HEAD_FIT, ("--seed", "1"), head_option("seed")),),
+    "--holdout": (
+        Changes(HEAD_FIT, ("--holdout", "0.5"), recorded("*.json", "fit", "examples", "held_out")),
+        Refused("head fit", ("{headmaps}", "--out", "{scratch}/head.json", "--holdout", "1.5")),
+    ),
+    "--steps": (Changes(HEAD_FIT, ("--steps", "10"), head_option("steps")),),
+    "--learning-rate": (Changes(HEAD_FIT, ("--learning-rate", "0.05"), head_option("learning_rate")),),
+    "--temperature": (Changes(HEAD_FIT, ("--temperature", "0.3"), head_option("temperature")),),
+    "--mse-weight": (Changes(HEAD_FIT, ("--mse-weight", "0.5"), head_option("mse_weight")),),
+    "--weight-decay": (Changes(HEAD_FIT, ("--weight-decay", "0.1"), head_option("weight_decay")),),
 }
 
 # ---------------------------------------------------------------------------------------------------- training
@@ -933,6 +1109,8 @@ CASES: dict[str, dict[str, tuple[Any, ...]]] = {
     "stats": STATS_CASES,
     "rebuild-manifest": {},
     "export": EXPORT_CASES,
+    "monitor fit": MONITOR_FIT_CASES,
+    "head fit": HEAD_FIT_CASES,
     "train_demo": TRAIN_DEMO_CASES,
     "demo.train": TRAIN_CASES,
 }
@@ -980,7 +1158,7 @@ class Runner:
     def output(self, command: str, args: tuple[str, ...], *, serving: bool = False) -> Output:
         key = (command, args)
         if key not in self._outputs:
-            root = self._tmp.mktemp(command.replace(".", "_"))
+            root = self._tmp.mktemp(command.replace(".", "_").replace(" ", "_"))
             argv = [self._place(a, root) for a in args]
             self._outputs[key] = serve_session(argv, root) if serving else in_process(command, argv, root)
         return self._outputs[key]
@@ -1008,6 +1186,11 @@ class Runner:
             "{cutvideo}",
             "{trained}",
             "{mt05}",
+            "{monitor}",
+            "{featured}",
+            "{head}",
+            "{chunkhead}",
+            "{headmaps}",
         ):
             if name in arg:
                 arg = arg.replace(name, str(self._shared_input(name)))
@@ -1027,6 +1210,11 @@ class Runner:
                 "{cutvideo}": lambda: _cut_video(folder / "cut"),
                 "{trained}": lambda: self._trained(folder),
                 "{mt05}": lambda: _multitask_stand_in(demo_metaworld.ASSETS_METAWORLD, folder / "mt05"),
+                "{monitor}": lambda: _stac_monitor(folder / "stac_monitor.json"),
+                "{featured}": lambda: _featured_rollouts(folder),
+                "{head}": lambda: Path(planted_head(folder / "head.json", ModelSpec(), "action-token").path),
+                "{chunkhead}": lambda: Path(planted_head(folder / "head.json", ModelSpec(), "chunk").path),
+                "{headmaps}": lambda: random_maps(folder / "random.maps"),
             }[name]()
         return self._shared[name]
 
@@ -1044,6 +1232,24 @@ def _multitask_stand_in(src: Path, dst: Path) -> Path:
     assets = copy / "checkpoint" / "assets"
     (assets / demo_metaworld.ASSET_ID).rename(assets / demo_metaworld.MT_ASSET_ID)
     return copy
+
+
+def _stac_monitor(path: Path) -> Path:
+    """A STAC monitor (STAC-single is its score; any model gives it) with its threshold set on made-up successful
+    episodes. It names no execution horizon, so a command's own (`--execution-horizon`) stands beside it."""
+    episodes = [Episode({STAC: np.array([np.nan, 0.1 * k, 0.2 * k])}, True) for k in range(1, 5)]
+    return monitor_file.save(fit_monitor(episodes, FitOptions(kind="stac")), path)
+
+
+def _featured_rollouts(folder: Path) -> Path:
+    """The bundled pi0-FAST's recorded rollouts, clean and with the named block absent (successes and failures),
+    explained every 5th frame (the calls) with the monitor's features: what `monitor fit` fits on."""
+    rollouts, maps = folder / "rollouts", folder / "featured.maps"
+    cli.main(["demo", "--no-explain", "--num-episodes", "6", "--max-calls", "3", "--perturb", "clean", "absent",
+              "--record", str(rollouts)])  # fmt: skip
+    cli.main(["explain-dataset", str(rollouts), "--out", str(maps), "--every-k", "5", "--maps", "gradnorm",
+              "--check-patches", "0", "--monitor-features", "--no-progress"])  # fmt: skip
+    return maps
 
 
 def _policy_records(folder: Path) -> Path:
@@ -1118,7 +1324,9 @@ def serve_session(argv: list[str], root: Path) -> Output:
             frame = ws.recv(timeout=300)
             if isinstance(frame, str):  # an error is sent as text
                 return frame
-            return np.asarray(msgpack_numpy.unpackb(frame)["actions"]).round(4).tolist()
+            response = msgpack_numpy.unpackb(frame)
+            seen.setdefault("response_keys", sorted(response))
+            return np.asarray(response["actions"]).round(4).tolist()
 
         url = f"ws://127.0.0.1:{port}"
         with connect(url, additional_headers=headers, max_size=None, open_timeout=60) as ws:

@@ -296,6 +296,54 @@ def _failure_views(ctx: Context, views: dict) -> None:
     assert len(entropies) == 12 and entropies == sorted(entropies, reverse=True)
 
 
+def _explain_monitor_features(ctx: Context, command: str) -> None:
+    shell(ctx, command)
+    table = pq.read_table(next((ctx.workdir / "features.maps").glob("data/*/*.parquet")))
+    assert {"monitor/stac", "monitor/token_entropy", "monitor/features/prompt"} <= set(table.column_names)
+
+
+def _monitor_fit(ctx: Context, command: str) -> None:
+    done = shell(ctx, command)
+    monitor = json.loads((ctx.workdir / "monitor.json").read_text())
+    assert monitor["kind"] == "mahalanobis" and monitor["execution_horizon"] == 5
+    assert "AUROC" in done.stdout and "false alarms" in done.stdout, done.stdout
+
+
+# The bundled demo robot's request (64 px cameras), sent by the real openpi-client: its response carries the score.
+DEMO_CLIENT = """
+import json, numpy as np
+from openpi_client import websocket_client_policy
+policy = websocket_client_policy.WebsocketClientPolicy(host="localhost", port=8000)
+frame = np.zeros((64, 64, 3), np.uint8)
+obs = {"observation/image": frame, "observation/wrist_image": frame, "observation/state": np.zeros(2)}
+obs["prompt"] = "reach the red block"
+responses = [policy.infer(obs) for _ in range(2)]
+print(json.dumps([sorted(r["monitor"]) for r in responses] + [list(responses[-1]["actions"].shape)]))
+"""
+
+
+def _monitored_serving(ctx: Context, command: str) -> None:
+    port = free_port()
+    args = [*shlex.split(substituted(ctx, command, port)), "--host", "127.0.0.1"]
+    log_path = ctx.workdir / f"serve-{port}.log"
+    with log_path.open("w") as log:
+        proc = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT, cwd=ctx.workdir)
+        try:
+            wait_healthy(proc, port, log_path)
+            received = run_client(DEMO_CLIENT.replace("8000", str(port)))
+            assert received == [["flag", "score"], ["flag", "score"], [10, 2]], received
+            stop(proc, log_path)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+
+
+def _explain_monitored(ctx: Context, command: str) -> None:
+    shell(ctx, command)
+    table = pq.read_table(next((ctx.workdir / "scored.maps").glob("data/*/*.parquet")))
+    assert any(score is not None for score in table.column("monitor/score").to_pylist())
+
+
 def _golden(ctx: Context, command: str) -> None:
     done = shell(ctx, command)
     assert " 0 failed" in done.stdout + done.stderr
@@ -334,7 +382,11 @@ STEPS = (
     Step(r"\.venv/bin/openpi-cam golden \.\./shared/golden/lerobot_pi05_tiny", _golden),
     Step(r"\.venv/bin/openpi-cam demo --no-explain .* --record rollouts", _record_rollouts),
     Step(r'\.venv/bin/pip install -e "\.\[metaworld\]" && .* demo --sim metaworld .*', _metaworld_demo),
-    Step(r"\.venv/bin/openpi-cam explain-dataset rollouts .*", _explain_rollouts),
+    Step(r"\.venv/bin/openpi-cam explain-dataset rollouts --every-k 5 --reliance .*", _explain_rollouts),
+    Step(r"\.venv/bin/openpi-cam explain-dataset rollouts .* --monitor-features .*", _explain_monitor_features),
+    Step(r"\.venv/bin/openpi-cam monitor fit features\.maps .*", _monitor_fit),
+    Step(r"\.venv/bin/openpi-cam serve --monitor monitor\.json .*", _monitored_serving),
+    Step(r"\.venv/bin/openpi-cam explain-dataset rollouts .* --monitor monitor\.json .*", _explain_monitored),
     Step(r"\.venv/bin/openpi-cam export --to lerobot --config demo_reach_pi05 --out demo_pi05_lerobot", _export),
     Step(r"\.venv/bin/openpi-cam serve --checkpoint-dir demo_pi05_lerobot --port 8000", _serving),
     Step(r"\.venv/bin/openpi-cam render demo_reach_v30_video\.maps --kind gradnorm", _dataset_render),

@@ -152,7 +152,7 @@ def check_case(
         out.append(
             compare(name, "prompt_logits", plain_prompt_logits(model, obs), case["prompt_logits"], rel=tol.logits)
         )
-    tokens, n_steps, step_logits = sample_tokens_jit(
+    tokens, n_steps, step_logits, _ = sample_tokens_jit(
         model.params,
         obs,
         jax.random.key(0),

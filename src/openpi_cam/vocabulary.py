@@ -8,6 +8,9 @@ explanation and the command line validate against them.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import os
+import pathlib
 from collections.abc import Mapping, Sequence
 from typing import Any, Literal, TypeVar, get_args
 
@@ -52,6 +55,15 @@ class MapOptions:
     keep_prob: float = 0.5  # probability that a region keeps its pixels in a random mask
     seed: int = 0  # seed of the random masks (host-side; changing it does not recompile)
     mask_chunk: int = 16  # variants re-scored per vectorised chunk (bounds memory: chunk x B model runs at once)
+    # SmoothGrad: the gradient averaged over this many copies of the image tokens with Gaussian noise of std
+    # smoothgrad_sigma x the spread of each channel over the camera's tokens (noise drawn from `seed`).
+    smoothgrad_samples: int = 16
+    smoothgrad_sigma: float = 0.5
+    # RISE: random masks per camera over the patch grid, each patch kept with probability rise_keep_prob (drawn from
+    # `seed`). Chosen on the demo models (docs/MAP_KINDS.md): agreement with exhaustive occlusion levels off at 64
+    # masks, and keeping 3 of 4 patches tracks single-patch occlusion more closely than RISE's 1 of 2.
+    rise_masks: int = 64
+    rise_keep_prob: float = 0.75
 
     def __post_init__(self):
         if self.baseline not in BASELINES:
@@ -68,24 +80,52 @@ class MapOptions:
             raise ValueError("ig_tolerance must be >= 0 and ig_max_steps >= ig_steps")
         if self.ig_rule == "trapezoid" and self.ig_steps < 2:
             raise ValueError("the trapezoid rule needs at least 2 steps")
-        if not 0.0 < self.keep_prob < 1.0 or self.random_masks < 2:
-            raise ValueError("random masks need 0 < keep_prob < 1 and at least 2 masks")
+        if not 0.0 < min(self.keep_prob, self.rise_keep_prob) <= max(self.keep_prob, self.rise_keep_prob) < 1.0:
+            raise ValueError("random masks need a keep probability strictly between 0 and 1")
+        if self.random_masks < 2 or self.rise_masks < 2:
+            raise ValueError("random masks need at least 2 masks")
+        if self.smoothgrad_samples < 1 or self.smoothgrad_sigma < 0:
+            raise ValueError("smoothgrad needs at least 1 sample and a noise level >= 0")
 
 
 # The maps the model layer computes. gradcam: Grad-CAM as the founding spec defines it; gradnorm: the per-token
 # gradient norm from the same backward pass; ig: integrated gradients from the baseline frame's tokens; occlusion:
 # the score's drop when a region is painted with the baseline frame and the model re-run; lrp: AttnLRP relevance,
-# propagated through the language model and SigLIP to the pixels by one modified backward pass (`model.lrp`).
-MapKind = Literal["gradcam", "gradnorm", "ig", "occlusion", "lrp"]
+# propagated through the language model and SigLIP to the pixels by one modified backward pass (`model.lrp`);
+# gradxinput: gradient x input per token, from the gradient pass too; taylor: the first-order estimate of occlusion's
+# drop, the pixel gradient dotted with (frame - baseline frame) per patch; smoothgrad: the gradient norm of the
+# gradient averaged over noisy copies of the tokens; rise: random patch masks painted with the baseline frame (RISE),
+# each patch's score with it kept against painted.
+# occlusion-head is not the model layer's: a small head fitted to the policy's own occlusion maps predicts occlusion
+# from other kinds' maps of the same call (`model.occlusion_head`, applied by the families).
+MapKind = Literal[
+    "gradcam", "gradnorm", "ig", "occlusion", "lrp", "gradxinput", "taylor", "smoothgrad", "rise", "occlusion-head"
+]
 MAP_KINDS: tuple[MapKind, ...] = get_args(MapKind)
-GRADIENT_KINDS: tuple[MapKind, ...] = ("gradcam", "gradnorm")  # one backward pass per explained score gives both
-BASELINE_KINDS: tuple[MapKind, ...] = ("ig", "occlusion")  # compare the frame with a baseline frame
-RELEVANCE_KINDS: tuple[MapKind, ...] = ("lrp",)  # one backward pass of their own per score, with modified rules
-# What a live side channel computes unless told otherwise: the kinds at the cost of one backward pass.
-DEFAULT_KINDS: tuple[MapKind, ...] = GRADIENT_KINDS
+# What a family's gradient program computes: one backward pass per explained score to the image tokens gives
+# gradcam, gradnorm and gradxinput; taylor continues that pass through SigLIP to the pixels; smoothgrad adds
+# `MapOptions.smoothgrad_samples` backward passes at noisy tokens.
+GRADIENT_KINDS: tuple[MapKind, ...] = ("gradcam", "gradnorm", "gradxinput", "taylor", "smoothgrad")
+# What the baseline program computes: IG's path from the baseline frame and the batched re-runs of painted frames.
+BASELINE_KINDS: tuple[MapKind, ...] = ("ig", "occlusion", "rise")
+# One backward pass of their own per score, with modified rules (`model.lrp`), in a program of their own.
+RELEVANCE_KINDS: tuple[MapKind, ...] = ("lrp",)
+# Computed by a head fitted offline from other kinds' maps of the same call (its inputs): no model pass of its own.
+# The model computes its inputs' maps in their groups' programs (`policies.family.model_kinds`), and records the
+# options where an input reads them.
+OCCLUSION_HEAD: MapKind = "occlusion-head"
+HEAD_KINDS: tuple[MapKind, ...] = (OCCLUSION_HEAD,)
+# What the model layer's programs compute (`model.pi0_fast_maps`, `model.pi0_maps`): every kind but the head's.
+MODEL_KINDS: tuple[MapKind, ...] = (*GRADIENT_KINDS, *RELEVANCE_KINDS, *BASELINE_KINDS)
+# The kinds whose maps depend on `MapOptions` (an explained step records its options beside them).
+OPTION_KINDS: tuple[MapKind, ...] = ("taylor", "smoothgrad", *BASELINE_KINDS)
+# What a live side channel computes unless told otherwise: Grad-CAM and the gradient norm, one backward pass.
+DEFAULT_KINDS: tuple[MapKind, ...] = ("gradcam", "gradnorm")
 # What the offline commands (`explain-run`, `explain-dataset`) and the demo compute unless told otherwise: the kinds
-# their reports compare. `lrp` is asked for by name until a bench measures it against them.
-COMPARED_KINDS: tuple[MapKind, ...] = (*GRADIENT_KINDS, *BASELINE_KINDS)
+# their reports compare. Spelled out rather than built from the groups, so that a kind added to a group stays out of
+# the defaults, asked for by name, until a bench measures it against these (lrp, gradxinput, taylor, smoothgrad, rise,
+# occlusion-head).
+COMPARED_KINDS: tuple[MapKind, ...] = ("gradcam", "gradnorm", "ig", "occlusion")
 # What render, the reports and the demo draw unless told otherwise: the map that measured most faithful on the demo
 # models at the cost of one backward pass (docs/MAP_KINDS.md, "Which map to trust").
 DEFAULT_MAP_KIND: MapKind = "gradnorm"
@@ -135,15 +175,52 @@ MAP_KIND_INFO: dict[MapKind, KindInfo] = {
         "with rules that conserve it (one modified backward pass), summed per patch: signed (positive supports the "
         "score). The relevance of a step adds up to its score less what biases and softmaxes absorb.",
     ),
+    "gradxinput": KindInfo(
+        "gradxinput/",
+        "gradient x input (token level, signed)",
+        "Gradient x input at each image token: the gradient's dot product with the token, from the same backward "
+        "pass as the gradient norm. Signed: it is the linear term of scaling the token to zero, which no camera "
+        "produces, so it mixes what the patch shows with how large its token is.",
+    ),
+    "taylor": KindInfo(
+        "taylor/",
+        "occlusion's first-order (Taylor) estimate",
+        "The first-order estimate of occlusion: the pixel gradient times (frame - baseline frame), summed over each "
+        "patch. Signed like occlusion (positive: painting the patch would lower the score); exact where the score is "
+        "linear in the patch's pixels, one backward pass through SigLIP instead of a re-run per patch.",
+    ),
+    "smoothgrad": KindInfo(
+        "smoothgrad/",
+        "SmoothGrad (noise-averaged gradient norm)",
+        "SmoothGrad: the gradient norm per image token of the gradient averaged over noisy copies of the tokens. "
+        "Unsigned sensitivity like the gradient norm, less sensitive to the gradient's local jitter; several "
+        "backward passes.",
+    ),
+    "rise": KindInfo(
+        "rise/",
+        "RISE (random masks, baseline-painted)",
+        "RISE: the explained score re-run with random patch masks painted with the baseline frame; each patch's map "
+        "is the mean score with it kept minus the mean score with it painted, which estimates occlusion's drop "
+        "where patches act additively. Signed; one forward per mask and camera.",
+    ),
+    "occlusion-head": KindInfo(
+        "head/",
+        "amortised occlusion (fitted head)",
+        "Amortised occlusion: a small head fitted offline to this policy's own occlusion maps predicts each patch's "
+        "occlusion drop from cheaper kinds' maps of the same call (`openpi-cam head fit`; its file names its inputs "
+        "and its held-out agreement with occlusion). Values are the predicted drop as a share of the camera's "
+        "largest one: compare patches within a camera, not across cameras.",
+    ),
 }
 
 
-def check_kinds(kinds: Sequence[str]) -> tuple[MapKind, ...]:
-    """The requested kinds, deduplicated in order; an unknown or empty selection is an error naming the choices."""
+def check_kinds(kinds: Sequence[str], choices: Sequence[MapKind] = MAP_KINDS) -> tuple[MapKind, ...]:
+    """The requested kinds, deduplicated in order; a kind not among `choices` or an empty selection is an error
+    naming the choices (the model layer's are `MODEL_KINDS`: a kind it would accept and not compute is refused)."""
     kinds = tuple(dict.fromkeys(kinds))
-    unknown = [k for k in kinds if k not in MAP_KINDS]
+    unknown = [k for k in kinds if k not in choices]
     if unknown or not kinds:
-        raise ValueError(f"map kinds must be a non-empty selection of {MAP_KINDS}, got {list(kinds)}")
+        raise ValueError(f"map kinds must be a non-empty selection of {tuple(choices)}, got {list(kinds)}")
     return kinds  # type: ignore[return-value]
 
 
@@ -168,12 +245,57 @@ SAVE_FRAMES: tuple[str, ...] = ("none", "raw", "model", "both")
 # (the step's `extra` metadata, a recorded frame's features: e.g. the demo's ground-truth target box).
 EXTRA_PREFIX = "cam_extra/"
 
+# What a served call leaves for a failure monitor when asked (`InferenceTrace.signals`, each [..] of one request):
+# last-layer features pooled per span, `features/<camera>`, `features/prompt` and `features/actions` (float32 [D]);
+# pi0-FAST's per-token entropies of its generation (float32 [S]) with the flags of its action tokens (bool [S]); and
+# the action chunk in the model's normalised units (`chunk`, [H, A] over the robot's action dimensions).
+FEATURES_PREFIX = "features/"
+PROMPT_FEATURES = FEATURES_PREFIX + "prompt"
+ACTION_FEATURES = FEATURES_PREFIX + "actions"
+TOKEN_ENTROPIES = "token_entropies"
+ACTION_TOKENS = "action_tokens"
+NORMALIZED_CHUNK = "chunk"
+
 # Random single patches of each explained step's spot check (`cam.spot_check`): with each kind's top patch and the
 # unpainted score, 1 + kinds + 4 re-runs per camera in one call.
 DEFAULT_PATCHES = 4
 _O = TypeVar("_O", bound="ExplainOptions")
 # What runs made before an option was recorded used.
-_UNRECORDED = {"ig_space": "tokens", "occlusion_region": 1, "occlusion_masks": 0, "reliance": False}
+_UNRECORDED = {
+    "ig_space": "tokens",
+    "occlusion_region": 1,
+    "occlusion_masks": 0,
+    "reliance": False,
+    "smoothgrad_samples": MapOptions.smoothgrad_samples,
+    "smoothgrad_sigma": MapOptions.smoothgrad_sigma,
+    "rise_masks": MapOptions.rise_masks,
+    "rise_keep_prob": MapOptions.rise_keep_prob,
+    "occlusion_head": None,
+    "occlusion_head_file": None,
+}
+# Recorded for the reader, not compared when adding to a run or maps dataset: the same head may move between machines.
+_NOT_COMPARED = ("occlusion_head_file",)
+
+
+@dataclasses.dataclass(frozen=True)
+class HeadRef:
+    """An occlusion head file (`model.occlusion_head`) as options name it: where it is read from, and the SHA-256 of
+    its bytes, which is its identity (steps join a run or maps dataset only with the head its earlier steps used)."""
+
+    path: str
+    sha256: str
+
+    @classmethod
+    def of(cls, path: str | os.PathLike[str]) -> HeadRef:
+        """The head file at `path`, hashed; a missing or unreadable file is refused in one line naming it."""
+        path = pathlib.Path(path).expanduser()
+        try:
+            data = path.read_bytes()
+        except OSError as e:
+            raise ValueError(
+                f"{path}: cannot read the occlusion head file ({e.strerror or type(e).__name__})"
+            ) from None
+        return cls(str(path.resolve()), hashlib.sha256(data).hexdigest())
 
 
 @dataclasses.dataclass(frozen=True)
@@ -189,9 +311,11 @@ class ExplainOptions:
     action_index: int = 0  # pi0-FAST: which action token ("action-token"); pi0 / pi0.5: which horizon step ("action")
     action_dim_index: int = 0  # pi0 / pi0.5: which action dimension ("action")
     maps: tuple[MapKind, ...] = DEFAULT_KINDS
-    map_options: MapOptions = dataclasses.field(default_factory=MapOptions)  # of the "ig" / "occlusion" kinds
+    map_options: MapOptions = dataclasses.field(default_factory=MapOptions)  # of the `OPTION_KINDS`
     check_patches: int = DEFAULT_PATCHES  # 0: no spot check
     reliance: bool = False  # measure camera and prompt reliance: one re-run per camera and one for the prompt
+    # the head the "occlusion-head" kind applies (None: the kind cannot be computed; `HeadRef.of` names a file)
+    occlusion_head: HeadRef | None = None
 
     def __post_init__(self) -> None:
         if self.target is not None and self.target not in TARGETS:
@@ -224,8 +348,14 @@ class ExplainOptions:
             "ig_space": o.ig_space,
             "occlusion_region": o.occlusion_region,
             "occlusion_masks": o.random_masks if o.occlusion_mode == "random" else 0,
+            "smoothgrad_samples": o.smoothgrad_samples,
+            "smoothgrad_sigma": o.smoothgrad_sigma,
+            "rise_masks": o.rise_masks,
+            "rise_keep_prob": o.rise_keep_prob,
             "check_patches": self.check_patches,
             "reliance": self.reliance,
+            "occlusion_head": None if self.occlusion_head is None else self.occlusion_head.sha256,
+            "occlusion_head_file": None if self.occlusion_head is None else self.occlusion_head.path,
         }
 
     @classmethod
@@ -236,9 +366,16 @@ class ExplainOptions:
             baseline=data.get("baseline", MapOptions.baseline),
             ig_space=data["ig_space"],
             occlusion_region=int(data["occlusion_region"]),
+            smoothgrad_samples=int(data["smoothgrad_samples"]),
+            smoothgrad_sigma=float(data["smoothgrad_sigma"]),
+            rise_masks=int(data["rise_masks"]),
+            rise_keep_prob=float(data["rise_keep_prob"]),
         )
         if masks := int(data["occlusion_masks"]):
             map_options = dataclasses.replace(map_options, occlusion_mode="random", random_masks=masks)
+        head = None
+        if data["occlusion_head"]:
+            head = HeadRef(str(data["occlusion_head_file"] or ""), str(data["occlusion_head"]))
         return cls(
             target=data.get("target"),
             action_index=int(data.get("action_index", 0)),
@@ -247,9 +384,10 @@ class ExplainOptions:
             map_options=map_options,
             check_patches=int(data.get("check_patches", DEFAULT_PATCHES)),
             reliance=bool(data["reliance"]),
+            occlusion_head=head,
         )
 
     def mismatch(self, recorded: Mapping[str, Any]) -> list[str]:
         """What differs between these options and those a run or maps dataset recorded, one `key: old != new` each."""
         old, new = {**_UNRECORDED, **recorded}, self.to_json()
-        return [f"{k}: {old.get(k)!r} != {v!r}" for k, v in new.items() if old.get(k) != v]
+        return [f"{k}: {old.get(k)!r} != {v!r}" for k, v in new.items() if k not in _NOT_COMPARED and old.get(k) != v]

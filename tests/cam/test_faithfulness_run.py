@@ -15,6 +15,7 @@ import sys
 import numpy as np
 import pytest
 from cam_support import assert_pairwise_different, demo_obs, policy_part
+from heads import planted_head
 
 from openpi_cam.cam import faithfulness as fm
 from openpi_cam.cam.faithfulness_run import FaithfulnessOptions, evaluate_run, format_report, step_model_inputs
@@ -22,11 +23,12 @@ from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.offline import Replay, ReplayOptions, explain_replays
 from openpi_cam.cam.run_format import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
+from openpi_cam.checkpoints import model_spec
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import ExplainSkipped
 from openpi_cam.viz.render import RenderOptions, render_run
 from openpi_cam.viz.stats import compute_stats, to_rows, view_steps
-from openpi_cam.vocabulary import MAP_KINDS, MapOptions
+from openpi_cam.vocabulary import MAP_KINDS, OCCLUSION_HEAD, HeadRef, MapOptions
 
 SEEDS = (200, 201, 202, 203)
 # Re-running the explained score from the step file: the model frames are exact (uint8 frames through the same
@@ -38,14 +40,21 @@ REPLAY_ATOL = 1e-4
 RANDOM_ORDERS = 4
 
 
+def _head(tmp_path, family: str, target: str) -> HeadRef:
+    """A planted occlusion head (the gradient norm, normalised) for the bundled model of `family`."""
+    return planted_head(tmp_path / "occlusion_head.json", model_spec.ModelSpec.demo(family), target)
+
+
 def _logged_run(tmp_path, policy, target, save_frames="model", seeds=SEEDS, maps=MAP_KINDS, **request):
     observations = [demo_obs(s) for s in seeds]
     actions = [policy.infer(policy_part(o))["actions"] for o in observations]
     assert_pairwise_different(actions)  # the steps are distinct inferences, so a mixed-up replay would show
+    family = "pi05" if policy.explainer.targets == ("action", "chunk") else "pi0_fast"
+    if OCCLUSION_HEAD in maps:
+        request.setdefault("occlusion_head", _head(tmp_path, family, target))
     options = CAMOptions(
         every_k=1, dir=tmp_path, save_frames=save_frames, target=target, maps=maps, queue_size=16, **request
     )
-    family = "pi05" if policy.explainer.targets == ("action", "chunk") else "pi0_fast"
     wrapped = wrap_policy_with_cam(policy, options, run_config={"config": demo_reach.DEMO_CONFIGS[family].name})
     try:
         for obs in observations:
@@ -238,7 +247,10 @@ def test_offline_explain_render_stats_and_faithfulness_on_a_pi05_run(tmp_path, d
         for i, o in enumerate(observations)
     ]
     # The live pi0.5 test's target, so that the re-scoring below reuses that test's program.
-    options = ReplayOptions(target="action", action_index=3, action_dim_index=1, maps=MAP_KINDS, batch_size=2)
+    head = _head(tmp_path, "pi05", "action")
+    options = ReplayOptions(
+        target="action", action_index=3, action_dim_index=1, maps=MAP_KINDS, batch_size=2, occlusion_head=head
+    )
     with CAMLogger(tmp_path / "cam", run_config={"config": "demo_reach_pi05"}, checkpoint="demo", options={}) as log:
         summary = explain_replays(demo_pi05_policy, replays, options, log, mesh=None)
     assert summary["completed"] == 3

@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from heads import planted_head
 
 from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.run_format import StepRecord, load_run
@@ -412,11 +413,16 @@ def test_run_figures_on_a_hand_made_run(tmp_path):
 
 
 def test_short_demo_run_is_readable(tmp_path):
-    """`openpi-cam demo` end to end at toy length: a readable run of every map kind (`lrp`, which the demo leaves out
-    by default, asked for) with the client's ground truth, the episode file, a report per kind listing every step, and
-    the faithfulness report of the run. One call: each logged step costs every kind's maps and their faithfulness
-    re-scoring, and a second step proves nothing more."""
-    result = run_demo(DemoOptions(out=tmp_path, num_episodes=1, max_calls=1, seed=3, maps=MAP_KINDS))
+    """`openpi-cam demo` end to end at toy length: a readable run of every map kind (those the demo leaves out by
+    default, `lrp`, the four kinds after it and `occlusion-head`, asked for; the head a planted one) with the client's
+    ground truth, the episode file, a report per kind listing every step, and the faithfulness report of the run. One
+    call: each logged step costs every kind's maps and their faithfulness re-scoring, and a second step proves nothing
+    more."""
+    planted_head(tmp_path / "head.json", model_spec.ModelSpec(), "chunk")
+    options = DemoOptions(
+        out=tmp_path, num_episodes=1, max_calls=1, seed=3, maps=MAP_KINDS, head=tmp_path / "head.json"
+    )
+    result = run_demo(options)
     run = load_run(result.run_dir)
     (episode,) = result.episodes
     assert json.loads((result.run_dir / quality.EPISODES_FILE).read_text()) == result.episodes

@@ -356,17 +356,3 @@ def test_forward_is_bit_identical_under_either_rules(tiny_fast_model: Pi0FAST, d
     _, trace = demo_pi05_policy.infer_traced(demo_observation(1))
     noise = jnp.asarray(trace.sample_inputs["noise"])[None]
     _bitwise(_flow_forward, demo_pi05_policy.model.params, trace.observation, noise, cfg=demo_pi05_policy.model.config)
-
-
-def test_lrp_is_asked_for_by_name_only():
-    """No default computes or draws it: the side channel's kinds, the offline commands' and the demo's, and the kind
-    the viewers draw (until a bench chooses the defaults)."""
-    from openpi_cam.cli.options import EVERY_KIND, ExplainFlags
-    from openpi_cam.demo.run import DemoOptions
-    from openpi_cam.vocabulary import COMPARED_KINDS, DEFAULT_KINDS, DEFAULT_MAP_KIND, MAP_KINDS, ExplainOptions
-
-    assert "lrp" in MAP_KINDS
-    for kinds in (DEFAULT_KINDS, COMPARED_KINDS, ExplainFlags().maps, EVERY_KIND.maps, DemoOptions().maps):
-        assert "lrp" not in kinds
-    assert ExplainOptions().maps == DEFAULT_KINDS and DEFAULT_MAP_KIND != "lrp"
-    assert ExplainFlags(maps=("lrp",)).options().maps == ("lrp",)

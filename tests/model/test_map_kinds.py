@@ -411,6 +411,32 @@ def test_occlusion_reads_the_patch_grid_row_major(demo):
     assert abs(drop - occ[c, r]) > 20 * SCORE_ATOL
 
 
+def test_even_chunks_run_fewer_variants_and_leave_the_occlusion_maps_unchanged(demo, monkeypatch):
+    """Exhaustive occlusion of the demo's two cameras is 2 x 17 variants: at 16 at a time they run as 3 chunks of 12
+    (36 re-runs) instead of 3 of 16 padded with no-op re-runs (48), and the maps are those of the padded layout to
+    float32 rounding (SCORE_ATOL)."""
+    stack = np.zeros((17, 4, 4), bool)
+    inputs, where = baseline_maps.variants([stack, stack], 16)
+    assert len(inputs.cams) == 36 and where == [slice(0, 17), slice(17, 34)]
+    for k in range(1, 200):
+        for chunk in (1, 4, 8, 16, 34):
+            size = baseline_maps.balanced_chunk(k, chunk)
+            chunks = -(-k // size)
+            assert size <= chunk and chunks == -(-k // chunk) and chunks * size - k < chunks
+    even = maps.maps_for_chunk(
+        demo.model, demo.obs, demo.generated, demo.chunk_rows, kinds=SHARED_KINDS, options=SHARED_OPTIONS
+    )
+    monkeypatch.setattr(baseline_maps, "balanced_chunk", lambda variants, chunk: chunk)  # the padded layout
+    assert len(baseline_maps.variants([stack, stack], 16)[0].cams) == 48
+    padded = maps.maps_for_chunk(
+        demo.model, demo.obs, demo.generated, demo.chunk_rows, kinds=("occlusion",), options=SHARED_OPTIONS
+    )
+    for camera in DEMO_CAMERAS:
+        want = padded.by_kind["occlusion"][camera]
+        np.testing.assert_allclose(even.by_kind["occlusion"][camera], want, rtol=0, atol=SCORE_ATOL)
+        assert np.abs(want).max() > 100 * SCORE_ATOL
+
+
 @pytest.mark.slow
 def test_region_occlusion_equals_manual_rescoring_of_each_region(demo):
     """3 x 3 regions on the 4 x 4 grid (uneven tiling), per-row token targets [B, T]; each camera painted alone."""
@@ -450,6 +476,66 @@ def test_random_mode_is_the_iss_of_its_masks(demo):
         np.testing.assert_allclose(res.by_kind["occlusion"][camera], expected, atol=SCORE_ATOL)
 
 
+def test_rise_beside_occlusion_estimates_each_patchs_effect_on_an_additive_score():
+    """`collect` with a family whose score is additive over the painted patches (drop = sum of their effects, two
+    cameras with effects of their own, 3 x 5 grid so that no axis lines up with another): occlusion's maps are the
+    effects exactly and rise's, from the same call, estimate them: every patch within 4 standard errors (for the
+    conditional-mean difference of an additive score the error's std is sqrt(sum of the other effects' squares / N),
+    here 0.04) and the three large effects ranked first in their order. A camera masked in every row is left out."""
+    grid, cameras = (3, 5), ("a", "b")
+    rng = np.random.default_rng(4)
+    effects = rng.normal(0.0, 0.1, (2, *grid))
+    effects[0, 1, 3], effects[0, 2, 0], effects[0, 0, 4] = 3.0, 2.0, 1.0
+    effects[1, 0, 0], effects[1, 2, 4], effects[1, 1, 1] = 3.0, 2.0, 1.0
+    calls = []
+
+    def run(kinds, options, inputs, first):
+        calls.append((kinds, np.asarray(inputs.cams)))
+        painted = np.asarray(inputs.masks, np.float64)  # [K, 3, 5]
+        drops = np.einsum("khw,khw->k", painted, effects[np.asarray(inputs.cams)])
+        return {"occlusion_scores": (10.0 - drops)[:, None, None]}  # [K, T = 1, B = 1]
+
+    n = 4096
+    res = baseline_maps.collect(run, cameras, grid, ("occlusion", "rise"), MapOptions(rise_masks=n, mask_chunk=7))
+    assert [kinds for kinds, _ in calls] == [("occlusion",)]  # one program re-runs both kinds' variants
+    for c, camera in enumerate(cameras):
+        np.testing.assert_allclose(res["occlusion"][camera][0, 0], effects[c], atol=1e-9)
+        rise = res["rise"][camera][0, 0]
+        others = np.sqrt((np.sum(effects[c] ** 2) - effects[c] ** 2) / n)
+        assert np.all(np.abs(rise - effects[c]) <= 4 * others), np.abs(rise - effects[c]) / others
+        np.testing.assert_array_equal(np.argsort(-rise.ravel())[:3], np.argsort(-effects[c].ravel())[:3])
+
+    # A camera masked in every row is not re-run (the model does not read it): its maps are zeros, the other's the
+    # same, from half the variants.
+    options = MapOptions(rise_masks=n, mask_chunk=7)
+    alone = baseline_maps.collect(run, cameras, grid, ("occlusion", "rise"), options, valid=[True, False])
+    cams = calls[-1][1]
+    assert set(cams[: 1 + 15 + n].tolist()) == {0} and len(cams) < 1 + 15 + n + 7
+    for kind in ("occlusion", "rise"):
+        np.testing.assert_array_equal(alone[kind]["b"], 0.0)
+        np.testing.assert_allclose(alone[kind]["a"], res[kind]["a"], atol=1e-9)
+
+
+def test_rise_is_the_iss_of_its_masks_rescored(demo):
+    """The rise kind through the model: its maps are the conditional-mean differences (`attribution.iss_map`) of the
+    scores a user gets re-scoring its masks (drawn from the options' seed over the patch grid), for every row."""
+    # 16 masks: as many variants as exhaustive occlusion, so the program of the other tests is reused (IG at its
+    # first try rides along for the same reason).
+    options = dataclasses.replace(SHARED_OPTIONS, rise_masks=16, seed=5)
+    weights = maps.chunk_weights(demo.chunk_rows, 2, demo.generated.shape[1])[0]
+    kinds = ("ig", "rise")
+    res = maps.maps_for_chunk(demo.model, demo.obs, demo.generated, demo.chunk_rows, kinds=kinds, options=options)
+    masks = attribution.random_region_masks((4, 4), 1, 16, options.rise_keep_prob, options.seed)
+    with_reference = np.concatenate([np.zeros((1, 4, 4), bool), masks])
+    scores = maps.rescore_masks(
+        demo.model, demo.obs, demo.generated, dict.fromkeys(DEMO_CAMERAS, with_reference), weights=weights
+    )
+    for camera in DEMO_CAMERAS:
+        expected = attribution.iss_map(masks, scores[camera][:1] - scores[camera][1:])  # [B, 4, 4]
+        np.testing.assert_allclose(res.by_kind["rise"][camera], expected, atol=SCORE_ATOL)
+        assert np.abs(expected).max() > 100 * SCORE_ATOL
+
+
 @pytest.mark.slow
 def test_ig_completeness_on_the_demo_model_at_the_default_steps(demo):
     """The 2% target at the default options, for a chunk and a token target (measured worst case over 100 scenes in
@@ -467,12 +553,16 @@ def test_ig_completeness_on_the_demo_model_at_the_default_steps(demo):
 
 
 def test_masked_camera_gets_zero_maps(demo):
+    """IG's path of a masked camera is empty (its own baseline): exactly 0. Occlusion's drops are differences of
+    re-runs in one vectorised chunk or two, whose rows the CPU kernels may round differently: 0 to SCORE_ATOL
+    (measured up to 1 float32 ulp of the score)."""
     obs = dataclasses.replace(demo.obs, image_masks={**demo.obs.image_masks, "wrist_0_rgb": np.array([True, False])})
     step = int(demo.action_steps[0][0])
     res = maps.gradcam_for_action_token(demo.model, obs, demo.generated, step, kinds=("ig", "occlusion"))
+    np.testing.assert_array_equal(res.by_kind["ig"]["wrist_0_rgb"][1], 0.0)
+    assert np.abs(res.by_kind["occlusion"]["wrist_0_rgb"][1]).max() <= SCORE_ATOL
     for kind in ("ig", "occlusion"):
-        np.testing.assert_array_equal(res.by_kind[kind]["wrist_0_rgb"][1], 0.0)
-        assert np.abs(res.by_kind[kind]["wrist_0_rgb"][0]).max() > 0
+        assert np.abs(res.by_kind[kind]["wrist_0_rgb"][0]).max() > 100 * SCORE_ATOL
         assert np.abs(res.by_kind[kind]["base_0_rgb"][1]).max() > 0
 
 
@@ -581,3 +671,129 @@ def test_spread_splits_the_axis_over_the_ambient_mesh_only():
     assert proc.returncode == 0, proc.stderr[-2000:]
     out = json.loads(proc.stdout.strip().splitlines()[-1])
     assert out == {"alone": 1, "spread": 2, "axis": [None, "batch"], "equal": True}, out
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Every kind in one call
+
+# The groups of kinds the model computes, each by a program of its own: the gradient program (`gradient_maps`),
+# AttnLRP's (`lrp_maps`) and the baseline program (`baseline_maps`). Small counts keep the one-call tests cheap
+# (SmoothGrad's samples are data; RISE's masks and IG's points change no kind but their own).
+KIND_GROUPS = (vocabulary.GRADIENT_KINDS, vocabulary.RELEVANCE_KINDS, vocabulary.BASELINE_KINDS)
+EVERY_KIND_OPTIONS = MapOptions(ig_steps=4, ig_tolerance=0.0, smoothgrad_samples=2, rise_masks=8)
+
+
+def test_the_groups_hold_every_kind_once():
+    """A kind outside every group would be accepted and never computed; a kind in two would run twice. The model's
+    programs compute the kinds of its groups (`MODEL_KINDS`); `occlusion-head` (`HEAD_KINDS`) is the families', the
+    head applied to its inputs' maps."""
+    grouped = [k for group in (*KIND_GROUPS, vocabulary.HEAD_KINDS) for k in group]
+    assert sorted(grouped) == sorted(vocabulary.MAP_KINDS)
+    assert sorted(vocabulary.MODEL_KINDS) == sorted(k for group in KIND_GROUPS for k in group)
+
+
+def test_the_model_refuses_the_head_kind(demo):
+    """Asked of the model itself, `occlusion-head` would be accepted and never computed: refused, naming the kinds
+    the model computes."""
+    with pytest.raises(ValueError, match="non-empty selection of") as refused:
+        maps.maps_for_chunk(demo.model, demo.obs, demo.generated, demo.chunk_rows, kinds=vocabulary.HEAD_KINDS)
+    assert "occlusion-head" in str(refused.value) and "rise" in str(refused.value)
+
+
+def assert_groups_reproduced(every, alone: dict, cameras, shape) -> None:
+    """`every` (all kinds in one call) against `alone` (group -> that group's kinds in a call of their own): the
+    gradient and relevance kinds run the same compiled program either way, bit for bit; the baseline kinds' program
+    also returns the score when no gradient program ran, a different compilation: SCORE_ATOL."""
+    assert set(every.by_kind) == set(vocabulary.MODEL_KINDS)
+    assert every.options == EVERY_KIND_OPTIONS  # the kinds that read the options record them
+    for group, res in alone.items():
+        for kind in group:
+            for camera in cameras:
+                got, want = every.by_kind[kind][camera], res.by_kind[kind][camera]
+                assert got.shape == shape and np.isfinite(got).all(), (kind, camera)
+                if group is vocabulary.BASELINE_KINDS:
+                    np.testing.assert_allclose(got, want, rtol=0, atol=SCORE_ATOL, err_msg=f"{kind} {camera}")
+                else:
+                    np.testing.assert_array_equal(got, want, err_msg=f"{kind} {camera}")
+    # Every kind carries something on the cameras the model reads (none a placeholder of zeros).
+    for kind, per_camera in every.by_kind.items():
+        assert np.abs(per_camera["base_0_rgb"]).max() > 0, kind
+    np.testing.assert_array_equal(every.score, alone[vocabulary.GRADIENT_KINDS].score)
+    for res in (alone[vocabulary.RELEVANCE_KINDS], alone[vocabulary.BASELINE_KINDS]):
+        np.testing.assert_allclose(res.score, every.score, rtol=0, atol=SCORE_ATOL)
+
+
+@pytest.mark.parametrize("target", [pytest.param("tokens", marks=pytest.mark.slow), "chunk"])
+def test_every_kind_in_one_pi0_fast_call_is_each_groups_own(demo, target):
+    """The demo pi0-FAST, two rows: every kind the model computes (`MODEL_KINDS`) asked for at once, for three token
+    logits per row and for a per-row chunk of log-probabilities, gives each kind the maps its group gives alone."""
+    if target == "tokens":
+        steps = np.stack([s[:3] for s in demo.action_steps])  # [B, T] per row
+
+        def explain(kinds):
+            return maps.maps_for_steps(
+                demo.model, demo.obs, demo.generated, steps, kinds=kinds, options=EVERY_KIND_OPTIONS
+            )
+
+        shape = (2, 3, 4, 4)
+    else:
+
+        def explain(kinds):
+            return maps.maps_for_chunk(
+                demo.model, demo.obs, demo.generated, demo.chunk_rows, kinds=kinds, options=EVERY_KIND_OPTIONS
+            )
+
+        shape = (2, 4, 4)
+    every = explain(vocabulary.MODEL_KINDS)
+    assert_groups_reproduced(every, {g: explain(g) for g in KIND_GROUPS}, DEMO_CAMERAS, shape)
+    if target == "tokens":
+        assert every.logits is not None and every.logits.shape[:2] == (2, 3)
+
+
+def test_every_kind_in_one_pi05_call_is_each_groups_own(demo_pi05_policy):
+    """The demo pi0.5 (its third camera blank): every model kind at once for one action dimension and the whole chunk
+    gives each kind the maps its group gives alone, and the actions the call served."""
+    from demo_inputs import demo_observation
+
+    from openpi_cam.model import pi0_maps
+
+    policy = demo_pi05_policy
+    _, trace = policy.infer_traced(demo_observation(2))
+    noise = np.asarray(trace.sample_inputs["noise"])[None]
+    targets = [(0, 0), pi0_maps.CHUNK]
+
+    def explain(kinds):
+        return pi0_maps.maps_for_actions(
+            policy.model, trace.observation, noise, targets, kinds=kinds, options=EVERY_KIND_OPTIONS
+        )
+
+    every = explain(vocabulary.MODEL_KINDS)
+    cameras = tuple(trace.observation.images)
+    assert_groups_reproduced(every, {g: explain(g) for g in KIND_GROUPS}, cameras, (1, 2, 4, 4))
+    np.testing.assert_allclose(every.actions[0], np.asarray(trace.output), rtol=1e-5, atol=1e-6)
+
+
+def test_kinds_beyond_the_compared_four_are_asked_for_by_name_only():
+    """No default computes or draws `lrp`, the four kinds added after it or `occlusion-head`: the side channel's kinds,
+    the offline commands', the demo's on either simulator, and the kind the viewers draw (until a bench chooses the
+    defaults)."""
+    from openpi_cam.cli.options import EVERY_KIND, ExplainFlags
+    from openpi_cam.demo.run import DemoOptions
+
+    assert vocabulary.DEFAULT_KINDS == ("gradcam", "gradnorm")
+    assert vocabulary.COMPARED_KINDS == ("gradcam", "gradnorm", "ig", "occlusion")
+    by_name = set(vocabulary.MAP_KINDS) - set(vocabulary.COMPARED_KINDS)
+    assert by_name == {"lrp", "gradxinput", "taylor", "smoothgrad", "rise", "occlusion-head"}
+    defaults = (
+        vocabulary.DEFAULT_KINDS,
+        ExplainFlags().maps,
+        vocabulary.ExplainOptions().maps,
+        EVERY_KIND.maps,
+        DemoOptions().map_kinds,
+        DemoOptions(sim="metaworld").map_kinds,
+    )
+    for kinds in defaults:
+        assert not by_name & set(kinds), kinds
+    assert vocabulary.DEFAULT_MAP_KIND not in by_name
+    for kind in sorted(by_name):
+        assert ExplainFlags(maps=(kind,)).options().maps == (kind,)

@@ -284,7 +284,7 @@ def test_stop_tokens_finish_each_row_on_its_own(tiny_fast_model: Pi0FAST, stop: 
     reference = case["output_tokens"]
     firsts = tuple(int(np.argmax(row == stop)) for row in reference)
     assert firsts == row_steps and all(reference[b, s] == stop for b, s in enumerate(firsts))
-    tokens, n_steps, _ = sample_tokens_jit(
+    tokens, n_steps, _, _ = sample_tokens_jit(
         tiny_fast_model.params,
         golden.load_observation(case, CAMERAS),
         jax.random.key(0),

@@ -39,7 +39,7 @@ from openpi_cam.cam.run_evidence import ig_summary
 from openpi_cam.cam.run_format import IMAGE_INPUT, CAMRun, CAMStep, StepMeta
 from openpi_cam.model.observation import Observation, uint8_to_model
 from openpi_cam.policies.family import Explainer, ExplainSkipped, Explanation
-from openpi_cam.vocabulary import MAP_KINDS, ExplainOptions, MapOptions
+from openpi_cam.vocabulary import MAP_KINDS, ExplainOptions, HeadRef, MapOptions
 
 _OBS_INPUTS = ("state", "tokenized_prompt", "tokenized_prompt_mask", "token_ar_mask")
 _SAMPLER_INPUTS = ("noise",)
@@ -197,8 +197,11 @@ def _rescore(step: CAMStep, explainer: Explainer, opts: FaithfulnessOptions, mes
     )
 
 
-def _randomisation_row(step: CAMStep, rescored: _Rescored, targets: Sequence[str]) -> _RandomisationRow:
-    """The randomised model's request for a step: its own target where that model explains it, else the chunk."""
+def _randomisation_row(
+    step: CAMStep, rescored: _Rescored, targets: Sequence[str], head: HeadRef | None
+) -> _RandomisationRow:
+    """The randomised model's request for a step: its own target where that model explains it, else the chunk;
+    `head`: the run's occlusion head (the kind's map of the randomised model is that head on its input maps)."""
     action_index, action_dim_index = _request_indices(step.meta)
     request = ExplainOptions(
         step.meta.target if step.meta.target in targets else "chunk",
@@ -206,6 +209,7 @@ def _randomisation_row(step: CAMStep, rescored: _Rescored, targets: Sequence[str
         action_dim_index=action_dim_index,
         maps=tuple(rescored.kinds),
         map_options=rescored.painting,
+        occlusion_head=head,
     )
     row = (rescored.obs, rescored.outputs[0], {k: v[0] for k, v in rescored.sample_inputs.items()})
     return _RandomisationRow(step, rescored.kinds, rescored.cameras, request, row)
@@ -252,6 +256,7 @@ def evaluate_run(
     if opts.randomize != "none":
         random_explainer = explainer.randomized(opts.randomize, opts.seed).on_mesh(mesh)
     steps = _evenly([s for s in run.steps if s.meta.map_kinds], opts.max_steps)
+    head = ExplainOptions.from_json(run.run_info.get("options") or {}).occlusion_head
     # Rows per randomised call, the same for every call of this run (one program); a run shorter than a batch pads
     # to its own length rather than to rows it never fills.
     rows_per_call = max(1, min(opts.batch_size, len(steps)))
@@ -264,7 +269,7 @@ def evaluate_run(
             continue
         evaluation.add(step, rescored)
         if random_explainer is not None:
-            evaluation.waiting.append(_randomisation_row(step, rescored, random_explainer.targets))
+            evaluation.waiting.append(_randomisation_row(step, rescored, random_explainer.targets, head))
             if len(evaluation.waiting) == rows_per_call:
                 _explain_randomised(random_explainer, evaluation, mesh, rows_per_call)
     if random_explainer is not None:

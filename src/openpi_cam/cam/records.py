@@ -13,6 +13,7 @@ from openpi_cam.cam.run_format import IMAGE_INPUT, CameraMeta, Reliance, SpotChe
 from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.image_tools import client_frame_uint8, unit_to_uint8
 from openpi_cam.model.observation import uint8_to_model
+from openpi_cam.monitor.stream import StepScore
 from openpi_cam.policies.family import Explanation
 from openpi_cam.policies.policy import InferenceTrace
 from openpi_cam.vocabulary import EXTRA_PREFIX, ExplainOptions, SaveFrames
@@ -117,10 +118,12 @@ def step_record(
     explain_ms: float,
     check: SpotCheck | None = None,
     reliance: Reliance | None = None,
+    monitor: StepScore | None = None,
 ) -> StepRecord:
     """The logger record of one explained inference, in the layout docs/FORMAT.md describes; `extra`: the client's
     `cam_extra/` values (numeric arrays go to the step file, the rest to `StepMeta.extra`); `check`: its spot check
-    (`cam.spot_check`), stored as `StepMeta.check` when given; `reliance` (`cam.reliance`) as `StepMeta.reliance`."""
+    (`cam.spot_check`), stored as `StepMeta.check` when given; `reliance` (`cam.reliance`) as `StepMeta.reliance`;
+    `monitor`: the call's failure-monitor score with its inputs (`monitor/...` arrays)."""
     extra_values, extra_arrays = split_extra_values(extra)
     frames, client_inputs = {}, {}
     if save_frames in ("raw", "both"):  # what replaying the step needs: the client's frames and its other values
@@ -162,6 +165,7 @@ def step_record(
         meta=meta.to_json(),
         extra_arrays=extra_arrays,
         client_inputs=client_inputs,
+        monitor={} if monitor is None else monitor.arrays(),
     )
 
 

@@ -44,6 +44,9 @@ IMAGE_INPUT = "image/"
 EXTRA_ARRAY_PREFIX = "extra/"  # numeric arrays a client sent under `cam_extra/` (other values: meta["extra"])
 # the client's other numeric observation values (e.g. its state), stored with raw frames: what a replay sends again
 CLIENT_PREFIX = "client/"
+# with a failure monitor: the step's monitor inputs (`monitor/features/<name>`, `monitor/token_entropy`,
+# `monitor/stac`), its score (`monitor/score`) and whether its connection was flagged by then (`monitor/flag`)
+MONITOR_PREFIX = "monitor/"
 META_KEY = "meta"
 
 _STEP_FILE_RE = re.compile(r"^(\d{8,})\.npz$")
@@ -149,6 +152,7 @@ class StepRecord:
     meta: dict[str, Any] = dataclasses.field(default_factory=dict)
     extra_arrays: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)  # stored as `extra/<key>`
     client_inputs: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)  # stored as `client/<key>`
+    monitor: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)  # stored as `monitor/<name>`
 
 
 # Fields of the step JSON that the writer owns; StepRecord.meta must not set them.
@@ -535,6 +539,7 @@ def record_arrays(record: StepRecord) -> dict[str, np.ndarray]:
     arrays |= {INPUT_PREFIX + k: np.asarray(v) for k, v in record.inputs.items()}
     arrays |= {EXTRA_ARRAY_PREFIX + k: np.asarray(v) for k, v in record.extra_arrays.items()}
     arrays |= {CLIENT_PREFIX + k: np.asarray(v) for k, v in record.client_inputs.items()}
+    arrays |= {MONITOR_PREFIX + k: np.asarray(v) for k, v in record.monitor.items()}
     return arrays
 
 
@@ -557,10 +562,11 @@ class StepArrays:
     inputs: dict[str, np.ndarray]
     extra: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
     client: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    monitor: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
 
 
 def _split_arrays(npz: Any) -> StepArrays:
-    arrays = StepArrays({}, {}, {}, {}, {}, {})
+    arrays = StepArrays({}, {}, {}, {}, {}, {}, {})
     prefixes = [(info.prefix, arrays.maps.setdefault(k, {})) for k, info in MAP_KIND_INFO.items()]
     prefixes += [
         (FRAME_PREFIX, arrays.frames),
@@ -568,6 +574,7 @@ def _split_arrays(npz: Any) -> StepArrays:
         (INPUT_PREFIX, arrays.inputs),
         (EXTRA_ARRAY_PREFIX, arrays.extra),
         (CLIENT_PREFIX, arrays.client),
+        (MONITOR_PREFIX, arrays.monitor),
     ]
     for key in npz.files:
         for prefix, target in prefixes:
@@ -631,6 +638,11 @@ class CAMStep:
     @property
     def inputs(self) -> dict[str, np.ndarray]:
         return self.arrays().inputs
+
+    @property
+    def monitor(self) -> dict[str, np.ndarray]:
+        """The failure monitor's record of the step (`monitor/...`): its inputs, score and flag; empty without one."""
+        return self.arrays().monitor
 
     @property
     def client_inputs(self) -> dict[str, np.ndarray]:

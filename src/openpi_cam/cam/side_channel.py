@@ -42,10 +42,12 @@ from jax.sharding import Mesh
 
 from openpi_cam.cam.batching import explain_batch
 from openpi_cam.cam.logger import CAMLogger
+from openpi_cam.cam.monitoring import RESPONSE_KEY, LiveMonitor, response_entry
 from openpi_cam.cam.records import bounded_extra, split_extra, step_record
 from openpi_cam.cam.reliance import Resampler
 from openpi_cam.counters import WarnOnceCounter
 from openpi_cam.model.sharding import BATCH_AXIS
+from openpi_cam.monitor.stream import StepScore
 from openpi_cam.policies.family import Explainer, ExplainSkipped, resolve_target
 from openpi_cam.policies.policy import InferenceTrace
 from openpi_cam.vocabulary import SAVE_FRAMES, ExplainOptions, SaveFrames
@@ -64,13 +66,15 @@ class TracedPolicy(Resampler, Protocol):
 
     def infer(self, obs: Mapping[str, Any], context: object = None) -> dict[str, Any]: ...
 
-    def infer_traced(self, obs: Mapping[str, Any]) -> tuple[dict[str, Any], InferenceTrace]: ...
+    def infer_traced(
+        self, obs: Mapping[str, Any], *, signals: bool = False
+    ) -> tuple[dict[str, Any], InferenceTrace]: ...
 
     def infer_batch_traced(
-        self, observations: Sequence[Mapping[str, Any]]
+        self, observations: Sequence[Mapping[str, Any]], *, signals: bool = False
     ) -> list[tuple[dict[str, Any], InferenceTrace] | Exception]: ...
 
-    def warm_up(self, batch_sizes: Sequence[int] = (1,)) -> InferenceTrace | None: ...
+    def warm_up(self, batch_sizes: Sequence[int] = (1,), *, signals: bool = False) -> InferenceTrace | None: ...
 
     def stats(self) -> dict[str, Any]: ...
 
@@ -124,6 +128,10 @@ class SideChannelSettings:
     max_extra_value_kb: float = 16.0
     # all `cam_extra/` values a step stores together, in KiB.
     max_extra_kb: float = 64.0
+    # with a failure monitor (`--monitor`), every response also carries `monitor: {score, flag}`, its call's score and
+    # whether its connection is flagged so far, scored before the response is sent; off, the worker scores each call
+    # after its response and responses are upstream's to the byte.
+    monitor_response: bool = False
 
     def __post_init__(self) -> None:
         if self.every_k < 0 or self.queue_size < 1 or self.stats_window < 1 or self.settle_ms < 0:
@@ -163,6 +171,31 @@ class _Job:
     timestamp: float  # wall clock, for the step record
     extra: dict[str, Any]
     ended: float  # time.monotonic() when the inference returned: lag and ages are measured from here
+    monitor: _MonitorSlot | None = None  # the call's monitor score, with a monitor
+
+
+@dataclasses.dataclass
+class _MonitorSlot:
+    """Where a scheduled call's monitor score lands for its step file; the worker scores every call before it
+    explains any job queued after it, so the slot is filled when the job is explained."""
+
+    scored: StepScore | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class _Scoring:
+    """A served call for the worker to score (`slot`: its explanation job's, when it is explained)."""
+
+    connection: str
+    signals: Mapping[str, np.ndarray]
+    slot: _MonitorSlot | None
+
+
+@dataclasses.dataclass(frozen=True)
+class _Closed:
+    """A connection ended, in its place among the calls to score."""
+
+    connection: str
 
 
 @dataclasses.dataclass(frozen=True)
@@ -227,12 +260,24 @@ class _Pending:
 
 
 class CAMPolicy:
-    """Serves exactly what the wrapped policy serves; explains scheduled inferences in the background."""
+    """Serves exactly what the wrapped policy serves; explains scheduled inferences in the background and, with a
+    failure monitor, scores every call (`cam.monitoring`): its worker scores each call in its connection's order
+    as soon as it is served (a few NumPy operations, not held back for a pause in inference as explanations are),
+    or the call itself does, before its response, with `monitor_response`. With a monitor every call is traced with
+    its signals; without a logger (`every_k` 0) nothing is explained and only the monitor runs."""
 
-    def __init__(self, policy: TracedPolicy, options: CAMOptions, cam_logger: CAMLogger | None):
+    def __init__(
+        self,
+        policy: TracedPolicy,
+        options: CAMOptions,
+        cam_logger: CAMLogger | None,
+        monitor: LiveMonitor | None = None,
+    ):
         self._policy = policy
         self._options = options
         self._logger = cam_logger
+        self._monitor = monitor
+        self._scoring: collections.deque[_Scoring | _Closed] = collections.deque()  # guarded by `_lock`
         self._explainer = explainer_on_device(policy.explainer, options.device)
         self._lock = threading.Lock()
         # Guards the fields below with `_lock`; notified when the last in-flight inference ends and when the drain
@@ -267,10 +312,17 @@ class CAMPolicy:
         """Counts `event` (a `/stats` key) `n` times; `message` is logged the first time."""
         self._events.count(event, message, n=n)
 
+    @property
+    def monitor(self) -> LiveMonitor | None:
+        return self._monitor
+
     def infer(self, obs: dict[str, Any], context: object = None) -> dict[str, Any]:
         obs, extra = split_extra(obs)
         ((connection, step, scheduled),) = self._begin_inference([context])
         try:
+            if self._monitor is not None:
+                response, trace = self._policy.infer_traced(obs, signals=True)
+                return self._monitored(response, trace, connection, step, scheduled, extra, time.monotonic())
             if not scheduled:
                 return self._policy.infer(obs, context)
             response, trace = self._policy.infer_traced(obs)
@@ -278,6 +330,49 @@ class CAMPolicy:
             return response
         finally:
             self._end_inference()
+
+    def _monitored(
+        self,
+        response: dict[str, Any],
+        trace: InferenceTrace,
+        connection: str,
+        step: int,
+        scheduled: bool,
+        extra: dict[str, Any],
+        ended: float,
+    ) -> dict[str, Any]:
+        """A served call under the monitor: scored now when the response carries its score, else queued for the
+        worker (before its explanation job, which then finds the score in its slot); explained when scheduled."""
+        slot = _MonitorSlot() if scheduled else None
+        if self._options.monitor_response:
+            scored = self._score(connection, trace.signals)
+            response = {**response, RESPONSE_KEY: response_entry(scored)}
+            if slot is not None:
+                slot.scored = scored
+        else:
+            with self._cond:
+                self._scoring.append(_Scoring(connection, trace.signals, slot))
+                self._cond.notify_all()
+        if scheduled:
+            self._enqueue(trace, connection, step, extra, ended, slot)
+        return response
+
+    def _score(self, connection: str, signals: Mapping[str, np.ndarray]) -> StepScore | None:
+        """The connection's next call scored; None (counted, logged once) when the monitor cannot score it."""
+        assert self._monitor is not None
+        try:
+            return self._monitor.score(connection, signals)
+        except Exception as e:  # the monitor never reaches a client
+            self.count(f"monitor_failed_{type(e).__name__}", f"scoring a call raised {type(e).__name__}: {e}")
+            return None
+
+    def connection_closed(self, connection_id: str) -> None:
+        """The server's notice that a connection ended: its monitored episode is over (after its queued calls)."""
+        if self._monitor is None:
+            return
+        with self._cond:
+            self._scoring.append(_Closed(connection_id))
+            self._cond.notify_all()
 
     def infer_batch(
         self, observations: Sequence[dict[str, Any]], contexts: Sequence[object]
@@ -287,7 +382,11 @@ class CAMPolicy:
         split = [split_extra(obs) for obs in observations]
         rows = self._begin_inference(contexts)
         try:
-            results = self._policy.infer_batch_traced([obs for obs, _ in split])
+            policy_obs = [obs for obs, _ in split]
+            if self._monitor is not None:
+                results = self._policy.infer_batch_traced(policy_obs, signals=True)
+            else:
+                results = self._policy.infer_batch_traced(policy_obs)
             ended = time.monotonic()
             responses: list[dict[str, Any] | Exception] = []
             for (_, extra), (connection, step, scheduled), result in zip(split, rows, results, strict=True):
@@ -295,7 +394,9 @@ class CAMPolicy:
                     responses.append(result)
                     continue
                 response, trace = result
-                if scheduled:
+                if self._monitor is not None:
+                    response = self._monitored(response, trace, connection, step, scheduled, extra, ended)
+                elif scheduled:
                     self._enqueue(trace, connection, step, extra, ended)
                 responses.append(response)
             return responses
@@ -324,7 +425,15 @@ class CAMPolicy:
             if self._inflight == 0:
                 self._cond.notify_all()
 
-    def _enqueue(self, trace: InferenceTrace, connection: str, step: int, extra: dict[str, Any], ended: float) -> None:
+    def _enqueue(
+        self,
+        trace: InferenceTrace,
+        connection: str,
+        step: int,
+        extra: dict[str, Any],
+        ended: float,
+        monitor: _MonitorSlot | None = None,
+    ) -> None:
         """Queues the explanation of one served inference; never raises (the side channel never reaches a client)."""
         self.count("scheduled")
         # A pending job holds the client's frames (up to the message limit each) only for what will use them: the
@@ -342,7 +451,7 @@ class CAMPolicy:
             if dropped:
                 self.count("extra_dropped", f"cam_extra values over the size limits dropped: {dropped[:3]}")
                 kept["extra_dropped"] = dropped
-            job = _Job(trace, connection, step, time.time(), kept, ended)
+            job = _Job(trace, connection, step, time.time(), kept, ended, monitor)
             with self._lock:  # a job queued after the drain began would be lost without a trace
                 if self._closed:
                     self.count("not_queued_closing", "the side channel closed while this inference ran")
@@ -365,16 +474,26 @@ class CAMPolicy:
             if job is None:
                 return
             try:
-                self._process(job, started)
+                if isinstance(job, _Job):
+                    self._process(job, started)
+                elif isinstance(job, _Scoring):
+                    scored = self._score(job.connection, job.signals)
+                    if job.slot is not None:
+                        job.slot.scored = scored
+                elif self._monitor is not None:
+                    self._monitor.closed(job.connection)
             except Exception as e:  # a bug in the side channel must not stop the worker (or reach a client)
                 self.count(f"worker_error_{type(e).__name__}", f"the worker raised {type(e).__name__}: {e}")
 
-    def _next_job(self) -> tuple[_Job | None, float]:
-        """Blocks until a job is pending and no inference has run for `settle_ms`; returns it with the time of that
-        decision, taken under the lock (an inference may begin right after it: the explanation cannot wait for it any
-        more). None: drained, time to exit."""
+    def _next_job(self) -> tuple[_Job | _Scoring | _Closed | None, float]:
+        """Blocks until a call is to be scored (returned at once, in the order served), or an explanation job is
+        pending and no inference has run for `settle_ms`; returns it with the time of that decision, taken under the
+        lock (an inference may begin right after it: the explanation cannot wait for it any more). None: drained,
+        time to exit."""
         with self._cond:
             while True:
+                if self._scoring:
+                    return self._scoring.popleft(), time.monotonic()
                 if self._pending.size:
                     if self._settled_or_wait():
                         return self._pending.pop_oldest(), time.monotonic()
@@ -448,6 +567,7 @@ class CAMPolicy:
                 explain_ms=explain_ms,
                 check=check,
                 reliance=explained.reliance,
+                monitor=None if job.monitor is None else job.monitor.scored,
             )
             logged = self._logger.log_step(record)  # type: ignore[union-attr]  (no jobs without a logger)
         except Exception as e:
@@ -484,7 +604,8 @@ class CAMPolicy:
         if self._logger is not None:
             cam["logger"] = self._logger.counters
             cam["run"] = self._logger.run_dir.name  # the name only: /stats does not reveal the server's paths
-        return {**self._policy.stats(), "explanations": cam}
+        monitor = {} if self._monitor is None else {"monitor": self._monitor.stats()}
+        return {**self._policy.stats(), "explanations": cam, **monitor}
 
     def begin_close(self, timeout: float | None = None) -> None:
         """Stops scheduling and starts the drain without waiting: queued jobs are explained until `timeout` seconds
@@ -529,14 +650,20 @@ class CAMPolicy:
         return self._worker.is_alive()
 
     def warm_up(self, batch_sizes: Sequence[int] = (1,)) -> str:
-        """Compiles inference (at each of `batch_sizes`) and, when steps are recorded, the configured explanation on
-        the robot's example observation, before the server reports ready; nothing is logged or counted. Returns what
-        was warmed."""
-        trace = self._policy.warm_up(batch_sizes)
+        """Compiles inference (at each of `batch_sizes`; with a monitor, the program that computes its signals) and,
+        when steps are recorded, the configured explanation on the robot's example observation, before the server
+        reports ready; nothing is logged or counted. A monitor that cannot score the example's call (an input the
+        model does not give) raises ValueError naming it. Returns what was warmed."""
+        if self._monitor is not None:
+            trace = self._policy.warm_up(batch_sizes, signals=True)
+            if trace is not None:
+                self._monitor.check(trace.signals)
+        else:
+            trace = self._policy.warm_up(batch_sizes)
         if trace is None:
             return "nothing (the robot transform offers no example observation)"
         if self._logger is None or self._options.every_k == 0:
-            return "inference"
+            return "inference" if self._monitor is None else "inference with the monitor's signals"
         (explained,) = explain_batch(self._explainer, [trace], self._options, [0], policy=self._policy)
         explanation, check = explained.result, explained.check
         if isinstance(explanation, ExplainSkipped):
@@ -572,15 +699,26 @@ def explainer_on_device(explainer: Explainer, index: int | None) -> Explainer:
 
 
 def wrap_policy_with_cam(
-    policy: TracedPolicy, options: CAMOptions, *, run_config: dict[str, Any] | None = None, checkpoint: str = ""
+    policy: TracedPolicy,
+    options: CAMOptions,
+    *,
+    run_config: dict[str, Any] | None = None,
+    checkpoint: str = "",
+    monitor: LiveMonitor | None = None,
 ) -> CAMPolicy:
     """Creates the run directory and the worker. If the run directory cannot be created, the server still serves:
     the side channel is disabled and the reason logged and counted. A `device` the machine lacks, or a target the
     policy's family cannot explain, is refused (ValueError) before anything is created; no target (None) becomes the
-    family's default, which the run then records."""
+    family's default, which the run then records. With a `monitor`, every call is scored; with `every_k` 0 too, no
+    run directory is made and only the monitor runs."""
     options = dataclasses.replace(options, target=resolve_target(policy.explainer, options.target))
     if options.device is not None:
         explanation_device(options.device)
+    if options.monitor_response and monitor is None:
+        raise ValueError("--cam.monitor-response needs a monitor (--monitor FILE)")
+    if options.every_k == 0 and monitor is not None:
+        logger.info("failure monitor %s on: every call scored, nothing explained", monitor.source)
+        return CAMPolicy(policy, options, None, monitor)
     try:
         cam_logger = CAMLogger(
             options.dir,
@@ -592,10 +730,10 @@ def wrap_policy_with_cam(
         )
     except OSError as e:
         logger.error("explanation side channel off: cannot create a run directory under %s: %s", options.dir, e)
-        wrapped = CAMPolicy(policy, options, None)
+        wrapped = CAMPolicy(policy, options, None, monitor)
         wrapped.count("disabled_logger_unavailable")
         return wrapped
     logger.info(
         "explanation side channel on: every %d inference(s), run directory %s", options.every_k, cam_logger.run_dir
     )
-    return CAMPolicy(policy, options, cam_logger)
+    return CAMPolicy(policy, options, cam_logger, monitor)

@@ -24,6 +24,7 @@ from typing import Any, Literal
 import jax
 
 from openpi_cam.lerobot.policy import LeRobotConfig, RequestLayout, create_lerobot_policy, read_pipeline
+from openpi_cam.model import occlusion_head
 from openpi_cam.model.checkpoint import read_param_shapes
 from openpi_cam.model.config import MAX_DECODING_STEPS, Pi0Config, architecture_from_params, family_of
 from openpi_cam.model.safetensors_weights import pi0_config_from_tensors, read_tensor_infos
@@ -39,6 +40,7 @@ from openpi_cam.policies.checkpoint_format import (
 )
 from openpi_cam.policies.config import resolve_config
 from openpi_cam.policies.policy import Policy, create_policy
+from openpi_cam.vocabulary import HeadRef
 
 Dtype = Literal["bfloat16", "float32"]
 # The named config a checkpoint is served with when none is given (README, "Serving your checkpoint").
@@ -61,6 +63,8 @@ BUNDLED_ASSETS = {
     "metaworld_mt_pi0_fast": demo_metaworld.ASSETS_MT_PI0_FAST,
 }
 BUNDLED_MODELS = {config.name: model for model, config in BUNDLED_CONFIGS.items()}  # config name -> bundled model
+# A demo model's failure monitor, beside its checkpoint: `serve` and `demo` use it by default when it is there.
+MONITOR_FILE = "monitor.json"
 # What must be the same for new steps to join a run or maps dataset (tokenizer files may move between machines).
 _OUTPUT_FIELDS = ("checkpoint_dir", "config", "dtype")
 
@@ -209,6 +213,14 @@ class ModelSpec:
             fast = fast or self.checkpoint.parent / demo_reach.FAST_TOKENIZER.name
         return paligemma, fast
 
+    def default_monitor(self) -> pathlib.Path | None:
+        """The failure monitor a demo model ships beside its checkpoint (`<assets>/monitor.json`, as its tokenizers
+        are), when it is there; None otherwise, and for every other model (name one with `--monitor`)."""
+        if not isinstance(self.source, BundledModel):
+            return None
+        path = self.assets() / MONITOR_FILE
+        return path if path.is_file() else None
+
     def create(self, *, stop_at_action_end: bool = False, rng: jax.Array | None = None) -> Policy:
         """The policy; a FAST tokenizer named for a model of another family is refused (it would go unread)."""
         spec = self.resolved()
@@ -260,6 +272,41 @@ class ModelSpec:
                 shapes = read_param_shapes(folder / PARAMS_DIR)
                 sources = dict(resolve_config(source.config).camera_sources)
                 return ModelFacts(family_of(shapes), architecture_from_params(shapes)[1].grid, sources)
+
+    def assets(self) -> pathlib.Path:
+        """Where the model's own files beside its weights live: a bundled model's assets folder, an OpenPI
+        checkpoint's `assets/`, a LeRobot folder itself."""
+        match self.source:
+            case BundledModel(checkpoint=folder):
+                return folder.parent
+            case OpenPICheckpoint(checkpoint=folder):
+                return folder / "assets"
+            case LeRobotFolder(checkpoint=folder):
+                return folder
+
+    def occlusion_head(self, path: pathlib.Path | None = None) -> HeadRef:
+        """The occlusion head the `occlusion-head` kind applies to this model: the file at `path`, else the one the
+        model ships (`occlusion_head.HEAD_FILE` in `assets()`). Refused in one line when there is none, when the file
+        is not a head, or when the head was fitted for another model (config, family, cameras or patch grid)."""
+        if path is None:
+            path = self.assets() / occlusion_head.HEAD_FILE
+            if not path.is_file():
+                raise ValueError(
+                    f"occlusion-head needs a head file: --head FILE (serve: --cam.head FILE); `openpi-cam head fit` "
+                    f"fits one; the model ships none ({path})"
+                )
+        ref = HeadRef.of(path)
+        head = occlusion_head.load_ref(ref)
+        facts, config = self.facts(), self.resolved().config
+        fitted = (head.model.get("config"), head.family, set(head.cameras), head.grid)
+        serving = (config, facts.family, set(facts.camera_sources), facts.grid)
+        if fitted != serving:
+            raise ValueError(
+                f"{path}: the occlusion head was fitted for config {fitted[0]} ({fitted[1]}, cameras "
+                f"{sorted(fitted[2])}, grid {fitted[3]}), this model is config {config} ({facts.family}, cameras "
+                f"{sorted(serving[2])}, grid {facts.grid})"
+            )
+        return ref
 
     def to_json(self) -> dict[str, Any]:
         return {f.name: _jsonable(getattr(self, f.name)) for f in dataclasses.fields(self)}

@@ -1,5 +1,6 @@
 """`openpi-cam` command line: one subcommand per module of this package, each a tyro-parsed function (a module with
-a `route` instead names several commands and picks one from the arguments).
+a `route` instead names several commands and picks one from the arguments; a command named `GROUP WORD` is reached
+as `openpi-cam GROUP WORD ...`, the word taken off its arguments).
 
 Subcommand modules are imported only when chosen, so that `openpi-cam --help` stays fast.
 """
@@ -26,6 +27,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "stats": ("openpi_cam.cli.stats", "per-step (per-frame) map statistics and views of a run or maps dataset"),
     "rebuild-manifest": ("openpi_cam.cli.rebuild_manifest", "rebuild a CAM run's manifest from its step files"),
     "export": ("openpi_cam.cli.export", "write an OpenPI pi0 / pi0.5 checkpoint as a LeRobot policy folder"),
+    "monitor": ("openpi_cam.cli.monitor", "the failure monitor: `monitor fit` (a monitor for `serve --monitor`)"),
+    "monitor fit": ("openpi_cam.cli.monitor_fit", "fit a failure monitor on labelled rollouts' maps datasets"),
+    "head": ("openpi_cam.cli.head", "occlusion heads: `head fit` (the occlusion-head kind's head, per policy)"),
+    "head fit": ("openpi_cam.cli.head_fit", "fit an occlusion head to a policy's own occlusion maps (maps datasets)"),
 }
 # Earlier names of commands, still accepted: alias -> command.
 ALIASES: dict[str, str] = {"cam-index": "rebuild-manifest"}
@@ -53,6 +58,8 @@ def main(argv: list[str] | None = None) -> None:
         if routed is None or rest[:1] in (["-h"], ["--help"]):
             print(module.USAGE)
             raise SystemExit(0 if rest[:1] in (["-h"], ["--help"]) else 2)
+        if routed.startswith(f"{name} "):
+            rest = rest[1:]
         name, module = routed, importlib.import_module(COMMANDS[routed][0])
     try:
         result = tyro.cli(module.main, args=rest, prog=f"openpi-cam {name}")

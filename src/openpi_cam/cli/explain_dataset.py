@@ -44,6 +44,9 @@ def main(
     ray_address: str | None = None,
     keep_going: bool = False,
     outcome: str | None = None,
+    monitor: pathlib.Path | None = None,
+    monitor_features: bool = False,
+    execution_horizon: int | None = None,
     progress: bool = True,
 ) -> int:
     """Serve every selected frame of a LeRobot dataset to the policy as a robot would send it, explain it, and write
@@ -71,7 +74,15 @@ def main(
         outcome: the feature whose truth in any frame of an episode makes it a success (default: `next.success`,
             as `lerobot-eval --eval.recording=true` records it, where the dataset has it); each row then carries its
             episode's length, success and return (`next.reward` summed), and `stats` tells failures from successes.
-        progress: show progress on stderr.
+        monitor: a failure monitor file (`openpi-cam monitor fit`): each row gets its frame's `monitor/score` and
+            `monitor/flag` (the episode flagged by then), scored over the episode's explained frames in order, as
+            `serve --monitor` scores a connection's calls. Every row carries `monitor/stac` and (pi0-FAST)
+            `monitor/token_entropy` with or without one.
+        monitor_features: also write each row's pooled last-layer features (`monitor/features/<name>`, float32), what
+            `openpi-cam monitor fit` fits a probe or a Mahalanobis monitor on.
+        execution_horizon: the actions the robot executed per call: `monitor/stac` compares a frame's chunk with the
+            previous explained frame's when that lies this many frames before (explain with `--every-k` equal to
+            it). Default: the monitor's, else 5 (the demo robots').
     """
     try:
         if workers < 1:
@@ -83,7 +94,7 @@ def main(
         spec = model.resolved()
         overrides = parse_pairs(keys, "--keys")
         mapping, nested = dataset_keys(spec, overrides)
-        options, recorded = explanation.options(), None
+        options, recorded = explanation.options(model=spec), None
         if options.target == DATASET_ACTIONS:
             recorded = recorded_actions_feature(spec, overrides)
             if recorded is None:
@@ -106,6 +117,9 @@ def main(
             nested_keys=nested,
             keep_going=keep_going,
             outcome=outcome,
+            monitor=monitor,
+            monitor_features=monitor_features,
+            execution_horizon=execution_horizon,
         )
 
         show = Reporter("episodes", progress)

@@ -85,7 +85,7 @@ def main(
             print(f"openpi-cam {COMMAND}: --target {e}", file=sys.stderr)
             return 2
         # The run records the target it explains: the family's default when none was named.
-        options = explanation.options(target).extended(
+        options = explanation.options(target, model).extended(
             ReplayOptions, save_frames=save_frames, batch_size=batch_size, max_steps=max_steps
         )
         run_config = {"command": COMMAND, **model.resolved().to_json(), "source": str(source.resolve())}

@@ -14,14 +14,16 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, ClassVar
 
 import tyro
 
+from openpi_cam.cam.monitoring import LiveMonitor
 from openpi_cam.cam.side_channel import CAMOptions, CAMPolicy, SideChannelSettings, wrap_policy_with_cam
 from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.cli.options import BUNDLED_MODEL, ExplainFlags
 from openpi_cam.lerobot.served_episodes import EpisodeRecorder
+from openpi_cam.monitor import monitor_file
 from openpi_cam.policies.family import resolve_target
 from openpi_cam.policies.policy import Policy
 from openpi_cam.serving.server import PolicyServer
@@ -36,13 +38,15 @@ class SideChannelFlags(SideChannelSettings, ExplainFlags):
     (`ExplainFlags`), then the side channel's own settings, generated from `SideChannelSettings` field by field (one
     name, unit and default each)."""
 
+    FLAG_PREFIX: ClassVar[str] = "--cam."
+
     def __post_init__(self) -> None:
         ExplainFlags.__post_init__(self)  # builds the options, which check every flag
 
-    def options(self, target: Target | None = None) -> CAMOptions:
+    def options(self, target: Target | None = None, model: ModelSpec | None = None) -> CAMOptions:
         """The side channel's options; `target`, when given, stands for the flag's (the served family's resolved
-        target)."""
-        return super().options(target).extended(CAMOptions, **self.settings())
+        target); `model`, the served model (its own occlusion head)."""
+        return super().options(target, model).extended(CAMOptions, **self.settings())
 
 
 SIDE_CHANNEL_OFF = SideChannelFlags()
@@ -76,6 +80,8 @@ def main(
     record: Path | None = None,
     record_fps: int = DEFAULT_RECORD_FPS,
     drain_timeout: Annotated[float, tyro.conf.arg(aliases=("--cam.drain-timeout",))] = 5.0,
+    monitor: Path | None = None,
+    no_monitor: tyro.conf.FlagCreatePairsOff[bool] = False,
 ) -> int:
     """Serve an OpenPI checkpoint (pi0-FAST, pi0 or pi0.5) over websockets (openpi-client compatible), optionally
     explaining every k-th request of each connection in the background (`--cam.every-k`).
@@ -107,17 +113,24 @@ def main(
             explanations, the recorder's last episodes), counted from the signal while connections close, before the
             run's manifest is closed: SIGTERM exits within this, the in-flight inference and 2 s for unresponsive
             peers, inside a container's 10 s stop grace period. `--cam.drain-timeout` is its earlier spelling.
+        monitor: a failure monitor file (`openpi-cam monitor fit`): every served call is scored by the side
+            channel's worker, off the request path (per connection, the maximum step score so far against the
+            monitor's threshold), explained steps carry it (`monitor/...`) and `/stats` counts flagged connections;
+            works with `--cam.every-k 0` too (then only the monitor runs). Default: a demo model's own
+            `<assets>/monitor.json` when it ships one, else none.
+        no_monitor: run without a failure monitor, even a demo model's own.
     """
     _configure_logging()
     try:
         _check_batching(batch_window_ms, max_batch)
         if drain_timeout < 0:
             raise StartupError(f"--drain-timeout must be >= 0, got {drain_timeout}", 2)
-        _check_side_channel_flags(cam)
+        live = _monitor(model, monitor, no_monitor)
+        _check_side_channel_flags(cam, live is not None)
         _check_recording(record, record_fps)
         policy = _create_policy(model, stop_at_action_end)
         run_config = {**model.resolved().to_json(), "stop_at_action_end": stop_at_action_end}
-        served = _with_side_channel(policy, cam, model, run_config)
+        served = _with_side_channel(policy, cam, model, run_config, live)
         outer = served if record is None else _recording(served, record, record_fps)
         server = _server(
             outer,
@@ -138,7 +151,12 @@ def main(
         print(f"openpi-cam serve: {e}", file=sys.stderr)
         return e.status
     if warm_up:
-        _warm_up(served, policy, batch_window_ms, max_batch)
+        try:
+            _warm_up(served, policy, batch_window_ms, max_batch)
+        except ValueError as e:  # a monitor that cannot score this model's calls
+            print(f"openpi-cam serve: {e}", file=sys.stderr)
+            outer.close(0.0)
+            return 2
     return _serve(server, served, outer, host, port)
 
 
@@ -149,14 +167,39 @@ def _configure_logging() -> None:
     logging.getLogger("openpi_cam").setLevel(logging.INFO)
 
 
-def _check_side_channel_flags(flags: SideChannelFlags) -> None:
-    """With the side channel off, a --cam flag would be accepted and ignored: refused instead, naming it."""
+def _monitor(model: ModelSpec, path: Path | None, off: bool) -> LiveMonitor | None:
+    """The failure monitor to serve with: `--monitor`, else a demo model's own (`ModelSpec.default_monitor`), none
+    with `--no-monitor`; a file that is not a monitor is refused in one line."""
+    if off and path is not None:
+        raise StartupError("--monitor and --no-monitor name opposite things: give one", 2)
+    if off:
+        return None
+    if path is None:
+        try:
+            path = model.default_monitor()
+        except (KeyError, ValueError, OSError):  # a model the flags cannot name: loading it reports why, in one line
+            return None
+    if path is None:
+        return None
+    try:
+        loaded = monitor_file.load(path)
+    except ValueError as e:
+        raise StartupError(f"--monitor {e}", 2) from None
+    logger.info("failure monitor %s: %s, threshold %s", path, loaded.kind, loaded.threshold)
+    return LiveMonitor(loaded, path.name)
+
+
+def _check_side_channel_flags(flags: SideChannelFlags, monitored: bool) -> None:
+    """With the side channel off, a --cam flag would be accepted and ignored: refused instead, naming it (the
+    monitor's response key needs a monitor, which runs with the side channel off too)."""
+    if flags.monitor_response and not monitored:
+        raise StartupError("--cam.monitor-response needs a failure monitor: add --monitor FILE", 2)
     if flags.every_k:
         return
     unused = [
         f.name
         for f in dataclasses.fields(flags)
-        if f.name != "every_k" and getattr(flags, f.name) != getattr(SIDE_CHANNEL_OFF, f.name)
+        if f.name not in ("every_k", "monitor_response") and getattr(flags, f.name) != getattr(SIDE_CHANNEL_OFF, f.name)
     ]
     if unused:
         names = ", ".join("--cam." + n.replace("_", "-") for n in unused)
@@ -185,11 +228,12 @@ def _create_policy(model: ModelSpec, stop_at_action_end: bool) -> Policy:
 
 
 def _with_side_channel(
-    policy: Policy, flags: SideChannelFlags, model: ModelSpec, run_config: dict[str, Any]
+    policy: Policy, flags: SideChannelFlags, model: ModelSpec, run_config: dict[str, Any], live: LiveMonitor | None
 ) -> Policy | CAMPolicy:
     """The policy as served: itself, or wrapped in the side channel explaining the target the flags name (by default
-    the family's own); a target the family cannot explain is refused, naming those it can."""
-    if flags.every_k == 0:
+    the family's own) and scoring every call with the monitor; a target the family cannot explain is refused, naming
+    those it can. With a monitor and `--cam.every-k 0` the side channel scores and explains nothing."""
+    if flags.every_k == 0 and live is None:
         return policy
     try:
         target = resolve_target(policy.explainer, flags.target)
@@ -197,16 +241,21 @@ def _with_side_channel(
         raise StartupError(f"--cam.target {e}", 2) from None
     try:
         served = wrap_policy_with_cam(
-            policy, flags.options(target), run_config=run_config, checkpoint=str(model.checkpoint)
+            policy,
+            flags.options(target, model),
+            run_config=run_config,
+            checkpoint=str(model.checkpoint),
+            monitor=live,
         )
-    except ValueError as e:  # e.g. --cam.device names a device this machine does not have
+    except ValueError as e:  # e.g. --cam.device names a device this machine does not have, or a head of another model
         raise StartupError(str(e), 2) from None
-    logger.info(
-        "side channel: explaining every %d request(s) of each connection, target %s, runs under %s",
-        flags.every_k,
-        target,
-        flags.dir,
-    )
+    if flags.every_k:
+        logger.info(
+            "side channel: explaining every %d request(s) of each connection, target %s, runs under %s",
+            flags.every_k,
+            target,
+            flags.dir,
+        )
     return served
 
 

@@ -25,7 +25,16 @@ from openpi_cam.demo.perturb import Perturbation
 from openpi_cam.policies import demo_metaworld
 from openpi_cam.serving.server import start_server_in_thread
 from openpi_cam.viz.render import RenderOptions, default_render_dir, render_run
-from openpi_cam.vocabulary import COMPARED_KINDS, DEFAULT_KINDS, Baseline, IgSpace, MapKind, MapOptions, Target
+from openpi_cam.vocabulary import (
+    COMPARED_KINDS,
+    DEFAULT_KINDS,
+    OCCLUSION_HEAD,
+    Baseline,
+    IgSpace,
+    MapKind,
+    MapOptions,
+    Target,
+)
 
 
 def run_episodes(
@@ -165,8 +174,11 @@ class DemoOptions:
     # the folder holding the model (checkpoint/) and its tokenizers; default: the bundled ones of `model`.
     assets: pathlib.Path | None = None
     # which map kinds the side channel computes (default: reach, the kinds the faithfulness table compares,
-    # `vocabulary.COMPARED_KINDS`; metaworld, the cheap ones, `vocabulary.DEFAULT_KINDS`: the costly kinds are opt-in).
+    # `vocabulary.COMPARED_KINDS`; metaworld, the cheap ones, `vocabulary.DEFAULT_KINDS`: the costly kinds and
+    # `occlusion-head` are opt-in).
     maps: tuple[MapKind, ...] | None = None
+    # the head file `occlusion-head` applies (`openpi-cam head fit`); default: the model's own, where it ships one.
+    head: pathlib.Path | None = None
     # re-score every step afterwards and report how faithful each map kind is.
     faithfulness: bool = True
     # the frame `ig` starts from and `occlusion` (and the faithfulness deletion) paints with.
@@ -228,10 +240,12 @@ class DemoOptions:
             raise ValueError(f"--task {' '.join(unknown) or '(none)'}: not a Meta-World task; one or more of {names}")
         if self.sim != "metaworld" and self.task != (metaworld_sim.TASK,):
             raise ValueError("--task names Meta-World tasks: it needs --sim metaworld")
+        if self.head is not None and OCCLUSION_HEAD not in self.map_kinds:
+            raise ValueError(f"--head {self.head} given but {OCCLUSION_HEAD} is not among the maps: add it to --maps")
 
 
 # What only an explained run uses (the run's folder, the maps, their renders and faithfulness).
-_EXPLAINED = ("out", "target", "render", "videos", "maps", "faithfulness", "baseline", "ig_space")
+_EXPLAINED = ("out", "target", "render", "videos", "maps", "head", "faithfulness", "baseline", "ig_space")
 
 
 def _flag(field: str, value: object) -> str:
@@ -255,10 +269,30 @@ class UnfitModel(ValueError):
     family's weights)."""
 
 
+def _side_channel_options(opts: DemoOptions, model: ModelSpec) -> CAMOptions:
+    """The side channel's options: every request explained with the flags' maps, with the head `occlusion-head`
+    applies (UnfitModel when the model has none, or the one named was fitted for another model)."""
+    try:
+        head = model.occlusion_head(opts.head) if OCCLUSION_HEAD in opts.map_kinds else None
+    except ValueError as e:
+        raise UnfitModel(str(e)) from None
+    return CAMOptions(
+        every_k=1,
+        dir=opts.out,
+        save_frames="both",
+        target=opts.target,
+        maps=opts.map_kinds,
+        map_options=MapOptions(baseline=opts.baseline, ig_space=opts.ig_space),
+        occlusion_head=head,
+        queue_size=max(64, opts.num_episodes * opts.calls),  # room for every request: the demo logs each one
+    )
+
+
 def run_demo(opts: DemoOptions, sink: RolloutSink | None = None) -> DemoResult:
     """Serves, drives (recording every step into `sink`), renders and scores; raises OSError when the side channel
     cannot create its run directory or the model's files are missing, ImportError when `--sim metaworld` lacks its
-    extra, UnfitModel when the model's folder does not hold the chosen model."""
+    extra, UnfitModel when the model's folder does not hold the chosen model or `occlusion-head` has no head that fits
+    it."""
     t0 = time.time()
     if opts.sim == "metaworld":
         metaworld_sim.require_simulator()
@@ -267,15 +301,7 @@ def run_demo(opts: DemoOptions, sink: RolloutSink | None = None) -> DemoResult:
         policy = model.create()
     except ValueError as e:
         raise UnfitModel(f"--model {opts.model} (--sim {opts.sim}: {opts.bundled_model}): {e}") from None
-    options = CAMOptions(
-        every_k=1,
-        dir=opts.out,
-        save_frames="both",
-        target=opts.target,
-        maps=opts.map_kinds,
-        map_options=MapOptions(baseline=opts.baseline, ig_space=opts.ig_space),
-        queue_size=max(64, opts.num_episodes * opts.calls),  # room for every request: the demo logs each one
-    )
+    options = _side_channel_options(opts, model)
     demo = {
         "episodes": opts.num_episodes,
         "seed": opts.seed,

@@ -123,6 +123,9 @@ class EpisodeRecorder:
             frames = self._frames.pop(connection_id, None)
         if frames:
             self._episodes.put(frames)
+        closed = getattr(self._served, "connection_closed", None)  # the side channel's monitor ends its episode too
+        if callable(closed):
+            closed(connection_id)
 
     def _write(self) -> None:
         while (frames := self._episodes.get()) is not None:

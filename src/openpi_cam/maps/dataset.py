@@ -20,7 +20,11 @@ reliance was measured (`--reliance`), `reliance` holds it as JSON (`cam.reliance
 `<camera>/reliance_actions`, `prompt/reliance_score`, `prompt/reliance_actions` its figures. When
 the source records outcomes (`MapsInfo.outcome`), every row carries its episode's: `episode_length` (the source
 episode's frames), `episode_success` (any frame's outcome true, as lerobot-eval counts a success) and
-`episode_return` (the sum of the episode's `next.reward`; null without one).
+`episode_return` (the sum of the episode's `next.reward`; null without one). Every row carries the failure monitor's
+view of its frame's served call (`MONITOR_COLUMNS`): `monitor/stac` (STAC-single against the episode's previous
+explained frame when it lies `execution_horizon` frames before, else null), `monitor/token_entropy` (pi0-FAST; null
+for the flow families), and with a monitor (`MapsInfo.monitor`) `monitor/score` and `monitor/flag`; with
+`monitor_features` the pooled features `monitor/features/<name>` (float32 lists).
 
 Reading needs pyarrow and numpy only, so the commands that read maps (`stats`, `render`) do not load JAX.
 """
@@ -41,11 +45,15 @@ import pyarrow.parquet as pq
 
 from openpi_cam.cam.run_format import RELIANCE_PROMPT, dumps
 from openpi_cam.errors import BadFile, load_json, reading
+from openpi_cam.monitor.signals import STAC, TOKEN_ENTROPY
+from openpi_cam.monitor.stream import FLAG, SCORE
 
 FORMAT = "openpi-cam maps dataset"
 # 2: the model as the command line names it (`model`), the explanation options in one encoding (`options`).
 # 3: episode outcomes (`outcome`, `reward`; the `episode_*` columns); reliance columns (`options.reliance`).
-FORMAT_VERSION = 3
+# 4: the failure monitor's columns (`monitor/...`; `monitor`, `monitor_sha256`, `execution_horizon`,
+# `monitor_features`).
+FORMAT_VERSION = 4
 INFO_JSON = "meta/info.json"
 SUMMARY_JSON = "meta/summary.json"
 DATA_DIR = "data"
@@ -55,10 +63,25 @@ CHECK_RANDOM = "random"  # `check/random/<camera>`: the random patches' drops
 FRAME_COLUMNS = ("index", "episode_index", "frame_index", "timestamp", "task", "target", "score", "malformed")
 CAMERAS_COLUMN = "cameras"  # JSON: per model camera its validity and letterbox geometry
 # info.json fields, besides the model and the explanation options, that must match to add episodes to a maps dataset.
-SOURCE_KEYS = ("source", "source_version", "recorded_actions", "keys", "every", "nested_keys", "outcome", "reward")
+SOURCE_KEYS = (
+    "source",
+    "source_version",
+    "recorded_actions",
+    "keys",
+    "every",
+    "nested_keys",
+    "outcome",
+    "reward",
+    "monitor_sha256",
+    "execution_horizon",
+    "monitor_features",
+)
 # Each row's episode, when the source records outcomes: its length in source frames, whether it succeeded, its return.
 EPISODE_LENGTH, EPISODE_SUCCESS, EPISODE_RETURN = "episode_length", "episode_success", "episode_return"
 OUTCOME_COLUMNS = (EPISODE_LENGTH, EPISODE_SUCCESS, EPISODE_RETURN)
+MONITOR_PREFIX = "monitor/"  # a column of the failure monitor: MONITOR_PREFIX + the name of its input or outcome
+# The monitor's columns of every row (format 4): its scalar inputs, then its score and flag (null without a monitor).
+MONITOR_COLUMNS = tuple(MONITOR_PREFIX + name for name in (STAC, TOKEN_ENTROPY, SCORE, FLAG))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,10 +108,20 @@ class MapsInfo:
     scores_per_row: int = 1  # 0: one score per explained token (a list)
     outcome: str | None = None  # the source feature whose truth in any frame makes an episode a success
     reward: str | None = None  # the source feature summed into an episode's return
+    monitor: str | None = None  # the monitor file the rows were scored with, and its content's SHA-256
+    monitor_sha256: str | None = None
+    # the actions executed per call that STAC assumed (format 4; None: a dataset made before the monitor's columns)
+    execution_horizon: int | None = None
+    monitor_features: list[str] = dataclasses.field(default_factory=list)  # `monitor/<name>` feature columns
 
     @property
     def cameras(self) -> list[str]:
         return list(self.grids)
+
+    @property
+    def monitored(self) -> bool:
+        """Whether the rows carry the failure monitor's columns (`MONITOR_COLUMNS`: format 4 and later)."""
+        return self.execution_horizon is not None
 
     @property
     def reliance(self) -> bool:
@@ -207,6 +240,10 @@ def schema(info: MapsInfo) -> pa.Schema:
             pa.field(EPISODE_SUCCESS, pa.bool_()),
             pa.field(EPISODE_RETURN, pa.float64()),
         ]
+    if info.monitored:
+        types = (pa.float64(), pa.float64(), pa.float64(), pa.bool_())
+        fields += [pa.field(name, kind) for name, kind in zip(MONITOR_COLUMNS, types, strict=True)]
+        fields += [pa.field(MONITOR_PREFIX + name, pa.list_(pa.float32())) for name in info.monitor_features]
     return pa.schema(fields)
 
 

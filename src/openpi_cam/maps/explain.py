@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import hashlib
 import logging
 import pathlib
 import time
@@ -26,10 +27,14 @@ from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.lerobot.dataset import DatasetError, LeRobotDataset, open_dataset
 from openpi_cam.lerobot.writer import REWARD, SUCCESS
 from openpi_cam.maps import dataset as fmt
+from openpi_cam.monitor import monitor_file
+from openpi_cam.monitor.monitor_file import Monitor
+from openpi_cam.monitor.signals import STAC, TOKEN_ENTROPY
+from openpi_cam.monitor.stream import FLAG, SCORE, StepScore, Stream, execution_horizon
 from openpi_cam.nested import unflatten_dict
 from openpi_cam.policies.family import ExplainSkipped, Explanation, resolve_target
 from openpi_cam.policies.policy import InferenceTrace, Policy
-from openpi_cam.vocabulary import DATASET_ACTIONS, ExplainOptions
+from openpi_cam.vocabulary import ACTION_FEATURES, DATASET_ACTIONS, FEATURES_PREFIX, PROMPT_FEATURES, ExplainOptions
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +65,10 @@ class DatasetJob:
     # the feature whose truth (non-zero) in any frame of an episode makes it a success, as lerobot-eval counts one;
     # None: `next.success` where the dataset records it (no outcomes otherwise).
     outcome: str | None = None
+    monitor: pathlib.Path | None = None  # a failure monitor file: each row gets its score and flag
+    monitor_features: bool = False  # also write each row's pooled features (`monitor/features/<name>`), to fit on
+    # the actions a robot executes per call, which STAC-single shifts by (None: the monitor's, else 5)
+    execution_horizon: int | None = None
 
     def __post_init__(self) -> None:
         if self.every < 1:
@@ -72,6 +81,22 @@ class DatasetJob:
             raise ValueError(f"{ACTIONS_KEY!r} is not an observation key; the recorded actions are `recorded_actions`")
         if self.recorded_actions is not None and self.options.target != "chunk":
             raise ValueError("the recorded actions are explained as a whole chunk: options.target must be 'chunk'")
+        if self.execution_horizon is not None and self.execution_horizon < 1:
+            raise ValueError(f"--execution-horizon must be >= 1, got {self.execution_horizon}")
+
+    def loaded_monitor(self) -> Monitor | None:
+        """The job's monitor file, read (ValueError naming the file when it is not one), or None."""
+        return None if self.monitor is None else monitor_file.load(self.monitor)
+
+    def horizon(self, monitor: Monitor | None) -> int:
+        """The execution horizon STAC assumes: the flag's, else the monitor's, else the default; a flag that
+        contradicts the monitor is refused."""
+        own = None if monitor is None else monitor.execution_horizon
+        if self.execution_horizon is not None and own is not None and own != self.execution_horizon:
+            raise ValueError(
+                f"--execution-horizon {self.execution_horizon}: the monitor {self.monitor} was fitted for {own}"
+            )
+        return self.execution_horizon or execution_horizon(monitor)
 
 
 def parse_pairs(pairs: Sequence[str], flag: str) -> dict[str, str]:
@@ -157,6 +182,8 @@ def job_info(
         raise ValueError("job_info needs the job's target resolved against the model's family")
     options = job.options
     outcome, reward = outcome_features(ds, job)
+    monitor = job.loaded_monitor()
+    features = [FEATURES_PREFIX + c for c in camera_sources] + [PROMPT_FEATURES, ACTION_FEATURES]
     return fmt.MapsInfo(
         source=str(pathlib.Path(job.source).resolve()),
         source_version=ds.version,
@@ -176,7 +203,29 @@ def job_info(
         options={**options.to_json(), "batch_size": job.batch_size},
         outcome=outcome,
         reward=reward,
+        monitor=None if job.monitor is None else str(pathlib.Path(job.monitor).resolve()),
+        monitor_sha256=None if job.monitor is None else hashlib.sha256(job.monitor.read_bytes()).hexdigest(),
+        execution_horizon=job.horizon(monitor),
+        monitor_features=features if job.monitor_features else [],
     )
+
+
+def monitor_values(scored: StepScore, info: fmt.MapsInfo) -> dict[str, Any]:
+    """A row's monitor columns (`maps.dataset.MONITOR_COLUMNS` and the feature columns the info names) from its
+    call's `Stream.step`: null where a value is undefined (STAC without the previous call, token entropy for a flow
+    family, score and flag without a monitor)."""
+    values = scored.arrays()
+
+    def scalar(name: str) -> float | None:
+        value = values.get(name)
+        return None if value is None or not np.isfinite(value) else float(value)
+
+    row: dict[str, Any] = {fmt.MONITOR_PREFIX + name: scalar(name) for name in (STAC, TOKEN_ENTROPY, SCORE)}
+    row[fmt.MONITOR_PREFIX + FLAG] = None if scored.flag is None else bool(scored.flag)
+    for name in info.monitor_features:
+        value = values.get(name)
+        row[fmt.MONITOR_PREFIX + name] = None if value is None else _flat(value)
+    return row
 
 
 def _observation(frame: Mapping[str, Any], job: DatasetJob) -> dict[str, Any]:
@@ -284,6 +333,7 @@ class EpisodeExplainer:
                 "(README, 'Explaining a LeRobot dataset'); pi0-FAST explains the recorded chunk's FAST tokens"
             )
         self.horizon = self.policy.model.config.action_horizon
+        self.monitor = job.loaded_monitor()
 
     def explain(self, episode: int) -> EpisodeResult:
         """The rows of one episode (raises `DatasetError` for bad data: nothing of the episode is written)."""
@@ -296,16 +346,16 @@ class EpisodeExplainer:
         if self.info.outcome is not None:
             outcome = episode_outcome(self.dataset, episode, self.info.outcome, self.info.reward)
         rows: list[dict[str, Any]] = []
-        pending: list[tuple[Mapping[str, Any], InferenceTrace, dict[str, Any]]] = []
+        pending: list[tuple[Mapping[str, Any], InferenceTrace, dict[str, Any], StepScore]] = []
 
         def flush() -> None:
             t0 = time.perf_counter()
-            traces = [trace for _, trace, _ in pending]
-            seeds = [int(frame["index"]) for frame, _, _ in pending]
+            traces = [trace for _, trace, _, _ in pending]
+            seeds = [int(frame["index"]) for frame, _, _, _ in pending]
             done = explain_batch(
                 self.explainer, traces, options, seeds, mesh=self.mesh, pad_to=job.batch_size, policy=self.policy
             )
-            for (frame, trace, response), explained in zip(pending, done, strict=True):
+            for (frame, trace, response, scored), explained in zip(pending, done, strict=True):
                 if isinstance(explained.result, ExplainSkipped):
                     counts[f"skipped_{explained.result.reason}"] += 1
                     continue
@@ -322,24 +372,36 @@ class EpisodeExplainer:
                     job=job,
                     explain_ms=explained.explain_ms,
                 )
-                rows.append(row | outcome)
+                rows.append(row | outcome | monitor_values(scored, self.info))
             seconds["explanation"] += time.perf_counter() - t0
             pending.clear()
 
-        for frame, response, trace in self.served(episode, wanted, seconds):
+        stream = self.stream()
+        for frame, response, trace in self.served(episode, wanted, seconds, signals=True):
             counts["frames"] += 1
-            pending.append((frame, trace, response))
+            pending.append((frame, trace, response, stream.step(trace.signals, int(frame["frame_index"]))))
             if len(pending) == job.batch_size:
                 flush()
         if pending:
             flush()
         return EpisodeResult(episode, rows, counts, seconds)
 
+    def stream(self) -> _EpisodeStream:
+        """A new episode's monitor stream: its explained frames in order (`monitor.stream.Stream`)."""
+        assert self.info.execution_horizon is not None
+        return _EpisodeStream(Stream(self.monitor, self.info.execution_horizon), str(self.job.monitor))
+
     def served(
-        self, episode: int, frame_indices: Container[int], seconds: dict[str, float] | None = None
+        self,
+        episode: int,
+        frame_indices: Container[int],
+        seconds: dict[str, float] | None = None,
+        *,
+        signals: bool = False,
     ) -> Iterator[tuple[dict[str, Any], dict[str, Any], InferenceTrace]]:
         """(frame, response, trace) of each wanted frame of an episode, served one at a time as a robot's requests
-        are; `seconds` accumulates the decode and inference time."""
+        are (with `signals`, as a monitored server serves them: `Policy.infer_traced`); `seconds` accumulates the
+        decode and inference time."""
         seconds = {} if seconds is None else seconds
         features = sorted(set(self.job.keys.values()) | set(self.job.extra))
         recorded = None
@@ -355,7 +417,7 @@ class EpisodeExplainer:
                 return
             t0 = time.perf_counter()
             obs = _observation(frame, self.job)
-            response, trace = self.policy.infer_traced(obs, noise=self._noise(frame))
+            response, trace = self.policy.infer_traced(obs, noise=self._noise(frame), signals=signals)
             if recorded is not None:
                 trace = self._recorded_output(obs, trace, recorded, int(frame["frame_index"]))
             seconds["inference"] = seconds.get("inference", 0.0) + time.perf_counter() - t0
@@ -393,6 +455,24 @@ class EpisodeExplainer:
         path = fmt.write_shard(self.job.out, self.info, result.episode, result.rows)
         result.seconds["writing"] += time.perf_counter() - t0
         return path
+
+
+class _EpisodeStream:
+    """An episode's explained frames through a monitor stream: STAC-single against the previous explained frame
+    only when it lies the execution horizon before (as consecutive calls of a robot executing that many actions)."""
+
+    def __init__(self, stream: Stream, monitor: str) -> None:
+        self._stream = stream
+        self._monitor = monitor
+        self._previous: int | None = None
+
+    def step(self, signals: Mapping[str, np.ndarray], frame_index: int) -> StepScore:
+        follows = self._previous is not None and frame_index - self._previous == self._stream.horizon
+        self._previous = frame_index
+        try:
+            return self._stream.step(signals, follows=follows)
+        except ValueError as e:  # the monitor reads an input this model's calls do not give
+            raise ValueError(f"monitor {self._monitor}: {e}") from None
 
 
 def prepare_output(job: DatasetJob, info: fmt.MapsInfo) -> set[int]:

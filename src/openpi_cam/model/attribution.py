@@ -63,6 +63,31 @@ def gradcam_reduce(E: jax.Array, G: jax.Array) -> tuple[jax.Array, jax.Array, ja
     return alpha, cam, jnp.sqrt(jnp.sum(jnp.square(G), axis=-1))
 
 
+def gradient_x_input(E: jax.Array, G: jax.Array) -> jax.Array:
+    """Gradient x input per token: sum_d E[n, d] G[n, d], signed (the linear term of scaling the token to zero).
+    E [B, C, N, D], G [..., B, C, N, D] -> [..., B, C, N] float32."""
+    return jnp.einsum("bcnd,...bcnd->...bcn", E.astype(jnp.float32), G.astype(jnp.float32))
+
+
+def taylor_patches(pixel_grad: jax.Array, delta: jax.Array, patch: int) -> jax.Array:
+    """Occlusion's first-order estimate per patch: sum over the patch's pixels and channels of dScore/dPixel x
+    (frame - baseline frame). Painting patch p changes the frame by -delta on p alone, so to first order the score
+    drops by grad . delta restricted to p; pixels beyond the last full patch are in no patch.
+    pixel_grad, delta [C, B, H, W, 3] -> [B, C, N] float32."""
+    h, w = (n - n % patch for n in delta.shape[-3:-1])
+    product = pixel_grad.astype(jnp.float32) * delta.astype(jnp.float32)
+    return jnp.sum(patchify(product[..., :h, :w, :], patch), axis=-1)
+
+
+def smoothgrad_noise(key: jax.Array, E: jax.Array, sigma: jax.Array | float) -> jax.Array:
+    """SmoothGrad's noise for the image tokens E [B, C, N, D]: Gaussian, std sigma x the spread (standard deviation
+    over the camera's tokens) of each channel of each row and camera, so every channel is perturbed in proportion to
+    how much it varies across the image. The standard normal draw [C, N, D] is shared by the rows: a row's noise
+    does not depend on the batch it is explained in."""
+    spread = jnp.std(E.astype(jnp.float32), axis=2, keepdims=True)  # [B, C, 1, D]
+    return sigma * spread * jax.random.normal(key, E.shape[1:], jnp.float32)[None]
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # Baseline images
 

@@ -1,11 +1,11 @@
-"""Integrated gradients and occlusion for any PaliGemma-based family, given how the family scores image tokens.
+"""Integrated gradients, occlusion and RISE for any PaliGemma-based family, given how the family scores image tokens.
 
 A family supplies `score_fn`: the explained scores [T, B] as a function of the image tokens E [B, C, N, D] (pi0-FAST:
 logits or log-probabilities of its generated tokens; pi0 / pi0.5: a weighting of the denoised chunk). Everything
 else is shared: the baseline frames (`attribution.baseline_images`), IG along E0 -> E with E0 the baseline frames'
-SigLIP tokens, and occlusion by painting one camera's patches with its baseline frame, re-encoding that camera and
-re-scoring. `baseline_kinds` runs inside the family's jitted program; `collect` runs on the host around it (the IG
-step doubling, the reduction of occlusion scores to maps).
+SigLIP tokens, and occlusion and RISE by painting one camera's patches with its baseline frame, re-encoding that
+camera and re-scoring (both kinds' masks in one batched call). `baseline_kinds` runs inside the family's jitted
+program; `collect` runs on the host around it (the IG step doubling, the reduction of painted scores to maps).
 """
 
 from __future__ import annotations
@@ -69,12 +69,21 @@ def with_images(obs: Observation, images: Mapping[str, jax.Array]) -> Observatio
     return dataclasses.replace(obs, images=dict(images))
 
 
+def balanced_chunk(variants: int, chunk: int) -> int:
+    """How many variants run vectorised at once: as few chunks as `chunk` at a time allows, made as even as possible,
+    so that padding the variants to whole chunks adds fewer than one variant per chunk (34 variants at 16 at a time
+    run as 3 chunks of 12, not 3 of 16 with 14 no-op re-runs)."""
+    chunks = -(-variants // chunk)
+    return -(-variants // chunks)
+
+
 def _painted_scores(params, obs, cfg, score_fn, E, images, base, cams, masks, chunk) -> jax.Array:
     """Scores with camera cams[k]'s patches masks[k] replaced by its baseline frame, that camera re-encoded by SigLIP
-    and the others' tokens kept. cams int32 [K], masks bool [K, Hp, Wp], K a multiple of `chunk` -> [K, T, B].
+    and the others' tokens kept. cams int32 [K], masks bool [K, Hp, Wp], K padded by `variants` -> [K, T, B].
 
-    A chunk of variants runs vectorised (forward only, so `vmap` is safe here); the chunks run one after another
-    (`lax.map`), which bounds memory at chunk x B model runs for any number of masks."""
+    A chunk of variants (`balanced_chunk` of K and `chunk`) runs vectorised (forward only, so `vmap` is safe here);
+    the chunks run one after another (`lax.map`), which bounds memory at chunk x B model runs for any number of
+    masks."""
     name = next(iter(obs.images))
     select = jnp.arange(E.shape[1])[None, :, None, None]  # [1, C, 1, 1]
 
@@ -84,6 +93,7 @@ def _painted_scores(params, obs, cfg, score_fn, E, images, base, cams, masks, ch
         return score_fn(jnp.where(select == cam, tokens, E))
 
     k = cams.shape[0]
+    chunk = balanced_chunk(k, chunk)
     # Under a data mesh the variants of each chunk are spread over the devices (they never interact).
     chunked_cams = spread(cams.reshape(k // chunk, chunk), 1)
     chunked_masks = spread(masks.reshape(k // chunk, chunk, *masks.shape[1:]), 1)
@@ -102,7 +112,8 @@ def baseline_kinds(
     options: MapOptions,
 ) -> dict[str, jax.Array]:
     """Traced core (call inside a jitted program). Returns "ig" [T, B, C, N] with "ig_score" / "ig_baseline_score"
-    [T, B], over the inputs' quadrature points; "occlusion_scores" [K, T, B] for the inputs' variants."""
+    [T, B], over the inputs' quadrature points; with "occlusion" in `kinds`, "occlusion_scores" [K, T, B] for the
+    inputs' painted variants (occlusion's and rise's alike: `collect`)."""
     images, valid = camera_stack(obs)
     base = baseline_images(images, valid, options)  # [C, B, H, W, 3]
     out = {}
@@ -153,7 +164,7 @@ def occlusion_masks(grid: tuple[int, int], options: MapOptions) -> np.ndarray:
 
 def variants(per_camera: Sequence[np.ndarray | None], chunk: int) -> tuple[BaselineInputs, list[slice]]:
     """Flattens per-camera mask stacks into one variant list (the inputs' cams [K] and masks [K, Hp, Wp]) padded
-    with no-op variants to a multiple of `chunk`; slice c selects camera c's variants."""
+    with no-op variants to whole chunks of `balanced_chunk(variants, chunk)`; slice c selects camera c's variants."""
     cams, masks, where, start = [], [], [], 0
     for c, m in enumerate(per_camera):
         m = np.zeros((0,), bool) if m is None else np.asarray(m, bool)
@@ -163,7 +174,7 @@ def variants(per_camera: Sequence[np.ndarray | None], chunk: int) -> tuple[Basel
         where.append(slice(start, start + len(m)))
         start += len(m)
     cams, masks = np.concatenate(cams), np.concatenate(masks)
-    pad = -len(cams) % chunk
+    pad = -len(cams) % balanced_chunk(len(cams), chunk)
     cams = np.concatenate([cams, np.zeros(pad, np.int32)])
     masks = np.concatenate([masks, np.zeros((pad, *masks.shape[1:]), bool)])
     return BaselineInputs(cams=jnp.asarray(cams), masks=jnp.asarray(masks)), where
@@ -183,40 +194,71 @@ def checked_masks(masks: Mapping[str, Any], cameras: Sequence[str], grid: tuple[
 RunFn = Callable[[tuple[str, ...], MapOptions, BaselineInputs, bool], Mapping[str, Any]]
 
 
+def painted_masks(grid: tuple[int, int], kinds: Sequence[str], options: MapOptions) -> dict[str, np.ndarray]:
+    """The masks each painting kind requested re-runs one camera with: occlusion's (`occlusion_masks`) and rise's
+    (`options.rise_masks` random masks over the patch grid, each patch kept with `options.rise_keep_prob`, drawn from
+    `options.seed`)."""
+    masks = {}
+    if "occlusion" in kinds:
+        masks["occlusion"] = occlusion_masks(grid, options)
+    if "rise" in kinds:
+        masks["rise"] = random_region_masks(grid, 1, options.rise_masks, options.rise_keep_prob, options.seed)
+    return masks
+
+
+def camera_validity(obs: Observation) -> np.ndarray:
+    """bool [C]: whether each camera (in camera order) is valid in some row of the batch (host-side)."""
+    return np.stack([np.asarray(obs.image_masks[c], bool).reshape(-1) for c in obs.images]).any(axis=1)
+
+
 def collect(
     run: RunFn,
     cameras: Sequence[str],
     grid: tuple[int, int],
     kinds: Sequence[str],
     options: MapOptions,
+    valid: Sequence[bool] | None = None,
 ) -> dict[str, Any]:
-    """Runs the family's program `run(kinds, compiled options, inputs, first_call)` for the requested baseline kinds
-    and turns its output into maps; every array keeps the program's leading [T, B] axes. An IG refinement runs the
-    IG-only program: the first call's own when it asked for IG alone (its first-call outputs computed again, a
-    forward pass beside the refinement's backward ones, rather than a second compilation).
+    """Runs the family's program `run(program kinds, compiled options, inputs, first_call)` for the requested baseline
+    kinds and turns its output into maps; every array keeps the program's leading [T, B] axes. The program knows
+    two kinds: "ig" and "occlusion", which re-runs every painted variant of the inputs: occlusion's and rise's masks
+    of every camera valid in some row (`valid`, bool per camera; None: all), after one unpainted reference per
+    camera, in one call. A camera masked in every row is not re-run: the model does not read it, so painting it
+    cannot move the score, and its occlusion and rise maps are zeros. An IG refinement runs the IG-only
+    program: the first call's own when it asked for IG alone (its first-call outputs computed again, a forward pass
+    beside the refinement's backward ones, rather than a second compilation).
 
-    Returns "ig" and "occlusion" (camera -> [T, B, Hp, Wp]), "ig_check" (score, baseline score, attribution sum,
-    each [T, B]), "ig_steps" (quadrature steps used), and whatever else the first call returned."""
+    Returns "ig", "occlusion" and "rise" (camera -> [T, B, Hp, Wp]), "ig_check" (score, baseline score, attribution
+    sum, each [T, B]), "ig_steps" (quadrature steps used), and whatever else the first call returned."""
     kinds = tuple(k for k in BASELINE_KINDS if k in kinds)
-    inputs, masks, where = BaselineInputs(), None, None
+    inputs, where = BaselineInputs(), None
+    masks = painted_masks(grid, kinds, options)
+    valid = np.ones(len(cameras), bool) if valid is None else np.asarray(valid, bool)
+    painting = bool(masks) and bool(valid.any())
+    program = tuple(k for k in ("ig", "occlusion") if k in kinds or (k == "occlusion" and painting))
     if "ig" in kinds:
         inputs = ig_inputs(options, options.ig_steps)
-    if "occlusion" in kinds:
-        masks = occlusion_masks(grid, options)
+    if painting:
         reference = np.zeros((1, *grid), bool)  # every camera's drops against its own unpainted re-run
-        stacks = [np.concatenate([reference, masks])] * len(cameras)
-        painted, where = variants(stacks, options.mask_chunk)
+        stack = np.concatenate([reference, *masks.values()])
+        painted, where = variants([stack if v else None for v in valid], options.mask_chunk)
         inputs = inputs._replace(cams=painted.cams, masks=painted.masks)
-    out = run(kinds, compiled_options(options, kinds), inputs, True)
+    out = run(program, compiled_options(options, program), inputs, True)
     core = ("ig", "ig_score", "ig_baseline_score", "occlusion_scores")
     res: dict[str, Any] = {k: np.asarray(v) for k, v in out.items() if k not in core}
-    if where is not None:
+    if painting:
         scores = np.asarray(out["occlusion_scores"], np.float64)  # [K, T, B]
-        reduce = region_map if options.occlusion_mode == "regions" else iss_map
-        res["occlusion"] = {
-            c: reduce(masks, scores[s][:1] - scores[s][1:]).astype(np.float32)
-            for c, s in zip(cameras, where, strict=True)
-        }
+        drops = {c: scores[s][:1] - scores[s][1:] for c, s, v in zip(cameras, where, valid, strict=True) if v}
+        start = 0
+        for kind, m in masks.items():
+            reduce = region_map if kind == "occlusion" and options.occlusion_mode == "regions" else iss_map
+            res[kind] = {
+                c: reduce(m, drops[c][start : start + len(m)]).astype(np.float32)
+                if c in drops
+                else np.zeros((*scores.shape[1:], *grid), np.float32)  # not read by the model: no drop
+                for c in cameras
+            }
+            start += len(m)
     if "ig" in out:
         steps, best, last_error = options.ig_steps, None, np.inf
         while True:
@@ -230,7 +272,7 @@ def collect(
             if met or error > IG_STALL * last_error or 2 * steps > options.ig_max_steps:
                 break
             steps, last_error = 2 * steps, error
-            out = run(("ig",), compiled_options(options, ("ig",)), ig_inputs(options, steps), kinds == ("ig",))
+            out = run(("ig",), compiled_options(options, ("ig",)), ig_inputs(options, steps), program == ("ig",))
         _, steps, attr, check = best  # a doubling into the arithmetic's noise can come out worse than the one before
         res["ig"] = {c: attr[..., i, :].reshape(*attr.shape[:2], *grid) for i, c in enumerate(cameras)}
         res["ig_check"] = check

@@ -167,6 +167,34 @@ def forward(
     which the cache needs, but the queries, attention and MLP of the last token alone; pre_logits is [B, 1, D].
     `hidden_slots`: see `_attention`.
     """
+    pre, cache, _ = _forward(params, x, positions, mask, cfg, cache, last_only, False, hidden_slots)
+    return pre, cache
+
+
+def forward_with_outputs(
+    params: dict, x: jax.Array, positions: jax.Array, mask: jax.Array, cfg: GemmaConfig, *, hidden_slots: int = 0
+) -> tuple[jax.Array, KVCache, jax.Array]:
+    """A `last_only` prefill (`forward`) that also returns every token's final-normed output [B, T, D] (a failure
+    monitor's features). The last token's pre_logits and the cache are computed by the very operations `forward`
+    runs, so decoding from them is unchanged; every token's output costs the top layer's queries, attention and MLP
+    over all T tokens once more (its K/V are the same operations as the last-only pass's). Returns (pre_logits
+    [B, 1, D], cache, outputs [B, T, D])."""
+    pre, cache, outputs = _forward(params, x, positions, mask, cfg, None, True, True, hidden_slots)
+    assert outputs is not None
+    return pre, cache, outputs
+
+
+def _forward(
+    params: dict,
+    x: jax.Array,
+    positions: jax.Array,
+    mask: jax.Array,
+    cfg: GemmaConfig,
+    cache: KVCache | None,
+    last_only: bool,
+    every_output: bool,
+    hidden_slots: int,
+) -> tuple[jax.Array, KVCache, jax.Array | None]:
     b, t, _ = x.shape
     if cache is None:
         slots = mask.shape[-1]
@@ -194,6 +222,7 @@ def forward(
     if cfg.remat:
         layer = jax.checkpoint(layer, static_argnums=(4,))
     stack = (params["layers"], cache.k, cache.v)
+    outputs = None
     if not last_only:
         x, (k, v) = jax.lax.scan(lambda h, xs: layer(h, *xs, False), x, stack, unroll=not cfg.scan)
     else:
@@ -202,7 +231,11 @@ def forward(
         def body(h, i):
             return layer(h, *jax.tree.map(lambda a: a[i], stack), False)
 
-        x, (k, v) = jax.lax.scan(body, x, jnp.arange(cfg.depth - 1), unroll=not cfg.scan)
-        x, (k_top, v_top) = layer(x, *jax.tree.map(lambda a: a[-1], stack), True)
+        below, (k, v) = jax.lax.scan(body, x, jnp.arange(cfg.depth - 1), unroll=not cfg.scan)
+        top = jax.tree.map(lambda a: a[-1], stack)
+        x, (k_top, v_top) = layer(below, *top, True)
         k, v = jnp.concatenate([k, k_top[None]]), jnp.concatenate([v, v_top[None]])
-    return rms_norm(x, params["final_norm"]["scale"], cfg.rules), KVCache(k, v, cache.idx + t)
+        if every_output:
+            every, _ = layer(below, *top, False)
+            outputs = rms_norm(every, params["final_norm"]["scale"], cfg.rules)
+    return rms_norm(x, params["final_norm"]["scale"], cfg.rules), KVCache(k, v, cache.idx + t), outputs

@@ -6,6 +6,7 @@ Shapes: B batch, C cameras, N tokens per camera, L prompt length, D LLM width.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Protocol
 
 import jax
@@ -53,3 +54,27 @@ def embed_prefix(params: dict, image_tokens: jax.Array, obs: Observation, cfg: V
     ar = obs.token_ar_mask if obs.token_ar_mask is not None else jnp.zeros_like(obs.tokenized_prompt)
     ar_mask = jnp.concatenate([jnp.zeros((b, c * n), jnp.int32), jnp.asarray(ar, jnp.int32)], axis=1)
     return x, input_mask, ar_mask
+
+
+def pool_prefix(
+    outputs: jax.Array, input_mask: jax.Array, cameras: Sequence[str], tokens_per_camera: int
+) -> tuple[dict[str, jax.Array], jax.Array]:
+    """The prefix's outputs pooled per span, a failure monitor's features: each camera's image tokens, then the
+    prompt's (every token after the images), each the mean of its valid tokens' outputs in float32 (NaN where none
+    is valid: a masked camera). outputs [B, P, D] and input_mask [B, P] in prefix order (`embed_prefix`: cameras in
+    `cameras` order, `tokens_per_camera` each, then the prompt). Returns (camera -> [B, D], prompt [B, D]).
+
+    The mean, not the max: it summarises hundreds of image tokens, or a prompt of any length, on one scale, where a
+    per-dimension max grows with the count and follows the most extreme single token."""
+    x = outputs.astype(jnp.float32)
+    valid = input_mask.astype(jnp.float32)
+
+    def mean(start: int, stop: int) -> jax.Array:
+        w = valid[:, start:stop]
+        count = jnp.sum(w, axis=-1, keepdims=True)
+        total = jnp.einsum("bt,btd->bd", w, x[:, start:stop])
+        return jnp.where(count > 0, total / jnp.maximum(count, 1.0), jnp.nan)
+
+    n = tokens_per_camera
+    pooled = {camera: mean(i * n, (i + 1) * n) for i, camera in enumerate(cameras)}
+    return pooled, mean(len(cameras) * n, x.shape[1])

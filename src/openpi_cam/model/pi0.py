@@ -29,7 +29,7 @@ from openpi_cam.model.checkpoint import load_params
 from openpi_cam.model.config import GemmaConfig, Pi0Config, pi0_architecture_from_params, pi0_param_shapes
 from openpi_cam.model.init import init_from_shapes
 from openpi_cam.model.observation import Observation, preprocess_observation
-from openpi_cam.model.paligemma import embed_images, embed_prefix, make_attn_mask
+from openpi_cam.model.paligemma import embed_images, embed_prefix, make_attn_mask, pool_prefix
 from openpi_cam.model.safetensors_weights import LEROBOT_HEADS, HeadCounts, load_safetensors_params
 from openpi_cam.nested import flatten_dict
 
@@ -191,11 +191,19 @@ def embed_suffix(
 
 def fill_prefix_cache(params: dict, image_tokens: jax.Array, obs: Observation, cfg: Pi0Config):
     """One pass of the prefix through the PaliGemma weights -> (KV cache, prefix input mask [B, P])."""
+    cache, input_mask, _ = _prefix_pass(params, image_tokens, obs, cfg)
+    return cache, input_mask
+
+
+def _prefix_pass(params: dict, image_tokens: jax.Array, obs: Observation, cfg: Pi0Config):
+    """`fill_prefix_cache`, and the prefix's final-normed outputs [B, P, D] (unused, and so not computed, unless a
+    caller reads them)."""
     x, input_mask, ar_mask = embed_prefix(params, image_tokens, obs, cfg)
     positions = jnp.cumsum(input_mask, axis=1) - 1
     mask = make_attn_mask(input_mask, ar_mask)
-    _, cache = mixture_forward(params["PaliGemma"]["llm"], [x, None], positions, mask, _configs(cfg), [None, None])
-    return cache, input_mask
+    llm = params["PaliGemma"]["llm"]
+    (outputs, _), cache = mixture_forward(llm, [x, None], positions, mask, _configs(cfg), [None, None])
+    return cache, input_mask, outputs
 
 
 def velocity(
@@ -209,6 +217,20 @@ def velocity(
     time_emb: jax.Array | None = None,
 ) -> jax.Array:
     """v_t [B, H, A] at x_t and time t [B], the suffix attending to the cached prefix (one Euler step's model call)."""
+    return _velocity(params, cfg, cache, prefix_mask, state, x_t, t, time_emb)[0]
+
+
+def _velocity(
+    params: dict,
+    cfg: Pi0Config,
+    cache: KVCache,
+    prefix_mask: jax.Array,
+    state: jax.Array,
+    x_t: jax.Array,
+    t: jax.Array,
+    time_emb: jax.Array | None,
+) -> tuple[jax.Array, jax.Array]:
+    """`velocity`, and the action expert's final-normed outputs at the action tokens [B, H, E] it was projected from."""
     tokens, suffix_mask, suffix_ar, cond = embed_suffix(params, cfg, state, x_t, t, time_emb)
     s = tokens.shape[1]
     mask = jnp.concatenate(
@@ -221,7 +243,8 @@ def velocity(
     positions = jnp.sum(prefix_mask, axis=-1)[:, None] + jnp.cumsum(suffix_mask, axis=-1) - 1
     llm = params["PaliGemma"]["llm"]
     (_, out), _ = mixture_forward(llm, [None, tokens], positions, mask, _configs(cfg), [None, cond], cache)
-    return _linear(params["action_out_proj"], out[:, -cfg.action_horizon :])
+    actions = out[:, -cfg.action_horizon :]
+    return _linear(params["action_out_proj"], actions), actions
 
 
 def denoise(
@@ -234,7 +257,25 @@ def denoise(
     (`cfg.flow_time`, `lerobot_time_grid`). Each step is rematerialised, so a
     backward pass through all steps keeps one step's activations at a time. Returns x_0 [B, H, A], and with `record`
     (x before each step [B, n, H, A], v at each step [B, n, H, A], t at each step [n])."""
-    cache, prefix_mask = fill_prefix_cache(params, image_tokens, obs, cfg)
+    x_0, trace, _ = _denoise(params, image_tokens, obs, noise, cfg, record, False)
+    return (x_0, trace) if record else x_0
+
+
+def _denoise(
+    params: dict,
+    image_tokens: jax.Array,
+    obs: Observation,
+    noise: jax.Array,
+    cfg: Pi0Config,
+    record: bool,
+    signals: bool,
+):
+    """`denoise`'s integration -> (x_0, its record or None, and with `signals` what a failure monitor reads of it:
+    `cameras` (camera -> [B, D]) and `prompt` [B, D], the prefix pass's outputs pooled per span
+    (`paligemma.pool_prefix`), and `actions` [B, E], the action expert's outputs at the action tokens in the last
+    Euler step, averaged over the H tokens in float32; else None). Each step's x and v are the same operations with
+    signals or without: the pooled outputs are read beside them."""
+    cache, prefix_mask, prefix_out = _prefix_pass(params, image_tokens, obs, cfg)
     dt = -1.0 / cfg.num_steps
     b = noise.shape[0]
 
@@ -244,15 +285,20 @@ def denoise(
         emb = None
         if grid is not None:
             t, emb = grid[0], jnp.broadcast_to(grid[1], (b, grid[1].shape[-1]))
-        v_t = velocity(params, cfg, cache, prefix_mask, obs.state, x_t, jnp.broadcast_to(t, (b,)), emb)
-        return (x_t + dt * v_t, t + dt), (x_t, v_t, t) if record else None
+        v_t, out = _velocity(params, cfg, cache, prefix_mask, obs.state, x_t, jnp.broadcast_to(t, (b,)), emb)
+        pooled = jnp.mean(out.astype(jnp.float32), axis=1) if signals else None
+        return (x_t + dt * v_t, t + dt), ((x_t, v_t, t) if record else None, pooled)
 
     grid = lerobot_time_grid(cfg.num_steps, cfg.expert.width) if cfg.flow_time == "lerobot" else None
-    (x_0, _), trace = jax.lax.scan(step, (noise, jnp.asarray(1.0, jnp.float32)), grid, length=cfg.num_steps)
-    if not record:
-        return x_0
-    xs, vs, ts = trace
-    return x_0, (jnp.moveaxis(xs, 0, 1), jnp.moveaxis(vs, 0, 1), ts)
+    (x_0, _), (trace, pooled) = jax.lax.scan(step, (noise, jnp.asarray(1.0, jnp.float32)), grid, length=cfg.num_steps)
+    if record:
+        xs, vs, ts = trace
+        trace = (jnp.moveaxis(xs, 0, 1), jnp.moveaxis(vs, 0, 1), ts)
+    recorded = None
+    if signals:
+        cameras, prompt = pool_prefix(prefix_out, prefix_mask, list(obs.images), image_tokens.shape[2])
+        recorded = {"cameras": cameras, "prompt": prompt, "actions": pooled[-1]}
+    return x_0, trace, recorded
 
 
 def sample_actions(params: dict, obs: Observation, noise: jax.Array, *, cfg: Pi0Config) -> jax.Array:
@@ -283,7 +329,17 @@ def compute_loss(
     return jnp.mean(jnp.square(v_t - (noise - actions)), axis=-1)
 
 
+def sample_with_signals(
+    params: dict, obs: Observation, noise: jax.Array, *, cfg: Pi0Config
+) -> tuple[jax.Array, dict[str, Any]]:
+    """`sample_actions` and what a failure monitor reads of the same call (`_denoise`'s signals): (x_0, signals)."""
+    obs = preprocess(obs, cfg)
+    x_0, _, signals = _denoise(params, embed_images(params, obs, cfg), obs, noise, cfg, False, True)
+    return x_0, signals
+
+
 sample_actions_jit = jax.jit(sample_actions, static_argnames="cfg")
+sample_with_signals_jit = jax.jit(sample_with_signals, static_argnames="cfg")
 
 
 def init_params(config: Pi0Config, rng: jax.Array) -> dict:
@@ -345,6 +401,11 @@ class Pi0:
         if noise is None:
             noise = jax.random.normal(rng, (batch, self.config.action_horizon, self.config.action_dim))
         return sample_actions_jit(self.params, observation, jnp.asarray(noise, jnp.float32), cfg=self.config)
+
+    def sample_with_signals(self, observation: Observation, noise: jax.Array) -> tuple[jax.Array, dict[str, Any]]:
+        """`sample_actions` from `noise` [B, H, A] and what a failure monitor reads of the same call: (x_0 [B, H, A],
+        signals: `cameras`, `prompt`, `actions`; `_denoise`)."""
+        return sample_with_signals_jit(self.params, observation, jnp.asarray(noise, jnp.float32), cfg=self.config)
 
     def embed_images(self, observation: Observation) -> jax.Array:
         return self._embed_images(self.params, preprocess(observation, self.config))

@@ -26,7 +26,7 @@ from openpi_cam.model.config import (
 )
 from openpi_cam.model.init import init_from_shapes
 from openpi_cam.model.observation import Observation, preprocess_observation
-from openpi_cam.model.paligemma import embed_images, embed_prefix, make_attn_mask
+from openpi_cam.model.paligemma import embed_images, embed_prefix, make_attn_mask, pool_prefix
 from openpi_cam.nested import flatten_dict
 
 
@@ -60,6 +60,22 @@ def prefill(
     (upstream projects every prefix slot). `hidden_steps`: decode slots past the cache's end, for a replay shorter
     than the decode (`replay_prelogits`). Returns (pre_logits of the last prefix slot [B, D], cache, prefill_len [B],
     prefix_start [B])."""
+    return _prefill(params, x, input_mask, ar_mask, cfg, steps, hidden_steps, False)[:4]
+
+
+def _prefill(
+    params: dict,
+    x: jax.Array,
+    input_mask: jax.Array,
+    ar_mask: jax.Array,
+    cfg: Pi0FASTConfig,
+    steps: int,
+    hidden_steps: int,
+    every_output: bool,
+):
+    """`prefill`, and with `every_output` every prefix token's final-normed output [B, P, D] in prefix order (the
+    alignment undone), as `gemma.forward_with_outputs` computes it beside the unchanged last-slot pass."""
+    seqlen = jnp.max(input_mask * jnp.arange(input_mask.shape[1]), axis=-1) + 1  # what the alignment rolls by
     attn = make_attn_mask(input_mask, ar_mask)
     x, input_mask, attn = left_to_right_align(x, input_mask, attn)
     prefill_size = x.shape[1]
@@ -69,8 +85,13 @@ def prefill(
     attn = jnp.pad(attn, ((0, 0), (0, 0), (0, steps)))
     positions = jnp.cumsum(input_mask, axis=-1) - 1
     llm = params["PaliGemma"]["llm"]
-    pre, cache = gemma.forward(llm, x, positions, attn, cfg.gemma, last_only=True, hidden_slots=hidden_steps)
-    return pre[:, -1], cache, prefill_len, prefill_size - prefill_len
+    outputs = None
+    if every_output:
+        pre, cache, aligned = gemma.forward_with_outputs(llm, x, positions, attn, cfg.gemma, hidden_slots=hidden_steps)
+        outputs = jax.vmap(lambda o, s: jnp.roll(o, s, axis=0))(aligned, seqlen)
+    else:
+        pre, cache = gemma.forward(llm, x, positions, attn, cfg.gemma, last_only=True, hidden_slots=hidden_steps)
+    return pre[:, -1], cache, prefill_len, prefill_size - prefill_len, outputs
 
 
 def decode_window(prefix_start: jax.Array, prefill_size: int, steps: int, step: jax.Array) -> jax.Array:
@@ -100,29 +121,40 @@ def sample_tokens(
     stop_token_ids: tuple[int, ...] = (),
     record_logits: bool = False,
     rows_alone: bool = False,
-) -> tuple[jax.Array, jax.Array, jax.Array | None]:
+    record_signals: bool = False,
+) -> tuple[jax.Array, jax.Array, jax.Array | None, dict[str, Any] | None]:
     """Prefill then KV-cache decoding in one compiled while-loop, as upstream's `sample_actions`.
 
-    Returns (tokens int32 [B, S], number of loop iterations run, and with `record_logits` the logits that chose each
-    token [B, S, V], for parity checks). Decoding stops when every row's current token is EOS; with
-    `stop_token_ids` (opt-in, not upstream) a row is also finished once it has emitted one of them, and decoding
-    stops when every row has finished. `rows_alone` (batched serving) makes each row's tokens what decoding it in a
-    batch of one gives: a row is finished at its own EOS (or stop token) and its later slots stay zero, as they would
-    after the loop stopped for it alone (upstream's rule, every row at EOS at the same step, only agrees for B = 1)."""
+    Returns (tokens int32 [B, S], number of loop iterations run, with `record_logits` the logits that chose each
+    token [B, S, V], for parity checks, and with `record_signals` what a failure monitor reads of the call:
+    `cameras` (camera -> [B, D]) and `prompt` [B, D], the prefix's last-layer outputs pooled per span
+    (`paligemma.pool_prefix`), `hidden` [B, S, D], the pre-logits that chose each token, and `entropy` [B, S], the
+    entropy (nats, float32) of the distribution each token was chosen from, zero past the loop's last step).
+    The tokens are those of the call without signals: the served pass runs the same operations, the signals are
+    computed beside it. Decoding stops when every row's current token is EOS; with `stop_token_ids` (opt-in, not
+    upstream) a row is also finished once it has emitted one of them, and decoding stops when every row has
+    finished. `rows_alone` (batched serving) makes each row's tokens what decoding it in a batch of one gives: a row
+    is finished at its own EOS (or stop token) and its later slots stay zero, as they would after the loop stopped
+    for it alone (upstream's rule, every row at EOS at the same step, only agrees for B = 1)."""
     if rows_alone and temperature > 0.0:
         raise ValueError("rows_alone decodes greedily only: sampling would need one rng per row")
     llm = params["PaliGemma"]["llm"]
     obs = preprocess_observation(obs, cfg.image_resolution)
-    x, input_mask, ar_mask = embed_prefix(params, embed_images(params, obs, cfg), obs, cfg)
-    last_pre, cache, prefill_len, prefix_start = prefill(params, x, input_mask, ar_mask, cfg, max_decoding_steps)
+    image_tokens = embed_images(params, obs, cfg)
+    x, input_mask, ar_mask = embed_prefix(params, image_tokens, obs, cfg)
+    last_pre, cache, prefill_len, prefix_start, outputs = _prefill(
+        params, x, input_mask, ar_mask, cfg, max_decoding_steps, 0, record_signals
+    )
     prefill_size = x.shape[1]
     batch = x.shape[0]
     stop_ids = jnp.asarray((EOS_TOKEN, *stop_token_ids), jnp.int32)
 
     def step_fn(carry):
-        rng, last_logit, tokens, cache, _, finished, step, history = carry
+        rng, last_logit, tokens, cache, _, finished, step, history, signals = carry
         if record_logits:
             history = history.at[:, step].set(last_logit.astype(history.dtype))
+        if record_signals:
+            signals = _record_choice(signals, step, last_logit)
         rng, rng_step = jax.random.split(rng)
         if temperature > 0.0:
             token = jax.random.categorical(rng_step, last_logit / temperature, axis=-1)
@@ -140,13 +172,17 @@ def sample_tokens(
         emb = gemma.embed_tokens(llm, token[:, None], jnp.dtype(cfg.dtype))
         mask = decode_window(prefix_start, prefill_size, max_decoding_steps, step)
         pre, cache = gemma.forward(llm, emb, decode_positions(prefill_len, step), mask, cfg.gemma, cache)
-        return rng, gemma.logits_from_prelogits(llm, pre[:, 0]), tokens, cache, done, finished, step + 1, history
+        if record_signals:
+            signals = {**signals, "last_pre": pre[:, 0]}
+        logit = gemma.logits_from_prelogits(llm, pre[:, 0])
+        return rng, logit, tokens, cache, done, finished, step + 1, history, signals
 
     def cond_fn(carry):
         return (~carry[4]) & (carry[6] < max_decoding_steps)
 
     first_logit = gemma.logits_from_prelogits(llm, last_pre)
     history = jnp.zeros((batch, max_decoding_steps, first_logit.shape[-1]), jnp.float32) if record_logits else None
+    signals = _no_choices(last_pre, max_decoding_steps) if record_signals else None
     init = (
         rng,
         first_logit,
@@ -156,15 +192,47 @@ def sample_tokens(
         jnp.zeros((batch,), bool),
         jnp.array(0, jnp.int32),
         history,
+        signals,
     )
     out = jax.lax.while_loop(cond_fn, step_fn, init)
-    return out[2], out[6], out[7]
+    recorded = None
+    if record_signals:
+        cameras, prompt = pool_prefix(outputs, input_mask, list(obs.images), image_tokens.shape[2])
+        recorded = {"cameras": cameras, "prompt": prompt, "hidden": out[8]["hidden"], "entropy": out[8]["entropy"]}
+    return out[2], out[6], out[7], recorded
+
+
+def _no_choices(last_pre: jax.Array, steps: int) -> dict[str, jax.Array]:
+    """The decode loop's record of its choices before the first: each step's pre-logits and entropy (zeros), and
+    the pre-logits the next token will be chosen from (the prefill's last slot's)."""
+    batch, width = last_pre.shape
+    return {
+        "hidden": jnp.zeros((batch, steps, width), last_pre.dtype),
+        "entropy": jnp.zeros((batch, steps), jnp.float32),
+        "last_pre": last_pre,
+    }
+
+
+def _record_choice(signals: dict[str, jax.Array], step: jax.Array, logits: jax.Array) -> dict[str, jax.Array]:
+    """The record with step `step`'s choice added: the pre-logits it is made from and the entropy of its logits."""
+    return {
+        "hidden": signals["hidden"].at[:, step].set(signals["last_pre"]),
+        "entropy": signals["entropy"].at[:, step].set(_entropy(logits)),
+        "last_pre": signals["last_pre"],
+    }
+
+
+def _entropy(logits: jax.Array) -> jax.Array:
+    """The entropy (nats) of softmax(logits) along the last axis, in float32: [..., V] -> [...]."""
+    log_p = jax.nn.log_softmax(logits.astype(jnp.float32), axis=-1)
+    return -jnp.sum(jnp.exp(log_p) * log_p, axis=-1)
 
 
 # One compiled program per (shape, config, decoding settings); shared by every model object. The stop tokens are data
 # (only how many there are is compiled in), so policies whose stop tokens differ share the program.
 sample_tokens_jit = jax.jit(
-    sample_tokens, static_argnames=("cfg", "max_decoding_steps", "temperature", "record_logits", "rows_alone")
+    sample_tokens,
+    static_argnames=("cfg", "max_decoding_steps", "temperature", "record_logits", "rows_alone", "record_signals"),
 )
 
 
@@ -280,6 +348,31 @@ class Pi0FAST:
             stop_token_ids=tuple(int(t) for t in stop_token_ids),
             rows_alone=rows_alone,
         )[0]
+
+    def sample_with_signals(
+        self,
+        rng: jax.Array,
+        observation: Observation,
+        *,
+        max_decoding_steps: int = MAX_DECODING_STEPS,
+        stop_token_ids: Sequence[int] = (),
+        rows_alone: bool = False,
+    ) -> tuple[jax.Array, dict[str, Any]]:
+        """`sample_actions` (greedy) and what a failure monitor reads of the same call (`sample_tokens`'s
+        `record_signals`): (the same tokens, the signals)."""
+        tokens, _, _, signals = sample_tokens_jit(
+            self.params,
+            observation,
+            rng,
+            cfg=self.config,
+            max_decoding_steps=int(max_decoding_steps),
+            temperature=0.0,
+            stop_token_ids=tuple(int(t) for t in stop_token_ids),
+            rows_alone=rows_alone,
+            record_signals=True,
+        )
+        assert signals is not None
+        return tokens, signals
 
     def embed_images(self, observation: Observation) -> jax.Array:
         return self._embed_images(self.params, preprocess_observation(observation, self.config.image_resolution))

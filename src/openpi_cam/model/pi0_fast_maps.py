@@ -9,16 +9,19 @@ alpha_c = mean over its N tokens of G_c [D];  map_c = ReLU(E_c @ alpha_c) reshap
 The same backward pass also gives a gradient-norm map per camera, ||G_c[n]|| per token (a token-level saliency map,
 Simonyan et al. 2014): Grad-CAM's mean over tokens assumes, as in a CNN's last conv layer, that a channel means the
 same thing at every position and that activations are non-negative; neither holds for transformer tokens, which is
-why the gradient norm is computed beside it (docs/MAP_KINDS.md compares the kinds).
+why the gradient norm is computed beside it (docs/MAP_KINDS.md compares the kinds). It gives gradient x input too,
+sum_d E_c[n, d] G_c[n, d] per token; continued through SigLIP to the pixels it gives occlusion's first-order estimate
+(`taylor`), and repeated at noisy copies of E, SmoothGrad (`smoothgrad`): `gradient_maps`.
 
-Two more kinds compare the frame with a *baseline frame* a robot could see (`vocabulary.MapOptions.baseline`: the
+Three more kinds compare the frame with a *baseline frame* a robot could see (`vocabulary.MapOptions.baseline`: the
 frame blurred, or its mean colour), and are signed (positive = supports the explained score):
   ig         integrated gradients over E along the straight path E0 -> E, E0 = SigLIP tokens of the baseline frame
              (no gradient through SigLIP); its completeness terms come with the result (`IgCompleteness`).
   occlusion  the drop of the score when a region's pixels are replaced by the baseline's and the whole model re-run,
              one camera at a time; every region once ("regions") or random Bernoulli masks (ISS, "random").
-A fifth kind propagates the score back to the pixels with AttnLRP's rules (`model.lrp`), one modified backward pass
-through the replay and SigLIP per explained score:
+  rise       the same re-runs under random patch masks of its own (RISE), beside occlusion's in one compiled call.
+One more kind propagates the score back to the pixels with AttnLRP's rules (`model.lrp`), one modified backward pass
+through the replay and SigLIP per explained score, in a program of its own:
   lrp        relevance = input x modified gradient at the model's input pixels, summed per patch; signed.
 Scores: a token's logit at its decode step (`maps_for_steps`), or a sum of log-probabilities over decode steps (the
 chunk, or any per-row list of steps: `maps_for_chunk`). `rescore_masks` returns the same scores with patches painted,
@@ -43,8 +46,8 @@ import jax.numpy as jnp
 import numpy as np
 from numpy.typing import ArrayLike
 
-from openpi_cam.model import baseline_maps, gemma, lrp, lrp_maps, remat
-from openpi_cam.model.attribution import IgCompleteness, gradcam_reduce, per_score_grads
+from openpi_cam.model import baseline_maps, gemma, gradient_maps, lrp, lrp_maps, remat
+from openpi_cam.model.attribution import IgCompleteness
 from openpi_cam.model.config import MAX_DECODING_STEPS, Pi0FASTConfig
 from openpi_cam.model.observation import Observation, preprocess_observation
 from openpi_cam.model.pi0_fast import Pi0FAST, embed_images, replay_prelogits
@@ -52,6 +55,8 @@ from openpi_cam.vocabulary import (
     BASELINE_KINDS,
     DEFAULT_KINDS,
     GRADIENT_KINDS,
+    MODEL_KINDS,
+    OPTION_KINDS,
     RELEVANCE_KINDS,
     MapOptions,
     check_kinds,
@@ -63,9 +68,10 @@ class MapResult:
     """Raw (unnormalised) maps per camera of every requested kind. Leading axis B (batch rows); multi-token targets
     add an axis T.
 
-    `by_kind` holds each requested kind (camera -> float32 [B, Hp, Wp] or [B, T, Hp, Wp]; signed for ig and
-    occlusion; gradnorm's squares sum to `grad_norms`**2). `alphas` and `grad_norms` come from the gradient pass and
-    are empty when neither "gradcam" nor "gradnorm" was requested."""
+    `by_kind` holds each requested kind (camera -> float32 [B, Hp, Wp] or [B, T, Hp, Wp]; signed for ig, occlusion,
+    gradxinput, taylor, rise and lrp; gradnorm's squares sum to `grad_norms`**2). `alphas` and `grad_norms` come
+    from the gradient program's token pass and are empty when it did not run (none of gradcam, gradnorm, gradxinput,
+    taylor was requested)."""
 
     target: str  # "token" | "tokens" | "chunk"
     cameras: tuple[str, ...]
@@ -81,7 +87,7 @@ class MapResult:
     # float32 [B, V] or [B, T, V]: the full logit vector at that output (token targets asked for it with logits=True)
     logits: np.ndarray | None
     ig_completeness: IgCompleteness | None = None  # with "ig"
-    options: MapOptions | None = None  # the options of the baseline kinds, when any was requested
+    options: MapOptions | None = None  # the map options, when a kind that depends on them was requested
 
 
 def _gathered_logits(params: dict, pre: jax.Array, targets: jax.Array) -> jax.Array:
@@ -107,38 +113,66 @@ def _replay(generated: jax.Array, last_step: int) -> tuple[jax.Array, int]:
     return generated[:, : replay_length(last_step, generated.shape[1])], int(generated.shape[1])
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "decode_len", "logits"))
-def _token_gradient_maps(params, obs, generated, targets, steps, *, cfg: Pi0FASTConfig, decode_len: int, logits: bool):
-    """The gradient kinds of token targets. steps int32 [T, B]: one VJP per explained step, all sharing one forward
-    pass over generated [B, L] (`_replay`).
+def _one_hot_rows(scores: jax.Array) -> jax.Array:
+    """One cotangent per score row of scores [T, B]: [T, T, B], ones over the batch (rows are independent)."""
+    t = scores.shape[0]
+    return jnp.broadcast_to(jnp.eye(t, dtype=scores.dtype)[:, :, None], (t, *scores.shape))
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "decode_len", "logits", "program", "options"))
+def _token_gradient_maps(
+    params,
+    obs,
+    generated,
+    targets,
+    steps,
+    inputs=None,
+    *,
+    cfg: Pi0FASTConfig,
+    decode_len: int,
+    logits: bool,
+    program=gradient_maps.TOKEN_PASS,
+    options=gradient_maps.COMPILED_DEFAULTS,
+):
+    """The gradient kinds of token targets (`gradient_maps.gradient_kinds` with passes `program`). steps int32 [T, B]:
+    one VJP per explained step, all sharing one forward pass over generated [B, L] (`_replay`).
 
     Only the explained outputs [T, B, D] meet the vocabulary: the score is their dot product with the explained
     token's embedding row, and with `logits` the full logit vector is projected for those T rows alone (None
     without: the projection reads the whole [V, D] table, which the maps do not need)."""
-    E = embed_images(params, obs, cfg)
     rows = jnp.arange(generated.shape[0])[None, :]
 
-    def scores_fn(image_tokens):
+    def output_fn(image_tokens):
         explained = replay_prelogits(params, image_tokens, obs, generated, cfg, decode_len)[rows, steps]  # [T, B, D]
         return _gathered_logits(params, explained, targets[rows, steps]), explained  # [T, B]
 
-    scores, vjp_fn, explained = jax.vjp(scores_fn, E, has_aux=True)
-    G = per_score_grads(vjp_fn, scores)  # [T, B, C, N, D]
-    alpha, cam, token_norm = gradcam_reduce(E, G)
+    scores, explained, grad = gradient_maps.gradient_kinds(
+        params, obs, cfg, output_fn, _one_hot_rows, program, options, inputs
+    )
     full = gemma.logits_from_prelogits(params["PaliGemma"]["llm"], explained).astype(jnp.float32) if logits else None
-    return scores.astype(jnp.float32), alpha, cam, token_norm, full
+    return scores.astype(jnp.float32), grad, full
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "decode_len"))
-def _chunk_gradient_maps(params, obs, generated, target, *, cfg: Pi0FASTConfig, decode_len: int):
+@functools.partial(jax.jit, static_argnames=("cfg", "decode_len", "program", "options"))
+def _chunk_gradient_maps(
+    params,
+    obs,
+    generated,
+    target,
+    inputs=None,
+    *,
+    cfg: Pi0FASTConfig,
+    decode_len: int,
+    program=gradient_maps.TOKEN_PASS,
+    options=gradient_maps.COMPILED_DEFAULTS,
+):
     """The gradient kinds of a chunk target: score = sum_k weights[b, k] * log_softmax(logits_k)[g_k] over a
-    `_weights_target`; one backward pass."""
-    E = embed_images(params, obs, cfg)
+    `_weights_target`; one backward pass (per pass of `program`). -> score [B], maps [B, C, ...]."""
     score_fn = _score_fn(params, obs, generated, target, cfg, decode_len)
-    score, vjp_fn = jax.vjp(lambda e: score_fn(e)[0], E)  # [B]
-    (G,) = vjp_fn(jnp.ones_like(score))
-    alpha, cam, token_norm = gradcam_reduce(E, G)
-    return score, alpha, cam, token_norm
+    score, _, grad = gradient_maps.gradient_kinds(
+        params, obs, cfg, lambda e: (score_fn(e), None), _one_hot_rows, program, options, inputs
+    )
+    return score[0], {k: v[0] for k, v in grad.items()}
 
 
 def _prepare(model: Pi0FAST, obs: Observation, generated: ArrayLike) -> tuple[Observation, jax.Array, np.ndarray]:
@@ -229,11 +263,7 @@ def _relevance_maps(params, obs, generated, target, *, cfg: Pi0FASTConfig, decod
         explained = pre[jnp.arange(generated.shape[0])[None, :], target["steps"]] if full else None  # [T, B, D]
         return _scores_of(params, pre, generated, target), explained
 
-    def cotangents(scores):  # one score row at a time, every batch row at once
-        t = scores.shape[0]
-        return jnp.broadcast_to(jnp.eye(t, dtype=scores.dtype)[:, :, None], (t, *scores.shape))
-
-    scores, explained, relevance = lrp_maps.pixel_relevance(params, obs, cfg, output_fn, cotangents)
+    scores, explained, relevance = lrp_maps.pixel_relevance(params, obs, cfg, output_fn, _one_hot_rows)
     if full:
         explained = gemma.logits_from_prelogits(params["PaliGemma"]["llm"], explained).astype(jnp.float32)
     return scores, relevance, explained
@@ -305,7 +335,8 @@ def _baseline_outputs(
             logits=logits and base_outputs and first,
         )
 
-    extra = baseline_maps.collect(run, tuple(obs.images), model.config.siglip.grid, kinds, options)
+    valid = baseline_maps.camera_validity(obs)
+    extra = baseline_maps.collect(run, tuple(obs.images), model.config.siglip.grid, kinds, options, valid)
     ig_steps = extra.pop("ig_steps", None)
     return _map_tree(rows, extra), ig_steps
 
@@ -328,19 +359,20 @@ def _camera_maps(x: np.ndarray, cams: Sequence[str], grid: tuple[int, int]) -> d
 def _result(
     model, obs, *, target, kinds, grad, relevance, score, logits, extra, ig_steps, token_ids, steps, positions, options
 ) -> MapResult:
-    """grad: (alpha, cam, token_norm) batch-first or None; relevance: the lrp kind's [..., C, N] batch-first or None;
-    extra: `_baseline_outputs` made batch-first."""
+    """grad: the gradient program's maps (`gradient_maps.gradient_kinds`) batch-first or None; relevance: the lrp
+    kind's [..., C, N] batch-first or None; extra: `_baseline_outputs` made batch-first."""
     cams = tuple(obs.images)
     n = model.config.siglip.num_tokens
     grid = model.config.siglip.grid
     alphas, grad_norms, by_kind = {}, {}, {}
     if grad is not None:
-        alpha, cam, token_norm = (np.asarray(x) for x in grad)
-        grad_norm = np.sqrt(np.sum(np.square(token_norm.astype(np.float64)), axis=-1)).astype(np.float32)  # [..., C]
-        gradient_maps = {"gradcam": cam, "gradnorm": token_norm}
-        by_kind.update({k: _camera_maps(m, cams, grid) for k, m in gradient_maps.items() if k in kinds})
-        alphas = {c: alpha[..., i, :] for i, c in enumerate(cams)}
-        grad_norms = {c: grad_norm[..., i] for i, c in enumerate(cams)}
+        grad = {k: np.asarray(v) for k, v in grad.items()}
+        by_kind.update({k: _camera_maps(grad[k], cams, grid) for k in GRADIENT_KINDS if k in kinds})
+        if "alpha" in grad:  # the token pass ran
+            token_norm = grad["gradnorm"].astype(np.float64)
+            grad_norm = np.sqrt(np.sum(np.square(token_norm), axis=-1)).astype(np.float32)  # [..., C]
+            alphas = {c: grad["alpha"][..., i, :] for i, c in enumerate(cams)}
+            grad_norms = {c: grad_norm[..., i] for i, c in enumerate(cams)}
     if relevance is not None:
         by_kind["lrp"] = _camera_maps(np.asarray(relevance), cams, grid)
     by_kind.update({k: extra[k] for k in BASELINE_KINDS if k in extra})
@@ -359,7 +391,7 @@ def _result(
         positions=positions,
         logits=None if logits is None else np.asarray(logits),
         ig_completeness=completeness,
-        options=options if any(k in BASELINE_KINDS for k in kinds) else None,
+        options=options if any(k in OPTION_KINDS for k in kinds) else None,
     )
 
 
@@ -498,7 +530,7 @@ def _explain_tokens(
 ) -> MapResult:
     """Token targets: the logit of targets[b, k] (the generated token, or a counterfactual) at each decode step k of
     `steps`, replaying `generated`; `squeeze` drops the token axis of a single step."""
-    kinds, options = check_kinds(kinds), options or MapOptions()
+    kinds, options = check_kinds(kinds, MODEL_KINDS), options or MapOptions()
     batch = generated.shape[0]
     steps, shared, steps_tb = _token_steps(steps, batch, generated.shape[1])
     t = steps.shape[1]
@@ -511,14 +543,15 @@ def _explain_tokens(
 
     grad = score = logits = None
     if any(k in GRADIENT_KINDS for k in kinds):
-        args = (model.params, obs, generated, targets, jnp.asarray(steps_tb))
-        static = {"decode_len": decode_len, "logits": with_logits}
+        inputs, static = gradient_maps.program_arguments(kinds, options)
+        args = (model.params, obs, generated, targets, jnp.asarray(steps_tb), inputs)
+        static |= {"decode_len": decode_len, "logits": with_logits}
         tokens = steps_tb.shape[0]
         cfg = remat.backward_layout(
             _token_gradient_maps, model.config, args, static, lambda c: backward_config(c, tokens)
         )
-        score, alpha, cam, token_norm, logits = _token_gradient_maps(*args, cfg=cfg, **static)
-        grad = tuple(batch_first(x) for x in (alpha, cam, token_norm))
+        score, grad, logits = _token_gradient_maps(*args, cfg=cfg, **static)
+        grad = {k: batch_first(v) for k, v in grad.items()}
         score = batch_first(score)
         logits = None if logits is None else batch_first(logits)
     target_spec = _token_target(targets, steps_tb)
@@ -622,7 +655,7 @@ def _explain_chunk(
 ) -> MapResult:
     """A chunk target given as `chunk_weights` returns it: weights [B, S], the explained steps of each row and
     whether every row explains the same ones."""
-    kinds, options = check_kinds(kinds), options or MapOptions()
+    kinds, options = check_kinds(kinds, MODEL_KINDS), options or MapOptions()
     batch = generated.shape[0]
     padded = np.full((batch, max(r.size for r in rows)), -1, np.int32)
     for b, r in enumerate(rows):
@@ -631,10 +664,10 @@ def _explain_chunk(
     target_spec = _weights_target(np.asarray(weights)[:, : generated.shape[1]])
     grad = score = None
     if any(k in GRADIENT_KINDS for k in kinds):
-        args, static = (model.params, obs, generated, target_spec), {"decode_len": decode_len}
+        inputs, static = gradient_maps.program_arguments(kinds, options)
+        args, static = (model.params, obs, generated, target_spec, inputs), static | {"decode_len": decode_len}
         cfg = remat.backward_layout(_chunk_gradient_maps, model.config, args, static)
-        score, alpha, cam, token_norm = _chunk_gradient_maps(*args, cfg=cfg, **static)
-        grad = (alpha, cam, token_norm)
+        score, grad = _chunk_gradient_maps(*args, cfg=cfg, **static)
     relevance = None
     if any(k in RELEVANCE_KINDS for k in kinds):
         lrp_score, relevance, _ = _relevance_outputs(model, obs, generated, target_spec, decode_len, False)

@@ -20,8 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 from numpy.typing import ArrayLike
 
-from openpi_cam.model import baseline_maps, lrp, lrp_maps, remat
-from openpi_cam.model.attribution import IgCompleteness, gradcam_reduce
+from openpi_cam.model import baseline_maps, gradient_maps, lrp, lrp_maps, remat
+from openpi_cam.model.attribution import IgCompleteness
 from openpi_cam.model.config import Pi0Config
 from openpi_cam.model.observation import Observation
 from openpi_cam.model.paligemma import embed_images
@@ -30,6 +30,8 @@ from openpi_cam.vocabulary import (
     BASELINE_KINDS,
     DEFAULT_KINDS,
     GRADIENT_KINDS,
+    MODEL_KINDS,
+    OPTION_KINDS,
     RELEVANCE_KINDS,
     MapOptions,
     check_kinds,
@@ -52,7 +54,7 @@ class FlowMaps:
     targets: tuple[tuple[int, int], ...]  # (h, d) per explained target; CHUNK for the whole chunk
     actions: np.ndarray  # float32 [B, H, A]: x_0, the explained actions (equal to the served ones)
     ig_completeness: IgCompleteness | None = None  # with "ig"; arrays [B, T]
-    options: MapOptions | None = None  # the options of the baseline kinds, when any was requested
+    options: MapOptions | None = None  # the map options, when a kind that depends on them was requested
 
 
 def _weights(x_0: jax.Array, targets: tuple[tuple[int, int], ...]) -> jax.Array:
@@ -66,15 +68,29 @@ def _weights(x_0: jax.Array, targets: tuple[tuple[int, int], ...]) -> jax.Array:
     return jnp.stack(weights)
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "targets"))
-def _flow_gradient_maps(params, obs, noise, *, cfg: Pi0Config, targets: tuple[tuple[int, int], ...]):
-    E = embed_images(params, obs, cfg)
-    x_0, vjp_fn = jax.vjp(lambda image_tokens: denoise(params, image_tokens, obs, noise, cfg), E)
-    weights = _weights(x_0, targets)  # [T, B, H, A]
-    G = jax.lax.map(lambda w: vjp_fn(w)[0], weights)  # [T, B, C, N, D]
-    alpha, cam, token_norm = gradcam_reduce(E, G)
-    score = jnp.einsum("tbha,bha->bt", weights, x_0)
-    return score, x_0, jnp.moveaxis(alpha, 0, 1), jnp.moveaxis(cam, 0, 1), jnp.moveaxis(token_norm, 0, 1)
+@functools.partial(jax.jit, static_argnames=("cfg", "targets", "program", "options"))
+def _flow_gradient_maps(
+    params,
+    obs,
+    noise,
+    inputs=None,
+    *,
+    cfg: Pi0Config,
+    targets: tuple[tuple[int, int], ...],
+    program=gradient_maps.TOKEN_PASS,
+    options=gradient_maps.COMPILED_DEFAULTS,
+):
+    """The gradient kinds of the targets (`gradient_maps.gradient_kinds` with passes `program`): one backward pass per
+    target from its weighting of x_0 through the Euler integration. -> score [B, T], x_0 [B, H, A], maps [B, T, ...]."""
+
+    def output_fn(image_tokens):
+        return denoise(params, image_tokens, obs, noise, cfg), None
+
+    x_0, _, grad = gradient_maps.gradient_kinds(
+        params, obs, cfg, output_fn, lambda x: _weights(x, targets), program, options, inputs
+    )
+    score = jnp.einsum("tbha,bha->bt", _weights(x_0, targets), x_0)
+    return score, x_0, {k: jnp.moveaxis(v, 0, 1) for k, v in grad.items()}
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "targets"))
@@ -131,11 +147,13 @@ def maps_for_actions(
     options: MapOptions | None = None,
 ) -> FlowMaps:
     """The requested map kinds of each target ((h, d), or `CHUNK`) for the actions sampled from `noise` [B, H, A]
-    (the served call's noise: the explained x_0 is the returned one). Grad-CAM and the gradient norm share one
-    backward pass per target; IG and occlusion compare with the baseline frame of `options`."""
+    (the served call's noise: the explained x_0 is the returned one). Grad-CAM, the gradient norm and gradient x
+    input share one backward pass per target, which taylor continues through SigLIP; smoothgrad repeats it at noisy
+    tokens; taylor, IG, occlusion and rise compare with the baseline frame of `options`; lrp runs a modified backward
+    pass of its own per target."""
     cfg = model.config
     targets = _checked_targets(cfg, targets)
-    kinds, options = check_kinds(kinds), options or MapOptions()
+    kinds, options = check_kinds(kinds, MODEL_KINDS), options or MapOptions()
     obs = preprocess(obs, cfg)
     noise = jnp.asarray(noise, jnp.float32)
     cams, grid, n = tuple(obs.images), cfg.siglip.grid, cfg.siglip.num_tokens
@@ -146,15 +164,16 @@ def maps_for_actions(
     by_kind, alphas, grad_norms, completeness = {}, {}, {}, None
     score = actions = None
     if any(k in GRADIENT_KINDS for k in kinds):
-        args, static = (model.params, obs, noise), {"targets": targets}
+        inputs, static = gradient_maps.program_arguments(kinds, options)
+        args, static = (model.params, obs, noise, inputs), static | {"targets": targets}
         flow_cfg = remat.backward_layout(_flow_gradient_maps, cfg, args, static)
-        score, actions, alpha, cam, token_norm = _flow_gradient_maps(*args, cfg=flow_cfg, **static)
-        cam, token_norm = np.asarray(cam), np.asarray(token_norm)  # [B, T, C, N]
-        grad_norm = np.sqrt(np.sum(np.square(token_norm.astype(np.float64)), axis=-1)).astype(np.float32)
-        gradient_maps = {"gradcam": per_camera(cam), "gradnorm": per_camera(token_norm)}
-        by_kind.update({k: gradient_maps[k] for k in GRADIENT_KINDS if k in kinds})
-        alphas = {c: np.asarray(alpha)[:, :, i] for i, c in enumerate(cams)}
-        grad_norms = {c: grad_norm[:, :, i] for i, c in enumerate(cams)}
+        score, actions, grad = _flow_gradient_maps(*args, cfg=flow_cfg, **static)
+        grad = {k: np.asarray(v) for k, v in grad.items()}  # [B, T, C, ...]
+        by_kind.update({k: per_camera(grad[k]) for k in GRADIENT_KINDS if k in kinds})
+        if "alpha" in grad:  # the token pass ran
+            grad_norm = np.sqrt(np.sum(np.square(grad["gradnorm"].astype(np.float64)), axis=-1)).astype(np.float32)
+            alphas = {c: grad["alpha"][:, :, i] for i, c in enumerate(cams)}
+            grad_norms = {c: grad_norm[:, :, i] for i, c in enumerate(cams)}
     if any(k in RELEVANCE_KINDS for k in kinds):
         args, static = (model.params, obs, noise), {"targets": targets}
         lrp_cfg = remat.backward_layout(_flow_relevance_maps, lrp.with_rules(cfg, "lrp"), args, static)
@@ -178,7 +197,7 @@ def maps_for_actions(
                 base_outputs=first_outputs and first,
             )
 
-        extra = baseline_maps.collect(run, cams, grid, kinds, options)
+        extra = baseline_maps.collect(run, cams, grid, kinds, options, baseline_maps.camera_validity(obs))
         batch_first = {k: {c: np.moveaxis(m, 0, 1) for c, m in extra[k].items()} for k in BASELINE_KINDS if k in extra}
         by_kind.update(batch_first)
         if "ig_check" in extra:
@@ -196,7 +215,7 @@ def maps_for_actions(
         targets=targets,
         actions=np.asarray(actions),
         ig_completeness=completeness,
-        options=options if any(k in BASELINE_KINDS for k in kinds) else None,
+        options=options if any(k in OPTION_KINDS for k in kinds) else None,
     )
 
 

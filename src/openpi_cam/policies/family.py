@@ -17,10 +17,19 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from openpi_cam.model import occlusion_head
 from openpi_cam.model.attribution import IgCompleteness
 from openpi_cam.model.init import randomized
 from openpi_cam.model.observation import Observation
-from openpi_cam.vocabulary import ExplainOptions, MapOptions, Target
+from openpi_cam.vocabulary import (
+    ACTION_FEATURES,
+    FEATURES_PREFIX,
+    OCCLUSION_HEAD,
+    PROMPT_FEATURES,
+    ExplainOptions,
+    MapOptions,
+    Target,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,6 +124,50 @@ def resolve_target(explainer: Explainer, target: str | None) -> Target:
     return target  # type: ignore[return-value]  (one of the family's targets)
 
 
+def request_head(explainer: Explainer, request: ExplainOptions) -> occlusion_head.OcclusionHead | None:
+    """The occlusion head a request applies (None when it does not ask for the `occlusion-head` kind); a request
+    without one, or with one fitted for another family or target, is refused in one line. `request.target` must be
+    resolved."""
+    if OCCLUSION_HEAD not in request.maps:
+        return None
+    if request.occlusion_head is None:
+        raise ValueError(
+            f"{OCCLUSION_HEAD} needs a head file: --head FILE (serve: --cam.head FILE); `openpi-cam head fit` fits one"
+        )
+    head = occlusion_head.load_ref(request.occlusion_head)
+    if head.family != explainer.family or head.target != request.target:
+        raise ValueError(
+            f"{request.occlusion_head.path}: the occlusion head was fitted on {head.target} maps of a "
+            f"{FAMILY_LABELS.get(head.family, head.family)} policy; this explains {request.target} of a "
+            f"{FAMILY_LABELS.get(explainer.family, explainer.family)} policy"
+        )
+    return head
+
+
+def model_kinds(request: ExplainOptions, head: occlusion_head.OcclusionHead | None) -> tuple[str, ...]:
+    """The kinds the model computes for a request: those it asks for, `occlusion-head` standing for its head's
+    inputs."""
+    kinds = (head.inputs if k == OCCLUSION_HEAD and head is not None else (k,) for k in request.maps)
+    return tuple(dict.fromkeys(k for group in kinds for k in group))
+
+
+def requested_maps(
+    request: ExplainOptions,
+    head: occlusion_head.OcclusionHead | None,
+    computed: Mapping[str, dict[str, np.ndarray]],
+) -> dict[str, dict[str, np.ndarray]]:
+    """The maps a row carries, in the request's order, from the maps the model computed for it (`model_kinds`): an
+    input kind of the head only when asked for, and `occlusion-head` as the head applied to the inputs' maps."""
+    return {k: head.predict(computed) if k == OCCLUSION_HEAD and head else computed[k] for k in request.maps}
+
+
+def head_details(request: ExplainOptions, head: occlusion_head.OcclusionHead | None) -> dict[str, Any]:
+    """The step metadata of the `occlusion-head` kind: which head (its file's SHA-256) and which kinds it read."""
+    if head is None or request.occlusion_head is None:
+        return {}
+    return {"occlusion_head": {"sha256": request.occlusion_head.sha256, "inputs": list(head.inputs)}}
+
+
 class OutputDecoder(Protocol):
     """Turns the model's raw output of one inference into a normalised action chunk."""
 
@@ -124,13 +177,25 @@ class OutputDecoder(Protocol):
 
 
 class Sampler(Protocol):
-    """A family's inference over B requests: (raw output [B, ...], what else was drawn, e.g. {"noise": [B, H, A]}).
-    Row i is what sampling request i alone with `rngs[i]` gives (B = 1 is upstream's call); `noise` None draws it
-    from the rngs as upstream does."""
+    """A family's inference over B requests: (raw output [B, ...], what else was drawn, e.g. {"noise": [B, H, A]},
+    and with `signals` what a failure monitor reads of the same call, each [B, ...] under `vocabulary`'s names:
+    pooled last-layer features and, for pi0-FAST, the token entropies and action-token flags; {} without). Row i is
+    what sampling request i alone with `rngs[i]` gives (B = 1 is upstream's call); `noise` None draws it from the
+    rngs as upstream does. The raw output is the same with signals or without."""
 
     def __call__(
-        self, rngs: Sequence[jax.Array], observation: Observation, noise: np.ndarray | None
-    ) -> tuple[np.ndarray, dict[str, np.ndarray]]: ...
+        self, rngs: Sequence[jax.Array], observation: Observation, noise: np.ndarray | None, *, signals: bool = False
+    ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]: ...
+
+
+def feature_signals(pooled: Mapping[str, Any]) -> dict[str, np.ndarray]:
+    """A model's pooled features (`cameras`: camera -> [B, D], `prompt` and, where present, `actions` [B, D]) under
+    their signal names (`features/<camera>`, `features/prompt`, `features/actions`), float32 on the host."""
+    named = {FEATURES_PREFIX + camera: x for camera, x in pooled["cameras"].items()}
+    named[PROMPT_FEATURES] = pooled["prompt"]
+    if "actions" in pooled:
+        named[ACTION_FEATURES] = pooled["actions"]
+    return {name: np.asarray(x, np.float32) for name, x in named.items()}
 
 
 def baseline_details(completeness: IgCompleteness | None, options: MapOptions | None, index: Any) -> dict[str, Any]:

@@ -31,6 +31,11 @@ from openpi_cam.policies.family import (
     ModelExplainer,
     Sampler,
     baseline_details,
+    feature_signals,
+    head_details,
+    model_kinds,
+    request_head,
+    requested_maps,
     resolve_target,
 )
 from openpi_cam.tokenizers.paligemma import load_paligemma_tokenizer
@@ -68,15 +73,21 @@ class FlowExplainer(ModelExplainer):
             if not (target[0] < cfg.action_horizon and target[1] < cfg.action_dim):
                 reason = f"action {target} requested, the chunk is [{cfg.action_horizon}, {cfg.action_dim}]"
                 return [ExplainSkipped("action_index_out_of_range", reason)] * len(outputs)
+        head = request_head(self, request)
+        kinds = model_kinds(request, head)
         res = maps_for_actions(
-            self.model, observation, sample_inputs["noise"], [target], kinds=request.maps, options=request.map_options
+            self.model, observation, sample_inputs["noise"], [target], kinds=kinds, options=request.map_options
         )
         replay_diff = np.abs(res.actions - np.asarray(outputs, np.float32)).max(axis=(1, 2))
         grid = list(self.camera_grid)
         return [
             Explanation(
                 target=request.target,
-                maps={k: {c: np.asarray(m[b, 0], np.float32) for c, m in res.by_kind[k].items()} for k in request.maps},
+                maps=requested_maps(
+                    request,
+                    head,
+                    {k: {c: np.asarray(m[b, 0], np.float32) for c, m in res.by_kind[k].items()} for k in kinds},
+                ),
                 score=float(res.score[b, 0]),
                 cameras={
                     c: {"valid": bool(res.valid[c][b]), "grid": grid, "span": list(res.spans[c])} for c in res.cameras
@@ -85,6 +96,7 @@ class FlowExplainer(ModelExplainer):
                     "action_index": None if target == CHUNK else list(target),
                     "replay_max_abs_diff": float(replay_diff[b]),
                     **baseline_details(res.ig_completeness, res.options, (b, 0)),
+                    **head_details(request, head),
                 },
             )
             for b in range(len(outputs))
@@ -123,11 +135,12 @@ class FlowParts:
 
 def flow_sampler(model: Pi0) -> Sampler:
     """The family's `Sampler`: each row's noise drawn as upstream's `sample_actions` draws it for a batch of one from
-    that request's key, or the caller's `noise` [horizon, action dim]; returns the chunk and the noise."""
+    that request's key, or the caller's `noise` [horizon, action dim]; returns the chunk, the noise and, asked, the
+    pooled features of the same call."""
 
     def sample(
-        rngs: Sequence[jax.Array], observation: Observation, noise: np.ndarray | None
-    ) -> tuple[np.ndarray, dict]:
+        rngs: Sequence[jax.Array], observation: Observation, noise: np.ndarray | None, *, signals: bool = False
+    ) -> tuple[np.ndarray, dict, dict]:
         shape = (observation.state.shape[0], model.config.action_horizon, model.config.action_dim)
         if noise is None:
             drawn = jnp.concatenate([jax.random.normal(rng, (1, *shape[1:])) for rng in rngs])
@@ -137,8 +150,11 @@ def flow_sampler(model: Pi0) -> Sampler:
             )
         else:
             drawn = jnp.asarray(noise, jnp.float32).reshape(shape)
-        actions = jax.block_until_ready(model.sample_actions(rngs[0], observation, noise=drawn))
-        return np.asarray(actions), {"noise": np.asarray(drawn)}
+        if not signals:
+            actions = jax.block_until_ready(model.sample_actions(rngs[0], observation, noise=drawn))
+            return np.asarray(actions), {"noise": np.asarray(drawn)}, {}
+        actions, recorded = jax.block_until_ready(model.sample_with_signals(observation, drawn))
+        return np.asarray(actions), {"noise": np.asarray(drawn)}, feature_signals(jax.device_get(recorded))
 
     return sample
 

@@ -21,6 +21,7 @@ from openpi_cam.errors import InvalidRequest
 from openpi_cam.model import pi0_fast_maps
 from openpi_cam.model.config import EOS_TOKEN
 from openpi_cam.model.observation import Observation
+from openpi_cam.model.occlusion_head import OcclusionHead
 from openpi_cam.model.pi0_fast import Pi0FAST
 from openpi_cam.model.pi0_fast_maps import MapResult
 from openpi_cam.policies.config import PolicyConfig
@@ -30,13 +31,25 @@ from openpi_cam.policies.family import (
     ModelExplainer,
     Sampler,
     baseline_details,
+    feature_signals,
+    head_details,
+    model_kinds,
+    request_head,
+    requested_maps,
     resolve_target,
 )
 from openpi_cam.tokenizers.fast import FastActionTokenizer, resolve_fast_tokenizer_dir
 from openpi_cam.tokenizers.paligemma import load_paligemma_tokenizer
 from openpi_cam.tokenizers.pi0_fast import Pi0FastTokenizer
 from openpi_cam.transforms import ExtractFASTActions, TokenizeFASTInputs
-from openpi_cam.vocabulary import DEFAULT_TARGETS, FALLBACK_TARGET, ExplainOptions, MapOptions
+from openpi_cam.vocabulary import (
+    ACTION_TOKENS,
+    DEFAULT_TARGETS,
+    FALLBACK_TARGET,
+    TOKEN_ENTROPIES,
+    ExplainOptions,
+    MapOptions,
+)
 
 TOKEN_TARGETS = ("action-token", "all-action-tokens")  # one score per explained token
 SEQUENCE_TARGETS = ("chunk", FALLBACK_TARGET)  # one score: a sum of log-probabilities
@@ -102,7 +115,8 @@ class FastExplainer(ModelExplainer):
         results: list[Explanation | ExplainSkipped | None] = [
             p if isinstance(p, ExplainSkipped) else None for p in plans
         ]
-        maps_args = {"kinds": request.maps, "options": request.map_options}
+        head = request_head(self, request)
+        maps_args = {"kinds": model_kinds(request, head), "options": request.map_options}
         token_rows = [b for b, p in enumerate(plans) if isinstance(p, _RowPlan) and p.target in TOKEN_TARGETS]
         sequence_rows = [b for b, p in enumerate(plans) if isinstance(p, _RowPlan) and p.target in SEQUENCE_TARGETS]
         # Each group is one model call over the whole batch (rows outside it ride along on a harmless step), so that
@@ -112,15 +126,17 @@ class FastExplainer(ModelExplainer):
                 self.model, observation, generated, _step_matrix(plans, token_rows), **maps_args, logits=False
             )
             for b in token_rows:
-                results[b] = self._row(res, b, plans[b], request)  # type: ignore[arg-type]
+                results[b] = self._row(res, b, plans[b], request, head)  # type: ignore[arg-type]
         if sequence_rows:
             lists = [p.steps if b in sequence_rows else np.zeros(1, np.int32) for b, p in enumerate(plans)]
             res = pi0_fast_maps.maps_for_chunk(self.model, observation, generated, lists, **maps_args)
             for b in sequence_rows:
-                results[b] = self._row(res, b, plans[b], request)  # type: ignore[arg-type]
+                results[b] = self._row(res, b, plans[b], request, head)  # type: ignore[arg-type]
         return [r for r in results if r is not None]
 
-    def _row(self, res: MapResult, b: int, plan: _RowPlan, request: ExplainOptions) -> Explanation:
+    def _row(
+        self, res: MapResult, b: int, plan: _RowPlan, request: ExplainOptions, head: OcclusionHead | None
+    ) -> Explanation:
         t = plan.steps.size
         if plan.target in SEQUENCE_TARGETS:
             index: Any = b
@@ -140,12 +156,19 @@ class FastExplainer(ModelExplainer):
         }
         return Explanation(
             target=plan.target,
-            maps={k: {c: np.asarray(m[index], np.float32) for c, m in res.by_kind[k].items()} for k in request.maps},
+            maps=requested_maps(
+                request,
+                head,
+                {
+                    k: {c: np.asarray(m[index], np.float32) for c, m in per_camera.items()}
+                    for k, per_camera in res.by_kind.items()
+                },
+            ),
             score=score,
             cameras={
                 c: {"valid": bool(res.valid[c][b]), "grid": grid, "span": list(res.spans[c])} for c in res.cameras
             },
-            details=details | baseline_details(res.ig_completeness, res.options, index),
+            details=details | baseline_details(res.ig_completeness, res.options, index) | head_details(request, head),
         )
 
     def rescore(
@@ -186,6 +209,28 @@ def _step_matrix(plans: Sequence[_RowPlan | ExplainSkipped], rows: Sequence[int]
     return steps
 
 
+def generation_signals(
+    tokenizer: Pi0FastTokenizer, generated: np.ndarray, recorded: Mapping[str, Any]
+) -> dict[str, np.ndarray]:
+    """What a failure monitor reads of B generations (`Pi0FAST.sample_with_signals`'s arrays on the host): the
+    pooled prefix features, `features/actions` (the mean of the pre-logits that chose each action token, float32 [D];
+    NaN for a generation without action tokens), each token's entropy and the flags of the action tokens (the
+    tokens `extract_actions` reads, as the explainer's targets find them)."""
+    hidden = np.asarray(recorded["hidden"])
+    flags = np.zeros(generated.shape, bool)
+    pooled = np.full((generated.shape[0], hidden.shape[-1]), np.nan, np.float32)
+    for b, row in enumerate(generated):
+        steps = np.asarray(tokenizer.action_token_steps(row), np.int64)
+        flags[b, steps] = True
+        if steps.size:
+            pooled[b] = hidden[b, steps].astype(np.float64).mean(axis=0)
+    return {
+        **feature_signals({**recorded, "actions": pooled}),
+        TOKEN_ENTROPIES: np.asarray(recorded["entropy"], np.float32),
+        ACTION_TOKENS: flags,
+    }
+
+
 @dataclasses.dataclass(frozen=True)
 class FastParts:
     """What `create_policy` needs from the family, built from local files only."""
@@ -224,16 +269,19 @@ def build_pi0_fast(
     stop_ids = tuple(tokenizer.end_of_action_token_ids) if stop_at_action_end else ()
 
     def sample(
-        rngs: Sequence[jax.Array], observation: Observation, noise: np.ndarray | None
-    ) -> tuple[np.ndarray, dict]:
+        rngs: Sequence[jax.Array], observation: Observation, noise: np.ndarray | None, *, signals: bool = False
+    ) -> tuple[np.ndarray, dict, dict]:
         if noise is not None:
             raise InvalidRequest("pi0-FAST decodes tokens: it takes no noise")
         # Greedy decoding draws nothing from the rng; `rows_alone` ends each row at its own EOS, as if served alone
         # (for one row it is upstream's loop).
-        tokens = model.sample_actions(
-            rngs[0], observation, max_decoding_steps=max_decoding_steps, stop_token_ids=stop_ids, rows_alone=True
-        )
-        return np.asarray(jax.block_until_ready(tokens)).astype(np.int32), {}
+        decoding = {"max_decoding_steps": max_decoding_steps, "stop_token_ids": stop_ids, "rows_alone": True}
+        if not signals:
+            tokens = model.sample_actions(rngs[0], observation, **decoding)
+            return np.asarray(jax.block_until_ready(tokens)).astype(np.int32), {}, {}
+        tokens, recorded = model.sample_with_signals(rngs[0], observation, **decoding)
+        generated = np.asarray(jax.block_until_ready(tokens)).astype(np.int32)
+        return generated, {}, generation_signals(tokenizer, generated, jax.device_get(recorded))
 
     decoder = ExtractFASTActions(tokenizer, action_horizon=config.action_horizon, action_dim=config.action_dim)
     return FastParts(

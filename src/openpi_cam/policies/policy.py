@@ -42,6 +42,7 @@ from openpi_cam.transforms import (
     compose,
     parse_prompt,
 )
+from openpi_cam.vocabulary import NORMALIZED_CHUNK
 
 logger = logging.getLogger(__name__)
 _REQUESTS = "requests"  # counted beside the malformed reasons
@@ -69,6 +70,9 @@ class InferenceTrace:
     # what the input transforms left for the output transforms (`OUTPUT_CONTEXT`): with the state, what turns the
     # raw output into the robot's actions again (`Policy.resample`)
     output_context: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    # what a failure monitor reads of this call (`vocabulary`'s names: pooled features, pi0-FAST's token entropies
+    # and action-token flags, the normalised chunk), computed by the served call itself when asked (`signals=True`)
+    signals: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
 
     @property
     def camera_names(self) -> tuple[str, ...]:
@@ -204,23 +208,25 @@ class Policy:
         return [r if isinstance(r, Exception) else r[0] for r in self.infer_batch_traced(observations)]
 
     def infer_traced(
-        self, obs: Mapping[str, Any], *, noise: np.ndarray | None = None
+        self, obs: Mapping[str, Any], *, noise: np.ndarray | None = None, signals: bool = False
     ) -> tuple[dict[str, Any], InferenceTrace]:
+        """`infer` and the trace of the call; with `signals` the trace also holds what a failure monitor reads of the
+        call (`InferenceTrace.signals`), computed by the same model call, whose response is the one without."""
         request = self._prepare(obs)
         with self._lock:  # like upstream: the policy's rng is split once per call
             self._rng, sample_rng = jax.random.split(self._rng)
-        (result,) = self._serve([request], [sample_rng], noise)
+        (result,) = self._serve([request], [sample_rng], noise, signals=signals)
         if isinstance(result, Exception):
             raise result
         return result
 
     def infer_batch_traced(
-        self, observations: Sequence[Mapping[str, Any]]
+        self, observations: Sequence[Mapping[str, Any]], *, signals: bool = False
     ) -> list[tuple[dict[str, Any], InferenceTrace] | Exception]:
         """Several requests (e.g. from different robots) in one model call per input shape. Row i gets what
-        `infer_traced(observations[i])` returns when the requests are served one after another in this order: the
-        rng is split once per valid request, in order, and the sampler decodes each row as if alone. A request that
-        fails gets its exception in its slot; the others are still served."""
+        `infer_traced(observations[i], signals=signals)` returns when the requests are served one after another in
+        this order: the rng is split once per valid request, in order, and the sampler decodes each row as if alone.
+        A request that fails gets its exception in its slot; the others are still served."""
         results: list[tuple[dict[str, Any], InferenceTrace] | Exception | None] = []
         prepared: list[tuple[int, _Prepared]] = []
         for i, obs in enumerate(observations):
@@ -240,17 +246,17 @@ class Policy:
         for k, (_, request) in enumerate(prepared):
             groups.setdefault(request.signature, []).append(k)
         for members in groups.values():
-            served = self._serve([prepared[k][1] for k in members], [rngs[k] for k in members], None)
+            served = self._serve([prepared[k][1] for k in members], [rngs[k] for k in members], None, signals=signals)
             for k, result in zip(members, served, strict=True):
                 results[prepared[k][0]] = result
         return results  # type: ignore[return-value]  (every slot is filled above)
 
-    def warm_up(self, batch_sizes: Sequence[int] = (1,)) -> InferenceTrace | None:
-        """Compiles inference for the served shapes (and each of `batch_sizes`, for batched serving) by running the
-        robot's example observation (model inputs have fixed shapes whatever the client's image size), so the first
-        request does not wait for XLA. The policy's rng stream and counters are untouched: served actions stay
-        upstream's. Returns the example's trace (the side channel warms its explanation with it), or None when the
-        robot transform offers no example."""
+    def warm_up(self, batch_sizes: Sequence[int] = (1,), *, signals: bool = False) -> InferenceTrace | None:
+        """Compiles inference for the served shapes (and each of `batch_sizes`, for batched serving; with `signals`
+        the program that also computes them) by running the robot's example observation (model inputs have fixed
+        shapes whatever the client's image size), so the first request does not wait for XLA. The policy's rng stream
+        and counters are untouched: served actions stay upstream's. Returns the example's trace (the side channel
+        warms its explanation with it), or None when the robot transform offers no example."""
         example = example_observation(self._robot_inputs)
         if example is None:
             return None
@@ -259,7 +265,7 @@ class Policy:
             _, sample_rng = jax.random.split(self._rng)  # compiles the per-request split; self._rng is not advanced
         traces = []
         for size in sorted({batch_bucket(n) for n in batch_sizes}):
-            result = self._serve([request] * size, [sample_rng] * size, None, count=False)[0]
+            result = self._serve([request] * size, [sample_rng] * size, None, count=False, signals=signals)[0]
             if isinstance(result, Exception):
                 raise result
             traces.append(result[1])
@@ -289,6 +295,7 @@ class Policy:
         noise: np.ndarray | None,
         *,
         count: bool = True,
+        signals: bool = False,
     ) -> list[tuple[dict[str, Any], InferenceTrace] | Exception]:
         """One model call for requests of one input signature, padded to a batch bucket (padding rows repeat the
         last request; their outputs are dropped); then each row's output transforms and trace."""
@@ -300,14 +307,19 @@ class Policy:
             observation = jax.tree.map(lambda x: pad_rows(x, padded), stacked)
         start = time.monotonic()
         try:
-            raw, drawn = self._sample(list(rngs) + [rngs[-1]] * (padded - rows), observation, noise)
+            raw, drawn, monitored = self._sample(
+                list(rngs) + [rngs[-1]] * (padded - rows), observation, noise, signals=signals
+            )
         except Exception as e:  # every row of this call failed the same way
             return [e] * rows
         model_time = time.monotonic() - start
         results: list[tuple[dict[str, Any], InferenceTrace] | Exception] = []
         for i, request in enumerate(requests):
             try:
-                results.append(self._finish(request, raw[i], {k: v[i] for k, v in drawn.items()}, model_time))
+                row = {k: v[i] for k, v in monitored.items()}
+                results.append(
+                    self._finish(request, raw[i], {k: v[i] for k, v in drawn.items()}, model_time, row, signals)
+                )
             except Exception as e:
                 results.append(e)
                 continue
@@ -318,11 +330,22 @@ class Policy:
         return results
 
     def _finish(
-        self, request: _Prepared, raw: np.ndarray, drawn: dict[str, np.ndarray], model_time: float
+        self,
+        request: _Prepared,
+        raw: np.ndarray,
+        drawn: dict[str, np.ndarray],
+        model_time: float,
+        monitored: dict[str, np.ndarray],
+        signals: bool,
     ) -> tuple[dict[str, Any], InferenceTrace]:
         output = np.asarray(raw)
         actions, reason = self._decoder.extract(output)
+        normalized = np.array(actions, np.float64)  # copied before the output transforms see the chunk
         outputs = self._output_transform({**request.context, "state": request.state, "actions": actions})
+        if signals:
+            # the robot's action dimensions lead the model's (a config pads actions at the end), and only they are
+            # executed: a monitor compares chunks over those
+            monitored = {**monitored, NORMALIZED_CHUNK: normalized[..., : np.shape(outputs["actions"])[-1]]}
         outputs["policy_timing"] = {"infer_ms": model_time * 1000}
         cameras = request.observation.camera_names
         images, sources = request.pre_resize_images, request.camera_sources
@@ -338,6 +361,7 @@ class Policy:
             client_inputs=request.client_inputs,
             request=request.request,
             output_context=request.context,
+            signals=monitored,
         )
         return outputs, trace
 
@@ -349,7 +373,7 @@ class Policy:
         noise = trace.sample_inputs.get("noise")
         with self._lock:
             _, rng = jax.random.split(self._rng)  # unused by the families' samplers given the noise (pi0-FAST greedy)
-        raw, _ = self._sample([rng], observation, None if noise is None else np.asarray(noise))
+        raw, _, _ = self._sample([rng], observation, None if noise is None else np.asarray(noise))
         return self._robot_actions(trace, raw[0])
 
     def served_actions(self, trace: InferenceTrace) -> np.ndarray:

@@ -1,0 +1,228 @@
+"""The failure monitor over recorded rollouts: `explain-dataset` writes every row's monitor columns (STAC-single
+between explained frames one execution horizon apart, the token entropy, the pooled features when asked, the score
+and flag with a monitor), `openpi-cam monitor fit` fits a monitor on them, and the same frames score the same live
+(served through the real server and side channel) and offline (explained by `explain-dataset`).
+
+The rollouts are the bundled pi0-FAST's own under the demo's perturbations (`demo --record`: one frame per executed
+action, `next.success`), recorded once per module; frames are explained every 5th, where the robot asked."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import shutil
+
+import numpy as np
+import pytest
+from client_env import collect
+from datasets_support import model_job
+from real_clients import send_observations
+
+from openpi_cam import cli
+from openpi_cam.cam.monitoring import LiveMonitor
+from openpi_cam.cam.run_format import load_run
+from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
+from openpi_cam.checkpoints.model_spec import create_demo_policy
+from openpi_cam.demo.run import ROLLOUT_FPS, DemoOptions, run_demo
+from openpi_cam.lerobot.dataset import open_dataset
+from openpi_cam.lerobot.rollouts import RolloutRecorder
+from openpi_cam.maps import dataset as fmt
+from openpi_cam.maps.explain import _observation, run_local
+from openpi_cam.maps.monitoring import read_rollouts
+from openpi_cam.monitor import monitor_file
+from openpi_cam.monitor.stream import DEFAULT_EXECUTION_HORIZON
+from openpi_cam.policies import demo_reach
+from openpi_cam.serving.server import start_server_in_thread
+from openpi_cam.vocabulary import ExplainOptions
+
+HORIZON = DEFAULT_EXECUTION_HORIZON  # the demo robot executes 5 actions per call
+# The options of tests/datasets' other jobs, so that compiled programs are shared.
+OPTIONS = ExplainOptions(target="action-token", maps=("gradcam", "gradnorm"), check_patches=2)
+FEATURES = ["features/base_0_rgb", "features/wrist_0_rgb", "features/prompt", "features/actions"]
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    """Six closed-loop episodes of at most 3 calls, clean and with the named block absent (which fail)."""
+    root = tmp_path_factory.mktemp("rollouts") / "demo_rollouts"
+    options = DemoOptions(num_episodes=6, max_calls=3, perturb=("clean", "absent"), explain=False)
+    with RolloutRecorder(root, fps=ROLLOUT_FPS, robot_type=demo_reach.ASSET_ID) as recorder:
+        result = run_demo(options, sink=recorder)
+    assert 2 <= sum(e["success"] for e in result.episodes) < 6  # successes to calibrate on, failures to rank
+    return root
+
+
+@pytest.fixture(scope="module")
+def featured(recorded, tmp_path_factory):
+    """The rollouts explained with the pooled features written (what a monitor is fitted on)."""
+    out = tmp_path_factory.mktemp("maps") / "featured.maps"
+    run_local(model_job(recorded, out, OPTIONS, batch_size=4, every=HORIZON, monitor_features=True))
+    return fmt.open_maps_dataset(out)
+
+
+def test_rows_carry_stac_between_calls_a_horizon_apart_the_token_entropy_and_the_features(featured):
+    info = featured.info
+    assert info.execution_horizon == HORIZON and info.monitor is None and info.monitor_features == FEATURES
+    rows = featured.table().to_pylist()
+    assert rows
+    for row in rows:
+        first = row["frame_index"] == 0
+        assert (row["monitor/stac"] is None) == first  # the episode's first call has no previous chunk
+        assert row["monitor/stac"] is None or row["monitor/stac"] >= 0
+        assert 0 < row["monitor/token_entropy"] < math.log(257_152)  # nats, over the action tokens
+        assert row["monitor/score"] is None and row["monitor/flag"] is None  # no monitor
+        for name in FEATURES:
+            assert len(row["monitor/" + name]) == 128
+    # the schema stores the features as float32, as the served call computed them
+    assert featured.table(columns=["monitor/features/prompt"]).schema.field(0).type.value_type == "float"
+
+
+def test_stac_is_null_where_explained_frames_do_not_lie_a_horizon_apart(recorded, tmp_path):
+    """Explained every 5th frame but for a robot executing 10 actions per call: no two explained frames are one
+    call apart, so no row has a STAC."""
+    out = tmp_path / "ten.maps"
+    run_local(model_job(recorded, out, OPTIONS, batch_size=4, every=HORIZON, episodes=(0,), execution_horizon=10))
+    maps = fmt.open_maps_dataset(out)
+    assert maps.info.execution_horizon == 10
+    assert [r["monitor/stac"] for r in maps.table().to_pylist()] == [None] * maps.table().num_rows
+
+
+def test_monitor_fit_saves_a_monitor_and_prints_its_auroc_and_threshold(featured, tmp_path, capsys):
+    out = tmp_path / "probe.json"
+    cli.main(["monitor", "fit", str(featured.root), "--out", str(out), "--alpha", "0.2"])
+    printed = capsys.readouterr().out
+    monitor = monitor_file.load(out)
+    assert monitor.kind == "probe" and monitor.execution_horizon == HORIZON and monitor.alpha == 0.2
+    assert [i.name for i in monitor.inputs] == sorted([*FEATURES, "stac", "token_entropy"])
+    assert monitor.fit["maps"] == [str(featured.root)]
+    for line in ("monitor ", "inputs ", "episodes ", "training ", "threshold ", "calibration "):
+        assert any(row.startswith(line) for row in printed.splitlines()), printed
+    assert "AUROC" in printed and "for alpha 0.2" in printed and "false alarms" in printed
+    # the same episodes and flags give the same file
+    again = tmp_path / "again.json"
+    cli.main(["monitor", "fit", str(featured.root), "--out", str(again), "--alpha", "0.2"])
+    assert again.read_text() == out.read_text()
+    # a STAC monitor reads its one input, and --kind mahalanobis the inputs named
+    cli.main(["monitor", "fit", str(featured.root), "--out", str(tmp_path / "stac.json"), "--kind", "stac"])
+    assert [i.name for i in monitor_file.load(tmp_path / "stac.json").inputs] == ["stac"]
+    named = ["--kind", "mahalanobis", "--inputs", "features/prompt", "stac", "--max-dims", "4"]
+    cli.main(["monitor", "fit", str(featured.root), "--out", str(tmp_path / "m.json"), *named])
+    mahalanobis = monitor_file.load(tmp_path / "m.json")
+    assert [i.name for i in mahalanobis.inputs] == ["features/prompt", "stac"] and mahalanobis.basis.dims <= 4
+
+
+def _fit_error(argv: list[str], capsys) -> str:
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["monitor", "fit", *argv])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and err.startswith("openpi-cam monitor fit: "), err
+    return err
+
+
+def test_monitor_fit_refuses_flags_of_another_kind_and_bad_input_in_one_line(featured, tmp_path, capsys):
+    maps, out = str(featured.root), str(tmp_path / "m.json")
+    assert "--l2 is read by --kind probe, not mahalanobis" in _fit_error(
+        [maps, "--out", out, "--kind", "mahalanobis", "--l2", "1"], capsys
+    )
+    assert "--temporal is read by" in _fit_error([maps, "--out", out, "--kind", "stac", "--temporal"], capsys)
+    assert "--alpha must be in (0, 1)" in _fit_error([maps, "--out", out, "--alpha", "1.5"], capsys)
+    assert "no column 'features/elbow'" in _fit_error([maps, "--out", out, "--inputs", "features/elbow"], capsys)
+    assert "is not a maps dataset" in _fit_error([str(tmp_path), "--out", out], capsys)
+    for edit, wanted in [
+        ({"outcome": None}, "carry no episode outcomes"),
+        ({"execution_horizon": None}, "have no monitor columns"),
+    ]:
+        copy = tmp_path / f"copy-{len(wanted)}"
+        shutil.copytree(featured.root, copy)
+        info = json.loads((copy / fmt.INFO_JSON).read_text())
+        (copy / fmt.INFO_JSON).write_text(json.dumps({**info, **edit}))
+        assert wanted in _fit_error([str(copy), "--out", out], capsys)
+    assert not (tmp_path / "m.json").exists()
+
+
+@pytest.fixture(scope="module")
+def fitted(featured, tmp_path_factory):
+    """A Mahalanobis monitor on the features and STAC, its threshold at the calibration successes' lowest maximum
+    (a low one, so that some episodes are flagged and the flags are checked)."""
+    path = tmp_path_factory.mktemp("monitor") / "monitor.json"
+    inputs = ["--inputs", "features/base_0_rgb", "features/prompt", "stac", "--max-dims", "4"]
+    cli.main(["monitor", "fit", str(featured.root), "--out", str(path), "--kind", "mahalanobis", *inputs])
+    rollouts = read_rollouts([featured.root])
+    monitor = monitor_file.load(path)
+    maxima = [np.nanmax(monitor.score_steps(e.matrix(monitor.inputs))) for e in rollouts.episodes]
+    monitor_file.save(dataclasses.replace(monitor, threshold=float(np.median(maxima))), path)
+    return path
+
+
+def _scoring_job(recorded, out, monitor):
+    return model_job(recorded, out, OPTIONS, batch_size=4, every=HORIZON, monitor=monitor)
+
+
+@pytest.fixture(scope="module")
+def scored(recorded, fitted, tmp_path_factory):
+    out = tmp_path_factory.mktemp("maps") / "scored.maps"
+    run_local(_scoring_job(recorded, out, fitted))
+    return fmt.open_maps_dataset(out)
+
+
+def test_explain_dataset_scores_each_episode_as_the_monitor_scores_it_whole(featured, scored, fitted):
+    monitor = monitor_file.load(fitted)
+    info = scored.info
+    assert info.monitor == str(fitted.resolve()) and len(info.monitor_sha256) == 64
+    rollouts = read_rollouts([featured.root])
+    flagged = 0
+    for (_, episode), e in zip(rollouts.names, rollouts.episodes, strict=True):
+        rows = scored.table(episode).to_pylist()
+        expected = monitor.score_steps(e.matrix(monitor.inputs))
+        np.testing.assert_array_equal([r["monitor/score"] for r in rows], expected)
+        flags = np.maximum.accumulate(expected) > monitor.threshold
+        assert [r["monitor/flag"] for r in rows] == flags.tolist()
+        flagged += bool(flags[-1])
+    assert 0 < flagged < len(rollouts.episodes)
+
+
+def test_a_resumed_job_refuses_another_monitor(recorded, scored, fitted, tmp_path):
+    other = dataclasses.replace(monitor_file.load(fitted), alpha=0.3)
+    with pytest.raises(ValueError, match="monitor_sha256"):
+        run_local(_scoring_job(recorded, scored.root, monitor_file.save(other, tmp_path / "other.json")))
+    moved = shutil.copy(fitted, tmp_path / "moved.json")  # the same monitor elsewhere: its content decides
+    summary = run_local(_scoring_job(recorded, scored.root, moved))
+    assert summary.episodes_written == 0 and summary.episodes_already_written == 6
+
+
+def test_the_same_frames_score_the_same_live_and_offline(recorded, scored, fitted, tmp_path):
+    """Each episode's request frames (every 5th frame, where the robot asked) sent by the real openpi-client on one
+    connection to the real server, the side channel explaining and the monitor scoring every call: each step file's
+    score is the maps dataset's for that frame. Both run the same compiled program on the same inputs, so the
+    scores are the same numbers (measured: no difference at all); a float32 difference of the signals, had the
+    programs differed, would show here as one."""
+    policy = create_demo_policy()
+    live = LiveMonitor(monitor_file.load(fitted), fitted.name)
+    options = CAMOptions(every_k=1, dir=tmp_path / "runs", save_frames="none", queue_size=64)  # room for every call
+    cam = wrap_policy_with_cam(policy, options, monitor=live)
+    server = start_server_in_thread(cam, metadata=policy.metadata)
+    job = model_job(recorded, tmp_path / "unused", OPTIONS)
+    ds = open_dataset(recorded)
+    sent = {}
+    try:
+        for episode in ds.episodes:
+            wanted = range(0, ds.episode_length(episode), HORIZON)
+            frames = list(ds.frames(episode, features=sorted(set(job.keys.values())), frame_indices=wanted))
+            observations = [_observation(frame, job) for frame in frames]
+            collect(send_observations(server.port, tmp_path / f"client{episode}", observations))
+            sent[episode] = [int(f["frame_index"]) for f in frames]
+    finally:
+        server.stop()
+    steps = load_run(cam.run_dir).steps
+    connections = sorted({s.meta.connection for s in steps})  # one per episode, numbered in the order they came
+    assert len(connections) == len(sent)
+    compared = 0
+    for connection, episode in zip(connections, sorted(sent), strict=True):
+        offline = {r["frame_index"]: r["monitor/score"] for r in scored.table(episode).to_pylist()}
+        for step in (s for s in steps if s.meta.connection == connection):
+            frame = sent[episode][step.meta.step]
+            assert float(step.monitor["score"]) == offline[frame], (episode, frame)
+            compared += 1
+    assert compared == scored.table().num_rows
