@@ -36,7 +36,7 @@ def test_each_added_kind_through_the_side_channel_spot_check_faithfulness_render
     prefix, equal to the explainer's own maps of that call; the step records the options; the spot check paints each
     kind's top patch; the faithfulness report, render and stats take each kind."""
     options = CAMOptions(
-        every_k=1, cam_dir=tmp_path / "cam", save_frames="both", maps=ADDED, map_options=OPTIONS, check_patches=2
+        every_k=1, dir=tmp_path / "cam", save_frames="both", maps=ADDED, map_options=OPTIONS, check_patches=2
     )
     wrapped = wrap_policy_with_cam(demo_policy, options, run_config={"config": "demo_reach"}, checkpoint="demo")
     observations = [policy_part(demo_obs(300 + i)) for i in range(2)]
