@@ -188,6 +188,31 @@ def write(out: Path, sim: str = "reach") -> None:
         )
 
 
+def expect(out: Path, roots: list[Path], frames: int | None) -> None:
+    """Datasets written elsewhere (a training recording, `demo --record`'s rollouts): each linked into `out` with
+    what our reader returns for its first `frames` frames (all when None) as the expected values, video frames as
+    both the frames given and our decoding (so the codec figure compares LeRobot's decoding with ours again)."""
+    from openpi_cam.lerobot.dataset import open_dataset
+
+    out.mkdir(parents=True, exist_ok=True)
+    for root in roots:
+        ours = open_dataset(root)
+        total = int(json.loads(ours.info_path.read_text())["total_frames"])
+        rows: list[dict] = []
+        for episode in ours.episodes:  # only the episodes that hold the first `frames` frames are decoded
+            if frames is not None and len(rows) >= frames:
+                break
+            rows += list(ours.frames(episode))
+        rows = rows[:frames]
+        names = [k for k in rows[0] if k in ours.features or k == "task"]
+        expected = {k: np.stack([np.asarray(f[k]) for f in rows]) for k in names}
+        for name in ours.camera_features:
+            expected[f"decoded/{name}"] = expected[name]
+        (out / root.name).symlink_to(root.resolve())
+        np.savez_compressed(out / f"{root.name}.expected.npz", **expected, total_frames=np.int64(total))
+        print(json.dumps({"dataset": str(root), "frames": total, "expected_frames": len(rows)}))
+
+
 def _uint8(image) -> np.ndarray:
     """LeRobot's float [C, H, W] in [0, 1] as uint8 [H, W, C]."""
     return (image.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
@@ -205,10 +230,12 @@ def check(out: Path) -> bool:
         images = [k for k, f in features.items() if f["dtype"] == "image"]
         columns = [k for k in expected.files if k in features and k not in videos + images]
         n = len(expected["action"])
+        total = int(expected["total_frames"]) if "total_frames" in expected.files else n  # `expect`'s first frames
         report = {
             "dataset": str(path),
             "lerobot_frames": len(ds),
-            "written_frames": n,
+            "written_frames": total,
+            "compared_frames": n,
             "episodes": ds.meta.total_episodes,
             "tasks": ds.meta.total_tasks,
             "data_files": len({str(ds.meta.get_data_file_path(e)) for e in range(ds.meta.total_episodes)}),
@@ -217,7 +244,7 @@ def check(out: Path) -> bool:
             "video_max_diff_vs_our_reader": dict.fromkeys(videos, 0),
             "video_worst_frame_mean_error_vs_given": dict.fromkeys(videos, 0.0),
         }
-        ok &= len(ds) == n
+        ok &= len(ds) == total
         # the columns as LeRobot's loaded table holds them, before its torch conversion: exact, in their own dtype
         table = ds.hf_dataset.data
         for key in columns:
@@ -262,12 +289,18 @@ def check(out: Path) -> bool:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("step", choices=["write", "check"])
+    parser.add_argument("step", choices=["write", "expect", "check"])
     parser.add_argument("out", type=Path)
+    parser.add_argument("datasets", type=Path, nargs="*", help="expect: LeRobot datasets written elsewhere")
     parser.add_argument("--sim", choices=["reach", "metaworld"], default="reach", help="write: which demo's rollouts")
+    parser.add_argument("--frames", type=int, default=None, help="expect: compare the first FRAMES frames (all)")
     args = parser.parse_args()
+    if args.datasets and args.step != "expect":
+        parser.error("datasets are expect's: write records its own, check reads OUT")
     if args.step == "write":
         write(args.out, args.sim)
+    elif args.step == "expect":
+        expect(args.out, args.datasets, args.frames)
     elif not check(args.out):
         print("MISMATCH: LeRobot does not return what was written", file=sys.stderr)
         sys.exit(1)

@@ -750,6 +750,7 @@ def test_every_kind_in_one_pi0_fast_call_is_each_groups_own(demo, target):
         assert every.logits is not None and every.logits.shape[:2] == (2, 3)
 
 
+@pytest.mark.slow  # four compilations of the flow model; the pi0-FAST chunk case keeps the fast tier's check
 def test_every_kind_in_one_pi05_call_is_each_groups_own(demo_pi05_policy):
     """The demo pi0.5 (its third camera blank): every model kind at once for one action dimension and the whole chunk
     gives each kind the maps its group gives alone, and the actions the call served."""
