@@ -248,7 +248,7 @@ def check(out: Path) -> bool:
         # the columns as LeRobot's loaded table holds them, before its torch conversion: exact, in their own dtype
         table = ds.hf_dataset.data
         for key in columns:
-            held = np.array(table.column(key).to_pylist(), expected[key].dtype).reshape(expected[key].shape)
+            held = np.array(table.column(key).slice(0, n).to_pylist(), expected[key].dtype).reshape(expected[key].shape)
             if not np.array_equal(held, expected[key]):
                 report["mismatched_columns"][f"table/{key}"] = int((held != expected[key]).any(axis=-1).sum())
         last_episode, frame_index = -1, 0
