@@ -14,6 +14,8 @@ import math
 import shutil
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 import pytest
 from client_env import collect
 from datasets_support import model_job
@@ -30,6 +32,7 @@ from openpi_cam.lerobot.rollouts import RolloutRecorder
 from openpi_cam.maps import dataset as fmt
 from openpi_cam.maps.explain import _observation, run_local
 from openpi_cam.maps.monitoring import read_rollouts
+from openpi_cam.maps.views import compute_views
 from openpi_cam.monitor import monitor_file
 from openpi_cam.monitor.stream import DEFAULT_EXECUTION_HORIZON
 from openpi_cam.policies import demo_reach
@@ -226,3 +229,69 @@ def test_the_same_frames_score_the_same_live_and_offline(recorded, scored, fitte
             assert float(step.monitor["score"]) == offline[frame], (episode, frame)
             compared += 1
     assert compared == scored.table().num_rows
+
+
+def _pairs_auc(failed: dict[int, bool], scores: dict[int, float]) -> float:
+    """The share of (failure, success) pairs where the failure scores higher, ties one half: by hand."""
+    pairs = [(scores[f], scores[s]) for f in failed if failed[f] for s in failed if not failed[s]]
+    return sum(1.0 if a > b else 0.5 if a == b else 0.0 for a, b in pairs) / len(pairs)
+
+
+def test_stats_rank_each_figures_maximum_over_an_episodes_first_frames(scored, tmp_path, capsys):
+    out = tmp_path / "stats.json"
+    cli.main(["stats", str(scored.root), "--format", "json", "--out", str(out), "--kind", "gradnorm"])
+    data = json.loads(out.read_text())
+    detection, rows = data["summary"]["outcomes"]["detection"], data["frames"]
+    assert [d["frames"] for d in detection] == [1, 4, 8, 16, 32, "episode"]
+    names = set(detection[0]["figures"])
+    assert {"monitor", "stac", "token_entropy", "entropy", "distance", "base_0_rgb/mean_entropy_norm"} <= names
+    assert all(set(d["figures"]) == names for d in detection)
+    failed = {r["episode_index"]: not r["episode_success"] for r in rows}
+    by_episode = {e: [r for r in rows if r["episode_index"] == e] for e in failed}
+    for episode_rows in by_episode.values():
+        episode_rows.sort(key=lambda r: r["frame_index"])
+    assert [r["frame_index"] for r in by_episode[0]][:2] == [0, HORIZON]  # the frames the windows below hold
+    # the monitor's score at N = 1 is its first frame's, over the whole episode the maximum of every frame's
+    first = {e: rows[0]["monitor/score"] for e, rows in by_episode.items()}
+    top = {e: max(r["monitor/score"] for r in rows) for e, rows in by_episode.items()}
+    assert detection[0]["figures"]["monitor"]["auroc"] == pytest.approx(_pairs_auc(failed, first), abs=1e-12)
+    assert detection[-1]["figures"]["monitor"]["auroc"] == pytest.approx(_pairs_auc(failed, top), abs=1e-12)
+    assert detection[-1]["figures"]["monitor"]["episodes"] == len(failed)
+    assert detection[-1]["figures"]["monitor"]["failures"] == sum(failed.values())
+    # N = 8 holds frames 0 and 5; the token entropy's maximum there, by hand
+    early = {e: max(r["monitor/token_entropy"] for r in rows if r["frame_index"] < 8) for e, rows in by_episode.items()}
+    assert detection[2]["figures"]["token_entropy"]["auroc"] == pytest.approx(_pairs_auc(failed, early), abs=1e-12)
+    low, high = detection[-1]["figures"]["monitor"]["auroc_ci95"]
+    assert low <= detection[-1]["figures"]["monitor"]["auroc"] <= high
+    # STAC needs a previous call: no episode has it from its first frame alone
+    assert detection[0]["figures"]["stac"] == {"auroc": None, "auroc_ci95": [None, None], "episodes": 0, "failures": 0}
+    assert detection[1]["figures"]["stac"]["episodes"] == 0 < detection[-1]["figures"]["stac"]["episodes"]
+    printed = capsys.readouterr().err.splitlines()
+    at = printed.index(next(line for line in printed if line.startswith("failure detection")))
+    assert printed[at + 1].split() == ["figure", "N=1", "N=4", "N=8", "N=16", "N=32", "episode"]
+    assert printed[at + 2].split()[0] == "monitor"  # the monitor's line first
+
+
+def test_a_score_that_rises_after_frame_8_finds_nothing_by_frame_8(featured, tmp_path):
+    """The rows' monitor score rewritten in a copy: 0 on every frame up to frame 8, then 1 on failed episodes' frames
+    (0 on successes'). Up to 8 frames every episode ties (AUROC 0.5); from 16 the failures that reached frame 10
+    rank first."""
+    copy = tmp_path / "late.maps"
+    shutil.copytree(featured.root, copy)
+    for shard in sorted((copy / fmt.DATA_DIR).rglob("*.parquet")):
+        table = pq.read_table(shard)
+        late = np.array(table.column("frame_index").to_pylist()) > 8
+        failed = ~np.array(table.column(fmt.EPISODE_SUCCESS).to_pylist())
+        score = pa.array((late & failed).astype(np.float64))
+        i = table.column_names.index("monitor/score")
+        pq.write_table(table.set_column(i, table.schema.field(i), score), shard)
+    views = compute_views(fmt.open_maps_dataset(copy), "gradnorm")
+    detection = {d["frames"]: d["figures"]["monitor"] for d in views.outcomes["detection"]}
+    rows = views.rows
+    failures = {r["episode_index"] for r in rows if not r["episode_success"]}
+    reached = {r["episode_index"] for r in rows if not r["episode_success"] and r["frame_index"] > 8}
+    assert reached  # the failures run to the step limit, past frame 8
+    for n in (1, 4, 8):
+        assert detection[n]["auroc"] == 0.5, n
+    for n in (16, 32, "episode"):
+        assert detection[n]["auroc"] == pytest.approx(0.5 + 0.5 * len(reached) / len(failures), abs=1e-12), n

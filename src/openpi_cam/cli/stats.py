@@ -12,7 +12,7 @@ import tyro
 from openpi_cam.cam.run_format import load_run
 from openpi_cam.demo.recorded import PERTURBATION_FEATURE, perturbation_names
 from openpi_cam.maps.dataset import MapsDataset, is_maps_dataset, open_maps_dataset
-from openpi_cam.maps.views import ViewOptions, compute_views
+from openpi_cam.maps.views import ViewOptions, compute_views, detection_lines
 from openpi_cam.viz.stats import MissingMaps, aggregate, compute_stats, emit_table, to_rows, view_steps, write_table
 from openpi_cam.vocabulary import DEFAULT_MAP_KIND, MapKind
 
@@ -29,7 +29,8 @@ def main(
 
     Args:
         run_dir: a CAM run directory (holds run.json and steps/), or a maps dataset (`explain-dataset`'s output:
-            one row per frame, and the dataset-level views in the JSON summary; `maps.views`).
+            one row per frame, and the dataset-level views in the JSON summary; `maps.views`; with outcomes, the
+            failure detection table on stderr too).
         format: csv, json (rows plus a summary) or parquet (summary in the file metadata).
         out: output file; defaults to stdout for csv/json and RUN_DIR/stats.parquet (a maps dataset's
             stats-<kind>.parquet) for parquet.
@@ -75,4 +76,6 @@ def _dataset_stats(root: pathlib.Path, format: Format, out: pathlib.Path | None,
     if out is None and format == "parquet":
         out = pathlib.Path(root) / f"stats-{kind}.parquet"
     emit_table(data, out, f"{len(views.rows)} frames")
+    if views.outcomes is not None:  # on stderr, beside any format the table goes out in
+        print("\n".join(detection_lines(views.outcomes["detection"])), file=sys.stderr)
     return 0

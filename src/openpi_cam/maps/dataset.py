@@ -335,10 +335,11 @@ class MapsDataset:
 
     @property
     def meta_columns(self) -> list[str]:
-        """`EpisodeFrames.meta`'s columns: the frame's own, then its episode's outcome and its reliance figures where
-        the dataset has them."""
+        """`EpisodeFrames.meta`'s columns: the frame's own, then its episode's outcome, its reliance figures and the
+        monitor's scalar columns (`MONITOR_COLUMNS`, not the pooled features) where the dataset has them."""
         outcomes = OUTCOME_COLUMNS if self.info.outcome is not None else ()
-        return [*FRAME_COLUMNS, *outcomes, *(reliance_columns(self.info) if self.info.reliance else ())]
+        reliance = reliance_columns(self.info) if self.info.reliance else []
+        return [*FRAME_COLUMNS, *outcomes, *reliance, *(MONITOR_COLUMNS if self.info.monitored else ())]
 
     def require_kind(self, kind: str) -> None:
         if kind not in self.kinds:

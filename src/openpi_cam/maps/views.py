@@ -35,7 +35,8 @@ Definitions (the frame's map of a camera normalised to sum 1 is `p`; the camera'
   chunk's change without it (`cam.reliance`), averaged like the other figures.
 * **Outcomes** (rows of a source with outcomes, `episode_success`): failed and successful episodes side by side
   (the group summary of each outcome's frames), and how well each episode figure finds the failures
-  (`outcome_views`).
+  (`outcome_views`), also as early as the monitor would have to (`detection_views`: the AUROC of each figure's
+  maximum over an episode's first N source frames).
 
 Each view is one accumulator over the typed frames `MapsDataset.episode_frames` reads (`_FrameRows`, `_Prior`,
 `_HotPatches`, `_SpotChecks`, `_Conditions`, then `_PriorFit` against the prior); `compute_views` feeds them and
@@ -60,10 +61,14 @@ from openpi_cam.maps.dataset import (
     CHECK_RANDOM,
     EPISODE_LENGTH,
     EPISODE_SUCCESS,
+    MONITOR_PREFIX,
     EpisodeFrames,
     MapsDataset,
     MapsInfo,
 )
+from openpi_cam.monitor.detection import FRAMES, ScoredEpisode, detection
+from openpi_cam.monitor.signals import STAC, TOKEN_ENTROPY
+from openpi_cam.monitor.stream import SCORE
 from openpi_cam.viz.overlay import reduce_tokens
 from openpi_cam.viz.stats import camera_stats, mean_score
 from openpi_cam.viz.text import finite_mean
@@ -654,7 +659,64 @@ def outcome_views(
         "by_outcome": by_outcome(by_episode, episodes, cameras),
         "failure_finding": _findings(failed, whole),
         "early_warning": {"frames": options.early_frames, "figures": _findings(failed, early)},
+        "detection": detection_views(by_episode, cameras),
     }
+
+
+# The monitor's columns of a row that `detection_views` ranks, each under its figure's name: the monitor's own score
+# (the one name holding `monitor`, so a reader finds the monitor among the baselines) and the training-free
+# baselines that come with every served call.
+MONITOR_FIGURES = {
+    MONITOR_PREFIX + SCORE: "monitor",
+    MONITOR_PREFIX + STAC: STAC,
+    MONITOR_PREFIX + TOKEN_ENTROPY: TOKEN_ENTROPY,
+}
+
+
+def step_figures(row: Mapping[str, Any], cameras: Sequence[str]) -> dict[str, float]:
+    """One explained frame's figures as step scores of a failure detector: `episode_figures` of the frame alone (the
+    map figures under the names `failure_finding` gives them) and the monitor's columns the row carries
+    (`MONITOR_FIGURES`). NaN: not measured."""
+    figures = episode_figures([row], cameras)
+    for column, name in MONITOR_FIGURES.items():
+        value = row.get(column)
+        figures[name] = math.nan if value is None else float(value)
+    return figures
+
+
+def detection_views(
+    by_episode: Mapping[int, Sequence[Mapping[str, Any]]], cameras: Sequence[str], frames: Sequence[int] = FRAMES
+) -> list[dict[str, Any]]:
+    """`monitor.detection.detection` over the episodes' explained frames: for N in `frames` and the whole episode,
+    each figure's AUROC of failure over the episodes' maxima of its step scores (`step_figures`) within their first
+    N source frames (`frame_index`). Figures keep the orientation `failure_finding` gives them (the figure itself,
+    larger ranking as failing; an AUROC below 0.5 ranks the other way). Figures no frame measured are left out."""
+    episodes = []
+    for e in sorted(by_episode):
+        rows = sorted(by_episode[e], key=lambda r: r["frame_index"])
+        steps = [step_figures(row, cameras) for row in rows]
+        scores = {name: np.array([step[name] for step in steps]) for name in steps[0]} if steps else {}
+        episodes.append(ScoredEpisode(np.array([row["frame_index"] for row in rows]), scores, _failed(rows)))
+    measured = {name for e in episodes for name, s in e.scores.items() if np.isfinite(s).any()}
+    kept = [dataclasses.replace(e, scores={n: s for n, s in e.scores.items() if n in measured}) for e in episodes]
+    return detection(kept, frames)
+
+
+def detection_lines(entries: Sequence[Mapping[str, Any]]) -> list[str]:
+    """`detection_views` as a short table: per figure its AUROC at each N (`-`: no AUROC), the monitor's first."""
+    if not entries:
+        return []
+    names = sorted(entries[0]["figures"], key=lambda n: ("monitor" not in n, n))
+    width = max([len("figure"), *(len(n) for n in names)])
+    head = "".join(f"{('N=' + str(e['frames'])) if isinstance(e['frames'], int) else e['frames']:>9}" for e in entries)
+    lines = [
+        "failure detection: AUROC of each figure's maximum over an episode's first N source frames",
+        f"{'figure':<{width}}{head}",
+    ]
+    for name in names:
+        cells = [e["figures"][name]["auroc"] for e in entries]
+        lines.append(f"{name:<{width}}" + "".join(f"{'-' if a is None else f'{a:.3f}':>9}" for a in cells))
+    return lines
 
 
 def group_summary(rows: Sequence[Mapping[str, Any]], cameras: Sequence[str]) -> dict[str, Any]:
