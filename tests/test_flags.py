@@ -664,6 +664,8 @@ CAM_FLAGS = {
     "--cam.max-extra-value-kb": ("2", "max_extra_value_kb"),
     "--cam.max-extra-kb": ("4", "max_extra_kb"),
     "--cam.stats-window": ("5", "stats_window"),
+    # port 9 (discard): no viewer there, so the stream stops and serving goes on (tests/cam/test_rerun_live.py)
+    "--cam.rerun": ("rerun+http://127.0.0.1:9/proxy", "rerun"),
 }
 SERVE_CASES: dict[str, tuple[Case, ...]] = {
     "--port": (Changes(SERVE, ("--port", "{port}"), serving_line),),

@@ -45,6 +45,7 @@ from openpi_cam.cam.logger import CAMLogger
 from openpi_cam.cam.monitoring import RESPONSE_KEY, LiveMonitor, response_entry
 from openpi_cam.cam.records import bounded_extra, split_extra, step_record
 from openpi_cam.cam.reliance import Resampler
+from openpi_cam.cam.run_format import StepRecord
 from openpi_cam.counters import WarnOnceCounter
 from openpi_cam.model.sharding import BATCH_AXIS
 from openpi_cam.monitor.stream import StepScore
@@ -132,6 +133,10 @@ class SideChannelSettings:
     # whether its connection is flagged so far, scored before the response is sent; off, the worker scores each call
     # after its response and responses are upstream's to the byte.
     monitor_response: bool = False
+    # stream each explained step (frames, maps, the chunk, the monitor's score) to the Rerun viewer at this address
+    # as it is written, e.g. rerun+http://127.0.0.1:9876/proxy (`rerun --serve-grpc`); a viewer that is not there or
+    # goes away is logged once and stops the stream, never serving or the run. Default: no stream.
+    rerun: str | None = None
 
     def __post_init__(self) -> None:
         if self.every_k < 0 or self.queue_size < 1 or self.stats_window < 1 or self.settle_ms < 0:
@@ -146,6 +151,14 @@ class SideChannelSettings:
     def settings(self) -> dict[str, Any]:
         """These settings by field name (what a subclass passes on to `CAMOptions`)."""
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(SideChannelSettings)}
+
+
+class StepWatcher(Protocol):
+    """Sees each step as the worker writes it (`--cam.rerun`'s stream); its own failures stay its own."""
+
+    def watch(self, record: StepRecord, trace: InferenceTrace) -> None: ...
+
+    def close(self) -> None: ...
 
 
 @dataclasses.dataclass(frozen=True)
@@ -272,11 +285,13 @@ class CAMPolicy:
         options: CAMOptions,
         cam_logger: CAMLogger | None,
         monitor: LiveMonitor | None = None,
+        watcher: StepWatcher | None = None,
     ):
         self._policy = policy
         self._options = options
         self._logger = cam_logger
         self._monitor = monitor
+        self._watcher = watcher
         self._scoring: collections.deque[_Scoring | _Closed] = collections.deque()  # guarded by `_lock`
         self._explainer = explainer_on_device(policy.explainer, options.device)
         self._lock = threading.Lock()
@@ -577,6 +592,12 @@ class CAMPolicy:
         written = time.monotonic() if logged else None
         self._record(dataclasses.replace(timing, writing=writing, written=written))
         self.count("completed" if logged else "not_logged")
+        if logged and self._watcher is not None:
+            self._wait_for_no_inference()  # drawing the step's images holds the GIL: a phase of its own too
+            try:
+                self._watcher.watch(record, job.trace)
+            except Exception as e:  # a watcher's bug must not stop the worker
+                self.count(f"watch_error_{type(e).__name__}", f"watching a step raised {type(e).__name__}: {e}")
 
     def _record(self, timing: JobTiming) -> None:
         with self._lock:
@@ -627,6 +648,8 @@ class CAMPolicy:
         self._worker.join(_left(self._deadline))
         if self._worker.is_alive():
             self.count("unfinished_at_shutdown", "shutdown deadline passed with jobs pending")
+        if self._watcher is not None and not self._worker.is_alive():
+            self._watcher.close()
         if self._logger is not None:
             self._logger.set_external_counters(self._events.snapshot())
             self._logger.close()
@@ -705,12 +728,13 @@ def wrap_policy_with_cam(
     run_config: dict[str, Any] | None = None,
     checkpoint: str = "",
     monitor: LiveMonitor | None = None,
+    watcher: StepWatcher | None = None,
 ) -> CAMPolicy:
     """Creates the run directory and the worker. If the run directory cannot be created, the server still serves:
     the side channel is disabled and the reason logged and counted. A `device` the machine lacks, or a target the
     policy's family cannot explain, is refused (ValueError) before anything is created; no target (None) becomes the
     family's default, which the run then records. With a `monitor`, every call is scored; with `every_k` 0 too, no
-    run directory is made and only the monitor runs."""
+    run directory is made and only the monitor runs. `watcher` sees each written step (`--cam.rerun`'s stream)."""
     options = dataclasses.replace(options, target=resolve_target(policy.explainer, options.target))
     if options.device is not None:
         explanation_device(options.device)
@@ -736,4 +760,4 @@ def wrap_policy_with_cam(
     logger.info(
         "explanation side channel on: every %d inference(s), run directory %s", options.every_k, cam_logger.run_dir
     )
-    return CAMPolicy(policy, options, cam_logger, monitor)
+    return CAMPolicy(policy, options, cam_logger, monitor, watcher)

@@ -27,6 +27,7 @@ from openpi_cam.monitor import monitor_file
 from openpi_cam.policies.family import resolve_target
 from openpi_cam.policies.policy import Policy
 from openpi_cam.serving.server import PolicyServer
+from openpi_cam.viz.rerun_sink import LiveRerun
 from openpi_cam.vocabulary import Target
 
 logger = logging.getLogger(__name__)
@@ -246,6 +247,7 @@ def _with_side_channel(
             run_config=run_config,
             checkpoint=str(model.checkpoint),
             monitor=live,
+            watcher=_rerun_stream(flags.rerun),
         )
     except ValueError as e:  # e.g. --cam.device names a device this machine does not have, or a head of another model
         raise StartupError(str(e), 2) from None
@@ -257,6 +259,18 @@ def _with_side_channel(
             flags.dir,
         )
     return served
+
+
+def _rerun_stream(address: str | None) -> LiveRerun | None:
+    """`--cam.rerun`'s stream; refused in one line without rerun-sdk."""
+    if address is None:
+        return None
+    try:
+        stream = LiveRerun(address)
+    except ImportError as e:
+        raise StartupError(f"--cam.rerun: {e}", 2) from None
+    logger.info("side channel: streaming explained steps to the Rerun viewer at %s", address)
+    return stream
 
 
 def _server(
