@@ -6,6 +6,8 @@ there stops the stream, never serving nor the run."""
 from __future__ import annotations
 
 import logging
+import os
+import signal
 import subprocess
 import sys
 import time
@@ -39,7 +41,8 @@ def _viewer(tmp_path: Path) -> tuple[subprocess.Popen, str, Path]:
     port, rrd, log = free_port(), tmp_path / "viewer.rrd", tmp_path / "viewer.log"
     binary = Path(sys.executable).parent / "rerun"  # rerun-sdk's own launcher, beside the interpreter
     cmd = [str(binary), "--serve-grpc", "--port", str(port), "--save", str(rrd)]
-    proc = subprocess.Popen(cmd, stdout=log.open("w"), stderr=subprocess.STDOUT)
+    # A session of its own: the launcher starts the viewer binary as a child, which must go when the test ends too.
+    proc = subprocess.Popen(cmd, stdout=log.open("w"), stderr=subprocess.STDOUT, start_new_session=True)
     deadline = time.monotonic() + VIEWER_START_S
     while "Listening for gRPC" not in log.read_text():
         assert proc.poll() is None and time.monotonic() < deadline, log.read_text()
@@ -104,7 +107,7 @@ def test_each_explained_step_reaches_a_running_viewer_on_the_renderers_paths(dem
             assert time.monotonic() < deadline, sorted(_received(rrd)) if rrd.exists() else "no recording"
             time.sleep(0.2)
     finally:
-        viewer.terminate()
+        os.killpg(viewer.pid, signal.SIGTERM)
         viewer.wait(30)
     got = _received(rrd)
     for step in steps:
