@@ -197,7 +197,7 @@ def expect(out: Path, roots: list[Path], frames: int | None) -> None:
     out.mkdir(parents=True, exist_ok=True)
     for root in roots:
         ours = open_dataset(root)
-        total = int(json.loads(ours.info_path.read_text())["total_frames"])
+        total = sum(info.length for info in ours.episode_info.values())
         rows: list[dict] = []
         for episode in ours.episodes:  # only the episodes that hold the first `frames` frames are decoded
             if frames is not None and len(rows) >= frames:

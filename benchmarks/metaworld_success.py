@@ -20,7 +20,6 @@ import multiprocessing
 import os
 import pathlib
 import time
-from collections.abc import Sequence
 
 from bench_serving import machine_line
 
@@ -55,12 +54,6 @@ def _episode(job: tuple[str, str, str, int, int]) -> tuple[str, str, str, bool, 
     return model, task, perturb, bool(out["success"]), int(out["steps"])
 
 
-def expand_tasks(names: Sequence[str]) -> tuple[str, ...]:
-    from openpi_cam.demo.run import TASK_GROUPS
-
-    return tuple(dict.fromkeys(t for name in names for t in TASK_GROUPS.get(name, (name,))))
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--models", nargs="+", default=["pi05", "pi0_fast"], help="pi05, pi0_fast or FAMILY=DIR")
@@ -79,7 +72,12 @@ def main() -> None:
         family, _, assets = model.partition("=")
         if family not in ("pi05", "pi0_fast") or (assets and not pathlib.Path(assets, "checkpoint").is_dir()):
             parser.error(f"--models {model}: pi05, pi0_fast, or FAMILY=DIR with a model folder (DIR/checkpoint)")
-    tasks = expand_tasks(args.tasks)
+    from openpi_cam.demo.run import DemoOptions
+
+    try:  # the demo's own reading of --task: groups expanded, an unknown name refused in one line
+        tasks = DemoOptions(sim="metaworld", task=tuple(args.tasks)).tasks
+    except ValueError as e:
+        parser.error(str(e))
     # Episode-major, so that a run cut short has as many episodes of every row as it could.
     jobs = [
         (m, t, p, args.seed + e, args.execute)

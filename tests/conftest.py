@@ -22,6 +22,7 @@ Two tiers (see `SLOW`): the README's test command runs the fast tier, `-m slow` 
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
 import shutil
 import sys
@@ -159,6 +160,17 @@ def _mappings() -> int:
             return sum(1 for _ in maps)
     except OSError:  # not Linux: no such limit to stay under
         return 0
+
+
+@pytest.fixture(autouse=True)
+def _logging_as_it_was() -> Any:
+    """Commands run in process (`serve`, `cli.main`) point the root logger at the stderr of their call, here a test's
+    captured one: put it back, or a later test's log line is written to a closed stream."""
+    root, ours = logging.getLogger(), logging.getLogger("openpi_cam")
+    handlers, level, our_level = list(root.handlers), root.level, ours.level
+    yield
+    root.handlers[:], root.level = handlers, level
+    ours.setLevel(our_level)
 
 
 @pytest.fixture(autouse=True)

@@ -10,7 +10,6 @@ fails the test with its traceback. The damaged copies link every other file to t
 from __future__ import annotations
 
 import dataclasses
-import logging
 from collections.abc import Callable
 from pathlib import Path
 
@@ -122,16 +121,6 @@ CASES = [
     Case("dataset", "data/chunk-000/file-000.parquet", BINARY_WAYS, DATASET_COMMANDS),
     Case("dataset", VIDEO, ("head", "garbage"), DATASET_COMMANDS),
 ]
-
-
-@pytest.fixture(autouse=True)
-def _logging_as_it_was():
-    """`serve` points the root logger at the stderr of its call (here the test's captured one): put it back."""
-    root, ours = logging.getLogger(), logging.getLogger("openpi_cam")
-    handlers, level, our_level = list(root.handlers), root.level, ours.level
-    yield
-    root.handlers[:], root.level = handlers, level
-    ours.setLevel(our_level)
 
 
 @pytest.fixture(scope="module")

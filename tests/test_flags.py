@@ -28,7 +28,6 @@ import dataclasses
 import hashlib
 import io
 import json
-import logging
 import shutil
 import signal
 import subprocess
@@ -1364,16 +1363,6 @@ def serve_session(argv: list[str], root: Path) -> Output:
 @pytest.fixture(scope="module")
 def runner(tmp_path_factory, request) -> Runner:
     return Runner(tmp_path_factory, request)
-
-
-@pytest.fixture(autouse=True)
-def _logging_as_it_was():
-    """`serve` points the root logger at the stderr of its call: put it back."""
-    root, ours = logging.getLogger(), logging.getLogger("openpi_cam")
-    handlers, level, our_level = list(root.handlers), root.level, ours.level
-    yield
-    root.handlers[:], root.level = handlers, level
-    ours.setLevel(our_level)
 
 
 # ------------------------------------------------------------------------------------------------------ the tests

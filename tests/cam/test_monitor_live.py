@@ -11,7 +11,6 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
-import logging
 import shutil
 import time
 
@@ -56,17 +55,6 @@ def _columns(signals: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
 def _scores(monitor: Monitor, policy, observations: list[dict]) -> np.ndarray:
     """What the monitor scores a connection's calls, the whole connection at once."""
     return monitor.score_steps(Episode(_columns(_signals(policy, observations)), True).matrix(monitor.inputs))
-
-
-@pytest.fixture(autouse=True)
-def _logging_as_it_was():
-    """`serve` points the root logger at the stderr of its call (here the test's captured one): put it back, or a
-    later test's log line is written to a closed stream."""
-    root, ours = logging.getLogger(), logging.getLogger("openpi_cam")
-    handlers, level, our_level = list(root.handlers), root.level, ours.level
-    yield
-    root.handlers[:], root.level = handlers, level
-    ours.setLevel(our_level)
 
 
 @pytest.fixture(scope="module")
