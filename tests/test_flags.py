@@ -732,7 +732,7 @@ SERVE_CASES: dict[str, tuple[Case, ...]] = {
     # The response's keys: the monitor's is added only when asked for.
     "--cam.monitor-response": (
         Changes(SERVE, ("--cam.monitor-response",), seen("response_keys")),
-        Refused("serve", (*SERVE_OFF, "--cam.monitor-response")),
+        Refused("serve", (*SERVE_OFF, "--no-monitor", "--cam.monitor-response")),  # the bundled model's own is off
     ),
     "--cam.dir": (Changes(SERVE, ("--cam.dir", "{scratch}/cam2"), cam_folders), side_channel_off("--cam.dir", "x")),
     # The server's own: how long it lets the served policy drain on SIGTERM, with the side channel on or off (off,

@@ -11,7 +11,7 @@ import dataclasses
 import hashlib
 import os
 import pathlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any, Literal, TypeVar, get_args
 
 BASELINES = ("blur", "mean")
@@ -119,16 +119,42 @@ HEAD_KINDS: tuple[MapKind, ...] = (OCCLUSION_HEAD,)
 MODEL_KINDS: tuple[MapKind, ...] = (*GRADIENT_KINDS, *RELEVANCE_KINDS, *BASELINE_KINDS)
 # The kinds whose maps depend on `MapOptions` (an explained step records its options beside them).
 OPTION_KINDS: tuple[MapKind, ...] = ("taylor", "smoothgrad", *BASELINE_KINDS)
-# What a live side channel computes unless told otherwise: Grad-CAM and the gradient norm, one backward pass.
-DEFAULT_KINDS: tuple[MapKind, ...] = ("gradcam", "gradnorm")
+# What one backward pass gives: Grad-CAM (the founding spec's kind) and the gradient norm. The model layer's gradient
+# functions compute these unless told otherwise, and a run recorded before runs named their kinds carries these.
+ONE_PASS_KINDS: tuple[MapKind, ...] = ("gradcam", "gradnorm")
+# What the side channel (`ExplainOptions`, `serve --cam.maps`) and the Meta-World demo compute unless told
+# otherwise: the cheapest kind that held on the maps bench's test split for every task and camera
+# (`benchmarks/maps_bench.py`; README, "Which map to trust"). No kind at the cost of one or two backward passes held;
+# occlusion itself did.
+DEFAULT_KINDS: tuple[MapKind, ...] = ("occlusion",)
 # What the offline commands (`explain-run`, `explain-dataset`) and the demo compute unless told otherwise: the kinds
 # their reports compare. Spelled out rather than built from the groups, so that a kind added to a group stays out of
 # the defaults, asked for by name, until a bench measures it against these (lrp, gradxinput, taylor, smoothgrad, rise,
 # occlusion-head).
 COMPARED_KINDS: tuple[MapKind, ...] = ("gradcam", "gradnorm", "ig", "occlusion")
-# What render, the reports and the demo draw unless told otherwise: the map that measured most faithful on the demo
-# models at the cost of one backward pass (docs/MAP_KINDS.md, "Which map to trust").
-DEFAULT_MAP_KIND: MapKind = "gradnorm"
+# The kinds by how closely they agreed with occlusion on the maps bench's test split (top-1 agreement over its tasks
+# and cameras; the kinds it did not carry to test after, by their dev figures): render, stats and the viewers draw
+# the first a run carries unless told which (`drawn_kind`).
+TRUST_ORDER: tuple[MapKind, ...] = (
+    "occlusion",
+    "rise",
+    "taylor",
+    "lrp",
+    "ig",
+    "gradnorm",
+    "smoothgrad",
+    "occlusion-head",
+    "gradcam",
+    "gradxinput",
+)
+DEFAULT_MAP_KIND: MapKind = TRUST_ORDER[0]
+
+
+def drawn_kind(carried: Iterable[str]) -> str:
+    """The kind drawn where none is named: the most trusted (`TRUST_ORDER`) of those a run or maps dataset carries;
+    `DEFAULT_MAP_KIND` when it carries none (drawing it then says so)."""
+    present = set(carried)
+    return next((kind for kind in TRUST_ORDER if kind in present), DEFAULT_MAP_KIND)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -380,7 +406,7 @@ class ExplainOptions:
             target=data.get("target"),
             action_index=int(data.get("action_index", 0)),
             action_dim_index=int(data.get("action_dim_index", 0)),
-            maps=tuple(data.get("maps") or DEFAULT_KINDS),
+            maps=tuple(data.get("maps") or ONE_PASS_KINDS),
             map_options=map_options,
             check_patches=int(data.get("check_patches", DEFAULT_PATCHES)),
             reliance=bool(data["reliance"]),

@@ -211,7 +211,9 @@ def test_faithfulness_command_on_a_demo_run(tmp_path, chunk_run):
         f = report["steps"][str(step.seq)]["base_0_rgb"]["deletion_k1"]
         section = doc[doc.index(f'id="step-{step.seq}"') :]
         cell = section[section.index('<td class="evidence">') :].split(">", 1)[1].split("<", 1)[0]
-        assert cell == f"{f['gradnorm']:.2f} of best (random {f['random']:.2f})"  # the default kind, this step's
+        assert (
+            cell == f"{f['occlusion']:.2f} of best (random {f['random']:.2f})"
+        )  # the drawn kind (the run's most trusted)
     bad = subprocess.run(
         [sys.executable, "-m", "openpi_cam", "faithfulness", str(tmp_path / "missing")], capture_output=True, text=True
     )

@@ -201,7 +201,7 @@ def test_serve_refuses_a_bad_monitor_a_response_key_without_one_and_an_input_the
     bad.write_text("{}")
     for argv, wanted in [
         (["--monitor", str(bad)], f"--monitor {bad}: not a monitor file"),
-        (["--cam.monitor-response"], "--cam.monitor-response needs a failure monitor"),
+        (["--no-monitor", "--cam.monitor-response"], "--cam.monitor-response needs a failure monitor"),
         (["--monitor", str(bad), "--no-monitor"], "--monitor and --no-monitor"),
     ]:
         with pytest.raises(SystemExit) as exit_info:
@@ -229,8 +229,10 @@ def _assert_one_error_line(stderr: str, wanted: str) -> None:
 
 
 def test_a_demo_model_serves_with_its_own_monitor_unless_told_otherwise(monitor, tmp_path):
+    # the installed bundled model ships its own (`benchmarks/monitor_transfer.py` fitted it)
+    assert ModelSpec().default_monitor() == demo_reach.ASSETS / MONITOR_FILE
     assets = tmp_path / "assets"
-    shutil.copytree(demo_reach.ASSETS, assets)
+    shutil.copytree(demo_reach.ASSETS, assets, ignore=shutil.ignore_patterns(MONITOR_FILE))
     spec = ModelSpec(checkpoint_dir=assets / "checkpoint", config="demo_reach")
     assert spec.default_monitor() is None and serve._monitor(spec, None, False) is None
     monitor_file.save(monitor, assets / MONITOR_FILE)

@@ -48,6 +48,7 @@ from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import ExplainSkipped, Explanation
 from openpi_cam.policies.libero import make_libero_example
 from openpi_cam.serving import RequestContext
+from openpi_cam.vocabulary import ONE_PASS_KINDS as ONE_PASS
 from openpi_cam.vocabulary import ExplainOptions
 
 REPO = REPO_ROOT
@@ -125,7 +126,7 @@ def test_batched_rows_equal_single_rows(demo_policy):
     traces[1] = dataclasses.replace(traces[1], output=short)
     assert len(explainer.tokenizer.action_token_steps(short)) == 3
     for target, index in (("action-token", 2), ("chunk", 0)):
-        request = ExplainOptions(target, index)
+        request = ExplainOptions(target, index, maps=ONE_PASS)
         rows = explain_traces(explainer, traces, request)
         alone = [explain_traces(explainer, [t], request)[0] for t in traces]
         for b, (got, one) in enumerate(zip(rows, alone, strict=True)):
@@ -139,7 +140,7 @@ def test_batched_rows_equal_single_rows(demo_policy):
         if target == "chunk":
             assert len(rows[1].details["decode_steps"]) == 3 and len(rows[0].details["decode_steps"]) == 20
     # A row whose generation lacks the requested action token is answered with the reason, not dropped.
-    rows = explain_traces(explainer, traces, ExplainOptions("action-token", 4))
+    rows = explain_traces(explainer, traces, ExplainOptions("action-token", 4, maps=ONE_PASS))
     assert isinstance(rows[0], Explanation) and rows[0].details["action_indices"] == [4]
     assert isinstance(rows[1], ExplainSkipped) and rows[1].reason == "action_index_out_of_range"
 
@@ -147,7 +148,7 @@ def test_batched_rows_equal_single_rows(demo_policy):
 def test_policy_records_become_a_cam_run_and_replay(demo_policy, tmp_path):
     observations = _records(tmp_path / "records", demo_policy, 3)
     cam_logger = _new_logger(tmp_path / "cam")
-    options = ReplayOptions(save_frames="both", batch_size=BATCH)
+    options = ReplayOptions(save_frames="both", batch_size=BATCH, maps=ONE_PASS)
     summary = explain_replays(
         demo_policy, iter_policy_records(tmp_path / "records", False), options, cam_logger, mesh=None
     )
@@ -192,7 +193,7 @@ def test_replay_check_counts_records_whose_actions_are_another_requests(demo_pol
     """Records paired with the next observation's response (all actions differ): every one is a mismatch."""
     _records(tmp_path / "records", demo_policy, 3, seed=20, shift=1)
     cam_logger = _new_logger(tmp_path / "cam")
-    options = ReplayOptions(save_frames="none", batch_size=BATCH)
+    options = ReplayOptions(save_frames="none", batch_size=BATCH, maps=ONE_PASS)
     summary = explain_replays(
         demo_policy, iter_policy_records(tmp_path / "records", False), options, cam_logger, mesh=None
     )
@@ -233,7 +234,8 @@ def test_explain_command_exit_codes_follow_the_replay_check(demo_policy, tmp_pat
 def test_explained_steps_have_the_side_channel_layout(demo_policy, tmp_path):
     """An offline step carries exactly the fields a live side-channel step carries, with the same values."""
     obs = demo_obs(7)
-    cam = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, dir=tmp_path / "live", save_frames="both"))
+    live = CAMOptions(maps=ONE_PASS, every_k=1, dir=tmp_path / "live", save_frames="both")
+    cam = wrap_policy_with_cam(demo_policy, live)
     cam.infer(obs, RequestContext("c0", 0))
     cam.close(timeout=None)
     live = load_run(cam.run_dir).steps[0]
@@ -243,7 +245,11 @@ def test_explained_steps_have_the_side_channel_layout(demo_policy, tmp_path):
     _record(folder, 0, obs, {})
     cam_logger = _new_logger(tmp_path / "offline")
     explain_replays(
-        demo_policy, iter_policy_records(folder, False), ReplayOptions(batch_size=BATCH), cam_logger, mesh=None
+        demo_policy,
+        iter_policy_records(folder, False),
+        ReplayOptions(batch_size=BATCH, maps=ONE_PASS),
+        cam_logger,
+        mesh=None,
     )
     cam_logger.close()
     offline = load_run(cam_logger.run_dir).steps[0]
@@ -269,14 +275,22 @@ def test_resume_explains_only_the_rest(demo_policy, tmp_path):
     records = tmp_path / "records"
     first = _new_logger(tmp_path / "cam")
     s1 = explain_replays(
-        demo_policy, iter_policy_records(records, False), ReplayOptions(batch_size=BATCH, max_steps=2), first, mesh=None
+        demo_policy,
+        iter_policy_records(records, False),
+        ReplayOptions(batch_size=BATCH, max_steps=2, maps=ONE_PASS),
+        first,
+        mesh=None,
     )
     first.close()
     assert s1["completed"] == 2 and len(load_run(first.run_dir).steps) == 2
 
     resumed = CAMLogger.resume(first.run_dir)
     s2 = explain_replays(
-        demo_policy, iter_policy_records(records, False), ReplayOptions(batch_size=BATCH), resumed, mesh=None
+        demo_policy,
+        iter_policy_records(records, False),
+        ReplayOptions(batch_size=BATCH, maps=ONE_PASS),
+        resumed,
+        mesh=None,
     )
     resumed.close()
     assert s2["completed"] == 3 and s2["already_explained"] == 2 and s2["observations"] == 3
@@ -297,7 +311,11 @@ def test_resume_explains_only_the_rest(demo_policy, tmp_path):
     # Nothing left: a third pass explains nothing and writes nothing.
     again = CAMLogger.resume(first.run_dir)
     s3 = explain_replays(
-        demo_policy, iter_policy_records(records, False), ReplayOptions(batch_size=BATCH), again, mesh=None
+        demo_policy,
+        iter_policy_records(records, False),
+        ReplayOptions(batch_size=BATCH, maps=ONE_PASS),
+        again,
+        mesh=None,
     )
     again.close()
     assert s3["observations"] == 0 and s3["already_explained"] == 5
@@ -392,7 +410,7 @@ _DATA_PARALLEL = textwrap.dedent(
     mesh = data_mesh()
     sharded, rows = shard_batch(stack_observations([t.observation for t in traces]), mesh)
     out = {"devices": len(jax.devices()), "padded_rows": rows, "state_devices": len(sharded.state.sharding.device_set)}
-    request = ExplainOptions("action-token", 2)
+    request = ExplainOptions("action-token", 2, maps=ONE_PASS)
     for name, m in (("spmd", mesh), ("single", None)):
         for b, e in enumerate(explain_traces(policy.explainer.on_mesh(m), traces, request, mesh=m)):
             out.update({f"{name}/{b}/{k}/{c}": v for k, maps in e.maps.items() for c, v in maps.items()})

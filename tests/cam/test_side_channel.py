@@ -41,6 +41,7 @@ from openpi_cam.model.config import EOS_TOKEN
 from openpi_cam.serving import RequestContext, msgpack_numpy
 from openpi_cam.serving.server import start_server_in_thread
 from openpi_cam.viz.render import RenderOptions, render_run
+from openpi_cam.vocabulary import ONE_PASS_KINDS as ONE_PASS
 
 DEMO_CAMERAS = ("base_0_rgb", "wrist_0_rgb")
 
@@ -60,7 +61,14 @@ def test_real_client_side_channel_on_same_actions_and_complete_run(tmp_path, dem
     plain = [demo_policy.infer(policy_part(o)) for o in observations]
     assert_pairwise_different([p["actions"] for p in plain])
 
-    options = CAMOptions(every_k=1, dir=tmp_path / "cam", save_frames="both", target="action-token", action_index=2)
+    options = CAMOptions(
+        maps=ONE_PASS,
+        every_k=1,
+        dir=tmp_path / "cam",
+        save_frames="both",
+        target="action-token",
+        action_index=2,
+    )
     wrapped = wrap_policy_with_cam(demo_policy, options, run_config={"config": "demo_reach"}, checkpoint="demo")
     server = start_server_in_thread(wrapped, metadata=demo_policy.metadata)
     wire = tmp_path / "wire"
@@ -131,7 +139,9 @@ def test_side_channel_on_or_off_serves_the_plain_bytes(tmp_path, demo_policy, ev
     observations = [policy_part(demo_obs(200 + i)) for i in range(4)]
     plain = [msgpack_numpy.packb(strip_timing(demo_policy.infer(o))) for o in observations]
     assert len(set(plain)) == len(plain)
-    wrapped = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=every_k, dir=tmp_path, save_frames="none"))
+    wrapped = wrap_policy_with_cam(
+        demo_policy, CAMOptions(maps=ONE_PASS, every_k=every_k, dir=tmp_path, save_frames="none")
+    )
     try:
         for obs, expected in zip(observations, plain, strict=True):
             assert msgpack_numpy.packb(strip_timing(wrapped.infer(obs))) == expected
@@ -143,7 +153,7 @@ def test_side_channel_on_or_off_serves_the_plain_bytes(tmp_path, demo_policy, ev
 
 
 def test_schedule_is_per_connection_and_every_k(demo_policy, tmp_path):
-    wrapped = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=2, dir=tmp_path, save_frames="none"))
+    wrapped = wrap_policy_with_cam(demo_policy, CAMOptions(maps=ONE_PASS, every_k=2, dir=tmp_path, save_frames="none"))
     for i in range(3):
         for conn in ("a", "b"):
             wrapped.infer(demo_obs(i), RequestContext(conn, i))
@@ -171,7 +181,7 @@ def test_multi_token_and_chunk_targets_log_the_models_maps(demo_policy, tmp_path
         "chunk": pi0_fast_maps.maps_for_chunk(model, trace.observation, generated[None], steps),
     }
     for target, want in direct.items():
-        options = CAMOptions(every_k=1, dir=tmp_path / target, save_frames="none", target=target)
+        options = CAMOptions(maps=ONE_PASS, every_k=1, dir=tmp_path / target, save_frames="none", target=target)
         wrapped = wrap_policy_with_cam(demo_policy, options)
         wrapped.infer(obs)
         wrapped.close(300)
@@ -195,7 +205,9 @@ def test_failures_stay_inside_the_side_channel(demo_policy, tmp_path):
     assert_pairwise_different(expected)
     # The explainer raising: counted, nothing logged, responses untouched.
     failing = GatedExplainer(demo_policy.explainer, fail=True)
-    wrapped = wrap_policy_with_cam(WithExplainer(demo_policy, failing), CAMOptions(every_k=1, dir=tmp_path / "a"))
+    wrapped = wrap_policy_with_cam(
+        WithExplainer(demo_policy, failing), CAMOptions(maps=ONE_PASS, every_k=1, dir=tmp_path / "a")
+    )
     for obs, want in zip(observations, expected, strict=True):
         np.testing.assert_array_equal(wrapped.infer(obs)["actions"], want)
     wrapped.close(30)
@@ -203,7 +215,7 @@ def test_failures_stay_inside_the_side_channel(demo_policy, tmp_path):
     assert load_run(wrapped.run_dir).steps == []
     # An unwritable run directory: serving goes on with the side channel disabled.
     (tmp_path / "file").write_text("not a directory")
-    disabled = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, dir=tmp_path / "file" / "cam"))
+    disabled = wrap_policy_with_cam(demo_policy, CAMOptions(maps=ONE_PASS, every_k=1, dir=tmp_path / "file" / "cam"))
     for obs, want in zip(observations, expected, strict=True):
         np.testing.assert_array_equal(disabled.infer(obs)["actions"], want)
     assert disabled.run_dir is None and disabled.stats()["explanations"]["disabled_logger_unavailable"] == 1
@@ -229,7 +241,7 @@ def test_malformed_generation_is_explained_logged_and_reported(tmp_path, tiny_dr
     wire.mkdir()
     for i, obs in enumerate(observations):
         write_packed(wire / f"obs{i}.msgpack", obs)
-    options = CAMOptions(every_k=1, dir=tmp_path / "cam", save_frames="model", target="action-token")
+    options = CAMOptions(maps=ONE_PASS, every_k=1, dir=tmp_path / "cam", save_frames="model", target="action-token")
     wrapped = wrap_policy_with_cam(tiny_droid_policy, options)
     server = start_server_in_thread(wrapped, metadata=tiny_droid_policy.metadata)
     try:
@@ -277,7 +289,10 @@ def test_malformed_generation_is_explained_logged_and_reported(tmp_path, tiny_dr
 
 def test_slow_worker_and_full_queue_never_block_responses(demo_policy, tmp_path):
     gated = GatedExplainer(demo_policy.explainer)
-    wrapped = wrap_policy_with_cam(WithExplainer(demo_policy, gated), CAMOptions(every_k=1, dir=tmp_path, queue_size=1))
+    wrapped = wrap_policy_with_cam(
+        WithExplainer(demo_policy, gated),
+        CAMOptions(maps=ONE_PASS, every_k=1, dir=tmp_path, queue_size=1),
+    )
     observations = [policy_part(demo_obs(400 + i)) for i in range(4)]
     expected = [demo_policy.infer(o)["actions"] for o in observations]
     assert_pairwise_different(expected)
@@ -319,7 +334,13 @@ def test_the_worker_never_starts_a_job_while_an_inference_runs(demo_policy, tmp_
     most writes did."""
     timed = TimedPolicy(demo_policy)
     options = CAMOptions(
-        every_k=1, dir=tmp_path, save_frames="none", queue_size=64, per_connection=None, settle_ms=settle_ms
+        maps=ONE_PASS,
+        every_k=1,
+        dir=tmp_path,
+        save_frames="none",
+        queue_size=64,
+        per_connection=None,
+        settle_ms=settle_ms,
     )
     wrapped = wrap_policy_with_cam(timed, options)
     observations = [policy_part(demo_obs(500 + i)) for i in range(4)]
@@ -362,7 +383,7 @@ def test_a_flooding_connection_cannot_starve_a_quiet_one(demo_policy, tmp_path, 
     dropped whatever arrived when full): the flooder's jobs 1-2 filled the queue, the quiet connection's job was
     dropped and only flood 0-2 were logged."""
     gated = GatedExplainer(demo_policy.explainer)
-    options = CAMOptions(every_k=1, dir=tmp_path, save_frames="none", queue_size=2)
+    options = CAMOptions(maps=ONE_PASS, every_k=1, dir=tmp_path, save_frames="none", queue_size=2)
     if per_connection is not None:
         options = dataclasses.replace(options, per_connection=per_connection)
     wrapped = wrap_policy_with_cam(WithExplainer(demo_policy, gated), options)
@@ -395,7 +416,7 @@ def test_a_full_queue_drops_the_oldest_job_of_the_busiest_connection(demo_policy
     holding the most (the arriving job counts; ties go to the connection whose oldest job is oldest), so the flooder
     pays for its own surplus and the quiet connection keeps both its jobs."""
     gated = GatedExplainer(demo_policy.explainer)
-    options = CAMOptions(every_k=1, dir=tmp_path, save_frames="none", queue_size=3, per_connection=None)
+    options = CAMOptions(maps=ONE_PASS, every_k=1, dir=tmp_path, save_frames="none", queue_size=3, per_connection=None)
     wrapped = wrap_policy_with_cam(WithExplainer(demo_policy, gated), options)
     observations = [policy_part(demo_obs(700 + i)) for i in range(2)]
     try:
@@ -421,7 +442,8 @@ def test_stats_report_the_explanation_lag_and_the_oldest_pending_job(demo_policy
     test."""
     gated = GatedExplainer(demo_policy.explainer)
     wrapped = wrap_policy_with_cam(
-        WithExplainer(demo_policy, gated), CAMOptions(every_k=1, dir=tmp_path, save_frames="none")
+        WithExplainer(demo_policy, gated),
+        CAMOptions(maps=ONE_PASS, every_k=1, dir=tmp_path, save_frames="none"),
     )
     observations = [policy_part(demo_obs(800 + i)) for i in range(2)]
     start = time.monotonic()
@@ -451,7 +473,7 @@ def test_stats_report_the_explanation_lag_and_the_oldest_pending_job(demo_policy
 
 
 def test_disk_failure_mid_run_is_counted_and_earlier_steps_survive(demo_policy, tmp_path):
-    wrapped = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, dir=tmp_path, save_frames="none"))
+    wrapped = wrap_policy_with_cam(demo_policy, CAMOptions(maps=ONE_PASS, every_k=1, dir=tmp_path, save_frames="none"))
     wrapped.infer(demo_obs(6))
     deadline = time.time() + 120
     while wrapped.stats()["explanations"].get("completed", 0) < 1 and time.time() < deadline:
@@ -478,7 +500,7 @@ sys.path.insert(0, sys.argv[2])
 from cam_support import demo_obs
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.checkpoints import model_spec
-options = CAMOptions(every_k=1, dir=sys.argv[1], queue_size=64)
+options = CAMOptions(maps=("gradcam", "gradnorm"), every_k=1, dir=sys.argv[1], queue_size=64)
 wrapped = wrap_policy_with_cam(model_spec.create_demo_policy(), options)
 print(wrapped.run_dir, flush=True)
 i = 0
@@ -519,7 +541,7 @@ def test_kill_9_mid_run_leaves_every_completed_step_readable(tmp_path):
 
 
 def test_float_channels_first_client_images_are_logged_as_uint8_frames(demo_policy, tmp_path):
-    wrapped = wrap_policy_with_cam(demo_policy, CAMOptions(every_k=1, dir=tmp_path, save_frames="raw"))
+    wrapped = wrap_policy_with_cam(demo_policy, CAMOptions(maps=ONE_PASS, every_k=1, dir=tmp_path, save_frames="raw"))
     obs = demo_obs(8)
     image = obs["observation/image"]
     as_float_chw = {**obs, "observation/image": np.moveaxis(image, -1, 0) / 255.0}
@@ -537,7 +559,7 @@ def test_cam_extra_values_are_bounded_per_value_and_per_step(tmp_path, demo_poli
     dropped, named in the step's `extra_dropped` and counted; the rest is kept; the response is the policy's."""
     obs = demo_obs(300)
     big = {"cam_extra/blob": "x" * 1_000_000, "cam_extra/huge_array": np.zeros(100_000, np.float32)}
-    options = CAMOptions(every_k=1, dir=tmp_path, save_frames="none", max_extra_kb=2_000 / 1024)
+    options = CAMOptions(maps=ONE_PASS, every_k=1, dir=tmp_path, save_frames="none", max_extra_kb=2_000 / 1024)
     wrapped = wrap_policy_with_cam(demo_policy, options)
     filler = {f"cam_extra/note{i}": "y" * 400 for i in range(8)}  # 8 x ~410 bytes: the last ones pass 2,000 bytes
     try:
@@ -570,7 +592,8 @@ from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.checkpoints import model_spec
 from openpi_cam.serving import RequestContext
 
-cam = wrap_policy_with_cam(model_spec.create_demo_policy(), CAMOptions(every_k=1, dir=tempfile.mkdtemp()))
+one_pass = CAMOptions(maps=("gradcam", "gradnorm"), every_k=1, dir=tempfile.mkdtemp())
+cam = wrap_policy_with_cam(model_spec.create_demo_policy(), one_pass)
 warmed = None if sys.argv[1] == "cold" else cam.warm_up((1, 2, 4) if sys.argv[1] == "warm-batched" else (1,))
 before = len(compiles)
 cam.infer(demo_observation(5))
@@ -629,6 +652,7 @@ from cam_support import WithExplainer, demo_obs, policy_part
 from openpi_cam.cam.batching import explain_traces
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
 from openpi_cam.checkpoints import model_spec
+from openpi_cam.vocabulary import ONE_PASS_KINDS as ONE_PASS
 from openpi_cam.vocabulary import ExplainOptions
 
 
@@ -648,7 +672,7 @@ policy = model_spec.create_demo_policy()
 results = {}
 for mode in sys.argv[2:]:  # each mode wraps the same policy anew
     held = HeldPolicy(policy)
-    options = CAMOptions(every_k=2, dir=tempfile.mkdtemp(), device=1 if mode == "device" else None)
+    options = CAMOptions(maps=ONE_PASS, every_k=2, dir=tempfile.mkdtemp(), device=1 if mode == "device" else None)
     cam = wrap_policy_with_cam(held, options)
     observation = policy_part(demo_obs(3))
     served = cam.infer(observation)  # step 0: explained (every_k=2)

@@ -25,7 +25,7 @@ from openpi_cam import cli
 from openpi_cam.cam.monitoring import LiveMonitor
 from openpi_cam.cam.run_format import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
-from openpi_cam.checkpoints.model_spec import create_demo_policy
+from openpi_cam.checkpoints.model_spec import MONITOR_FILE, create_demo_policy
 from openpi_cam.demo.run import ROLLOUT_FPS, DemoOptions, run_demo
 from openpi_cam.lerobot.dataset import open_dataset
 from openpi_cam.lerobot.rollouts import RolloutRecorder
@@ -79,6 +79,11 @@ def test_rows_carry_stac_between_calls_a_horizon_apart_the_token_entropy_and_the
             assert len(row["monitor/" + name]) == 128
     # the schema stores the features as float32, as the served call computed them
     assert featured.table(columns=["monitor/features/prompt"]).schema.field(0).type.value_type == "float"
+    # read back as labelled episodes, each step with its source frame (what detection counts time in)
+    rollouts = read_rollouts([featured.root])
+    for (_, episode), e in zip(rollouts.names, rollouts.episodes, strict=True):
+        frames = featured.table(episode, ["frame_index"]).column(0).to_pylist()
+        assert e.frames.tolist() == frames and frames == list(range(0, HORIZON * len(frames), HORIZON))
 
 
 def test_stac_is_null_where_explained_frames_do_not_lie_a_horizon_apart(recorded, tmp_path):
@@ -112,7 +117,10 @@ def test_monitor_fit_saves_a_monitor_and_prints_its_auroc_and_threshold(featured
     named = ["--kind", "mahalanobis", "--inputs", "features/prompt", "stac", "--max-dims", "4"]
     cli.main(["monitor", "fit", str(featured.root), "--out", str(tmp_path / "m.json"), *named])
     mahalanobis = monitor_file.load(tmp_path / "m.json")
-    assert [i.name for i in mahalanobis.inputs] == ["features/prompt", "stac"] and mahalanobis.basis.dims <= 4
+    # the feature projected onto at most 4 of its leading directions (fewer over these few steps), STAC kept beside
+    basis = mahalanobis.basis
+    assert [i.name for i in mahalanobis.inputs] == ["features/prompt", "stac"] and 2 <= basis.dims <= 4 + 1
+    assert basis.components[-1].tolist() == [0.0] * 128 + [1.0]
 
 
 def _fit_error(argv: list[str], capsys) -> str:
@@ -157,6 +165,36 @@ def fitted(featured, tmp_path_factory):
     maxima = [np.nanmax(monitor.score_steps(e.matrix(monitor.inputs))) for e in rollouts.episodes]
     monitor_file.save(dataclasses.replace(monitor, threshold=float(np.median(maxima))), path)
     return path
+
+
+def test_explain_dataset_scores_with_a_demo_models_own_monitor_unless_told_otherwise(
+    recorded, fitted, tmp_path, capsys
+):
+    """A demo model's folder with a `monitor.json` beside its checkpoint: the command scores with it by default, with
+    none under `--no-monitor`, with another under `--monitor`; both flags at once are refused in one line."""
+    assets = tmp_path / "assets"
+    shutil.copytree(demo_reach.ASSETS, assets)
+    shutil.copy(fitted, assets / MONITOR_FILE)
+    other = monitor_file.save(dataclasses.replace(monitor_file.load(fitted), alpha=0.3), tmp_path / "other.json")
+    model = ["--checkpoint-dir", str(assets / "checkpoint"), "--config", "demo_reach"]
+    base = [str(recorded), *model, "--episodes", "0", "--every-k", "100", "--maps", "gradnorm", "--no-progress"]
+    for flags, expected in [
+        ((), assets / MONITOR_FILE),
+        (("--no-monitor",), None),
+        (("--monitor", str(other)), other),
+    ]:
+        out = tmp_path / f"{len(flags)}.maps"
+        cli.main(["explain-dataset", *base, "--out", str(out), *flags])
+        monitor = fmt.open_maps_dataset(out).info.monitor
+        assert monitor == (None if expected is None else str(expected.resolve())), flags
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(
+            ["explain-dataset", *base, "--out", str(tmp_path / "both.maps"), "--monitor", str(other), "--no-monitor"]
+        )
+    assert exit_info.value.code == 1
+    (line,) = [x for x in capsys.readouterr().err.splitlines() if x.startswith("openpi-cam explain-dataset:")]
+    assert "--monitor and --no-monitor name opposite things" in line
 
 
 def _scoring_job(recorded, out, monitor):

@@ -260,7 +260,7 @@ def test_head_fit_refuses_datasets_of_two_policies(planted, tmp_path, capsys):
 
 
 def test_the_kind_is_asked_for_by_name_only():
-    """No default computes or draws it (until the bench chooses the defaults), and no bundled model ships a head."""
+    """No default computes or draws it (the maps bench chose occlusion itself), and no bundled model ships a head."""
     from openpi_cam.checkpoints.model_spec import BUNDLED_CONFIGS, ModelSpec
     from openpi_cam.cli.options import EVERY_KIND, ExplainFlags
     from openpi_cam.demo.run import DemoOptions

@@ -18,6 +18,7 @@ from openpi_cam.checkpoints import model_spec
 from openpi_cam.demo import bundled, perturb, quality, sim, task, train
 from openpi_cam.demo.data import Batches, load_normalize
 from openpi_cam.demo.run import DemoOptions, run_demo
+from openpi_cam.monitor import monitor_file
 from openpi_cam.policies import demo_reach
 from openpi_cam.vocabulary import MAP_KINDS
 
@@ -454,6 +455,38 @@ def test_short_demo_run_is_readable(tmp_path):
     assert report["steps_evaluated"] == len(run.steps) and report["score_replay_max_abs_diff"] < 1e-4
     assert report["cameras"]["base_0_rgb"]["kinds"]["occlusion"]["deletion_k1"]["median"] == pytest.approx(1.0)
     assert set(report["cameras"]["base_0_rgb"]["kinds"]) == {*MAP_KINDS, "random"}
+
+
+def test_each_demo_episode_is_a_connection_scored_by_the_models_own_monitor(tmp_path):
+    """The bundled model ships a failure monitor: the demo's side channel scores every call with it, each episode on
+    a connection of its own (so STAC and the episode's maximum start afresh), and the figures say which episodes it
+    flagged, by the monitor's own rule (a step's score above its threshold flags the rest of the episode)."""
+    path = model_spec.ModelSpec().default_monitor()
+    assert path is not None
+    threshold = monitor_file.load(path).threshold
+    options = DemoOptions(
+        out=tmp_path,
+        num_episodes=2,
+        max_calls=2,
+        perturb=("clean", "absent"),
+        maps=("gradnorm",),
+        render=False,
+        faithfulness=False,
+    )
+    result = run_demo(options)
+    run = load_run(result.run_dir)
+    by_connection: dict[str, list] = {}
+    for step in sorted(run.steps, key=lambda s: s.seq):
+        by_connection.setdefault(step.meta.connection, []).append(step)
+    assert [len(steps) for steps in by_connection.values()] == [e["calls"] for e in result.episodes]
+    expected = []
+    for steps in by_connection.values():
+        scores = np.array([float(s.monitor["score"]) for s in steps])
+        flags = [bool(s.monitor["flag"]) for s in steps]
+        assert np.isnan(steps[0].monitor["stac"])  # each episode's first call has no previous chunk
+        assert flags == (np.fmax.accumulate(scores) > threshold).tolist()
+        expected.append(flags[-1])
+    assert result.figures["monitor_flags"] == expected
 
 
 def _has_colour(image: np.ndarray, colours: Any) -> np.ndarray:

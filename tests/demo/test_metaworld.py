@@ -141,7 +141,7 @@ def test_the_bundled_model_presses_the_button_served_with_the_side_channel(tmp_p
     assert len(run.steps) == episode["calls"] and not run.problems
     for step in run.steps:
         assert step.meta.target == "chunk"
-        maps = step.maps_of("gradnorm")
+        maps = step.maps_of("occlusion")  # the default kind
         assert len(maps) == 2 and all(m.shape == (GRID, GRID) for m in maps.values())  # base and wrist
         x0, y0, x1, y1 = step.extra["target_box"]
         assert 0 <= x0 < x1 <= METAWORLD_CAMERA_SIZE and 0 <= y0 < y1 <= METAWORLD_CAMERA_SIZE

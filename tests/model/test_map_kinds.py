@@ -776,12 +776,15 @@ def test_every_kind_in_one_pi05_call_is_each_groups_own(demo_pi05_policy):
 
 def test_kinds_beyond_the_compared_four_are_asked_for_by_name_only():
     """No default computes or draws `lrp`, the four kinds added after it or `occlusion-head`: the side channel's kinds,
-    the offline commands', the demo's on either simulator, and the kind the viewers draw (until a bench chooses the
-    defaults)."""
+    the offline commands', the demo's on either simulator, and the kind the viewers draw. The maps bench chose the
+    side channel's default (occlusion: no cheaper kind held on its test split); the gradient functions' stays one
+    backward pass."""
     from openpi_cam.cli.options import EVERY_KIND, ExplainFlags
     from openpi_cam.demo.run import DemoOptions
 
-    assert vocabulary.DEFAULT_KINDS == ("gradcam", "gradnorm")
+    defaults = (vocabulary.DEFAULT_KINDS, ExplainFlags().maps, vocabulary.ExplainOptions().maps)
+    assert set(defaults) | {DemoOptions(sim="metaworld").map_kinds} == {("occlusion",)}
+    assert vocabulary.DEFAULT_MAP_KIND == "occlusion" and vocabulary.ONE_PASS_KINDS == ("gradcam", "gradnorm")
     assert vocabulary.COMPARED_KINDS == ("gradcam", "gradnorm", "ig", "occlusion")
     by_name = set(vocabulary.MAP_KINDS) - set(vocabulary.COMPARED_KINDS)
     assert by_name == {"lrp", "gradxinput", "taylor", "smoothgrad", "rise", "occlusion-head"}

@@ -87,6 +87,29 @@ def test_the_basis_projects_onto_the_leading_principal_directions():
     assert basis.apply(probe) == pytest.approx(basis.apply(filled))
 
 
+def test_each_wide_input_is_projected_alone_and_a_scalar_beside_it_is_kept():
+    """A feature 20 wide whose variance dwarfs a scalar signal's, fitted as two inputs with max_dims 3: the feature
+    is projected onto its own 3 leading directions and the scalar kept as it is (projected together, the scalar's
+    one column of 21 would be lost among the feature's directions)."""
+    rng = np.random.default_rng(3)
+    latent = rng.normal(size=(300, 3)) * [3.0, 2.0, 1.0]
+    feature = latent @ rng.normal(size=(3, 20)) * 100 + rng.normal(scale=0.01, size=(300, 20))
+    scalar = rng.normal(size=(300, 1))
+    x = np.hstack([feature, scalar])
+    basis = fit_basis(x, max_dims=3, widths=[20, 1])
+    assert basis.components is not None and basis.components.shape == (4, 21)
+    alone = fit_basis(feature, max_dims=3)
+    np.testing.assert_allclose(basis.components[:3, :20], alone.components, atol=1e-9)
+    assert (basis.components[:3, 20] == 0).all() and basis.components[3].tolist() == [0.0] * 20 + [1.0]
+    # the scalar's standardised value reaches the coordinates unchanged; projected together it would not
+    z = basis.apply(x)
+    np.testing.assert_allclose(z[:, 3], (scalar[:, 0] - scalar.mean()) / scalar.std(), rtol=1e-12)
+    together = fit_basis(x, max_dims=3).components
+    assert np.abs(together[:, 20]).max() < 0.1
+    with pytest.raises(ValueError, match="do not add up"):
+        fit_basis(x, max_dims=3, widths=[20])
+
+
 def test_the_randomised_directions_capture_what_the_exact_ones_do():
     """On a spectrum with no gap to speak of (singular values 1 / i), the k directions found capture the variance
     the exact top k capture: measured above 0.99999 of it for k = 5, 10, 32 on this matrix; asserted at 0.9999."""

@@ -89,6 +89,7 @@ def test_real_client_gets_upstream_stream_actions_with_the_side_channel_off_and_
         np.testing.assert_array_equal(got, want)
 
     options = CAMOptions(
+        maps=("gradcam", "gradnorm"),
         every_k=1,
         dir=tmp_path / "cam",
         save_frames="model",

@@ -103,6 +103,7 @@ def test_serve_with_cam_flags_writes_an_explained_closed_run(demo_observations, 
     ]  # fmt: skip
     cam = ["--cam.every-k", "1", "--cam.dir", str(cam_dir), "--cam.target", "action-token", "--cam.action-index", "2"]
     cam += ["--cam.per-connection", "4", "--cam.settle-ms", "5", "--cam.check-patches", "2"]
+    cam += ["--cam.maps", "gradcam", "gradnorm"]
     # The side channel explains in the client's pauses and at shutdown; the first explanation compiles (seconds on a
     # loaded 2-core machine), more than the 5 s default drain of a container stop: this test wants every step.
     cam += ["--drain-timeout", "120"]

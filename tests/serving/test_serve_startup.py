@@ -12,6 +12,7 @@ import subprocess
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import tyro
 from client_env import collect
@@ -26,7 +27,7 @@ from openpi_cam.checkpoints import model_spec
 from openpi_cam.cli import serve
 from openpi_cam.cli.options import ExplainFlags
 from openpi_cam.policies import demo_reach
-from openpi_cam.vocabulary import MapOptions
+from openpi_cam.vocabulary import DEFAULT_KINDS, MapOptions
 
 PI05_DEMO = demo_reach.ASSETS_PI05
 PI0_LIBERO = GOLDEN_DIR / "tiny_policy_pi0_libero"
@@ -100,9 +101,9 @@ def test_serve_with_default_flags_explains_with_the_familys_target(family, tmp_p
     assert run.run_info["options"]["target"] == target  # the run records the resolved target, not "default"
     (step,) = run.steps
     assert step.meta.target == target
-    assert set(step.map_kinds) == {"gradcam", "gradnorm"}
-    gradnorm = step.maps_of("gradnorm")
-    assert gradnorm and any(m.max() > 0 for m in gradnorm.values())  # a real map, not an empty placeholder
+    assert step.map_kinds == DEFAULT_KINDS == ("occlusion",)  # the kind the maps bench chose
+    occlusion = step.maps_of("occlusion")
+    assert occlusion and any(np.abs(m).max() > 0 for m in occlusion.values())  # a real map, not an empty placeholder
 
 
 @pytest.mark.parametrize("family", list(WRONG_TARGET))

@@ -350,12 +350,22 @@ def test_render_and_stats_draw_the_requested_kind(tmp_path, capsys):
         (row,) = json.loads(capsys.readouterr().out)["steps"]
         assert [row[f"{BASE}/peak_row"], row[f"{BASE}/peak_col"]] == peak
 
+    # Not told which, they draw the most trusted kind the run carries (`drawn_kind`): the gradient norm here, Grad-CAM
+    # in a run of Grad-CAM alone; a kind named that the run lacks is refused before anything is written.
+    cli_main(["render", str(run_dir), "--no-videos", "--no-progress", "--out", str(tmp_path / "drawn")])
+    assert "gradient norm" in (tmp_path / "drawn" / "index.html").read_text()
     only_gradcam = _log(tmp_path / "old", [("a", {"gradcam": maps["gradcam"]}, 1.0, {})])
-    for command in ("render", "stats"):  # the default kind is the gradient norm, which this run lacks
+    cli_main(["render", str(only_gradcam), "--no-videos", "--no-progress"])
+    assert (only_gradcam / "render-gradcam" / "index.html").is_file()
+    capsys.readouterr()
+    cli_main(["stats", str(only_gradcam), "--format", "json"])
+    (row,) = json.loads(capsys.readouterr().out)["steps"]
+    assert [row[f"{BASE}/peak_row"], row[f"{BASE}/peak_col"]] == [6, 10]
+    for command in ("render", "stats"):
         with pytest.raises(SystemExit) as exc:
-            cli_main([command, str(only_gradcam)])
+            cli_main([command, str(only_gradcam), "--map", "gradnorm"])
         assert exc.value.code == 2 and "no gradient norm (unsigned sensitivity) maps" in capsys.readouterr().err
-    assert not (only_gradcam / "render-gradnorm").exists()  # refused before anything was written
+    assert not (only_gradcam / "render-gradnorm").exists()
 
 
 def _report_json(run_dir: pathlib.Path, run_id: str) -> None:

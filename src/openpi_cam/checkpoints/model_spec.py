@@ -221,6 +221,19 @@ class ModelSpec:
         path = self.assets() / MONITOR_FILE
         return path if path.is_file() else None
 
+    def chosen_monitor(self, given: pathlib.Path | None, off: bool) -> pathlib.Path | None:
+        """The monitor a command scores with: `--monitor` (given), else the model's own (`default_monitor`), none with
+        `--no-monitor` (off); both flags at once are refused (ValueError). A model the flags cannot name has none here:
+        loading it reports why."""
+        if off and given is not None:
+            raise ValueError("--monitor and --no-monitor name opposite things: give one")
+        if off or given is not None:
+            return given
+        try:
+            return self.default_monitor()
+        except (KeyError, ValueError, OSError):
+            return None
+
     def create(self, *, stop_at_action_end: bool = False, rng: jax.Array | None = None) -> Policy:
         """The policy; a FAST tokenizer named for a model of another family is refused (it would go unread)."""
         spec = self.resolved()

@@ -68,6 +68,14 @@ def main(opts: tyro.conf.OmitArgPrefixes[DemoOptions] = DEFAULT, record: pathlib
                 label = name if task is None else f"{task} {name}"
                 print(f"  {label:>40}: {sum(outcomes)}/{len(outcomes)} (95% interval {low:.0%}-{high:.0%})")
     figures = result.figures
+    flags = figures.get("monitor_flags")
+    if flags is not None and len(flags) == len(result.episodes):
+        failed = [f for f, r in zip(flags, result.episodes, strict=True) if not r["success"]]
+        succeeded = [f for f, r in zip(flags, result.episodes, strict=True) if r["success"]]
+        print(
+            f"failure monitor (the model's own, every call scored): flagged {sum(failed)}/{len(failed)} failed and "
+            f"{sum(succeeded)}/{len(succeeded)} successful episodes"
+        )
     if figures["steps"]:
         target = "the task's target" if metaworld else "the named block"
         print(f"pointing game over {figures['steps']} steps (the base camera's map peaks on {target}):")

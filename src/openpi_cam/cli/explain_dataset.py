@@ -45,6 +45,7 @@ def main(
     keep_going: bool = False,
     outcome: str | None = None,
     monitor: pathlib.Path | None = None,
+    no_monitor: tyro.conf.FlagCreatePairsOff[bool] = False,
     monitor_features: bool = False,
     execution_horizon: int | None = None,
     progress: bool = True,
@@ -77,7 +78,9 @@ def main(
         monitor: a failure monitor file (`openpi-cam monitor fit`): each row gets its frame's `monitor/score` and
             `monitor/flag` (the episode flagged by then), scored over the episode's explained frames in order, as
             `serve --monitor` scores a connection's calls. Every row carries `monitor/stac` and (pi0-FAST)
-            `monitor/token_entropy` with or without one.
+            `monitor/token_entropy` with or without one. Default: a demo model's own `<assets>/monitor.json`, as
+            `serve` uses it.
+        no_monitor: score with no monitor, even a demo model's own.
         monitor_features: also write each row's pooled last-layer features (`monitor/features/<name>`, float32), what
             `openpi-cam monitor fit` fits a probe or a Mahalanobis monitor on.
         execution_horizon: the actions the robot executed per call: `monitor/stac` compares a frame's chunk with the
@@ -117,7 +120,7 @@ def main(
             nested_keys=nested,
             keep_going=keep_going,
             outcome=outcome,
-            monitor=monitor,
+            monitor=model.chosen_monitor(monitor, no_monitor),
             monitor_features=monitor_features,
             execution_horizon=execution_horizon,
         )

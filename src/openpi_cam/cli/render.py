@@ -18,13 +18,13 @@ from openpi_cam.maps.rerun import write_dataset_rrd
 from openpi_cam.viz.render import Norm, RenderOptions, default_render_dir, render_run
 from openpi_cam.viz.rerun_sink import write_rrd
 from openpi_cam.viz.stats import MissingMaps
-from openpi_cam.vocabulary import DEFAULT_MAP_KIND, MapKind
+from openpi_cam.vocabulary import MapKind, drawn_kind
 
 
 def main(
     run_dir: tyro.conf.Positional[pathlib.Path],
     out: pathlib.Path | None = None,
-    kind: Annotated[MapKind, tyro.conf.arg(aliases=("--map",))] = DEFAULT_MAP_KIND,  # type: ignore[assignment]
+    kind: Annotated[MapKind | None, tyro.conf.arg(aliases=("--map",))] = None,
     norm: Norm = "step",
     alpha: float = 0.5,
     tile_height: int = 240,
@@ -42,7 +42,8 @@ def main(
         run_dir: a CAM run directory (holds run.json and steps/), or a maps dataset (`explain-dataset`'s output):
             per episode an overlay video of the source dataset's frames, and a report of the dataset-level views.
         out: output directory; defaults to RUN_DIR/render-<kind>.
-        kind: which kind of map to draw (README, "Which map to trust"; Grad-CAM is `gradcam`); `--map` is its
+        kind: which kind of map to draw (README, "Which map to trust"; Grad-CAM is `gradcam`; default: the most
+            trusted kind the run carries, occlusion first, `vocabulary.TRUST_ORDER`); `--map` is its
             earlier spelling.
         norm: divide maps by the step's maximum over cameras ("step") or by the whole run's maximum ("run").
         alpha: opacity of the heatmap over the image.
@@ -75,6 +76,7 @@ def main(
     except FileNotFoundError as e:  # not a run (nor a maps dataset): named in one line
         print(f"openpi-cam render: {e}", file=sys.stderr)
         return 1
+    kind = kind or drawn_kind(k for s in run.steps for k in s.map_kinds)
     out_dir = pathlib.Path(out) if out is not None else default_render_dir(run_dir, kind)
     opts = RenderOptions(
         map=kind,
@@ -111,7 +113,7 @@ def _render_dataset(
 ) -> int:
     """A maps dataset's videos and report, and with `rerun` its Rerun recording."""
     ds = open_maps_dataset(root)
-    opts = dataclasses.replace(opts, views=view_options(ds))
+    opts = dataclasses.replace(opts, map=opts.map or drawn_kind(ds.kinds), views=view_options(ds))
     out_dir = pathlib.Path(out) if out is not None else default_render_dir(root, opts.map)
     try:
         chosen = parse_episodes(episodes)

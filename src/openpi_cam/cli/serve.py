@@ -151,6 +151,8 @@ def main(
     except StartupError as e:
         print(f"openpi-cam serve: {e}", file=sys.stderr)
         return e.status
+    if live is not None:  # said once the command is sure to start, so that a refusal stays its one line
+        logger.info("failure monitor %s: %s, threshold %s", live.source, live.monitor.kind, live.monitor.threshold)
     if warm_up:
         try:
             _warm_up(served, policy, batch_window_ms, max_batch)
@@ -171,22 +173,16 @@ def _configure_logging() -> None:
 def _monitor(model: ModelSpec, path: Path | None, off: bool) -> LiveMonitor | None:
     """The failure monitor to serve with: `--monitor`, else a demo model's own (`ModelSpec.default_monitor`), none
     with `--no-monitor`; a file that is not a monitor is refused in one line."""
-    if off and path is not None:
-        raise StartupError("--monitor and --no-monitor name opposite things: give one", 2)
-    if off:
-        return None
-    if path is None:
-        try:
-            path = model.default_monitor()
-        except (KeyError, ValueError, OSError):  # a model the flags cannot name: loading it reports why, in one line
-            return None
+    try:
+        path = model.chosen_monitor(path, off)
+    except ValueError as e:
+        raise StartupError(str(e), 2) from None
     if path is None:
         return None
     try:
         loaded = monitor_file.load(path)
     except ValueError as e:
         raise StartupError(f"--monitor {e}", 2) from None
-    logger.info("failure monitor %s: %s, threshold %s", path, loaded.kind, loaded.threshold)
     return LiveMonitor(loaded, path.name)
 
 

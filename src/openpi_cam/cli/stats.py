@@ -14,7 +14,7 @@ from openpi_cam.demo.recorded import PERTURBATION_FEATURE, perturbation_names
 from openpi_cam.maps.dataset import MapsDataset, is_maps_dataset, open_maps_dataset
 from openpi_cam.maps.views import ViewOptions, compute_views, detection_lines
 from openpi_cam.viz.stats import MissingMaps, aggregate, compute_stats, emit_table, to_rows, view_steps, write_table
-from openpi_cam.vocabulary import DEFAULT_MAP_KIND, MapKind
+from openpi_cam.vocabulary import MapKind, drawn_kind
 
 Format = Literal["csv", "json", "parquet"]
 
@@ -23,7 +23,7 @@ def main(
     run_dir: tyro.conf.Positional[pathlib.Path],
     format: Format = "csv",
     out: pathlib.Path | None = None,
-    kind: Annotated[MapKind, tyro.conf.arg(aliases=("--map",))] = DEFAULT_MAP_KIND,  # type: ignore[assignment]
+    kind: Annotated[MapKind | None, tyro.conf.arg(aliases=("--map",))] = None,
 ) -> int:
     """Per-step, per-camera statistics of a CAM run's maps (one row per step, `<camera>/<field>` columns).
 
@@ -34,7 +34,8 @@ def main(
         format: csv, json (rows plus a summary) or parquet (summary in the file metadata).
         out: output file; defaults to stdout for csv/json and RUN_DIR/stats.parquet (a maps dataset's
             stats-<kind>.parquet) for parquet.
-        kind: which kind of map the statistics describe (README, "Which map to trust"); `--map` is its earlier
+        kind: which kind of map the statistics describe (README, "Which map to trust"; default: the most trusted
+            kind the run carries, occlusion first, `vocabulary.TRUST_ORDER`); `--map` is its earlier
             spelling.
     """
     if is_maps_dataset(run_dir):
@@ -45,7 +46,7 @@ def main(
         print(f"openpi-cam stats: {e}", file=sys.stderr)
         return 1
     try:
-        steps = view_steps(run.steps, kind)
+        steps = view_steps(run.steps, kind or drawn_kind(k for s in run.steps for k in s.map_kinds))
     except MissingMaps as e:
         print(f"openpi-cam stats: {e}", file=sys.stderr)
         return 2
@@ -63,11 +64,12 @@ def view_options(ds: MapsDataset) -> ViewOptions:
     return ViewOptions(group=PERTURBATION_FEATURE, group_names=tuple(perturbation_names(ds.info.source)))
 
 
-def _dataset_stats(root: pathlib.Path, format: Format, out: pathlib.Path | None, kind: str) -> int:
+def _dataset_stats(root: pathlib.Path, format: Format, out: pathlib.Path | None, kind: str | None) -> int:
     """A maps dataset's per-frame rows as CSV or parquet (the views in its metadata), or JSON holding the
     dataset-level views (`summary`) and the rows (`frames`)."""
     try:
         ds = open_maps_dataset(root)
+        kind = kind or drawn_kind(ds.kinds)
         views = compute_views(ds, kind, view_options(ds))
     except ValueError as e:
         print(f"openpi-cam stats: {e}", file=sys.stderr)

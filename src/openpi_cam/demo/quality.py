@@ -1,7 +1,7 @@
 """Do the demo's maps point at the right thing? Figures from a demo run directory and from fresh inferences.
 
 The run's figures are reported for every map kind it logged; the fresh inferences', for the two kinds one gradient
-gives (Grad-CAM and the per-token gradient norm, `DEFAULT_KINDS`).
+gives (Grad-CAM and the per-token gradient norm, `ONE_PASS_KINDS`).
 
 * success rate of the run's episodes;
 * pointing game: share of logged steps whose base-camera map peaks on a patch overlapping the named block's box, next
@@ -31,17 +31,18 @@ import numpy as np
 
 from openpi_cam.cam.batching import explain_traces
 from openpi_cam.cam.faithfulness import box_cells, box_visible, spearman
-from openpi_cam.cam.run_format import load_run
+from openpi_cam.cam.run_format import CAMRun, load_run
 from openpi_cam.checkpoints import model_spec
 from openpi_cam.demo import bundled, task
 from openpi_cam.demo.data import Batches, load_normalize
 from openpi_cam.demo.recorded import EPISODES_FILE
 from openpi_cam.model.pi0_fast import Pi0FAST, init_params
+from openpi_cam.monitor.stream import FLAG
 from openpi_cam.policies import demo_reach
 from openpi_cam.policies.family import Explainer, Explanation
 from openpi_cam.policies.pi0_fast_family import FastExplainer
 from openpi_cam.policies.policy import InferenceTrace, Policy
-from openpi_cam.vocabulary import DEFAULT_KINDS, MAP_KINDS, ExplainOptions
+from openpi_cam.vocabulary import MAP_KINDS, ONE_PASS_KINDS, ExplainOptions
 
 BASE_CAMERA = "base_0_rgb"
 
@@ -111,7 +112,20 @@ def run_figures(run_dir: Path, image_size: int = task.TaskConfig().image_size) -
         "success_rate": success_rate(episodes),
         "steps": len(labelled),
         "maps": per_kind,
+        "monitor_flags": monitor_flags(run),
     }
+
+
+def monitor_flags(run: CAMRun) -> list[bool] | None:
+    """Per connection (an episode of the demo), in the order they began, whether the failure monitor flagged it by
+    its last logged step; None where the run's steps carry no monitor."""
+    flagged: dict[str, bool] = {}
+    for step in sorted(run.steps, key=lambda s: s.seq):
+        flag = step.monitor.get(FLAG)
+        if flag is None:
+            return None
+        flagged[step.meta.connection] = flagged.get(step.meta.connection, False) or bool(flag)
+    return list(flagged.values()) if flagged else None
 
 
 def success_rate(episodes: list[dict[str, Any]]) -> float:
@@ -194,7 +208,8 @@ def occlusion_figures(policy: Policy, samples: int = 40, seed: int = 4321) -> di
 
 
 def _explain(explainer: Explainer, trace: InferenceTrace, target: str) -> Explanation | None:
-    (explanation,) = explain_traces(explainer, [trace], ExplainOptions(target))  # type: ignore[arg-type]
+    request = ExplainOptions(target, maps=ONE_PASS_KINDS)  # type: ignore[arg-type]
+    (explanation,) = explain_traces(explainer, [trace], request)
     return explanation if isinstance(explanation, Explanation) and explanation.target == target else None
 
 
@@ -215,7 +230,7 @@ def map_figures(
     rng = np.random.default_rng(seed)
     size = task.TaskConfig().image_size
     fields = ("rho", "kept", "chance", "moved", "on_block", "block_chance")
-    figures = {k: {field: [] for field in fields} for k in DEFAULT_KINDS}  # the kinds `ExplainOptions` computes
+    figures = {k: {field: [] for field in fields} for k in ONE_PASS_KINDS}  # the kinds `ExplainOptions` computes
     scenes = 0
     while scenes < samples:
         scene = task.random_scene(rng)

@@ -15,6 +15,7 @@ from typing import Any, Literal
 import numpy as np
 
 from openpi_cam.cam.faithfulness_run import FaithfulnessOptions, evaluate_run
+from openpi_cam.cam.monitoring import LiveMonitor
 from openpi_cam.cam.run_evidence import REPORT_FILE
 from openpi_cam.cam.run_format import dumps, load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
@@ -22,6 +23,7 @@ from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.demo import bundled, metaworld_data, metaworld_loop, metaworld_sim, quality, task
 from openpi_cam.demo.client import PolicyClient, RolloutSink
 from openpi_cam.demo.perturb import Perturbation
+from openpi_cam.monitor import monitor_file
 from openpi_cam.policies import demo_metaworld
 from openpi_cam.serving.server import start_server_in_thread
 from openpi_cam.viz.render import RenderOptions, default_render_dir, render_run
@@ -49,10 +51,12 @@ def run_episodes(
 ) -> list[dict[str, Any]]:
     """Closed loop over the server: observe, infer a chunk, execute its first `execute` actions one step at a time,
     repeat until the block is reached or `max_calls` chunks are spent. Episode i is the scene of seed + i // P under
-    perturbation i % P (P perturbations): every perturbation meets the same scenes. Each step goes to `sink`."""
+    perturbation i % P (P perturbations): every perturbation meets the same scenes. Each step goes to `sink`. Each
+    episode is a connection of its own, as a robot's: what the server keeps per connection (the monitor's score,
+    STAC's previous chunk) starts afresh with it."""
     results = []
-    with PolicyClient(url) as client:
-        for e in range(episodes):
+    for e in range(episodes):
+        with PolicyClient(url) as client:
             which = e % len(perturbations)
             episode_seed = seed + e // len(perturbations)
             episode = perturbations[which].episode(episode_seed)
@@ -103,23 +107,26 @@ def run_metaworld_episodes(
 ) -> list[dict[str, Any]]:
     """Meta-World episodes over the server: episode i drives task (i // P) mod T under perturbation i mod P in the
     scene of seed + i // (P T) (T tasks, P perturbations), so every task meets every perturbation in the same scenes;
-    `max_calls` None gives each task its own budget. Cameras render at `image_size` px (the robot the model serves)."""
+    `max_calls` None gives each task its own budget. Cameras render at `image_size` px (the robot the model serves).
+    Each episode is a connection of its own (`run_episodes`)."""
     p, t = len(perturbations), len(tasks)
-    with PolicyClient(url) as client:
-        return [
-            metaworld_loop.run_episode(
-                client.infer,
-                seed + e // (p * t),
-                perturbations[e % p],
-                task=tasks[(e // p) % t],
-                max_calls=max_calls,
-                execute=execute,
-                sink=sink,
-                perturbation_index=e % p,
-                image_size=image_size,
+    results = []
+    for e in range(episodes):
+        with PolicyClient(url) as client:
+            results.append(
+                metaworld_loop.run_episode(
+                    client.infer,
+                    seed + e // (p * t),
+                    perturbations[e % p],
+                    task=tasks[(e // p) % t],
+                    max_calls=max_calls,
+                    execute=execute,
+                    sink=sink,
+                    perturbation_index=e % p,
+                    image_size=image_size,
+                )
             )
-            for e in range(episodes)
-        ]
+    return results
 
 
 ROLLOUT_FPS = 10  # the frame rate recorded rollouts declare (the simulator has no clock: one frame per action)
@@ -288,6 +295,13 @@ def _side_channel_options(opts: DemoOptions, model: ModelSpec) -> CAMOptions:
     )
 
 
+def _own_monitor(model: ModelSpec) -> LiveMonitor | None:
+    """The failure monitor the bundled model ships (`ModelSpec.default_monitor`): the side channel scores every call
+    of each episode with it, as `serve` does."""
+    path = model.default_monitor()
+    return None if path is None else LiveMonitor(monitor_file.load(path), path.name)
+
+
 def run_demo(opts: DemoOptions, sink: RolloutSink | None = None) -> DemoResult:
     """Serves, drives (recording every step into `sink`), renders and scores; raises OSError when the side channel
     cannot create its run directory or the model's files are missing, ImportError when `--sim metaworld` lacks its
@@ -312,7 +326,10 @@ def run_demo(opts: DemoOptions, sink: RolloutSink | None = None) -> DemoResult:
     }
     run_config = {**model.resolved().to_json(), "demo": demo}
     checkpoint = str(model.checkpoint)
-    cam = wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=checkpoint) if opts.explain else None
+    cam = None
+    if opts.explain:
+        monitor = _own_monitor(model)
+        cam = wrap_policy_with_cam(policy, options, run_config=run_config, checkpoint=checkpoint, monitor=monitor)
     # The demo explains every request: the drain at the end is the rest of the run's work, not a shutdown grace.
     server = start_server_in_thread(cam or policy, metadata=policy.metadata, drain_timeout=DRAIN_S)
     try:

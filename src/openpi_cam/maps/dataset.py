@@ -59,8 +59,9 @@ SUMMARY_JSON = "meta/summary.json"
 DATA_DIR = "data"
 EPISODES_PER_CHUNK = 1000
 CHECK_RANDOM = "random"  # `check/random/<camera>`: the random patches' drops
+FRAME_INDEX = "frame_index"  # a row's frame within its episode, as LeRobot numbers it
 # What every row says of its frame, whatever the maps: where it sits in the source and what was explained.
-FRAME_COLUMNS = ("index", "episode_index", "frame_index", "timestamp", "task", "target", "score", "malformed")
+FRAME_COLUMNS = ("index", "episode_index", FRAME_INDEX, "timestamp", "task", "target", "score", "malformed")
 CAMERAS_COLUMN = "cameras"  # JSON: per model camera its validity and letterbox geometry
 # info.json fields, besides the model and the explanation options, that must match to add episodes to a maps dataset.
 SOURCE_KEYS = (

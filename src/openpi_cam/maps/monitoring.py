@@ -66,7 +66,7 @@ def read_rollouts(roots: Sequence[pathlib.Path]) -> Rollouts:
         features = [fmt.MONITOR_PREFIX + name for name in info.monitor_features]
         scalars = [fmt.MONITOR_PREFIX + name for name in (STAC, TOKEN_ENTROPY)]
         for episode in ds.episodes:
-            table = ds.table(episode, [fmt.EPISODE_SUCCESS, *scalars, *features])
+            table = ds.table(episode, ["index", fmt.FRAME_INDEX, fmt.EPISODE_SUCCESS, *scalars, *features])
             if table.num_rows == 0:
                 continue
             columns = {n: _scalar(table.column(fmt.MONITOR_PREFIX + n).to_pylist()) for n in (STAC, TOKEN_ENTROPY)}
@@ -74,7 +74,8 @@ def read_rollouts(roots: Sequence[pathlib.Path]) -> Rollouts:
                 where = f"{root}, episode {episode}, {column}"
                 columns[column[len(fmt.MONITOR_PREFIX) :]] = _vectors(table.column(column).to_pylist(), where)
             success = table.column(fmt.EPISODE_SUCCESS).to_pylist()
-            episodes.append(Episode(columns, bool(success[0])))
+            frames = np.asarray(table.column(fmt.FRAME_INDEX).to_pylist(), np.int64)
+            episodes.append(Episode(columns, bool(success[0]), frames))
             names.append((str(root), episode))
     if len(horizons) > 1:
         raise ValueError(f"the maps datasets assumed different execution horizons {sorted(horizons)}: fit on one")

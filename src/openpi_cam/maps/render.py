@@ -45,7 +45,7 @@ from openpi_cam.viz.render import Norm, label_font, slug
 from openpi_cam.viz.report import REPORT_STYLE, write_page
 from openpi_cam.viz.text import escape, html_table, number, percent
 from openpi_cam.viz.video import Mp4Writer
-from openpi_cam.vocabulary import DEFAULT_MAP_KIND, MAP_KIND_INFO
+from openpi_cam.vocabulary import MAP_KIND_INFO, drawn_kind
 
 _BG = (24, 24, 28)
 _FG = (232, 232, 232)
@@ -57,7 +57,7 @@ _LINE = 16
 
 @dataclasses.dataclass(frozen=True)
 class DatasetRenderOptions:
-    map: str = DEFAULT_MAP_KIND
+    map: str | None = None  # None: the dataset's most trusted kind (`drawn_kind`)
     norm: Norm = "step"  # "step": each frame's maximum over its cameras; "run": the rendered episodes' maximum
     alpha: float = 0.5
     tile_height: int = 240
@@ -229,6 +229,7 @@ def render_dataset(
 ) -> DatasetRenderResult:
     """Videos and strips for `episodes` (default: every written one) and index.html over the whole dataset's views."""
     chosen = select_episodes(ds, episodes)
+    opts = dataclasses.replace(opts, map=opts.map or drawn_kind(ds.kinds))
     views = compute_views(ds, opts.map, opts.views)
     lr = source_dataset(ds, source)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -44,7 +44,7 @@ from openpi_cam.viz.colormap import colorize
 from openpi_cam.viz.overlay import upsample
 from openpi_cam.viz.rerun_sink import import_rerun, log_reliance
 from openpi_cam.viz.stats import mean_score
-from openpi_cam.vocabulary import DEFAULT_MAP_KIND, MAP_KIND_INFO
+from openpi_cam.vocabulary import MAP_KIND_INFO, drawn_kind
 
 FRAME_DRAW_ORDER = 0.0
 LAYER_DRAW_ORDER = 1.0  # the map is drawn above the frame
@@ -102,7 +102,7 @@ def write_dataset_rrd(
     ds: MapsDataset,
     out_path: str | os.PathLike[str],
     *,
-    map_kind: str = DEFAULT_MAP_KIND,
+    map_kind: str | None = None,
     episodes: list[int] | None = None,
     norm: Literal["step", "run"] = "step",
     alpha: float = 0.5,
@@ -112,6 +112,7 @@ def write_dataset_rrd(
     """Writes `episodes` (default: every written one) of the maps dataset with their source frames to `out_path`."""
     rr = import_rerun()
     chosen = select_episodes(ds, episodes)
+    map_kind = map_kind or drawn_kind(ds.kinds)
     views = views if views is not None and views.kind == map_kind else compute_views(ds, map_kind)
     lr = source_dataset(ds, source)
     features = {c: f for c, f in ds.info.camera_sources.items() if f in lr.features}

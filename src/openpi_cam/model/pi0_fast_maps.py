@@ -53,9 +53,9 @@ from openpi_cam.model.observation import Observation, preprocess_observation
 from openpi_cam.model.pi0_fast import Pi0FAST, embed_images, replay_prelogits
 from openpi_cam.vocabulary import (
     BASELINE_KINDS,
-    DEFAULT_KINDS,
     GRADIENT_KINDS,
     MODEL_KINDS,
+    ONE_PASS_KINDS,
     OPTION_KINDS,
     RELEVANCE_KINDS,
     MapOptions,
@@ -405,7 +405,7 @@ def maps_for_steps(
     generated_ids: ArrayLike,
     steps: ArrayLike,
     *,
-    kinds: Sequence[str] = DEFAULT_KINDS,
+    kinds: Sequence[str] = ONE_PASS_KINDS,
     options: MapOptions | None = None,
     logits: bool = True,
 ) -> MapResult:
@@ -433,7 +433,7 @@ def gradcam_for_action_token(
     generated_ids: ArrayLike,
     step: int,
     *,
-    kinds: Sequence[str] = DEFAULT_KINDS,
+    kinds: Sequence[str] = ONE_PASS_KINDS,
     options: MapOptions | None = None,
     logits: bool = True,
 ) -> MapResult:
@@ -463,7 +463,7 @@ def gradcam_for_token(
     position: int | None = None,
     generated_prefix: ArrayLike | None = None,
     max_decoding_steps: int = MAX_DECODING_STEPS,
-    kinds: Sequence[str] = DEFAULT_KINDS,
+    kinds: Sequence[str] = ONE_PASS_KINDS,
     options: MapOptions | None = None,
 ) -> MapResult:
     """The seed's Grad-CAM API for any token: Grad-CAM (and by default the gradient norm; any `kinds`) of the logit
@@ -618,7 +618,7 @@ def maps_for_chunk(
     generated_ids: ArrayLike,
     steps: ArrayLike,
     *,
-    kinds: Sequence[str] = DEFAULT_KINDS,
+    kinds: Sequence[str] = ONE_PASS_KINDS,
     options: MapOptions | None = None,
 ) -> MapResult:
     """The `kinds` maps of a whole-chunk target: score = sum over `steps` of log p(g_k); one backward pass, one map

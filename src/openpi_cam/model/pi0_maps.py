@@ -28,9 +28,9 @@ from openpi_cam.model.paligemma import embed_images
 from openpi_cam.model.pi0 import Pi0, denoise, preprocess
 from openpi_cam.vocabulary import (
     BASELINE_KINDS,
-    DEFAULT_KINDS,
     GRADIENT_KINDS,
     MODEL_KINDS,
+    ONE_PASS_KINDS,
     OPTION_KINDS,
     RELEVANCE_KINDS,
     MapOptions,
@@ -143,7 +143,7 @@ def maps_for_actions(
     noise: ArrayLike,
     targets: Sequence[tuple[int, int]],
     *,
-    kinds: Sequence[str] = DEFAULT_KINDS,
+    kinds: Sequence[str] = ONE_PASS_KINDS,
     options: MapOptions | None = None,
 ) -> FlowMaps:
     """The requested map kinds of each target ((h, d), or `CHUNK`) for the actions sampled from `noise` [B, H, A]

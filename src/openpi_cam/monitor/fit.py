@@ -22,10 +22,12 @@ from openpi_cam.monitor.signals import STAC
 @dataclasses.dataclass(frozen=True)
 class Episode:
     """One labelled rollout. columns: input name -> [T] (a scalar signal per step) or [T, D] (a feature per step),
-    every column with the episode's T steps; success: whether the episode succeeded."""
+    every column with the episode's T steps; success: whether the episode succeeded; frames: [T] each step's source
+    frame index within the episode (LeRobot's `frame_index`), where known: what the detection figures count time in."""
 
     columns: Mapping[str, np.ndarray]
     success: bool
+    frames: np.ndarray | None = None
 
     def matrix(self, inputs: Sequence[MonitorInput]) -> np.ndarray:
         """The named inputs of every step, concatenated in order: [T, F]."""
@@ -51,7 +53,7 @@ class FitOptions:
     alpha: float = 0.1  # the false-alarm rate on successful episodes the threshold is calibrated for
     calibration_share: float = 0.5  # of the successful episodes, held out for the threshold
     seed: int = 0  # the episode split
-    max_dims: int = 32  # inputs wider than this are projected onto their leading principal directions
+    max_dims: int = 32  # each input wider than this is projected onto its leading principal directions
     shrinkage: float | None = None  # Mahalanobis: None is Ledoit-Wolf's weight, a number in [0, 1] a fixed one
     l2: float = 1e-2  # the probe's penalty on its weights, in standardised units, per episode-averaged loss
     temporal: bool = False  # score each step with the running mean of its episode's inputs beside it
@@ -70,25 +72,46 @@ def split_episodes(success: Sequence[bool], calibration_share: float, seed: int)
     return training, calibration
 
 
-def fit_basis(x: np.ndarray, max_dims: int) -> Basis:
-    """Standardise each input over the rows of x [N, F] (mean, standard deviation with ddof 0; a constant input
-    keeps scale 1), imputing non-finite entries by the mean; project onto the leading min(max_dims, N - 1)
-    principal directions when F exceeds max_dims (a covariance in F > N dimensions is singular, and a probe in
-    thousands of dimensions over a few hundred steps only memorises). Each direction's sign is fixed (its largest
-    entry positive) so the basis does not depend on the linear-algebra library."""
+def fit_basis(x: np.ndarray, max_dims: int, widths: Sequence[int] | None = None) -> Basis:
+    """Standardise each column over the rows of x [N, F] (mean, standard deviation with ddof 0; a constant column
+    keeps scale 1), imputing non-finite entries by the mean; then project each input wider than max_dims onto its
+    own leading min(max_dims, N - 1) principal directions, keeping narrower inputs as they are. `widths` splits the
+    F columns into the inputs, in order (None: one input). Per input, because a covariance in F > N dimensions is
+    singular and a probe in thousands of dimensions over a few hundred steps only memorises, while a scalar signal
+    projected together with a feature hundreds wide is lost among its directions. The projection is one
+    block-diagonal matrix with orthonormal rows; each direction's sign is fixed (its largest entry positive) so the
+    basis does not depend on the linear-algebra library."""
     x = np.asarray(x, np.float64)
+    widths = [x.shape[1]] if widths is None else list(widths)
+    if sum(widths) != x.shape[1]:
+        raise ValueError(f"input widths {widths} do not add up to the {x.shape[1]} columns")
     finite = np.isfinite(x)
     counts = np.maximum(finite.sum(axis=0), 1)
     mean = np.where(finite, x, 0.0).sum(axis=0) / counts
     centred = np.where(finite, x - mean, 0.0)
     std = np.sqrt((centred**2).sum(axis=0) / counts)
     scale = np.where(std > 0, std, 1.0)
-    if x.shape[1] <= max_dims:
+    if all(w <= max_dims for w in widths):
         return Basis(mean, scale)
-    k = max(1, min(max_dims, x.shape[0] - 1))
-    components = leading_directions(centred / scale, k)
-    signs = np.sign(components[np.arange(k), np.abs(components).argmax(axis=1)])
-    return Basis(mean, scale, components * signs[:, None])
+    blocks, start = [], 0
+    for width in widths:
+        columns = slice(start, start + width)
+        if width <= max_dims:
+            block = np.eye(width)
+        else:
+            z = centred[:, columns] / scale[columns]
+            block = leading_directions(z, max(1, min(max_dims, x.shape[0] - 1)))
+            # an input of lower rank than the directions asked for (a prompt's feature over a few prompts) leaves
+            # directions the steps do not vary along: kept, they would make the covariance singular
+            spread = (z @ block.T).var(axis=0)
+            block = block[(spread > 1e-9 * spread.max()) | (np.arange(len(spread)) == 0)]
+            k = block.shape[0]
+            block = block * np.sign(block[np.arange(k), np.abs(block).argmax(axis=1)])[:, None]
+        rows = np.zeros((block.shape[0], x.shape[1]))
+        rows[:, columns] = block
+        blocks.append(rows)
+        start += width
+    return Basis(mean, scale, np.concatenate(blocks))
 
 
 def leading_directions(a: np.ndarray, k: int, *, oversample: int = 10, iterations: int = 4) -> np.ndarray:
@@ -139,7 +162,9 @@ def fit_mahalanobis(basis: Basis, x: np.ndarray, shrinkage: float | None = None)
         centred = z - z.mean(axis=0)
         s = centred.T @ centred / z.shape[0]
         cov, rho = (1 - shrinkage) * s + shrinkage * np.trace(s) / s.shape[0] * np.eye(s.shape[0]), shrinkage
-    precision = np.linalg.inv(cov)
+    # a pseudo-inverse: with fewer steps than directions (several inputs each projected) the covariance can be
+    # singular even shrunk, and a direction no training step varies along then adds nothing to the distance
+    precision = np.linalg.pinv(cov, hermitian=True)
     left_out = basis.mean.shape[0] - basis.dims
     residual = float(basis.residual_sq(x).mean()) / left_out if left_out else 0.0
     return MahalanobisScorer(z.mean(axis=0), (precision + precision.T) / 2, residual), float(rho)
@@ -231,17 +256,17 @@ def _matrix(index: int, episode: Episode, inputs: tuple[MonitorInput, ...]) -> n
 
 
 def _scorer(
-    options: FitOptions, x: list[np.ndarray], success: np.ndarray, training: np.ndarray
+    options: FitOptions, x: list[np.ndarray], widths: list[int], success: np.ndarray, training: np.ndarray
 ) -> tuple[Basis | None, MahalanobisScorer | ProbeScorer | None, dict]:
     if options.kind == "stac":
         return None, None, {}
     if options.kind == "mahalanobis":
         rows = np.concatenate([x[i] for i in training if success[i]])
-        basis = fit_basis(rows, options.max_dims)
+        basis = fit_basis(rows, options.max_dims, widths)
         scorer, rho = fit_mahalanobis(basis, rows, options.shrinkage)
         return basis, scorer, {"shrinkage": rho, "steps": int(rows.shape[0])}
     rows = np.concatenate([x[i] for i in training])
-    basis = fit_basis(rows, options.max_dims)
+    basis = fit_basis(rows, options.max_dims, widths)
     failed = np.concatenate([np.full(len(x[i]), not success[i]) for i in training])
     # every episode weighs alike: failed episodes run to the time limit, and per-step weights would let their
     # late steps (and so episode length) decide the fit
@@ -264,7 +289,8 @@ def fit_monitor(episodes: Sequence[Episode], options: FitOptions = FitOptions())
     training, calibration = split_episodes(success, options.calibration_share, options.seed)
     x = [_matrix(i, e, inputs) for i, e in enumerate(episodes)]
     prepared = [with_running_mean(m) for m in x] if options.temporal else x
-    basis, scorer, record = _scorer(options, prepared, success, training)
+    widths = [i.dim for i in inputs] * (2 if options.temporal else 1)
+    basis, scorer, record = _scorer(options, prepared, widths, success, training)
     monitor = Monitor(
         kind=options.kind,
         inputs=inputs,

@@ -20,7 +20,7 @@ from openpi_cam.viz.progress import progress
 from openpi_cam.viz.report import RenderResult, StepAssets, write_report
 from openpi_cam.viz.stats import StepStats, compute_stats, step_scale, view_steps
 from openpi_cam.viz.video import Mp4Writer
-from openpi_cam.vocabulary import DEFAULT_MAP_KIND, MAP_KIND_INFO
+from openpi_cam.vocabulary import MAP_KIND_INFO, drawn_kind
 
 Norm = Literal["step", "run"]
 
@@ -33,7 +33,7 @@ _LINE = 18
 
 @dataclasses.dataclass(frozen=True)
 class RenderOptions:
-    map: str = DEFAULT_MAP_KIND  # which kind of the steps' maps to draw
+    map: str | None = None  # which kind of the steps' maps to draw (None: the run's most trusted, `drawn_kind`)
     norm: Norm = "step"
     alpha: float = 0.5
     tile_height: int = 240
@@ -172,6 +172,7 @@ class _ConnectionVideo:
 def render_run(run: CAMRun, out_dir: pathlib.Path, opts: RenderOptions) -> RenderResult:
     """Writes overlays, panels, thumbnails, per-connection videos and (with `opts.html`) index.html for a run under
     `out_dir` (`MissingMaps`, before anything is written, when the run has no `opts.map` maps)."""
+    opts = dataclasses.replace(opts, map=opts.map or drawn_kind(k for s in run.steps for k in s.map_kinds))
     steps = view_steps(run.steps, opts.map)
     stats = compute_stats(steps)
     evidence = map_evidence(run, opts.map, stats)

@@ -43,7 +43,7 @@ from openpi_cam.viz.evidence import (
 )
 from openpi_cam.viz.overlay import StepView, camera_image, camera_overlay
 from openpi_cam.viz.stats import StepStats, compute_stats, step_scale, view_steps
-from openpi_cam.vocabulary import DEFAULT_MAP_KIND, NORMALIZED_CHUNK
+from openpi_cam.vocabulary import NORMALIZED_CHUNK, drawn_kind
 
 if TYPE_CHECKING:  # the viewers import no JAX; the trace only passes through
     from openpi_cam.policies.policy import InferenceTrace
@@ -113,13 +113,14 @@ def write_rrd(
     *,
     norm: Literal["step", "run"] = "step",
     alpha: float = 0.5,
-    map_kind: str = DEFAULT_MAP_KIND,
+    map_kind: str | None = None,
 ) -> pathlib.Path:
     """Writes the run's frames, overlays (of `map_kind` maps), per-camera attention shares, each step's reliance
     when it was measured and, when the run has a faithfulness report, each step's figure for the drawn kind to
     `out_path`."""
     rr = import_rerun()
     run = load_run(run_dir, load_arrays=False)
+    map_kind = map_kind or drawn_kind(k for s in run.steps for k in s.map_kinds)
     steps = view_steps(run.steps, map_kind)
     stats = compute_stats(steps)
     evidence = map_evidence(run, map_kind, stats)
@@ -164,7 +165,7 @@ class LiveRerun:
     `write_rrd` lays a run out. Called on the side channel's worker only. A viewer that is not there or goes away
     must not stop serving or logging: any failure is logged once, and the stream then stops."""
 
-    def __init__(self, address: str, kind: str = DEFAULT_MAP_KIND, alpha: float = 0.5) -> None:
+    def __init__(self, address: str, kind: str | None = None, alpha: float = 0.5) -> None:
         rr = import_rerun()
         self.address, self.kind, self.alpha = address, kind, alpha
         self._rr = rr
@@ -197,7 +198,7 @@ class LiveRerun:
             {**record.meta, "seq": self._seq, "connection": record.connection, "step": record.step}
         )
         kinds = [k for k in record.maps if record.maps[k]]
-        shown = self.kind if self.kind in kinds else (kinds[0] if kinds else None)
+        shown = self.kind if self.kind in kinds else (drawn_kind(kinds) if kinds else None)
         extra = {**meta.extra, **record.extra_arrays}
         views = {
             k: _LiveStep(self._seq, meta, k, record.maps[k], record.frames, record.model_frames, extra) for k in kinds
