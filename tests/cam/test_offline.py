@@ -410,7 +410,7 @@ _DATA_PARALLEL = textwrap.dedent(
     mesh = data_mesh()
     sharded, rows = shard_batch(stack_observations([t.observation for t in traces]), mesh)
     out = {"devices": len(jax.devices()), "padded_rows": rows, "state_devices": len(sharded.state.sharding.device_set)}
-    request = ExplainOptions("action-token", 2, maps=ONE_PASS)
+    request = ExplainOptions("action-token", 2, maps=("gradcam", "gradnorm"))
     for name, m in (("spmd", mesh), ("single", None)):
         for b, e in enumerate(explain_traces(policy.explainer.on_mesh(m), traces, request, mesh=m)):
             out.update({f"{name}/{b}/{k}/{c}": v for k, maps in e.maps.items() for c, v in maps.items()})
