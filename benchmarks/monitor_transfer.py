@@ -44,7 +44,7 @@ from openpi_cam import cli
 from openpi_cam.checkpoints.model_spec import BUNDLED_CONFIGS, MONITOR_FILE, ModelSpec
 from openpi_cam.demo import metaworld_sim
 from openpi_cam.maps.dataset import open_maps_dataset
-from openpi_cam.maps.monitoring import read_rollouts
+from openpi_cam.maps.monitoring import Rollouts, read_rollouts
 from openpi_cam.monitor import monitor_file
 from openpi_cam.monitor.detection import WHOLE, ScoredEpisode, detection
 from openpi_cam.monitor.fit import FitOptions, fit_monitor, split_episodes
@@ -59,13 +59,13 @@ UNSEEN = ("door-open-v3", "window-open-v3", *metaworld_sim.HELD_OUT_TASKS)
 ALPHA, FEW_SUCCESSES_ALPHA = 0.1, 0.2  # the shipped monitors' false-alarm rate on successful episodes
 CHOICE = "choice"  # the dev folds' figure a monitor kind is chosen by
 EVERY_K = 5  # the demo robots execute 5 actions a call: every request frame
-# The monitor kinds compared on dev (name -> `monitor fit` flags).
+# The monitors compared on dev: name -> (`monitor fit --kind`, `--temporal`).
 CANDIDATES = {
-    "stac": ("--kind", "stac"),
-    "mahalanobis": ("--kind", "mahalanobis"),
-    "mahalanobis-temporal": ("--kind", "mahalanobis", "--temporal"),
-    "probe": ("--kind", "probe"),
-    "probe-temporal": ("--kind", "probe", "--temporal"),
+    "stac": ("stac", False),
+    "mahalanobis": ("mahalanobis", False),
+    "mahalanobis-temporal": ("mahalanobis", True),
+    "probe": ("probe", False),
+    "probe-temporal": ("probe", True),
 }
 
 
@@ -141,7 +141,11 @@ def scene_folds(maps: pathlib.Path, setting: Setting) -> list[int]:
     return [(episode // per_scene) % 2 for episode in open_maps_dataset(maps).episodes]
 
 
-def fit(maps: Sequence[pathlib.Path], flags: Sequence[str], out: pathlib.Path) -> monitor_file.Monitor:
+def fit(
+    maps: Sequence[pathlib.Path], kind: str, temporal: bool, alpha: float, out: pathlib.Path
+) -> monitor_file.Monitor:
+    """`openpi-cam monitor fit` of one candidate (reused when its file is there)."""
+    flags = ["--kind", kind, "--alpha", str(alpha), *(["--temporal"] if temporal else [])]
     if not out.is_file():
         code = cli.main(["monitor", "fit", *map(str, maps), *flags, "--out", str(out)])
         if code:
@@ -149,19 +153,18 @@ def fit(maps: Sequence[pathlib.Path], flags: Sequence[str], out: pathlib.Path) -
     return monitor_file.load(out)
 
 
-def choose(setting: Setting, dev_maps: pathlib.Path) -> dict[str, dict[str, float]]:
+def choose(setting: Setting, dev_maps: pathlib.Path, rollouts: Rollouts) -> dict[str, dict[str, float]]:
     """Each candidate's AUROC over two folds of dev's scenes (fit on one half, ranked on the other; the folds'
     mean) at the setting's early frame count and over whole episodes, and their mean (`CHOICE`), an AUROC that
     cannot be computed (STAC on one call) counting as 0.5."""
-    rollouts = read_rollouts([dev_maps])
     folds = np.array(scene_folds(dev_maps, setting))
     at = (setting.early, WHOLE)
     results: dict[str, dict[str, list[float]]] = {name: {str(n): [] for n in at} for name in CANDIDATES}
     for held in (0, 1):
         train = [e for e, f in zip(rollouts.episodes, folds, strict=True) if f != held]
         rest = [e for e, f in zip(rollouts.episodes, folds, strict=True) if f == held]
-        for name, flags in CANDIDATES.items():
-            monitor = fit_monitor(train, _options(flags, rollouts))
+        for name, (kind, temporal) in CANDIDATES.items():
+            monitor = fit_monitor(train, _options(kind, temporal, rollouts))
             episodes = [
                 ScoredEpisode(e.frames, {"m": monitor.score_steps(e.matrix(monitor.inputs))}, not e.success)
                 for e in rest
@@ -176,20 +179,18 @@ def choose(setting: Setting, dev_maps: pathlib.Path) -> dict[str, dict[str, floa
     return out
 
 
-def false_alarm_rate(dev_maps: pathlib.Path) -> float:
+def false_alarm_rate(rollouts: Rollouts) -> float:
     """`ALPHA`, or `FEW_SUCCESSES_ALPHA` where dev's calibration share of successes is too small for it: the split
     conformal threshold at alpha needs ceil((n + 1)(1 - alpha)) <= n calibration episodes, else it never flags."""
-    success = [e.success for e in read_rollouts([dev_maps]).episodes]
+    success = [e.success for e in rollouts.episodes]
     n = split_episodes(success, FitOptions().calibration_share, FitOptions().seed)[1].size
     return ALPHA if math.ceil((n + 1) * (1 - ALPHA)) <= n else FEW_SUCCESSES_ALPHA
 
 
-def _options(flags: Sequence[str], rollouts: Any) -> FitOptions:
-    kind = flags[flags.index("--kind") + 1]
+def _options(kind: str, temporal: bool, rollouts: Rollouts) -> FitOptions:
+    """What `monitor fit --kind KIND [--temporal]` fits on these rollouts (its default inputs)."""
     inputs = ("stac",) if kind == "stac" else tuple(rollouts.inputs)
-    return FitOptions(
-        kind=kind, inputs=inputs, temporal="--temporal" in flags, execution_horizon=rollouts.execution_horizon
-    )
+    return FitOptions(kind=kind, inputs=inputs, temporal=temporal, execution_horizon=rollouts.execution_horizon)
 
 
 def stats_detection(maps: pathlib.Path, folder: pathlib.Path) -> list[dict[str, Any]]:
@@ -208,12 +209,13 @@ def run(setting: Setting, root: pathlib.Path, ship: bool) -> dict[str, Any]:
     recorded = time.perf_counter() - t0
     dev_maps = folder / "dev.maps"
     explain(setting, folder / "dev.lerobot", dev_maps, "--no-monitor")
-    dev = choose(setting, dev_maps)
+    rollouts = read_rollouts([dev_maps])
+    dev = choose(setting, dev_maps, rollouts)
     chosen = max(dev, key=lambda n: dev[n][CHOICE])
-    alpha = false_alarm_rate(dev_maps)
+    alpha = false_alarm_rate(rollouts)
     fitted = {
-        name: fit([dev_maps], (*flags, "--alpha", str(alpha)), folder / f"monitor-{name}.json")
-        for name, flags in CANDIDATES.items()
+        name: fit([dev_maps], kind, temporal, alpha, folder / f"monitor-{name}.json")
+        for name, (kind, temporal) in CANDIDATES.items()
     }
     shipped = ModelSpec.demo(setting.model).assets() / MONITOR_FILE
     if ship:

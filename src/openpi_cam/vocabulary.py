@@ -132,9 +132,9 @@ DEFAULT_KINDS: tuple[MapKind, ...] = ("occlusion",)
 # the defaults, asked for by name, until a bench measures it against these (lrp, gradxinput, taylor, smoothgrad, rise,
 # occlusion-head).
 COMPARED_KINDS: tuple[MapKind, ...] = ("gradcam", "gradnorm", "ig", "occlusion")
-# The kinds by how closely they agreed with occlusion on the maps bench's test split (top-1 agreement over its tasks
-# and cameras; the kinds it did not carry to test after, by their dev figures): render, stats and the viewers draw
-# the first a run carries unless told which (`drawn_kind`).
+# The kinds by their mean top-1 agreement with occlusion over the maps bench's tasks and cameras on its dev split
+# (the test split ranks the kinds it carried the same way; `occlusion-head`, not benched, just before Grad-CAM):
+# render, stats and the viewers draw the first a run carries unless told which (`drawn_kind`).
 TRUST_ORDER: tuple[MapKind, ...] = (
     "occlusion",
     "rise",

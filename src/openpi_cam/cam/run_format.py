@@ -667,6 +667,12 @@ class CAMRun:
     # Step files that could not be read (disk corruption, foreign files); reported rather than fatal.
     problems: list[str] = dataclasses.field(default_factory=list)
 
+    @property
+    def map_kinds(self) -> set[str]:
+        """The kinds any of the run's steps carries, from their metadata (a schema 1 step's from its file)."""
+        listed = (step.meta.map_kinds if step.meta.map_kinds is not None else step.map_kinds for step in self.steps)
+        return {kind for kinds in listed for kind in kinds}
+
 
 def read_json(path: pathlib.Path) -> dict[str, Any] | None:
     """A JSON object file, or None when it is missing, unreadable or not an object."""

@@ -76,7 +76,7 @@ def main(
     except FileNotFoundError as e:  # not a run (nor a maps dataset): named in one line
         print(f"openpi-cam render: {e}", file=sys.stderr)
         return 1
-    kind = kind or drawn_kind(k for s in run.steps for k in s.map_kinds)
+    kind = kind or drawn_kind(run.map_kinds)
     out_dir = pathlib.Path(out) if out is not None else default_render_dir(run_dir, kind)
     opts = RenderOptions(
         map=kind,

@@ -46,7 +46,7 @@ def main(
         print(f"openpi-cam stats: {e}", file=sys.stderr)
         return 1
     try:
-        steps = view_steps(run.steps, kind or drawn_kind(k for s in run.steps for k in s.map_kinds))
+        steps = view_steps(run.steps, kind or drawn_kind(run.map_kinds))
     except MissingMaps as e:
         print(f"openpi-cam stats: {e}", file=sys.stderr)
         return 2

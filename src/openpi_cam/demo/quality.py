@@ -230,7 +230,7 @@ def map_figures(
     rng = np.random.default_rng(seed)
     size = task.TaskConfig().image_size
     fields = ("rho", "kept", "chance", "moved", "on_block", "block_chance")
-    figures = {k: {field: [] for field in fields} for k in ONE_PASS_KINDS}  # the kinds `ExplainOptions` computes
+    figures = {k: {field: [] for field in fields} for k in ONE_PASS_KINDS}  # the kinds `_explain` computes
     scenes = 0
     while scenes < samples:
         scene = task.random_scene(rng)

@@ -172,7 +172,7 @@ class _ConnectionVideo:
 def render_run(run: CAMRun, out_dir: pathlib.Path, opts: RenderOptions) -> RenderResult:
     """Writes overlays, panels, thumbnails, per-connection videos and (with `opts.html`) index.html for a run under
     `out_dir` (`MissingMaps`, before anything is written, when the run has no `opts.map` maps)."""
-    opts = dataclasses.replace(opts, map=opts.map or drawn_kind(k for s in run.steps for k in s.map_kinds))
+    opts = dataclasses.replace(opts, map=opts.map or drawn_kind(run.map_kinds))
     steps = view_steps(run.steps, opts.map)
     stats = compute_stats(steps)
     evidence = map_evidence(run, opts.map, stats)

@@ -22,7 +22,6 @@ plus:
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import os
@@ -42,7 +41,7 @@ from openpi_cam.viz.evidence import (
     summary_rows,
 )
 from openpi_cam.viz.overlay import StepView, camera_image, camera_overlay
-from openpi_cam.viz.stats import StepStats, compute_stats, step_scale, view_steps
+from openpi_cam.viz.stats import LoadedView, StepStats, compute_stats, step_scale, view_steps
 from openpi_cam.vocabulary import NORMALIZED_CHUNK, drawn_kind
 
 if TYPE_CHECKING:  # the viewers import no JAX; the trace only passes through
@@ -120,7 +119,7 @@ def write_rrd(
     `out_path`."""
     rr = import_rerun()
     run = load_run(run_dir, load_arrays=False)
-    map_kind = map_kind or drawn_kind(k for s in run.steps for k in s.map_kinds)
+    map_kind = map_kind or drawn_kind(run.map_kinds)
     steps = view_steps(run.steps, map_kind)
     stats = compute_stats(steps)
     evidence = map_evidence(run, map_kind, stats)
@@ -201,7 +200,7 @@ class LiveRerun:
         shown = self.kind if self.kind in kinds else (drawn_kind(kinds) if kinds else None)
         extra = {**meta.extra, **record.extra_arrays}
         views = {
-            k: _LiveStep(self._seq, meta, k, record.maps[k], record.frames, record.model_frames, extra) for k in kinds
+            k: LoadedView(self._seq, meta, k, record.maps[k], record.frames, record.model_frames, extra) for k in kinds
         }
         rec.set_time("step", sequence=record.step)
         rec.set_time("seq", sequence=self._seq)
@@ -233,16 +232,3 @@ class LiveRerun:
             self._rec.disconnect()
         except Exception as e:
             self._fail(e)
-
-
-@dataclasses.dataclass(frozen=True)
-class _LiveStep:
-    """A step not yet read back from its file, seen through one kind: what `compute_stats` and the overlays read."""
-
-    seq: int
-    meta: StepMeta
-    kind: str
-    maps: Mapping[str, np.ndarray]
-    frames: Mapping[str, np.ndarray]
-    model_frames: Mapping[str, np.ndarray]
-    extra: Mapping[str, Any]

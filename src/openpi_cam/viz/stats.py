@@ -29,10 +29,12 @@ from openpi_cam.vocabulary import MAP_KIND_INFO
 
 @dataclasses.dataclass(frozen=True)
 class LoadedView:
-    """A step's arrays of one kind, read once (what one rendering iteration needs)."""
+    """A step's arrays of one kind, read once (what one rendering iteration needs), or not yet written (a live
+    stream's step)."""
 
     seq: int
     meta: StepMeta
+    kind: str
     maps: Mapping[str, np.ndarray]
     frames: Mapping[str, np.ndarray]
     model_frames: Mapping[str, np.ndarray]
@@ -55,6 +57,7 @@ class MapView:
         return LoadedView(
             seq=self.seq,
             meta=self.meta,
+            kind=self.kind,
             maps=maps,
             frames=arrays.frames,
             model_frames=arrays.model_frames,
