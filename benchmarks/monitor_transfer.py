@@ -6,22 +6,26 @@ rollouts it never saw: other seeds and perturbation strengths, and (multi-task M
 Per setting (a bundled model, `SETTINGS`), with the commands a user runs:
 
 1. `openpi-cam demo ... --no-explain --seed S --perturb P... --num-episodes N --record OUT/<split>.lerobot`: closed
-   loops recorded with their outcomes, for the splits `dev` (seed `DEV_SEED`, the dev strengths), `test` (seed
-   `TEST_SEED`, other strengths) and, for multi-task models, `unseen` (the test seeds and strengths on tasks the
+   loops recorded with their outcomes, for the splits `dev` (seed `DEV_SEED`, the dev strengths), `test` (the
+   setting's test seed, other strengths) and, for multi-task models, `unseen` (the test seeds and strengths on tasks the
    monitor is not fitted on: two the policy was trained on, two it never saw);
 2. `openpi-cam explain-dataset OUT/<split>.lerobot --config C --maps gradnorm --every-k 5 --monitor-features
    --no-monitor`: every request frame with its monitor inputs (pooled last-layer features, STAC-single, token entropy);
 3. the monitor kinds (`CANDIDATES`) are compared on dev alone, by two folds over its scenes (fit on one half, AUROC
-   at the setting's early frame count on the other); the best is fitted on all of dev with `openpi-cam monitor fit`
-   and, with `--ship`, copied beside the bundled checkpoint (`<assets>/monitor.json`), where `serve` and
-   `explain-dataset` use it by default;
+   at the setting's early frame count and over whole episodes on the other) and, for multi-task models, by leaving
+   each task out in turn (fit on the others, the held-out tasks' scores pooled: how a monitor carries over to tasks
+   it was not fitted on, which is what `unseen` measures); the best mean is fitted on all of dev with `openpi-cam
+   monitor fit` and, with `--ship`, copied beside the bundled checkpoint (`<assets>/monitor.json`), where `serve`
+   and `explain-dataset` use it by default;
 4. the test and unseen recordings explained again on default monitor flags (the shipped monitor), and `openpi-cam
    stats --format json`'s `outcomes.detection` read: the monitor's AUROC from the first N source frames beside
    STAC-single, token entropy and the map figures; the other candidates (fitted on dev) scored on the same frames.
 
 The splits and perturbation strengths below were fixed before anything was measured; nothing is chosen on `test` or
-`unseen`. Stages already done are reused (delete a folder to redo it). Writes OUT/<setting>/report.json and prints
-markdown tables.
+`unseen`. Each change to the protocol after a look at test gets fresh test scenes (`Setting.test_seed`, the rounds of
+docs/MONITOR.md): round 1 tested on seed 50000; round 2 (the union and the task folds added) on 60000; round 3 (the
+multi-task pi0.5's dev enlarged from 3 to 9 scenes per task and perturbation) on 70000. Stages already done are
+reused (delete a folder to redo it). Writes OUT/<setting>/report.json and prints markdown tables.
 """
 
 from __future__ import annotations
@@ -46,10 +50,10 @@ from openpi_cam.demo import metaworld_sim
 from openpi_cam.maps.dataset import open_maps_dataset
 from openpi_cam.maps.monitoring import Rollouts, read_rollouts
 from openpi_cam.monitor import monitor_file
-from openpi_cam.monitor.detection import WHOLE, ScoredEpisode, detection
-from openpi_cam.monitor.fit import FitOptions, fit_monitor, split_episodes
+from openpi_cam.monitor.detection import ScoredEpisode, detection
+from openpi_cam.monitor.fit import Episode, FitOptions, fit_monitor, split_episodes
 
-DEV_SEED, TEST_SEED = 40_000, 50_000  # disjoint from the demos' (0), evaluations' (10000), the maps bench's, experts'
+DEV_SEED = 40_000  # disjoint from the demos' (0), evaluations' (10000), the maps bench's and the experts' seeds
 REACH_DEV = ("clean", "distractors=2", "hue=45", "shift=32", "dim=0.3", "absent")
 REACH_TEST = ("clean", "distractors=1", "hue=60", "shift=24", "dim=0.4", "absent")
 MW_DEV = ("clean", "hue=45", "dim=0.75")
@@ -66,6 +70,8 @@ CANDIDATES = {
     "mahalanobis-temporal": ("mahalanobis", True),
     "probe": ("probe", False),
     "probe-temporal": ("probe", True),
+    "union": ("union", False),
+    "union-temporal": ("union", True),
 }
 
 
@@ -82,13 +88,14 @@ class Setting:
     early: int  # the source frames the issue's target reads the AUROC at
     tasks: tuple[str, ...] = ()  # Meta-World: the tasks the monitor is fitted on (empty: the reaching task)
     dev_scenes: int | None = None  # scenes of dev (default: `scenes`)
+    test_seed: int = 60_000  # the round's fresh test scenes (module docstring)
 
     def splits(self) -> dict[str, tuple[tuple[str, ...], tuple[str, ...], int, int]]:
         """split -> (perturbations, tasks, seed, scenes)."""
         dev = (self.dev, self.tasks, DEV_SEED, self.dev_scenes or self.scenes)
-        out = {"dev": dev, "test": (self.test, self.tasks, TEST_SEED, self.scenes)}
+        out = {"dev": dev, "test": (self.test, self.tasks, self.test_seed, self.scenes)}
         if self.tasks:
-            out["unseen"] = (self.test, UNSEEN, TEST_SEED, self.scenes)
+            out["unseen"] = (self.test, UNSEEN, self.test_seed, self.scenes)
         return out
 
 
@@ -96,12 +103,18 @@ def _reach(family: str) -> Setting:
     return Setting(f"reach-{family}", family, ("--model", family), REACH_DEV, REACH_TEST, 8, 4, dev_scenes=32)
 
 
-def _metaworld(family: str) -> Setting:
+def _metaworld(family: str, **rounds: int) -> Setting:
     demo = ("--sim", "metaworld", "--model", family)
-    return Setting(f"metaworld-mt-{family}", f"metaworld_mt_{family}", demo, MW_DEV, MW_TEST, 3, 32, tasks=SEEN)
+    name, model = f"metaworld-mt-{family}", f"metaworld_mt_{family}"
+    return Setting(name, model, demo, MW_DEV, MW_TEST, 3, 32, tasks=SEEN, **rounds)
 
 
-SETTINGS = (_reach("pi0_fast"), _reach("pi05"), _metaworld("pi05"), _metaworld("pi0_fast"))
+SETTINGS = (
+    _reach("pi0_fast"),
+    _reach("pi05"),
+    _metaworld("pi05", dev_scenes=9, test_seed=70_000),
+    _metaworld("pi0_fast"),
+)
 
 
 def record(setting: Setting, split: str, out: pathlib.Path) -> None:
@@ -153,29 +166,54 @@ def fit(
     return monitor_file.load(out)
 
 
-def choose(setting: Setting, dev_maps: pathlib.Path, rollouts: Rollouts) -> dict[str, dict[str, float]]:
-    """Each candidate's AUROC over two folds of dev's scenes (fit on one half, ranked on the other; the folds'
-    mean) at the setting's early frame count and over whole episodes, and their mean (`CHOICE`), an AUROC that
-    cannot be computed (STAC on one call) counting as 0.5."""
-    folds = np.array(scene_folds(dev_maps, setting))
-    at = (setting.early, WHOLE)
-    results: dict[str, dict[str, list[float]]] = {name: {str(n): [] for n in at} for name in CANDIDATES}
-    for held in (0, 1):
-        train = [e for e, f in zip(rollouts.episodes, folds, strict=True) if f != held]
-        rest = [e for e, f in zip(rollouts.episodes, folds, strict=True) if f == held]
-        for name, (kind, temporal) in CANDIDATES.items():
-            monitor = fit_monitor(train, _options(kind, temporal, rollouts))
-            episodes = [
-                ScoredEpisode(e.frames, {"m": monitor.score_steps(e.matrix(monitor.inputs))}, not e.success)
-                for e in rest
-            ]
-            for entry in detection(episodes, (setting.early,), resamples=10):
-                auroc = entry["figures"]["m"]["auroc"]
-                results[name][str(entry["frames"])].append(0.5 if auroc is None else auroc)
+def episode_tasks(maps: pathlib.Path) -> list[str]:
+    """Each episode's task (its instruction, as the rows carry it)."""
+    ds = open_maps_dataset(maps)
+    return [ds.table(episode, ["task"]).column(0)[0].as_py() for episode in ds.episodes]
+
+
+def _aurocs(scored: Sequence[tuple[monitor_file.Monitor, Episode]], early: int) -> dict[str, float]:
+    """The AUROC of episodes, each scored by its monitor, at `early` source frames and over whole episodes; one that
+    cannot be computed (STAC on one call) counts as 0.5."""
+    episodes = [ScoredEpisode(e.frames, {"m": m.score_steps(e.matrix(m.inputs))}, not e.success) for m, e in scored]
     out = {}
-    for name, by_n in results.items():
-        means = {n: float(np.mean(v)) for n, v in by_n.items()}
-        out[name] = {**means, CHOICE: float(np.mean(list(means.values())))}
+    for entry in detection(episodes, (early,), resamples=10):
+        auroc = entry["figures"]["m"]["auroc"]
+        out[str(entry["frames"])] = 0.5 if auroc is None else auroc
+    return out
+
+
+def _split(episodes: Sequence[Episode], keys: Sequence[object], held: object) -> tuple[list[Episode], list[Episode]]:
+    """(the episodes whose key is not `held`, those whose key is)."""
+    pairs = list(zip(episodes, keys, strict=True))
+    return [e for e, k in pairs if k != held], [e for e, k in pairs if k == held]
+
+
+def choose(setting: Setting, dev_maps: pathlib.Path, rollouts: Rollouts) -> dict[str, dict[str, float]]:
+    """Each candidate's AUROC on dev at the setting's early frame count and over whole episodes: over two folds of
+    dev's scenes (fit on one half, ranked on the other; the two folds' mean, `scene <N>`), and for multi-task models
+    with each task left out in turn (fit on the other tasks; the left-out episodes, each scored by the monitor that
+    never saw its task, ranked together, `task <N>`); `CHOICE` is the mean of them all."""
+    folds = scene_folds(dev_maps, setting)
+    tasks = episode_tasks(dev_maps)
+    out = {}
+    for name, (kind, temporal) in CANDIDATES.items():
+        options = _options(kind, temporal, rollouts)
+        figures: dict[str, float] = {}
+        per_fold = []
+        for held in (0, 1):
+            train, rest = _split(rollouts.episodes, folds, held)
+            monitor = fit_monitor(train, options)
+            per_fold.append(_aurocs([(monitor, e) for e in rest], setting.early))
+        figures |= {f"scene {n}": float(np.mean([f[n] for f in per_fold])) for n in per_fold[0]}
+        if setting.tasks:
+            scored = []
+            for task in sorted(set(tasks)):
+                train, rest = _split(rollouts.episodes, tasks, task)
+                monitor = fit_monitor(train, options)
+                scored += [(monitor, e) for e in rest]
+            figures |= {f"task {n}": v for n, v in _aurocs(scored, setting.early).items()}
+        out[name] = {**figures, CHOICE: float(np.mean(list(figures.values())))}
     return out
 
 
@@ -245,7 +283,7 @@ def table(name: str, report: dict[str, Any]) -> list[str]:
     map figures (`stats`' names) and every candidate fitted on dev."""
     dev = ", ".join(f"{k} {v[CHOICE]:.2f}" for k, v in report["dev_folds"].items())
     lines = [
-        f"### {name} (chosen on dev: {report['chosen']}; dev folds, mean of N={report['early']} and whole: {dev})",
+        f"### {name} (chosen on dev: {report['chosen']}; dev folds, mean of their figures: {dev})",
         "",
     ]
     lines += ["| split | figure | N=1 | N=4 | N=8 | N=16 | N=32 | episode |", "|---" * 8 + "|"]

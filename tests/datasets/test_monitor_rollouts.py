@@ -123,6 +123,7 @@ def test_monitor_fit_saves_a_monitor_and_prints_its_auroc_and_threshold(featured
     assert basis.components[-1].tolist() == [0.0] * 128 + [1.0]
 
 
+
 def _fit_error(argv: list[str], capsys) -> str:
     with pytest.raises(SystemExit) as exit_info:
         cli.main(["monitor", "fit", *argv])
@@ -134,10 +135,14 @@ def _fit_error(argv: list[str], capsys) -> str:
 
 def test_monitor_fit_refuses_flags_of_another_kind_and_bad_input_in_one_line(featured, tmp_path, capsys):
     maps, out = str(featured.root), str(tmp_path / "m.json")
-    assert "--l2 is read by --kind probe, not mahalanobis" in _fit_error(
+    assert "--l2 is read by --kind probe or union, not mahalanobis" in _fit_error(
         [maps, "--out", out, "--kind", "mahalanobis", "--l2", "1"], capsys
     )
     assert "--temporal is read by" in _fit_error([maps, "--out", out, "--kind", "stac", "--temporal"], capsys)
+    # these rollouts' successes end within a call or two: too few STAC values to put STAC on a union's scale
+    assert "a union needs the training successes' stac scores to vary" in _fit_error(
+        [maps, "--out", out, "--kind", "union"], capsys
+    )
     assert "--alpha must be in (0, 1)" in _fit_error([maps, "--out", out, "--alpha", "1.5"], capsys)
     assert "no column 'features/elbow'" in _fit_error([maps, "--out", out, "--inputs", "features/elbow"], capsys)
     assert "is not a maps dataset" in _fit_error([str(tmp_path), "--out", out], capsys)

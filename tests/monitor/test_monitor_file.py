@@ -24,6 +24,7 @@ def monitors() -> dict[str, Monitor]:
         "probe": fit_monitor(data, FitOptions(kind="probe", inputs=(FEATURE, "stac"), temporal=True)),
         "mahalanobis": fit_monitor(data, FitOptions(kind="mahalanobis", inputs=(FEATURE,), max_dims=4)),
         "stac": fit_monitor(data, FitOptions(kind="stac", execution_horizon=5)),
+        "union": fit_monitor(data, FitOptions(kind="union", inputs=(FEATURE, "stac"), temporal=True)),
     }
 
 
@@ -31,7 +32,7 @@ def _steps(e) -> list[dict[str, np.ndarray]]:
     return [{name: column[t] for name, column in e.columns.items()} for t in range(len(e.columns["stac"]))]
 
 
-@pytest.mark.parametrize("kind", ["probe", "mahalanobis", "stac"])
+@pytest.mark.parametrize("kind", ["probe", "mahalanobis", "stac", "union"])
 def test_a_saved_monitor_loads_to_the_same_scores(monitors, kind, tmp_path):
     monitor = monitors[kind]
     path = monitor_file.save(monitor, tmp_path / "monitor.json")
@@ -44,7 +45,7 @@ def test_a_saved_monitor_loads_to_the_same_scores(monitors, kind, tmp_path):
     assert loaded.threshold == monitor.threshold and loaded.execution_horizon == monitor.execution_horizon
 
 
-@pytest.mark.parametrize("kind", ["probe", "mahalanobis", "stac"])
+@pytest.mark.parametrize("kind", ["probe", "mahalanobis", "stac", "union"])
 def test_the_running_score_is_the_offline_score_step_by_step(monitors, kind):
     """What the side channel computes one call at a time equals what a maps dataset computes over the episode,
     the temporal probe's running mean and a first step without STAC included."""
@@ -138,6 +139,25 @@ def test_a_bad_monitor_file_is_refused_in_one_line_naming_it(monitors, tmp_path,
     bad = _corrupt(json.loads(json.dumps(data)), change)
     path = Path(tmp_path / "monitor.json")
     path.write_text(bad if isinstance(bad, str) else json.dumps(bad))
+    with pytest.raises(ValueError) as e:
+        monitor_file.load(path)
+    assert_one_line(e.value, str(path), named)
+
+
+@pytest.mark.parametrize(
+    ("change", "named"),
+    [("union", "union is missing"), ("scale", "standard deviation <= 0"), ("stac", "reads 'stac' among its inputs")],
+)
+def test_a_bad_union_monitor_file_is_refused_in_one_line(monitors, tmp_path, change, named):
+    data = json.loads(json.dumps(monitor_file.to_json(monitors["union"])))
+    if change == "union":
+        del data["union"]
+    elif change == "scale":
+        data["union"]["stac"][1] = 0.0
+    else:  # the STAC input renamed: the union has nothing to read its second score from
+        data["inputs"] = [i if i["name"] != "stac" else {**i, "name": "other"} for i in data["inputs"]]
+    path = tmp_path / "monitor.json"
+    path.write_text(json.dumps(data))
     with pytest.raises(ValueError) as e:
         monitor_file.load(path)
     assert_one_line(e.value, str(path), named)

@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 import pytest
-from monitor_support import FEATURE, episodes
+from monitor_support import FEATURE, episode, episodes
 from one_line import assert_one_line
 from scipy import optimize
 from scipy.spatial import distance
@@ -234,6 +234,49 @@ def test_a_fitted_probe_finds_fresh_failures():
         assert flagged[np.array(failed)].mean() > 0.5, kind  # most failures are caught at alpha = 0.1
 
 
+def _task(rng: np.random.Generator, n: int, drift: np.ndarray, stac_rise: float) -> list[Episode]:
+    """n successes and n failures of one synthetic task: a failure's feature drifts by `drift` and its STAC rises by
+    `stac_rise` from step 4 on."""
+    out = []
+    for i in range(2 * n):
+        e = episode(rng, i < n, drift=0.0)
+        features, stac = e.columns[FEATURE].copy(), e.columns["stac"].copy()
+        if not e.success:
+            features[4:] += drift
+            stac[4:] += stac_rise - 0.5  # `episode` already raised it by 0.5
+        out.append(Episode({FEATURE: features, "stac": stac}, e.success))
+    return out
+
+
+def test_a_union_finds_the_failures_its_probe_learnt_and_those_only_stac_sees():
+    """Seen tasks' failures drift the feature along one direction with STAC unchanged; an unseen task's drift along
+    a direction the probe was never shown, with STAC raised. The probe finds the first and not the second, STAC the
+    second and not the first; the union of the two finds both, and its score is the larger standardised one."""
+    rng = np.random.default_rng(40)
+    seen_drift, unseen_drift = np.array([3.0, -3.0, 0, 0, 0, 0]), np.array([0, 0, 0, 0, 3.0, 3.0])
+    train, seen, unseen = (_task(rng, 30, d, r) for d, r in [(seen_drift, 0), (seen_drift, 0), (unseen_drift, 1.5)])
+    fitted = {k: fit_monitor(train, FitOptions(kind=k, inputs=(FEATURE, "stac"))) for k in ("probe", "union")}
+    fitted["stac"] = fit_monitor(train, FitOptions(kind="stac"))
+
+    def auroc(monitor, episodes):
+        maxima = [episode_max(monitor.score_steps(e.matrix(monitor.inputs))) for e in episodes]
+        return roc_auc([not e.success for e in episodes], maxima)
+
+    found = {k: (auroc(m, seen), auroc(m, unseen)) for k, m in fitted.items()}
+    assert found["probe"][0] > 0.9 and found["probe"][1] < 0.7, found
+    assert found["stac"][0] < 0.7 and found["stac"][1] > 0.9, found
+    assert min(found["union"]) > 0.9, found
+    union, probe = fitted["union"], dataclasses.replace(fitted["union"], kind="probe", standardised=None)
+    x = unseen[-1].matrix(union.inputs)
+    (p_mean, p_std), (s_mean, s_std) = union.standardised.probe, union.standardised.stac
+    expected = np.fmax((probe.score_steps(x) - p_mean) / p_std, (x[:, union.stac_column] - s_mean) / s_std)
+    np.testing.assert_allclose(union.score_steps(x), expected, rtol=0, atol=1e-12)
+    # the scales are the training successes' (those not held out to calibrate)
+    training, _ = split_episodes([e.success for e in train], 0.5, 0)
+    steps = np.concatenate([train[i].matrix(union.inputs) for i in training if train[i].success])
+    assert s_mean == pytest.approx(np.nanmean(steps[:, union.stac_column]), rel=1e-12)
+
+
 def test_the_fit_is_reproducible_from_its_seed():
     data = episodes(20, 30, 10)
     options = FitOptions(kind="probe", inputs=(FEATURE, "stac"), temporal=True, seed=7)
@@ -261,3 +304,6 @@ def test_fit_refuses_what_it_cannot_fit_in_one_line():
     with pytest.raises(ValueError) as e:
         fit_monitor(data, FitOptions(kind="stac", inputs=(FEATURE,)))
     assert_one_line(e.value, "stac", FEATURE)
+    with pytest.raises(ValueError) as e:
+        fit_monitor(data, FitOptions(kind="union", inputs=(FEATURE,)))
+    assert_one_line(e.value, "union", "'stac'", FEATURE)

@@ -23,17 +23,17 @@ from openpi_cam.monitor.signals import STAC
 DEFAULTS = FitOptions()
 # Which kinds read each fitting flag (a flag given for another kind is refused, not ignored).
 _KIND_FLAGS = {
-    "l2": ("probe",),
+    "l2": ("probe", "union"),
     "shrinkage": ("mahalanobis",),
-    "max_dims": ("probe", "mahalanobis"),
-    "temporal": ("probe", "mahalanobis"),
+    "max_dims": ("probe", "mahalanobis", "union"),
+    "temporal": ("probe", "mahalanobis", "union"),
 }
 
 
 def main(
     maps: tyro.conf.Positional[tuple[pathlib.Path, ...]],
     out: pathlib.Path,
-    kind: Literal["probe", "mahalanobis", "stac"] = "probe",
+    kind: Literal["probe", "mahalanobis", "stac", "union"] = "probe",
     inputs: tuple[str, ...] = (),
     alpha: float = DEFAULTS.alpha,
     calibration_share: float = DEFAULTS.calibration_share,
@@ -52,16 +52,18 @@ def main(
             columns; the feature monitors need `--monitor-features` there.
         out: the monitor file to write (JSON).
         kind: `probe` (a logistic probe's log-odds of failure), `mahalanobis` (the distance to the successful
-            episodes' steps) or `stac` (the consecutive-chunk disagreement itself, training-free).
+            episodes' steps), `stac` (the consecutive-chunk disagreement itself, training-free) or `union` (the
+            larger of a probe's and `stac`'s scores, each standardised on the training successes' steps).
         inputs: the monitor inputs to read, e.g. `features/base_0_rgb stac` (default: every input the episodes carry
             with a value; `stac` alone for `--kind stac`).
         alpha: the false-alarm rate on successful episodes the threshold is calibrated for.
         calibration_share: the share of the successful episodes held out to set the threshold.
         seed: the seed of that split.
-        max_dims: inputs wider than this are projected onto their leading principal directions (probe, mahalanobis).
+        max_dims: inputs wider than this are projected onto their leading principal directions (probe, mahalanobis,
+            union).
         shrinkage: Mahalanobis covariance shrinkage in [0, 1] (default: Ledoit-Wolf's estimate).
-        l2: the probe's L2 penalty.
-        temporal: score each step beside the running mean of its episode's inputs (probe, mahalanobis).
+        l2: the probe's L2 penalty (probe, union).
+        temporal: score each step beside the running mean of its episode's inputs (probe, mahalanobis, union).
     """
     try:
         _refuse_other_kinds_flags(kind, {"l2": l2, "shrinkage": shrinkage, "max_dims": max_dims, "temporal": temporal})

@@ -2,8 +2,9 @@
 
 The successful episodes are split once, by the seed, into a training share and a calibration share; the failed
 episodes all train (only the probe uses them). The scorer (the Mahalanobis distance to the training successes' steps,
-or a logistic probe on every training step) is fitted on the training episodes alone, and the threshold on the
-calibration episodes alone, which the scorer never saw: that is what the conformal guarantee needs.
+or a logistic probe on every training step; a union's probe and its scales) is fitted on the training episodes alone,
+and the threshold on the calibration episodes alone, which the scorer never saw: that is what the conformal guarantee
+needs.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from openpi_cam.monitor.monitor_file import KINDS, Monitor, MonitorInput
+from openpi_cam.monitor.monitor_file import KINDS, Monitor, MonitorInput, Standardised
 from openpi_cam.monitor.scores import Basis, MahalanobisScorer, ProbeScorer, with_running_mean
 from openpi_cam.monitor.signals import STAC
 
@@ -275,6 +276,22 @@ def _scorer(
     return basis, scorer, {"l2": options.l2, "steps": int(rows.shape[0])}
 
 
+def _spread(scores: np.ndarray, what: str) -> tuple[float, float]:
+    s = np.asarray(scores, np.float64)
+    s = s[np.isfinite(s)]
+    if s.size < 2 or not s.std() > 0:
+        raise ValueError(f"a union needs the training successes' {what} scores to vary ({s.size} finite)")
+    return float(s.mean()), float(s.std())
+
+
+def standardise_union(probe: Monitor, x: Sequence[np.ndarray]) -> Standardised:
+    """A union's scales (`monitor_file.Standardised`): the mean and standard deviation of the probe's step scores
+    and of the `stac` input over the steps x (each episode's [T, F] inputs; the training successes')."""
+    scores = np.concatenate([probe.score_steps(m) for m in x])
+    stac = np.concatenate([m[:, probe.stac_column] for m in x])
+    return Standardised(_spread(scores, "probe"), _spread(stac, STAC))
+
+
 def fit_monitor(episodes: Sequence[Episode], options: FitOptions = FitOptions()) -> Monitor:
     """Fit a monitor on labelled episodes: the scorer on the training split, the threshold on the calibration split
     (`split_episodes`, `conformal_threshold`). The same episodes and options give the same monitor."""
@@ -285,6 +302,8 @@ def fit_monitor(episodes: Sequence[Episode], options: FitOptions = FitOptions())
     inputs = _inputs(episodes, (STAC,) if options.kind == "stac" and not options.inputs else options.inputs)
     if options.kind == "stac" and (inputs != (MonitorInput(STAC, 1),) or options.temporal):
         raise ValueError(f"a stac monitor reads the one input {STAC!r} as it is, not {[i.name for i in inputs]}")
+    if options.kind == "union" and MonitorInput(STAC, 1) not in inputs:
+        raise ValueError(f"a union monitor reads {STAC!r} among its inputs, not only {[i.name for i in inputs]}")
     success = np.array([bool(e.success) for e in episodes])
     training, calibration = split_episodes(success, options.calibration_share, options.seed)
     x = [_matrix(i, e, inputs) for i, e in enumerate(episodes)]
@@ -292,7 +311,7 @@ def fit_monitor(episodes: Sequence[Episode], options: FitOptions = FitOptions())
     widths = [i.dim for i in inputs] * (2 if options.temporal else 1)
     basis, scorer, record = _scorer(options, prepared, widths, success, training)
     monitor = Monitor(
-        kind=options.kind,
+        kind="probe" if options.kind == "union" else options.kind,
         inputs=inputs,
         threshold=math.inf,
         alpha=options.alpha,
@@ -301,6 +320,9 @@ def fit_monitor(episodes: Sequence[Episode], options: FitOptions = FitOptions())
         temporal=options.temporal,
         execution_horizon=options.execution_horizon,
     )
+    if options.kind == "union":
+        scales = standardise_union(monitor, [x[i] for i in training if success[i]])
+        monitor = dataclasses.replace(monitor, kind="union", standardised=scales)
     maxima = [episode_max(monitor.score_steps(x[i])) for i in calibration]
     record |= {
         "seed": options.seed,

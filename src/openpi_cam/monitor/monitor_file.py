@@ -24,8 +24,29 @@ from openpi_cam.monitor.signals import STAC
 FORMAT = "openpi-cam monitor"
 FORMAT_VERSION = 1
 # What a monitor scores (its kind): a logistic probe's log-odds of failure over its inputs; the Mahalanobis distance
-# of its inputs to successful steps; or the consecutive-chunk disagreement itself (training-free, one input: `stac`).
-KINDS = ("probe", "mahalanobis", "stac")
+# of its inputs to successful steps; the consecutive-chunk disagreement itself (training-free, one input: `stac`); or
+# the union of a probe and `stac`, the larger of their standardised scores (`Standardised`).
+KINDS = ("probe", "mahalanobis", "stac", "union")
+
+
+@dataclasses.dataclass(frozen=True)
+class Standardised:
+    """How a union monitor puts its two detectors on one scale: each score's mean and standard deviation over the
+    training successes' steps, so that a step scores (s - mean) / std on each and the larger counts.
+
+    Why a union: a probe learns what failure looked like on the tasks it was fitted on, which need not be what it
+    looks like on a task it never saw, while the training-free `stac` (a policy contradicting itself) reads the
+    same on any task; the larger of the two standardised scores alerts on either, and the conformal threshold over
+    the union's own calibration maxima keeps the false-alarm rate of the pair, not of each."""
+
+    probe: tuple[float, float]
+    stac: tuple[float, float]
+
+    def combine(self, probe: np.ndarray, stac: np.ndarray) -> np.ndarray:
+        """[T], [T] -> [T]: the larger standardised score; the probe's alone where `stac` is NaN (a first call)."""
+        a = (np.asarray(probe, np.float64) - self.probe[0]) / self.probe[1]
+        b = (np.asarray(stac, np.float64) - self.stac[0]) / self.stac[1]
+        return np.fmax(a, b)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,13 +61,15 @@ class MonitorInput:
 class Monitor:
     """What a fitted monitor scores and how it decides.
 
-    kind: one of KINDS. inputs: the step's inputs in the order they are concatenated (F values in all).
+    kind: one of KINDS. inputs: the step's inputs in the order they are concatenated (F values in all; a union's
+    include `stac`).
     temporal: each step is scored on its inputs beside their running mean over the episode so far
     (`scores.with_running_mean`: 2F values into the basis). basis / scorer: the fitted arrays (None for `stac`).
     threshold: a step whose score exceeds it flags the episode (inf: never). alpha: the false-alarm rate on
     successful episodes the threshold was calibrated for (`fit.conformal_threshold`). execution_horizon: the number
-    of actions executed per call that the `stac` input assumes (None: unknown, the aligned variant). fit: how it was
-    fitted (seed, episode counts, options), for the record."""
+    of actions executed per call that the `stac` input assumes (None: unknown, the aligned variant). standardised:
+    a union's scales (None for the other kinds). fit: how it was fitted (seed, episode counts, options), for the
+    record."""
 
     kind: str
     inputs: tuple[MonitorInput, ...]
@@ -56,6 +79,7 @@ class Monitor:
     scorer: MahalanobisScorer | ProbeScorer | None = None
     temporal: bool = False
     execution_horizon: int | None = None
+    standardised: Standardised | None = None
     fit: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     @property
@@ -98,7 +122,21 @@ class Monitor:
         assert self.basis is not None and self.scorer is not None
         if isinstance(self.scorer, MahalanobisScorer):
             return self.scorer.score(self.basis.apply(x), self.basis.residual_sq(x))
-        return self.scorer.score(self.basis.apply(x))
+        probe = self.scorer.score(self.basis.apply(x))
+        if self.kind != "union":
+            return probe
+        assert self.standardised is not None
+        return self.standardised.combine(probe, x[:, self.stac_column])
+
+    @property
+    def stac_column(self) -> int:
+        """Where `stac` sits among the concatenated inputs (a union reads it beside its probe)."""
+        start = 0
+        for item in self.inputs:
+            if item.name == STAC:
+                return start
+            start += item.dim
+        raise ValueError(f"the monitor has no {STAC!r} input")
 
     def flags(self, score: float) -> bool:
         return bool(score > self.threshold)
@@ -171,6 +209,8 @@ def to_json(monitor: Monitor) -> dict[str, Any]:
         }
     elif isinstance(monitor.scorer, ProbeScorer):
         data["probe"] = {"weights": _floats(monitor.scorer.weights), "bias": float(monitor.scorer.bias)}
+    if monitor.standardised is not None:
+        data["union"] = {"probe": list(monitor.standardised.probe), "stac": list(monitor.standardised.stac)}
     return data
 
 
@@ -281,12 +321,21 @@ def from_json(data: Any) -> Monitor:
     temporal = data.get("temporal", False)
     if not isinstance(temporal, bool):
         raise ValueError(f"temporal {temporal!r} is not true or false")
-    basis, scorer = None, None
+    basis, scorer, standardised = None, None, None
     if kind == "stac":
         if inputs != (MonitorInput(STAC, 1),):
             raise ValueError(f"a stac monitor reads the one input {STAC!r}, not {[i.name for i in inputs]}")
     else:
         basis, scorer = _scorer(data, kind, sum(i.dim for i in inputs) * (2 if temporal else 1))
+    if kind == "union":
+        if MonitorInput(STAC, 1) not in inputs:
+            raise ValueError(f"a union monitor reads {STAC!r} among its inputs, not only {[i.name for i in inputs]}")
+        scales = _section(data, "union")
+        pairs = {name: _array(scales, "union", name, (2,)) for name in ("probe", "stac")}
+        if any(pair[1] <= 0 for pair in pairs.values()):
+            raise ValueError("union has a standard deviation <= 0")
+        (p_mean, p_std), (s_mean, s_std) = (map(float, pairs[n]) for n in ("probe", "stac"))
+        standardised = Standardised((p_mean, p_std), (s_mean, s_std))
     return Monitor(
         kind=kind,
         inputs=inputs,
@@ -296,5 +345,6 @@ def from_json(data: Any) -> Monitor:
         scorer=scorer,
         temporal=temporal,
         execution_horizon=horizon,
+        standardised=standardised,
         fit=dict(data.get("fit") or {}),
     )
