@@ -123,7 +123,6 @@ def test_monitor_fit_saves_a_monitor_and_prints_its_auroc_and_threshold(featured
     assert basis.components[-1].tolist() == [0.0] * 128 + [1.0]
 
 
-
 def _fit_error(argv: list[str], capsys) -> str:
     with pytest.raises(SystemExit) as exit_info:
         cli.main(["monitor", "fit", *argv])
