@@ -508,6 +508,15 @@ EXPLAIN_DATASET_CASES: dict[str, tuple[Case, ...]] = {
         Changes(EXPLAIN_DATASET, ("--execution-horizon", "3"), maps_info("execution_horizon")),
         Refused("explain-dataset", (str(DEMO_DATASET), "--execution-horizon", "0", "--no-progress")),
     ),
+    # pi0.5 draws other chunks of a frame from other noises; pi0-FAST, greedy, has none to draw.
+    "--sample-spread": (
+        Changes(
+            EXPLAIN_DATASET_ALONE,
+            ("--config", demo_reach.DEMO_PI05_CONFIG.name, "--sample-spread", "2"),
+            maps_rows("monitor/sample_spread"),
+        ),
+        Refused("explain-dataset", (str(DEMO_DATASET), "--sample-spread", "2", "--no-progress")),
+    ),
 }
 
 # ------------------------------------------------------------------------------------------------ faithfulness

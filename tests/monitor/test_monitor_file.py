@@ -163,6 +163,65 @@ def test_a_bad_union_monitor_file_is_refused_in_one_line(monitors, tmp_path, cha
     assert_one_line(e.value, str(path), named)
 
 
+def test_a_saved_monitor_puts_each_list_of_numbers_on_one_line(monitors, tmp_path):
+    """A refitted monitor's file (and its diff) grows with its rows: one line per vector and per matrix row, the
+    structure around them indented."""
+    wide = episodes(0, 30, 30, noise_dims=90)  # a feature wider than max_dims: a projection matrix to save
+    monitor = fit_monitor(wide, FitOptions(kind="union", inputs=(FEATURE, "stac"), max_dims=4))
+    text = monitor_file.save(monitor, tmp_path / "monitor.json").read_text()
+    data = monitor_file.to_json(monitor)
+    assert json.loads(text) == data
+    rows = len(data["basis"]["components"])
+    numbers = rows * len(data["basis"]["components"][0])
+    lines = text.splitlines()
+    assert len(lines) < rows + 60 < numbers  # a row a line, not a number a line
+    assert any(line.strip().startswith('"weights": [') and line.rstrip().endswith("],") for line in lines)
+    assert lines[1].startswith(' "format"')  # the structure indented, one key a line
+
+
+def _spread_data(monitors) -> dict:
+    """A probe's file rewritten to read `sample_spread` in place of `stac`, its samples per call named."""
+    data = json.loads(json.dumps(monitor_file.to_json(monitors["probe"])))
+    data["inputs"] = [i if i["name"] != "stac" else {**i, "name": "sample_spread"} for i in data["inputs"]]
+    data["sample_spread"] = 4
+    return data
+
+
+def test_a_monitor_reading_the_sample_spread_names_its_samples_and_round_trips(monitors, tmp_path):
+    path = tmp_path / "spread.json"
+    path.write_text(json.dumps(_spread_data(monitors)))
+    loaded = monitor_file.load(path)
+    assert loaded.sample_spread == 4 and "sample_spread" in [i.name for i in loaded.inputs]
+    again = monitor_file.load(monitor_file.save(loaded, tmp_path / "again.json"))
+    assert again.sample_spread == 4 and monitor_file.to_json(again) == monitor_file.to_json(loaded)
+    assert monitors["probe"].sample_spread is None  # one that reads no spread names no count
+
+
+def _refused(data: dict, tmp_path: Path, *named: str) -> None:
+    path = tmp_path / "monitor.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(ValueError) as e:
+        monitor_file.load(path)
+    assert_one_line(e.value, str(path), *named)
+
+
+@pytest.mark.parametrize(
+    ("count", "named"),
+    [
+        (None, "sample_spread None: a monitor that reads 'sample_spread' names its samples"),
+        (1, "sample_spread 1"),
+        ("four", "sample_spread 'four' is not an integer"),
+    ],
+)
+def test_a_spread_monitor_without_a_usable_sample_count_is_refused_in_one_line(monitors, tmp_path, count, named):
+    _refused({**_spread_data(monitors), "sample_spread": count}, tmp_path, named)
+
+
+def test_a_sample_count_on_a_monitor_that_reads_no_spread_is_refused_in_one_line(monitors, tmp_path):
+    data = json.loads(json.dumps(monitor_file.to_json(monitors["probe"])))
+    _refused({**data, "sample_spread": 4}, tmp_path, "sample_spread 4: a monitor that reads")
+
+
 def test_a_missing_monitor_file_is_refused_in_one_line(tmp_path):
     with pytest.raises(ValueError) as e:
         monitor_file.load(tmp_path / "absent.json")

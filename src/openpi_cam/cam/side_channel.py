@@ -46,6 +46,7 @@ from openpi_cam.cam.monitoring import RESPONSE_KEY, LiveMonitor, response_entry
 from openpi_cam.cam.records import bounded_extra, split_extra, step_record
 from openpi_cam.cam.reliance import Resampler
 from openpi_cam.cam.run_format import StepRecord
+from openpi_cam.cam.sample_spread import Resampling, with_sample_spread
 from openpi_cam.counters import WarnOnceCounter
 from openpi_cam.model.sharding import BATCH_AXIS
 from openpi_cam.monitor.stream import StepScore
@@ -56,8 +57,9 @@ from openpi_cam.vocabulary import SAVE_FRAMES, ExplainOptions, SaveFrames
 logger = logging.getLogger(__name__)
 
 
-class TracedPolicy(Resampler, Protocol):
-    """What the side channel wraps (`openpi_cam.policies.Policy`); re-running it (`Resampler`) only for reliance."""
+class TracedPolicy(Resampler, Resampling, Protocol):
+    """What the side channel wraps (`openpi_cam.policies.Policy`); re-running it (`Resampler`) only for reliance,
+    drawing other samples of a call (`Resampling`) only for a monitor that reads the sample spread."""
 
     @property
     def metadata(self) -> dict[str, Any]: ...
@@ -200,7 +202,7 @@ class _Scoring:
     """A served call for the worker to score (`slot`: its explanation job's, when it is explained)."""
 
     connection: str
-    signals: Mapping[str, np.ndarray]
+    trace: InferenceTrace
     slot: _MonitorSlot | None
 
 
@@ -360,23 +362,29 @@ class CAMPolicy:
         worker (before its explanation job, which then finds the score in its slot); explained when scheduled."""
         slot = _MonitorSlot() if scheduled else None
         if self._options.monitor_response:
-            scored = self._score(connection, trace.signals)
+            scored = self._score(connection, trace)
             response = {**response, RESPONSE_KEY: response_entry(scored)}
             if slot is not None:
                 slot.scored = scored
         else:
             with self._cond:
-                self._scoring.append(_Scoring(connection, trace.signals, slot))
+                self._scoring.append(_Scoring(connection, trace, slot))
                 self._cond.notify_all()
         if scheduled:
             self._enqueue(trace, connection, step, extra, ended, slot)
         return response
 
-    def _score(self, connection: str, signals: Mapping[str, np.ndarray]) -> StepScore | None:
+    def _signals(self, trace: InferenceTrace) -> Mapping[str, np.ndarray]:
+        """What the monitor scores of a call: its signals, and the sample spread where the monitor reads one."""
+        assert self._monitor is not None
+        samples = self._monitor.monitor.sample_spread
+        return trace.signals if samples is None else with_sample_spread(self._policy, trace, samples)
+
+    def _score(self, connection: str, trace: InferenceTrace) -> StepScore | None:
         """The connection's next call scored; None (counted, logged once) when the monitor cannot score it."""
         assert self._monitor is not None
         try:
-            return self._monitor.score(connection, signals)
+            return self._monitor.score(connection, self._signals(trace))
         except Exception as e:  # the monitor never reaches a client
             self.count(f"monitor_failed_{type(e).__name__}", f"scoring a call raised {type(e).__name__}: {e}")
             return None
@@ -492,7 +500,7 @@ class CAMPolicy:
                 if isinstance(job, _Job):
                     self._process(job, started)
                 elif isinstance(job, _Scoring):
-                    scored = self._score(job.connection, job.signals)
+                    scored = self._score(job.connection, job.trace)
                     if job.slot is not None:
                         job.slot.scored = scored
                 elif self._monitor is not None:
@@ -680,7 +688,11 @@ class CAMPolicy:
         if self._monitor is not None:
             trace = self._policy.warm_up(batch_sizes, signals=True)
             if trace is not None:
-                self._monitor.check(trace.signals)
+                try:
+                    signals = self._signals(trace)
+                except ValueError as e:
+                    raise ValueError(f"monitor {self._monitor.source}: {e}") from None
+                self._monitor.check(signals)
         else:
             trace = self._policy.warm_up(batch_sizes)
         if trace is None:
@@ -740,6 +752,12 @@ def wrap_policy_with_cam(
         explanation_device(options.device)
     if options.monitor_response and monitor is None:
         raise ValueError("--cam.monitor-response needs a monitor (--monitor FILE)")
+    if options.monitor_response and monitor is not None and monitor.monitor.sample_spread is not None:
+        raise ValueError(
+            f"--cam.monitor-response: the monitor {monitor.source} reads the sample spread "
+            f"({monitor.monitor.sample_spread} action samples a call), which would hold every response back; serve "
+            "without it"
+        )
     if options.every_k == 0 and monitor is not None:
         logger.info("failure monitor %s on: every call scored, nothing explained", monitor.source)
         return CAMPolicy(policy, options, None, monitor)

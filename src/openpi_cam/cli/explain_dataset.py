@@ -47,6 +47,7 @@ def main(
     monitor: pathlib.Path | None = None,
     no_monitor: tyro.conf.FlagCreatePairsOff[bool] = False,
     monitor_features: bool = False,
+    sample_spread: int = 0,
     execution_horizon: int | None = None,
     progress: bool = True,
 ) -> int:
@@ -83,6 +84,9 @@ def main(
         no_monitor: score with no monitor, even a demo model's own.
         monitor_features: also write each row's pooled last-layer features (`monitor/features/<name>`, float32), what
             `openpi-cam monitor fit` fits a probe or a Mahalanobis monitor on.
+        sample_spread: also draw this many action chunks per frame (the served one and N - 1 from other noises) and
+            write how far they spread (`monitor/sample_spread`), a monitor input (pi0 / pi0.5; it costs N - 1 more
+            samples a frame). Default: none, or the monitor's count where it reads the spread.
         execution_horizon: the actions the robot executed per call: `monitor/stac` compares a frame's chunk with the
             previous explained frame's when that lies this many frames before (explain with `--every-k` equal to
             it). Default: the monitor's, else 5 (the demo robots').
@@ -122,6 +126,7 @@ def main(
             outcome=outcome,
             monitor=model.chosen_monitor(monitor, no_monitor),
             monitor_features=monitor_features,
+            sample_spread=sample_spread,
             execution_horizon=execution_horizon,
         )
 

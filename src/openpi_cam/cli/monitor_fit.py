@@ -55,7 +55,8 @@ def main(
             episodes' steps), `stac` (the consecutive-chunk disagreement itself, training-free) or `union` (the
             larger of a probe's and `stac`'s scores, each standardised on the training successes' steps).
         inputs: the monitor inputs to read, e.g. `features/base_0_rgb stac` (default: every input the episodes carry
-            with a value; `stac` alone for `--kind stac`).
+            with a value; `stac` alone for `--kind stac`). A monitor that reads `sample_spread` (rows explained with
+            `--sample-spread N`) records N: `serve` and `explain-dataset` draw as many chunks a call to score with it.
         alpha: the false-alarm rate on successful episodes the threshold is calibrated for.
         calibration_share: the share of the successful episodes held out to set the threshold.
         seed: the seed of that split.
@@ -80,6 +81,7 @@ def main(
             l2=l2,
             temporal=temporal,
             execution_horizon=rollouts.execution_horizon,
+            sample_spread=rollouts.sample_spread,
         )
         _check_options(options)
         monitor = fit_monitor(rollouts.episodes, options)
@@ -127,6 +129,11 @@ def report(monitor: Monitor, rollouts: Rollouts, options: FitOptions, out: pathl
     rows = [
         ("monitor", f"{out} ({monitor.kind}{', temporal' if monitor.temporal else ''})"),
         ("inputs", inputs if len(inputs) <= 80 else f"{len(monitor.inputs)} inputs, {monitor.input_dim} values"),
+        *(
+            [("samples", f"{monitor.sample_spread} action chunks a call for sample_spread")]
+            if monitor.sample_spread
+            else []
+        ),
         ("episodes", f"{success.size} ({int((~success).sum())} failed), horizon {rollouts.execution_horizon}"),
         ("training", f"{training.size} episodes ({int((~success[training]).sum())} failed), {ranked}"),
         ("threshold", f"{threshold} for alpha {monitor.alpha:g}"),

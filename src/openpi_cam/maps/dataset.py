@@ -24,7 +24,8 @@ episode's frames), `episode_success` (any frame's outcome true, as lerobot-eval 
 view of its frame's served call (`MONITOR_COLUMNS`): `monitor/stac` (STAC-single against the episode's previous
 explained frame when it lies `execution_horizon` frames before, else null), `monitor/token_entropy` (pi0-FAST; null
 for the flow families), and with a monitor (`MapsInfo.monitor`) `monitor/score` and `monitor/flag`; with
-`monitor_features` the pooled features `monitor/features/<name>` (float32 lists).
+`monitor_features` the pooled features `monitor/features/<name>` (float32 lists); with `sample_spread` N,
+`monitor/sample_spread` (the spread of N action chunks drawn for the frame, pi0 / pi0.5).
 
 Reading needs pyarrow and numpy only, so the commands that read maps (`stats`, `render`) do not load JAX.
 """
@@ -45,7 +46,7 @@ import pyarrow.parquet as pq
 
 from openpi_cam.cam.run_format import RELIANCE_PROMPT, dumps
 from openpi_cam.errors import BadFile, load_json, reading
-from openpi_cam.monitor.signals import STAC, TOKEN_ENTROPY
+from openpi_cam.monitor.signals import SAMPLE_SPREAD, STAC, TOKEN_ENTROPY
 from openpi_cam.monitor.stream import FLAG, SCORE
 
 FORMAT = "openpi-cam maps dataset"
@@ -53,7 +54,8 @@ FORMAT = "openpi-cam maps dataset"
 # 3: episode outcomes (`outcome`, `reward`; the `episode_*` columns); reliance columns (`options.reliance`).
 # 4: the failure monitor's columns (`monitor/...`; `monitor`, `monitor_sha256`, `execution_horizon`,
 # `monitor_features`).
-FORMAT_VERSION = 4
+# 5: the action-sample spread (`sample_spread`, `monitor/sample_spread`).
+FORMAT_VERSION = 5
 INFO_JSON = "meta/info.json"
 SUMMARY_JSON = "meta/summary.json"
 DATA_DIR = "data"
@@ -76,6 +78,7 @@ SOURCE_KEYS = (
     "monitor_sha256",
     "execution_horizon",
     "monitor_features",
+    "sample_spread",
 )
 # Each row's episode, when the source records outcomes: its length in source frames, whether it succeeded, its return.
 EPISODE_LENGTH, EPISODE_SUCCESS, EPISODE_RETURN = "episode_length", "episode_success", "episode_return"
@@ -114,6 +117,7 @@ class MapsInfo:
     # the actions executed per call that STAC assumed (format 4; None: a dataset made before the monitor's columns)
     execution_horizon: int | None = None
     monitor_features: list[str] = dataclasses.field(default_factory=list)  # `monitor/<name>` feature columns
+    sample_spread: int = 0  # the action samples per call `monitor/sample_spread` compares (format 5; 0: no column)
 
     @property
     def cameras(self) -> list[str]:
@@ -245,6 +249,8 @@ def schema(info: MapsInfo) -> pa.Schema:
         types = (pa.float64(), pa.float64(), pa.float64(), pa.bool_())
         fields += [pa.field(name, kind) for name, kind in zip(MONITOR_COLUMNS, types, strict=True)]
         fields += [pa.field(MONITOR_PREFIX + name, pa.list_(pa.float32())) for name in info.monitor_features]
+        if info.sample_spread:
+            fields += [pa.field(MONITOR_PREFIX + SAMPLE_SPREAD, pa.float64())]
     return pa.schema(fields)
 
 
@@ -337,10 +343,12 @@ class MapsDataset:
     @property
     def meta_columns(self) -> list[str]:
         """`EpisodeFrames.meta`'s columns: the frame's own, then its episode's outcome, its reliance figures and the
-        monitor's scalar columns (`MONITOR_COLUMNS`, not the pooled features) where the dataset has them."""
+        monitor's scalar columns (`MONITOR_COLUMNS` and the sample spread, not the pooled features) where the dataset
+        has them."""
         outcomes = OUTCOME_COLUMNS if self.info.outcome is not None else ()
         reliance = reliance_columns(self.info) if self.info.reliance else []
-        return [*FRAME_COLUMNS, *outcomes, *reliance, *(MONITOR_COLUMNS if self.info.monitored else ())]
+        monitor = [*MONITOR_COLUMNS, *([MONITOR_PREFIX + SAMPLE_SPREAD] if self.info.sample_spread else [])]
+        return [*FRAME_COLUMNS, *outcomes, *reliance, *(monitor if self.info.monitored else ())]
 
     def require_kind(self, kind: str) -> None:
         if kind not in self.kinds:

@@ -23,13 +23,14 @@ import numpy as np
 from openpi_cam.cam.batching import data_mesh, explain_batch
 from openpi_cam.cam.records import resume_mismatch
 from openpi_cam.cam.run_format import Reliance, SpotCheck, dumps
+from openpi_cam.cam.sample_spread import check_samples, with_sample_spread
 from openpi_cam.checkpoints.model_spec import ModelSpec
 from openpi_cam.lerobot.dataset import DatasetError, LeRobotDataset, open_dataset
 from openpi_cam.lerobot.writer import REWARD, SUCCESS
 from openpi_cam.maps import dataset as fmt
 from openpi_cam.monitor import monitor_file
 from openpi_cam.monitor.monitor_file import Monitor
-from openpi_cam.monitor.signals import STAC, TOKEN_ENTROPY
+from openpi_cam.monitor.signals import SAMPLE_SPREAD, STAC, TOKEN_ENTROPY
 from openpi_cam.monitor.stream import FLAG, SCORE, StepScore, Stream, execution_horizon
 from openpi_cam.nested import unflatten_dict
 from openpi_cam.policies.family import ExplainSkipped, Explanation, resolve_target
@@ -69,6 +70,8 @@ class DatasetJob:
     monitor_features: bool = False  # also write each row's pooled features (`monitor/features/<name>`), to fit on
     # the actions a robot executes per call, which STAC-single shifts by (None: the monitor's, else 5)
     execution_horizon: int | None = None
+    # action samples per frame for `monitor/sample_spread` (pi0 / pi0.5; 0: none, or the monitor's where it reads one)
+    sample_spread: int = 0
 
     def __post_init__(self) -> None:
         if self.every < 1:
@@ -83,6 +86,8 @@ class DatasetJob:
             raise ValueError("the recorded actions are explained as a whole chunk: options.target must be 'chunk'")
         if self.execution_horizon is not None and self.execution_horizon < 1:
             raise ValueError(f"--execution-horizon must be >= 1, got {self.execution_horizon}")
+        if self.sample_spread:
+            check_samples(self.sample_spread)
 
     def loaded_monitor(self) -> Monitor | None:
         """The job's monitor file, read (ValueError naming the file when it is not one), or None."""
@@ -97,6 +102,14 @@ class DatasetJob:
                 f"--execution-horizon {self.execution_horizon}: the monitor {self.monitor} was fitted for {own}"
             )
         return self.execution_horizon or execution_horizon(monitor)
+
+    def samples(self, monitor: Monitor | None) -> int:
+        """The action samples per frame of `monitor/sample_spread` (0: none): the flag's, else the monitor's where
+        it reads the spread; a flag that contradicts the monitor is refused."""
+        own = None if monitor is None else monitor.sample_spread
+        if self.sample_spread and own is not None and own != self.sample_spread:
+            raise ValueError(f"--sample-spread {self.sample_spread}: the monitor {self.monitor} was fitted on {own}")
+        return self.sample_spread or own or 0
 
 
 def parse_pairs(pairs: Sequence[str], flag: str) -> dict[str, str]:
@@ -207,6 +220,7 @@ def job_info(
         monitor_sha256=None if job.monitor is None else hashlib.sha256(job.monitor.read_bytes()).hexdigest(),
         execution_horizon=job.horizon(monitor),
         monitor_features=features if job.monitor_features else [],
+        sample_spread=job.samples(monitor),
     )
 
 
@@ -225,6 +239,8 @@ def monitor_values(scored: StepScore, info: fmt.MapsInfo) -> dict[str, Any]:
     for name in info.monitor_features:
         value = values.get(name)
         row[fmt.MONITOR_PREFIX + name] = None if value is None else _flat(value)
+    if info.sample_spread:
+        row[fmt.MONITOR_PREFIX + SAMPLE_SPREAD] = scalar(SAMPLE_SPREAD)
     return row
 
 
@@ -332,6 +348,11 @@ class EpisodeExplainer:
                 f"--target {DATASET_ACTIONS}: {self.policy.model.family} has no likelihood of a given chunk to explain "
                 "(README, 'Explaining a LeRobot dataset'); pi0-FAST explains the recorded chunk's FAST tokens"
             )
+        if self.info.sample_spread and self.policy.model.family == "pi0_fast":
+            raise ValueError(
+                f"--sample-spread {self.info.sample_spread}: pi0-FAST decodes greedily, one chunk per input; the "
+                "sample spread is pi0 / pi0.5's"
+            )
         self.horizon = self.policy.model.config.action_horizon
         self.monitor = job.loaded_monitor()
 
@@ -379,7 +400,12 @@ class EpisodeExplainer:
         stream = self.stream()
         for frame, response, trace in self.served(episode, wanted, seconds, signals=True):
             counts["frames"] += 1
-            pending.append((frame, trace, response, stream.step(trace.signals, int(frame["frame_index"]))))
+            signals = trace.signals
+            if self.info.sample_spread:  # more samples of the served call: its inference's time
+                t0 = time.perf_counter()
+                signals = with_sample_spread(self.policy, trace, self.info.sample_spread)
+                seconds["inference"] += time.perf_counter() - t0
+            pending.append((frame, trace, response, stream.step(signals, int(frame["frame_index"]))))
             if len(pending) == job.batch_size:
                 flush()
         if pending:

@@ -12,17 +12,19 @@ import numpy as np
 
 from openpi_cam.maps import dataset as fmt
 from openpi_cam.monitor.fit import Episode
-from openpi_cam.monitor.signals import STAC, TOKEN_ENTROPY
+from openpi_cam.monitor.signals import SAMPLE_SPREAD, STAC, TOKEN_ENTROPY
 
 
 @dataclasses.dataclass(frozen=True)
 class Rollouts:
     """Episodes of one or more maps datasets, ready to fit on: `episodes` in dataset then episode order, `names`
-    the (dataset, episode) of each, and the execution horizon their `stac` assumed."""
+    the (dataset, episode) of each, the execution horizon their `stac` assumed, and the samples per call their
+    `sample_spread` compared (None: they carry none)."""
 
     episodes: list[Episode]
     names: list[tuple[str, int]]
     execution_horizon: int
+    sample_spread: int | None = None
 
     @property
     def inputs(self) -> list[str]:
@@ -51,7 +53,7 @@ def read_rollouts(roots: Sequence[pathlib.Path]) -> Rollouts:
     input raises ValueError in one line naming the dataset and what it lacks."""
     if not roots:
         raise ValueError("no maps datasets named")
-    episodes, names, horizons = [], [], set()
+    episodes, names, horizons, samples = [], [], set(), set()
     for root in roots:
         try:
             ds = fmt.open_maps_dataset(root)
@@ -63,13 +65,15 @@ def read_rollouts(roots: Sequence[pathlib.Path]) -> Rollouts:
         if info.outcome is None:
             raise ValueError(f"{root}: its rows carry no episode outcomes (its source records no next.success)")
         horizons.add(info.execution_horizon)
+        samples.add(info.sample_spread or None)
         features = [fmt.MONITOR_PREFIX + name for name in info.monitor_features]
-        scalars = [fmt.MONITOR_PREFIX + name for name in (STAC, TOKEN_ENTROPY)]
+        named = (STAC, TOKEN_ENTROPY, SAMPLE_SPREAD) if info.sample_spread else (STAC, TOKEN_ENTROPY)
+        scalars = [fmt.MONITOR_PREFIX + name for name in named]
         for episode in ds.episodes:
             table = ds.table(episode, ["index", fmt.FRAME_INDEX, fmt.EPISODE_SUCCESS, *scalars, *features])
             if table.num_rows == 0:
                 continue
-            columns = {n: _scalar(table.column(fmt.MONITOR_PREFIX + n).to_pylist()) for n in (STAC, TOKEN_ENTROPY)}
+            columns = {n: _scalar(table.column(fmt.MONITOR_PREFIX + n).to_pylist()) for n in named}
             for column in features:
                 where = f"{root}, episode {episode}, {column}"
                 columns[column[len(fmt.MONITOR_PREFIX) :]] = _vectors(table.column(column).to_pylist(), where)
@@ -79,6 +83,9 @@ def read_rollouts(roots: Sequence[pathlib.Path]) -> Rollouts:
             names.append((str(root), episode))
     if len(horizons) > 1:
         raise ValueError(f"the maps datasets assumed different execution horizons {sorted(horizons)}: fit on one")
+    if len(samples) > 1:
+        drawn = sorted(map(str, samples))
+        raise ValueError(f"the maps datasets drew different samples per call for {SAMPLE_SPREAD!r}: {drawn}")
     if not episodes:
         raise ValueError(f"the maps datasets {[str(r) for r in roots]} hold no explained frames")
-    return Rollouts(episodes, names, horizons.pop())
+    return Rollouts(episodes, names, horizons.pop(), samples.pop())

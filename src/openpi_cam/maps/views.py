@@ -67,7 +67,7 @@ from openpi_cam.maps.dataset import (
     MapsInfo,
 )
 from openpi_cam.monitor.detection import FRAMES, ScoredEpisode, detection
-from openpi_cam.monitor.signals import STAC, TOKEN_ENTROPY
+from openpi_cam.monitor.signals import SAMPLE_SPREAD, STAC, TOKEN_ENTROPY
 from openpi_cam.monitor.stream import SCORE
 from openpi_cam.viz.overlay import reduce_tokens
 from openpi_cam.viz.stats import camera_stats, mean_score
@@ -665,11 +665,12 @@ def outcome_views(
 
 # The monitor's columns of a row that `detection_views` ranks, each under its figure's name: the monitor's own score
 # (the one name holding `monitor`, so a reader finds the monitor among the baselines) and the training-free
-# baselines that come with every served call.
+# baselines that come with every served call, and the sample spread where it was drawn (`--sample-spread`).
 MONITOR_FIGURES = {
     MONITOR_PREFIX + SCORE: "monitor",
     MONITOR_PREFIX + STAC: STAC,
     MONITOR_PREFIX + TOKEN_ENTROPY: TOKEN_ENTROPY,
+    MONITOR_PREFIX + SAMPLE_SPREAD: SAMPLE_SPREAD,
 }
 
 

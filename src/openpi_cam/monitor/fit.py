@@ -17,7 +17,7 @@ import numpy as np
 
 from openpi_cam.monitor.monitor_file import KINDS, Monitor, MonitorInput, Standardised
 from openpi_cam.monitor.scores import Basis, MahalanobisScorer, ProbeScorer, with_running_mean
-from openpi_cam.monitor.signals import STAC
+from openpi_cam.monitor.signals import SAMPLE_SPREAD, STAC
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,6 +59,7 @@ class FitOptions:
     l2: float = 1e-2  # the probe's penalty on its weights, in standardised units, per episode-averaged loss
     temporal: bool = False  # score each step with the running mean of its episode's inputs beside it
     execution_horizon: int | None = None  # recorded with the monitor: the actions per call that `stac` assumed
+    sample_spread: int | None = None  # recorded with the monitor: the samples per call `sample_spread` compared
 
 
 def split_episodes(success: Sequence[bool], calibration_share: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -304,6 +305,8 @@ def fit_monitor(episodes: Sequence[Episode], options: FitOptions = FitOptions())
         raise ValueError(f"a stac monitor reads the one input {STAC!r} as it is, not {[i.name for i in inputs]}")
     if options.kind == "union" and MonitorInput(STAC, 1) not in inputs:
         raise ValueError(f"a union monitor reads {STAC!r} among its inputs, not only {[i.name for i in inputs]}")
+    if any(i.name == SAMPLE_SPREAD for i in inputs) and options.sample_spread is None:
+        raise ValueError(f"the {SAMPLE_SPREAD!r} input needs its samples per call (FitOptions.sample_spread)")
     success = np.array([bool(e.success) for e in episodes])
     training, calibration = split_episodes(success, options.calibration_share, options.seed)
     x = [_matrix(i, e, inputs) for i, e in enumerate(episodes)]
@@ -319,6 +322,7 @@ def fit_monitor(episodes: Sequence[Episode], options: FitOptions = FitOptions())
         scorer=scorer,
         temporal=options.temporal,
         execution_horizon=options.execution_horizon,
+        sample_spread=options.sample_spread if any(i.name == SAMPLE_SPREAD for i in inputs) else None,
     )
     if options.kind == "union":
         scales = standardise_union(monitor, [x[i] for i in training if success[i]])

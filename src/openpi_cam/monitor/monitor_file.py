@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from openpi_cam.monitor.scores import Basis, MahalanobisScorer, ProbeScorer, with_running_mean
-from openpi_cam.monitor.signals import STAC
+from openpi_cam.monitor.signals import SAMPLE_SPREAD, STAC
 
 FORMAT = "openpi-cam monitor"
 FORMAT_VERSION = 1
@@ -67,9 +67,10 @@ class Monitor:
     (`scores.with_running_mean`: 2F values into the basis). basis / scorer: the fitted arrays (None for `stac`).
     threshold: a step whose score exceeds it flags the episode (inf: never). alpha: the false-alarm rate on
     successful episodes the threshold was calibrated for (`fit.conformal_threshold`). execution_horizon: the number
-    of actions executed per call that the `stac` input assumes (None: unknown, the aligned variant). standardised:
-    a union's scales (None for the other kinds). fit: how it was fitted (seed, episode counts, options), for the
-    record."""
+    of actions executed per call that the `stac` input assumes (None: unknown, the aligned variant). sample_spread:
+    the action samples per call its `sample_spread` input compares (None: it reads none); whoever scores with it
+    draws as many. standardised: a union's scales (None for the other kinds). fit: how it was fitted (seed, episode
+    counts, options), for the record."""
 
     kind: str
     inputs: tuple[MonitorInput, ...]
@@ -81,6 +82,15 @@ class Monitor:
     execution_horizon: int | None = None
     standardised: Standardised | None = None
     fit: dict[str, Any] = dataclasses.field(default_factory=dict)
+    sample_spread: int | None = None
+
+    def __post_init__(self) -> None:
+        reads = any(i.name == SAMPLE_SPREAD for i in self.inputs)
+        if reads != (self.sample_spread is not None) or (reads and self.sample_spread < 2):
+            raise ValueError(
+                f"sample_spread {self.sample_spread!r}: a monitor that reads {SAMPLE_SPREAD!r} names its samples per "
+                "call (>= 2), one that does not names none"
+            )
 
     @property
     def input_dim(self) -> int:
@@ -193,6 +203,7 @@ def to_json(monitor: Monitor) -> dict[str, Any]:
         "inputs": [{"name": i.name, "dim": i.dim} for i in monitor.inputs],
         "temporal": monitor.temporal,
         "execution_horizon": monitor.execution_horizon,
+        "sample_spread": monitor.sample_spread,
         "alpha": monitor.alpha,
         "threshold": monitor.threshold if math.isfinite(monitor.threshold) else None,
         "fit": monitor.fit,
@@ -214,12 +225,24 @@ def to_json(monitor: Monitor) -> dict[str, Any]:
     return data
 
 
+def _encode(value: Any, depth: int = 0) -> str:
+    """JSON with objects and lists of lists indented and each list of numbers on one line (a matrix: a line per row),
+    so that a file, and the diff of a refitted one, grow with its rows rather than its numbers."""
+    pad, inner = " " * depth, " " * (depth + 1)
+    if isinstance(value, Mapping) and value:
+        items = (f"{inner}{json.dumps(k)}: {_encode(v, depth + 1)}" for k, v in value.items())
+        return "{\n" + ",\n".join(items) + f"\n{pad}}}"
+    if isinstance(value, list) and any(isinstance(v, Mapping | list) for v in value):
+        return "[\n" + ",\n".join(inner + _encode(v, depth + 1) for v in value) + f"\n{pad}]"
+    return json.dumps(value, allow_nan=False)
+
+
 def save(monitor: Monitor, path: str | os.PathLike[str]) -> pathlib.Path:
     """Write the monitor as one JSON file (atomically: a reader never sees half a file)."""
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     staged = path.with_name(path.name + ".tmp")
-    staged.write_text(json.dumps(to_json(monitor), allow_nan=False, indent=1) + "\n")
+    staged.write_text(_encode(to_json(monitor)) + "\n")
     os.replace(staged, path)
     return path
 
@@ -321,6 +344,9 @@ def from_json(data: Any) -> Monitor:
     temporal = data.get("temporal", False)
     if not isinstance(temporal, bool):
         raise ValueError(f"temporal {temporal!r} is not true or false")
+    samples = data.get("sample_spread")
+    if samples is not None and (not isinstance(samples, int) or isinstance(samples, bool)):
+        raise ValueError(f"sample_spread {samples!r} is not an integer (null: the monitor reads no sample spread)")
     basis, scorer, standardised = None, None, None
     if kind == "stac":
         if inputs != (MonitorInput(STAC, 1),):
@@ -347,4 +373,5 @@ def from_json(data: Any) -> Monitor:
         execution_horizon=horizon,
         standardised=standardised,
         fit=dict(data.get("fit") or {}),
+        sample_spread=samples,
     )

@@ -376,6 +376,24 @@ class Policy:
         raw, _, _ = self._sample([rng], observation, None if noise is None else np.asarray(noise))
         return self._robot_actions(trace, raw[0])
 
+    def normalized_chunks(self, trace: InferenceTrace, noises: np.ndarray) -> np.ndarray:
+        """The chunks the traced call's input gives from each of `noises` [N, horizon, action dim] (pi0 / pi0.5), in
+        the units a monitor compares them in (the trace's `NORMALIZED_CHUNK`: the robot's action dimensions before the
+        output transforms) -> [N, horizon, robot action dim]. The policy's rng and counters are untouched."""
+        if "noise" not in trace.sample_inputs:
+            raise ValueError("the policy draws no noise (pi0-FAST decodes greedily): a call has no other samples")
+        if NORMALIZED_CHUNK not in trace.signals:
+            raise ValueError(f"the call was served without signals (no {NORMALIZED_CHUNK!r} to compare with)")
+        width = np.shape(trace.signals[NORMALIZED_CHUNK])[-1]
+        with self._lock:
+            _, rng = jax.random.split(self._rng)  # unused given the noise
+        chunks = []
+        for noise in np.asarray(noises, np.float32):
+            raw, _, _ = self._sample([rng], trace.observation, noise)
+            actions, _ = self._decoder.extract(np.asarray(raw[0]))
+            chunks.append(np.asarray(actions, np.float64)[..., :width])
+        return np.stack(chunks)
+
     def served_actions(self, trace: InferenceTrace) -> np.ndarray:
         """The actions `infer` returned for the traced call, from its raw output (decoder and output transforms)."""
         return self._robot_actions(trace, trace.output)
