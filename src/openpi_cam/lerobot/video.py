@@ -5,8 +5,13 @@ it."""
 
 from __future__ import annotations
 
+import atexit
+import multiprocessing
 import os
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
@@ -55,18 +60,107 @@ class VideoOptions:
         }
 
 
+class VideoEncodingError(RuntimeError):
+    """An episode's video could not be encoded: the encoder failed, or gave no answer in time (`EncoderProcess`)."""
+
+
+class EncoderProcess:
+    """Runs an encode function in a child process of its own, one call at a time, and waits at most `timeout_s(frames)`
+    seconds for each call. SVT-AV1 can deadlock on a frame and wait forever with the CPU idle; in process that would
+    hold a recording (and the server or demo recording it) for good. Here the child is killed instead and the call
+    made again on a fresh one, up to `attempts` times; then VideoEncodingError. Thread-safe; the child starts on the
+    first call and dies with its parent."""
+
+    def __init__(
+        self,
+        target: Callable[..., None],
+        timeout_s: Callable[[list[np.ndarray]], float],
+        attempts: int = 2,
+    ) -> None:
+        self._target, self._timeout_s, self._attempts = target, timeout_s, attempts
+        self._lock = threading.Lock()
+        self._child: tuple[multiprocessing.process.BaseProcess, Connection] | None = None
+
+    def __call__(self, frames: list[np.ndarray], *args: Any) -> None:
+        timeout = self._timeout_s(frames)
+        with self._lock:
+            for _ in range(self._attempts):
+                _, conn = self._child or self._start()
+                try:
+                    conn.send((frames, *args))
+                    answer = conn.recv() if conn.poll(timeout) else None
+                except (EOFError, OSError):  # the child died
+                    answer = None
+                if answer is None:  # hung or dead: the next attempt gets a fresh child
+                    self.close()
+                    continue
+                ok, message = answer
+                if not ok:
+                    raise VideoEncodingError(message)
+                return
+        raise VideoEncodingError(f"the encoder gave no answer within {timeout:.0f} s (or died), {self._attempts} times")
+
+    def _start(self) -> tuple[multiprocessing.process.BaseProcess, Connection]:
+        parent, child = multiprocessing.get_context("spawn").Pipe()
+        process = multiprocessing.get_context("spawn").Process(
+            target=_serve_encodes, args=(child, self._target), daemon=True
+        )
+        process.start()
+        child.close()
+        self._child = (process, parent)
+        return self._child
+
+    def close(self) -> None:
+        if self._child is not None:
+            process, conn = self._child
+            self._child = None
+            process.kill()
+            process.join()
+            conn.close()
+
+
+def _serve_encodes(conn: Connection, target: Callable[..., None]) -> None:
+    """The child's loop: each call's arguments in, (True, None) or (False, the error in one line) out."""
+    while True:
+        try:
+            args = conn.recv()
+        except EOFError:
+            return
+        try:
+            target(*args)
+            conn.send((True, None))
+        except Exception as e:
+            conn.send((False, f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"))
+
+
+def encode_timeout_s(frames: list[np.ndarray]) -> float:
+    """How long an episode's encode may take before its encoder counts as hung: a minute, and 2 microseconds a
+    pixel (about ten minutes for a thousand 640 x 480 frames), generous for a loaded machine."""
+    return 60.0 + 2e-6 * sum(int(np.prod(np.shape(f)[:2])) for f in frames)
+
+
 def encode_video(frames: list[np.ndarray], path: Path, fps: int, options: VideoOptions) -> None:
+    """Encode one episode's frames [H, W, 3] uint8 into `path` (`EncoderProcess`: a hung encoder is replaced);
+    VideoEncodingError in one line when it cannot."""
+    _ENCODER(frames, str(path), fps, options)
+
+
+def _encode(frames: list[np.ndarray], path: str, fps: int, options: VideoOptions) -> None:
     height, width = frames[0].shape[:2]
     # SVT-AV1 prints a banner of some twenty lines to stderr for every encoder it opens unless SVT_LOG lowers its
     # level; errors still show, and a level the user set wins
     os.environ.setdefault("SVT_LOG", "1")
-    with av.open(str(path), "w", format="mp4") as container:
+    with av.open(path, "w", format="mp4") as container:
         stream = container.add_stream(options.codec, rate=fps, options=options.codec_options())
         stream.pix_fmt = options.pix_fmt
         stream.width, stream.height = width, height
         for frame in frames:
             container.mux(stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")))
         container.mux(stream.encode())
+
+
+_ENCODER = EncoderProcess(_encode, encode_timeout_s)
+atexit.register(_ENCODER.close)
 
 
 def duration_s(path: Path) -> float:

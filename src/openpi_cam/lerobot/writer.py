@@ -49,7 +49,14 @@ from PIL import Image
 
 from openpi_cam.lerobot.dataset import CAMERA_DTYPES, DatasetError, dataset_error
 from openpi_cam.lerobot.stats import Stats, camera_stats, feature_stats, merge_stats
-from openpi_cam.lerobot.video import VideoOptions, append_video, duration_s, encode_video, video_info
+from openpi_cam.lerobot.video import (
+    VideoEncodingError,
+    VideoOptions,
+    append_video,
+    duration_s,
+    encode_video,
+    video_info,
+)
 
 CODEBASE_VERSION = "v3.0"
 DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
@@ -454,7 +461,7 @@ class DatasetWriter:
             encoded = self._staging / f"{name}.episode.mp4"
             try:
                 encode_video([frame.values[name] for frame in self._frames], encoded, self.fps, self.video)
-            except av.FFmpegError as e:
+            except VideoEncodingError as e:
                 raise dataset_error(
                     f"video encoding failed ({e})", file=self.root, episode=episode, feature=name
                 ) from e
