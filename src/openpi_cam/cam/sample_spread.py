@@ -8,7 +8,6 @@ bytes seed them): the same call gives the same spread live and offline, whoever 
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from typing import Protocol
 
 import numpy as np
@@ -37,14 +36,11 @@ def extra_noises(noise: np.ndarray, samples: int) -> np.ndarray:
 def with_sample_spread(policy: Resampling, trace: InferenceTrace, samples: int) -> dict[str, np.ndarray]:
     """The call's signals with `sample_spread` beside them: the spread (`monitor.signals.sample_spread`) of its
     served normalised chunk and samples - 1 more from `extra_noises`. ValueError (one line) for a policy that draws
-    no noise (pi0-FAST) or a call served without signals."""
+    no noise (pi0-FAST) or a call served without signals (`Policy.normalized_chunks`)."""
     check_samples(samples)
     noise = trace.sample_inputs.get("noise")
     if noise is None:
         raise ValueError(f"{SAMPLE_SPREAD}: the policy draws no noise (pi0-FAST decodes greedily); pi0 / pi0.5 only")
-    signals: Mapping[str, np.ndarray] = trace.signals
-    if NORMALIZED_CHUNK not in signals:
-        raise ValueError(f"{SAMPLE_SPREAD}: the call was served without signals")
     chunks = policy.normalized_chunks(trace, extra_noises(noise, samples))
-    served = np.asarray(signals[NORMALIZED_CHUNK], np.float64)[None]
-    return {**signals, SAMPLE_SPREAD: np.float64(sample_spread(np.concatenate([served, chunks])))}
+    served = np.asarray(trace.signals[NORMALIZED_CHUNK], np.float64)[None]
+    return {**trace.signals, SAMPLE_SPREAD: np.float64(sample_spread(np.concatenate([served, chunks])))}

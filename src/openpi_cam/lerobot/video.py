@@ -101,10 +101,9 @@ class EncoderProcess:
         raise VideoEncodingError(f"the encoder gave no answer within {timeout:.0f} s (or died), {self._attempts} times")
 
     def _start(self) -> tuple[multiprocessing.process.BaseProcess, Connection]:
-        parent, child = multiprocessing.get_context("spawn").Pipe()
-        process = multiprocessing.get_context("spawn").Process(
-            target=_serve_encodes, args=(child, self._target), daemon=True
-        )
+        spawn = multiprocessing.get_context("spawn")
+        parent, child = spawn.Pipe()
+        process = spawn.Process(target=_serve_encodes, args=(child, self._target), daemon=True)
         process.start()
         child.close()
         self._child = (process, parent)

@@ -129,6 +129,12 @@ class MapsInfo:
         return self.execution_horizon is not None
 
     @property
+    def monitor_scalars(self) -> tuple[str, ...]:
+        """The scalar monitor inputs the rows carry as `monitor/<name>` (with `monitored`): STAC-single and the
+        token entropy, and the sample spread where it was drawn."""
+        return (STAC, TOKEN_ENTROPY, SAMPLE_SPREAD) if self.sample_spread else (STAC, TOKEN_ENTROPY)
+
+    @property
     def reliance(self) -> bool:
         """Whether the rows carry camera and prompt reliance (`--reliance`)."""
         return bool(self.options.get("reliance"))
@@ -347,8 +353,9 @@ class MapsDataset:
         has them."""
         outcomes = OUTCOME_COLUMNS if self.info.outcome is not None else ()
         reliance = reliance_columns(self.info) if self.info.reliance else []
-        monitor = [*MONITOR_COLUMNS, *([MONITOR_PREFIX + SAMPLE_SPREAD] if self.info.sample_spread else [])]
-        return [*FRAME_COLUMNS, *outcomes, *reliance, *(monitor if self.info.monitored else ())]
+        scalars = [MONITOR_PREFIX + name for name in self.info.monitor_scalars]
+        monitor = list(dict.fromkeys([*scalars, *MONITOR_COLUMNS])) if self.info.monitored else []
+        return [*FRAME_COLUMNS, *outcomes, *reliance, *monitor]
 
     def require_kind(self, kind: str) -> None:
         if kind not in self.kinds:

@@ -30,7 +30,6 @@ from openpi_cam.lerobot.writer import REWARD, SUCCESS
 from openpi_cam.maps import dataset as fmt
 from openpi_cam.monitor import monitor_file
 from openpi_cam.monitor.monitor_file import Monitor
-from openpi_cam.monitor.signals import SAMPLE_SPREAD, STAC, TOKEN_ENTROPY
 from openpi_cam.monitor.stream import FLAG, SCORE, StepScore, Stream, execution_horizon
 from openpi_cam.nested import unflatten_dict
 from openpi_cam.policies.family import ExplainSkipped, Explanation, resolve_target
@@ -234,13 +233,11 @@ def monitor_values(scored: StepScore, info: fmt.MapsInfo) -> dict[str, Any]:
         value = values.get(name)
         return None if value is None or not np.isfinite(value) else float(value)
 
-    row: dict[str, Any] = {fmt.MONITOR_PREFIX + name: scalar(name) for name in (STAC, TOKEN_ENTROPY, SCORE)}
+    row: dict[str, Any] = {fmt.MONITOR_PREFIX + name: scalar(name) for name in (*info.monitor_scalars, SCORE)}
     row[fmt.MONITOR_PREFIX + FLAG] = None if scored.flag is None else bool(scored.flag)
     for name in info.monitor_features:
         value = values.get(name)
         row[fmt.MONITOR_PREFIX + name] = None if value is None else _flat(value)
-    if info.sample_spread:
-        row[fmt.MONITOR_PREFIX + SAMPLE_SPREAD] = scalar(SAMPLE_SPREAD)
     return row
 
 

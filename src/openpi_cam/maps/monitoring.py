@@ -12,7 +12,7 @@ import numpy as np
 
 from openpi_cam.maps import dataset as fmt
 from openpi_cam.monitor.fit import Episode
-from openpi_cam.monitor.signals import SAMPLE_SPREAD, STAC, TOKEN_ENTROPY
+from openpi_cam.monitor.signals import SAMPLE_SPREAD
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,13 +67,12 @@ def read_rollouts(roots: Sequence[pathlib.Path]) -> Rollouts:
         horizons.add(info.execution_horizon)
         samples.add(info.sample_spread or None)
         features = [fmt.MONITOR_PREFIX + name for name in info.monitor_features]
-        named = (STAC, TOKEN_ENTROPY, SAMPLE_SPREAD) if info.sample_spread else (STAC, TOKEN_ENTROPY)
-        scalars = [fmt.MONITOR_PREFIX + name for name in named]
+        scalars = [fmt.MONITOR_PREFIX + name for name in info.monitor_scalars]
         for episode in ds.episodes:
             table = ds.table(episode, ["index", fmt.FRAME_INDEX, fmt.EPISODE_SUCCESS, *scalars, *features])
             if table.num_rows == 0:
                 continue
-            columns = {n: _scalar(table.column(fmt.MONITOR_PREFIX + n).to_pylist()) for n in named}
+            columns = {n: _scalar(table.column(fmt.MONITOR_PREFIX + n).to_pylist()) for n in info.monitor_scalars}
             for column in features:
                 where = f"{root}, episode {episode}, {column}"
                 columns[column[len(fmt.MONITOR_PREFIX) :]] = _vectors(table.column(column).to_pylist(), where)

@@ -305,7 +305,8 @@ def fit_monitor(episodes: Sequence[Episode], options: FitOptions = FitOptions())
         raise ValueError(f"a stac monitor reads the one input {STAC!r} as it is, not {[i.name for i in inputs]}")
     if options.kind == "union" and MonitorInput(STAC, 1) not in inputs:
         raise ValueError(f"a union monitor reads {STAC!r} among its inputs, not only {[i.name for i in inputs]}")
-    if any(i.name == SAMPLE_SPREAD for i in inputs) and options.sample_spread is None:
+    reads_spread = any(i.name == SAMPLE_SPREAD for i in inputs)
+    if reads_spread and options.sample_spread is None:
         raise ValueError(f"the {SAMPLE_SPREAD!r} input needs its samples per call (FitOptions.sample_spread)")
     success = np.array([bool(e.success) for e in episodes])
     training, calibration = split_episodes(success, options.calibration_share, options.seed)
@@ -322,7 +323,7 @@ def fit_monitor(episodes: Sequence[Episode], options: FitOptions = FitOptions())
         scorer=scorer,
         temporal=options.temporal,
         execution_horizon=options.execution_horizon,
-        sample_spread=options.sample_spread if any(i.name == SAMPLE_SPREAD for i in inputs) else None,
+        sample_spread=options.sample_spread if reads_spread else None,
     )
     if options.kind == "union":
         scales = standardise_union(monitor, [x[i] for i in training if success[i]])
