@@ -34,6 +34,8 @@ from openpi_cam.maps.explain import _observation, run_local
 from openpi_cam.maps.monitoring import read_rollouts
 from openpi_cam.maps.views import compute_views
 from openpi_cam.monitor import monitor_file
+from openpi_cam.monitor.fit import episode_max
+from openpi_cam.monitor.monitor_file import Standardised
 from openpi_cam.monitor.stream import DEFAULT_EXECUTION_HORIZON
 from openpi_cam.policies import demo_reach
 from openpi_cam.serving.server import start_server_in_thread
@@ -134,14 +136,15 @@ def _fit_error(argv: list[str], capsys) -> str:
 
 def test_monitor_fit_refuses_flags_of_another_kind_and_bad_input_in_one_line(featured, tmp_path, capsys):
     maps, out = str(featured.root), str(tmp_path / "m.json")
-    assert "--l2 is read by --kind probe or union, not mahalanobis" in _fit_error(
+    assert "--l2 is read by --kind probe or union or gated, not mahalanobis" in _fit_error(
         [maps, "--out", out, "--kind", "mahalanobis", "--l2", "1"], capsys
     )
     assert "--temporal is read by" in _fit_error([maps, "--out", out, "--kind", "stac", "--temporal"], capsys)
     # these rollouts' successes end within a call or two: too few STAC values to put STAC on a union's scale
-    assert "a union needs the training successes' stac scores to vary" in _fit_error(
-        [maps, "--out", out, "--kind", "union"], capsys
-    )
+    for kind in ("union", "gated"):
+        assert f"a {kind} monitor needs the training successes' stac scores to vary" in _fit_error(
+            [maps, "--out", out, "--kind", kind], capsys
+        )
     assert "--alpha must be in (0, 1)" in _fit_error([maps, "--out", out, "--alpha", "1.5"], capsys)
     assert "no column 'features/elbow'" in _fit_error([maps, "--out", out, "--inputs", "features/elbow"], capsys)
     assert "is not a maps dataset" in _fit_error([str(tmp_path), "--out", out], capsys)
@@ -159,15 +162,25 @@ def test_monitor_fit_refuses_flags_of_another_kind_and_bad_input_in_one_line(fea
 
 @pytest.fixture(scope="module")
 def fitted(featured, tmp_path_factory):
-    """A Mahalanobis monitor on the features and STAC, its threshold at the calibration successes' lowest maximum
-    (a low one, so that some episodes are flagged and the flags are checked)."""
+    """A gated monitor on the features and STAC: the probe `monitor fit` fits, trusted under the first episode's
+    instruction alone (episodes instructed otherwise are scored by STAC alone: what the live and offline paths must
+    both read from the call's prompt), on the scales of every step, its threshold at the episodes' median maximum (so
+    that some episodes are flagged and the flags are checked). These rollouts end within a call or two, too few
+    STAC values among the training successes for `monitor fit --kind gated` to put STAC on a scale."""
     path = tmp_path_factory.mktemp("monitor") / "monitor.json"
     inputs = ["--inputs", "features/base_0_rgb", "features/prompt", "stac", "--max-dims", "4"]
-    cli.main(["monitor", "fit", str(featured.root), "--out", str(path), "--kind", "mahalanobis", *inputs])
+    cli.main(["monitor", "fit", str(featured.root), "--out", str(path), "--kind", "probe", *inputs])
     rollouts = read_rollouts([featured.root])
-    monitor = monitor_file.load(path)
-    maxima = [np.nanmax(monitor.score_steps(e.matrix(monitor.inputs))) for e in rollouts.episodes]
-    monitor_file.save(dataclasses.replace(monitor, threshold=float(np.median(maxima))), path)
+    probe = monitor_file.load(path)
+    steps = np.concatenate([e.matrix(probe.inputs) for e in rollouts.episodes])
+    scores, stac = probe.score_steps(steps), steps[:, probe.stac_column]
+    scales = Standardised((scores.mean(), scores.std()), (np.nanmean(stac), np.nanstd(stac)))
+    trusted = (monitor_file.instruction(rollouts.episodes[0].prompts[0]),)
+    gated = dataclasses.replace(probe, kind="gated", standardised=scales, prompts=trusted)
+    known = [gated.knows(e.prompts[0]) for e in rollouts.episodes]
+    assert 0 < sum(known) < len(known), [e.prompts[0] for e in rollouts.episodes]
+    maxima = [episode_max(gated.score_steps(e.matrix(gated.inputs), e.prompts)) for e in rollouts.episodes]
+    monitor_file.save(dataclasses.replace(gated, threshold=float(np.median(maxima))), path)
     return path
 
 
@@ -201,6 +214,11 @@ def test_explain_dataset_scores_with_a_demo_models_own_monitor_unless_told_other
     assert "--monitor and --no-monitor name opposite things" in line
 
 
+def _number(value: float | None) -> float:
+    """A row's float column as a number (null: NaN, no value)."""
+    return math.nan if value is None else value
+
+
 def _scoring_job(recorded, out, monitor):
     return model_job(recorded, out, OPTIONS, batch_size=4, every=HORIZON, monitor=monitor)
 
@@ -220,9 +238,13 @@ def test_explain_dataset_scores_each_episode_as_the_monitor_scores_it_whole(feat
     flagged = 0
     for (_, episode), e in zip(rollouts.names, rollouts.episodes, strict=True):
         rows = scored.table(episode).to_pylist()
-        expected = monitor.score_steps(e.matrix(monitor.inputs))
-        np.testing.assert_array_equal([r["monitor/score"] for r in rows], expected)
-        flags = np.maximum.accumulate(expected) > monitor.threshold
+        expected = monitor.score_steps(e.matrix(monitor.inputs), e.prompts)
+        np.testing.assert_array_equal([_number(r["monitor/score"]) for r in rows], expected)
+        if not monitor.knows(rows[0]["task"]):  # an instruction it was not fitted on: STAC alone
+            mean, std = monitor.standardised.stac
+            stac = np.array([_number(r["monitor/stac"]) for r in rows])
+            np.testing.assert_array_equal(expected, (stac - mean) / std)
+        flags = np.fmax.accumulate(expected) > monitor.threshold  # a step without a score flags nothing
         assert [r["monitor/flag"] for r in rows] == flags.tolist()
         flagged += bool(flags[-1])
     assert 0 < flagged < len(rollouts.episodes)
@@ -265,17 +287,18 @@ def test_the_same_frames_score_the_same_live_and_offline(recorded, scored, fitte
     assert len(connections) == len(sent)
     compared = 0
     for connection, episode in zip(connections, sorted(sent), strict=True):
-        offline = {r["frame_index"]: r["monitor/score"] for r in scored.table(episode).to_pylist()}
+        offline = {r["frame_index"]: _number(r["monitor/score"]) for r in scored.table(episode).to_pylist()}
         for step in (s for s in steps if s.meta.connection == connection):
             frame = sent[episode][step.meta.step]
-            assert float(step.monitor["score"]) == offline[frame], (episode, frame)
+            # the same number, or no score on both sides (STAC alone on a first call)
+            np.testing.assert_array_equal(float(step.monitor["score"]), offline[frame], err_msg=f"{episode} {frame}")
             compared += 1
     assert compared == scored.table().num_rows
 
 
 def _pairs_auc(failed: dict[int, bool], scores: dict[int, float]) -> float:
     """The share of (failure, success) pairs where the failure scores higher, ties one half: by hand."""
-    pairs = [(scores[f], scores[s]) for f in failed if failed[f] for s in failed if not failed[s]]
+    pairs = [(scores[f], scores[s]) for f in scores if failed[f] for s in scores if not failed[s]]
     return sum(1.0 if a > b else 0.5 if a == b else 0.0 for a, b in pairs) / len(pairs)
 
 
@@ -293,13 +316,17 @@ def test_stats_rank_each_figures_maximum_over_an_episodes_first_frames(scored, t
     for episode_rows in by_episode.values():
         episode_rows.sort(key=lambda r: r["frame_index"])
     assert [r["frame_index"] for r in by_episode[0]][:2] == [0, HORIZON]  # the frames the windows below hold
-    # the monitor's score at N = 1 is its first frame's, over the whole episode the maximum of every frame's
-    first = {e: rows[0]["monitor/score"] for e, rows in by_episode.items()}
-    top = {e: max(r["monitor/score"] for r in rows) for e, rows in by_episode.items()}
+    # the monitor's score at N = 1 is its first frame's, over the whole episode the maximum of every frame's; an
+    # episode without a score there is left out (the gated monitor's STAC alone has none on a first call)
+    scores = {e: [r["monitor/score"] for r in rows if r["monitor/score"] is not None] for e, rows in by_episode.items()}
+    first = {e: rows[0]["monitor/score"] for e, rows in by_episode.items() if rows[0]["monitor/score"] is not None}
+    top = {e: max(s) for e, s in scores.items() if s}
+    assert 0 < len(first) < len(top)  # the untrusted episodes' first calls have no score
     assert detection[0]["figures"]["monitor"]["auroc"] == pytest.approx(_pairs_auc(failed, first), abs=1e-12)
     assert detection[-1]["figures"]["monitor"]["auroc"] == pytest.approx(_pairs_auc(failed, top), abs=1e-12)
-    assert detection[-1]["figures"]["monitor"]["episodes"] == len(failed)
-    assert detection[-1]["figures"]["monitor"]["failures"] == sum(failed.values())
+    assert detection[0]["figures"]["monitor"]["episodes"] == len(first)
+    assert detection[-1]["figures"]["monitor"]["episodes"] == len(top)
+    assert detection[-1]["figures"]["monitor"]["failures"] == sum(failed[e] for e in top)
     # N = 8 holds frames 0 and 5; the token entropy's maximum there, by hand
     early = {e: max(r["monitor/token_entropy"] for r in rows if r["frame_index"] < 8) for e, rows in by_episode.items()}
     assert detection[2]["figures"]["token_entropy"]["auroc"] == pytest.approx(_pairs_auc(failed, early), abs=1e-12)
@@ -312,6 +339,32 @@ def test_stats_rank_each_figures_maximum_over_an_episodes_first_frames(scored, t
     at = printed.index(next(line for line in printed if line.startswith("failure detection")))
     assert printed[at + 1].split() == ["figure", "N=1", "N=4", "N=8", "N=16", "N=32", "episode"]
     assert printed[at + 2].split()[0] == "monitor"  # the monitor's line first
+
+
+def test_monitor_fit_gated_records_the_instructions_it_trusts_its_probe_on(featured, tmp_path, capsys):
+    """`monitor fit --kind gated` on a copy whose STAC column is rewritten with seeded values on every row (these
+    rollouts' own successes end too soon to put STAC on a scale): the file names the episodes' instructions, the
+    report prints them, and a step under another instruction scores its standardised STAC alone."""
+    copy = tmp_path / "stac.maps"
+    shutil.copytree(featured.root, copy)
+    rng = np.random.default_rng(0)
+    for shard in sorted((copy / fmt.DATA_DIR).rglob("*.parquet")):
+        table = pq.read_table(shard)
+        i = table.column_names.index("monitor/stac")
+        stac = pa.array(rng.uniform(0.0, 1.0, table.num_rows), table.schema.field(i).type)
+        pq.write_table(table.set_column(i, table.schema.field(i), stac), shard)
+    out = tmp_path / "gated.json"
+    flags = ["--kind", "gated", "--inputs", "features/prompt", "stac", "--max-dims", "4"]
+    cli.main(["monitor", "fit", str(copy), "--out", str(out), *flags])
+    monitor = monitor_file.load(out)
+    tasks = {r["task"] for r in fmt.open_maps_dataset(copy).table(columns=["task"]).to_pylist()}
+    assert monitor.kind == "gated" and monitor.prompts == tuple(sorted(monitor_file.instruction(t) for t in tasks))
+    (line,) = [row for row in capsys.readouterr().out.splitlines() if row.startswith("trusted on")]
+    assert all(p in line for p in monitor.prompts)
+    x = np.array([[*np.zeros(128), 0.7]])
+    mean, std = monitor.standardised.stac
+    assert monitor.score_steps(x, "open the door") == pytest.approx([(0.7 - mean) / std], rel=1e-12)
+    assert monitor.score_steps(x, sorted(tasks)[0]) >= monitor.score_steps(x, "open the door")
 
 
 def test_a_score_that_rises_after_frame_8_finds_nothing_by_frame_8(featured, tmp_path):

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -16,11 +17,15 @@ from openpi_cam.monitor import monitor_file
 from openpi_cam.monitor.fit import FitOptions, fit_monitor
 from openpi_cam.monitor.monitor_file import Monitor
 
+PROMPT = "press the button"
+
 
 @pytest.fixture(scope="module")
 def monitors() -> dict[str, Monitor]:
     data = episodes(0, 30, 30)
+    prompted = [dataclasses.replace(e, prompts=(PROMPT,) * len(e.columns["stac"])) for e in data]
     return {
+        "gated": fit_monitor(prompted, FitOptions(kind="gated", inputs=(FEATURE, "stac"), temporal=True)),
         "probe": fit_monitor(data, FitOptions(kind="probe", inputs=(FEATURE, "stac"), temporal=True)),
         "mahalanobis": fit_monitor(data, FitOptions(kind="mahalanobis", inputs=(FEATURE,), max_dims=4)),
         "stac": fit_monitor(data, FitOptions(kind="stac", execution_horizon=5)),
@@ -32,7 +37,7 @@ def _steps(e) -> list[dict[str, np.ndarray]]:
     return [{name: column[t] for name, column in e.columns.items()} for t in range(len(e.columns["stac"]))]
 
 
-@pytest.mark.parametrize("kind", ["probe", "mahalanobis", "stac", "union"])
+@pytest.mark.parametrize("kind", monitor_file.KINDS)
 def test_a_saved_monitor_loads_to_the_same_scores(monitors, kind, tmp_path):
     monitor = monitors[kind]
     path = monitor_file.save(monitor, tmp_path / "monitor.json")
@@ -41,19 +46,19 @@ def test_a_saved_monitor_loads_to_the_same_scores(monitors, kind, tmp_path):
     fresh = episode(np.random.default_rng(9), False)
     x = fresh.matrix(monitor.inputs)
     # float64 arrays survive JSON exactly, so the scores are the same numbers, not merely close ones
-    np.testing.assert_array_equal(loaded.score_steps(x), monitor.score_steps(x))
+    np.testing.assert_array_equal(loaded.score_steps(x, PROMPT), monitor.score_steps(x, PROMPT))
     assert loaded.threshold == monitor.threshold and loaded.execution_horizon == monitor.execution_horizon
 
 
-@pytest.mark.parametrize("kind", ["probe", "mahalanobis", "stac", "union"])
+@pytest.mark.parametrize("kind", monitor_file.KINDS)
 def test_the_running_score_is_the_offline_score_step_by_step(monitors, kind):
     """What the side channel computes one call at a time equals what a maps dataset computes over the episode,
     the temporal probe's running mean and a first step without STAC included."""
     monitor = monitors[kind]
     e = episode(np.random.default_rng(10), False, onset=3, drift=4.0)
-    offline = monitor.score_steps(e.matrix(monitor.inputs))
+    offline = monitor.score_steps(e.matrix(monitor.inputs), PROMPT)
     running = monitor.episode()
-    live = [running.update(step) for step in _steps(e)]
+    live = [running.update(step, PROMPT) for step in _steps(e)]
     np.testing.assert_array_equal(live, offline)  # the same numbers (NaN where STAC has none)
     assert running.score == np.nanmax(offline) and running.steps == len(offline)
     crossed = np.flatnonzero(offline > monitor.threshold)
@@ -156,6 +161,19 @@ def test_a_bad_union_monitor_file_is_refused_in_one_line(monitors, tmp_path, cha
         data["union"]["stac"][1] = 0.0
     else:  # the STAC input renamed: the union has nothing to read its second score from
         data["inputs"] = [i if i["name"] != "stac" else {**i, "name": "other"} for i in data["inputs"]]
+    path = tmp_path / "monitor.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(ValueError) as e:
+        monitor_file.load(path)
+    assert_one_line(e.value, str(path), named)
+
+
+@pytest.mark.parametrize(
+    ("prompts", "named"),
+    [([], "prompts is empty"), (["Press the button"], "not a list of instructions"), ("press", "not a list")],
+)
+def test_a_bad_gated_monitor_file_is_refused_in_one_line(monitors, tmp_path, prompts, named):
+    data = {**monitor_file.to_json(monitors["gated"]), "prompts": prompts}
     path = tmp_path / "monitor.json"
     path.write_text(json.dumps(data))
     with pytest.raises(ValueError) as e:

@@ -277,6 +277,60 @@ def test_a_union_finds_the_failures_its_probe_learnt_and_those_only_stac_sees():
     assert s_mean == pytest.approx(np.nanmean(steps[:, union.stac_column]), rel=1e-12)
 
 
+def _prompted(episodes: list[Episode], prompt: str) -> list[Episode]:
+    return [dataclasses.replace(e, prompts=(prompt,) * len(e.columns["stac"])) for e in episodes]
+
+
+def test_a_gated_monitor_trusts_its_probe_only_under_the_instructions_it_was_fitted_on():
+    """An unseen task whose successes look like the seen tasks' failures to the probe (their feature drifts the way
+    a seen failure's does) and whose failures only STAC sees: the probe and the union rank it the wrong way round;
+    the gated monitor, fitted on the seen task's instruction, scores it by STAC alone and finds its failures, and
+    on the seen task it is the union, score for score."""
+    rng = np.random.default_rng(41)
+    seen_drift, unseen_drift = np.array([3.0, -3.0, 0, 0, 0, 0]), np.array([0, 0, 0, 0, 3.0, 3.0])
+    train = _prompted(_task(rng, 30, seen_drift, 0), "Press the button")
+    seen = _prompted(_task(rng, 30, seen_drift, 0), "press  the button ")  # case and spacing: the same instruction
+    unseen = []
+    for e in _task(rng, 30, unseen_drift, 1.5):
+        features = e.columns[FEATURE] + (2 * seen_drift if e.success else 0.0)
+        unseen.append(dataclasses.replace(e, columns={**e.columns, FEATURE: features}))
+    unseen = _prompted(unseen, "open the door")
+    options = FitOptions(inputs=(FEATURE, "stac"))
+    fitted = {k: fit_monitor(train, dataclasses.replace(options, kind=k)) for k in ("probe", "union", "gated")}
+    gated, union = fitted["gated"], fitted["union"]
+    assert gated.prompts == union.prompts == ("press the button",)
+
+    def auroc(monitor, episodes):
+        maxima = [episode_max(monitor.score_steps(e.matrix(monitor.inputs), e.prompts)) for e in episodes]
+        return roc_auc([not e.success for e in episodes], maxima)
+
+    found = {k: (auroc(m, seen), auroc(m, unseen)) for k, m in fitted.items()}
+    assert found["probe"][1] < 0.5 and found["union"][1] < 0.5, found
+    assert min(found["gated"]) > 0.9, found
+    # the same fit as the union's: scales and threshold (its calibration episodes are all under known instructions)
+    assert gated.standardised == union.standardised and gated.threshold == union.threshold
+    for e in seen[::7]:
+        x = e.matrix(gated.inputs)
+        np.testing.assert_array_equal(gated.score_steps(x, e.prompts), union.score_steps(x))
+    s_mean, s_std = gated.standardised.stac
+    x = unseen[-1].matrix(gated.inputs)
+    expected = (x[:, gated.stac_column] - s_mean) / s_std
+    np.testing.assert_allclose(gated.score_steps(x, "Open the door"), expected, rtol=0, atol=1e-12)
+    # live, step by step, the same numbers
+    running = gated.episode()
+    steps = [{FEATURE: row[:-1], "stac": row[-1]} for row in x]
+    live = [running.update(step, "open the door") for step in steps]
+    np.testing.assert_array_equal(live, gated.score_steps(x, "open the door"))
+    with pytest.raises(ValueError) as e:
+        gated.episode().update(steps[0])
+    assert_one_line(e.value, "gated", "prompt")
+    with pytest.raises(ValueError) as e:
+        fit_monitor(
+            [*train[:-1], dataclasses.replace(train[-1], prompts=())], dataclasses.replace(options, kind="gated")
+        )
+    assert_one_line(e.value, f"episode {len(train) - 1}", "prompts")
+
+
 def test_the_fit_is_reproducible_from_its_seed():
     data = episodes(20, 30, 10)
     options = FitOptions(kind="probe", inputs=(FEATURE, "stac"), temporal=True, seed=7)

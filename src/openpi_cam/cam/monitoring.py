@@ -40,22 +40,22 @@ class LiveMonitor:
         self._scored = 0
         self._flagged = 0  # connections that have been flagged, open or closed
 
-    def check(self, signals: Mapping[str, np.ndarray]) -> None:
+    def check(self, signals: Mapping[str, np.ndarray], prompt: str) -> None:
         """Raises ValueError (one line naming the monitor file and the input) when a call with these signals cannot
         be scored: the monitor reads an input the served model does not give, or one of another width."""
         try:
-            Stream(self.monitor, self.horizon).step(signals)
+            Stream(self.monitor, self.horizon).step(signals, prompt=prompt)
         except ValueError as e:
             raise ValueError(f"monitor {self.source}: {e}") from None
 
-    def score(self, connection: str, signals: Mapping[str, np.ndarray]) -> StepScore:
-        """Scores the connection's next call (raises ValueError as `Stream.step` does)."""
+    def score(self, connection: str, signals: Mapping[str, np.ndarray], prompt: str) -> StepScore:
+        """Scores the connection's next call, served under `prompt` (raises ValueError as `Stream.step` does)."""
         with self._lock:
             stream = self._streams.get(connection)
             if stream is None:
                 stream = self._streams[connection] = Stream(self.monitor, self.horizon)
             was_flagged = stream.flagged
-            scored = stream.step(signals)
+            scored = stream.step(signals, prompt=prompt)
             self._scored += 1
             self._flagged += int(stream.flagged and not was_flagged)
         return scored

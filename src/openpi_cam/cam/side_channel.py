@@ -384,7 +384,7 @@ class CAMPolicy:
         """The connection's next call scored; None (counted, logged once) when the monitor cannot score it."""
         assert self._monitor is not None
         try:
-            return self._monitor.score(connection, self._signals(trace))
+            return self._monitor.score(connection, self._signals(trace), trace.prompt)
         except Exception as e:  # the monitor never reaches a client
             self.count(f"monitor_failed_{type(e).__name__}", f"scoring a call raised {type(e).__name__}: {e}")
             return None
@@ -692,7 +692,7 @@ class CAMPolicy:
                     signals = self._signals(trace)
                 except ValueError as e:
                     raise ValueError(f"monitor {self._monitor.source}: {e}") from None
-                self._monitor.check(signals)
+                self._monitor.check(signals, trace.prompt)
         else:
             trace = self._policy.warm_up(batch_sizes)
         if trace is None:

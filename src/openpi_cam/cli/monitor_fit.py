@@ -23,17 +23,17 @@ from openpi_cam.monitor.signals import STAC
 DEFAULTS = FitOptions()
 # Which kinds read each fitting flag (a flag given for another kind is refused, not ignored).
 _KIND_FLAGS = {
-    "l2": ("probe", "union"),
+    "l2": ("probe", "union", "gated"),
     "shrinkage": ("mahalanobis",),
-    "max_dims": ("probe", "mahalanobis", "union"),
-    "temporal": ("probe", "mahalanobis", "union"),
+    "max_dims": ("probe", "mahalanobis", "union", "gated"),
+    "temporal": ("probe", "mahalanobis", "union", "gated"),
 }
 
 
 def main(
     maps: tyro.conf.Positional[tuple[pathlib.Path, ...]],
     out: pathlib.Path,
-    kind: Literal["probe", "mahalanobis", "stac", "union"] = "probe",
+    kind: Literal["probe", "mahalanobis", "stac", "union", "gated"] = "probe",
     inputs: tuple[str, ...] = (),
     alpha: float = DEFAULTS.alpha,
     calibration_share: float = DEFAULTS.calibration_share,
@@ -52,8 +52,10 @@ def main(
             columns; the feature monitors need `--monitor-features` there.
         out: the monitor file to write (JSON).
         kind: `probe` (a logistic probe's log-odds of failure), `mahalanobis` (the distance to the successful
-            episodes' steps), `stac` (the consecutive-chunk disagreement itself, training-free) or `union` (the
-            larger of a probe's and `stac`'s scores, each standardised on the training successes' steps).
+            episodes' steps), `stac` (the consecutive-chunk disagreement itself, training-free), `union` (the
+            larger of a probe's and `stac`'s scores, each standardised on the training successes' steps) or `gated`
+            (the union under the instructions of the episodes it was fitted on, the standardised `stac` alone under
+            any other: for tasks the probe never saw).
         inputs: the monitor inputs to read, e.g. `features/base_0_rgb stac` (default: every input the episodes carry
             with a value; `stac` alone for `--kind stac`). A monitor that reads `sample_spread` (rows explained with
             `--sample-spread N`) records N: `serve` and `explain-dataset` draw as many chunks a call to score with it.
@@ -61,10 +63,11 @@ def main(
         calibration_share: the share of the successful episodes held out to set the threshold.
         seed: the seed of that split.
         max_dims: inputs wider than this are projected onto their leading principal directions (probe, mahalanobis,
-            union).
+            union, gated).
         shrinkage: Mahalanobis covariance shrinkage in [0, 1] (default: Ledoit-Wolf's estimate).
-        l2: the probe's L2 penalty (probe, union).
-        temporal: score each step beside the running mean of its episode's inputs (probe, mahalanobis, union).
+        l2: the probe's L2 penalty (probe, union, gated).
+        temporal: score each step beside the running mean of its episode's inputs (probe, mahalanobis, union,
+            gated).
     """
     try:
         _refuse_other_kinds_flags(kind, {"l2": l2, "shrinkage": shrinkage, "max_dims": max_dims, "temporal": temporal})
@@ -121,7 +124,8 @@ def report(monitor: Monitor, rollouts: Rollouts, options: FitOptions, out: pathl
     score against its outcome), and the threshold with the share of calibration successes it flags."""
     success = np.array([e.success for e in rollouts.episodes])
     training, calibration = split_episodes(success, options.calibration_share, options.seed)
-    maxima = np.array([episode_max(monitor.score_steps(e.matrix(monitor.inputs))) for e in rollouts.episodes])
+    scores = [monitor.score_steps(e.matrix(monitor.inputs), e.prompts) for e in rollouts.episodes]
+    maxima = np.array([episode_max(s) for s in scores])
     auroc = roc_auc(~success[training], maxima[training])
     ranked = f"AUROC {auroc:.3f}" if math.isfinite(auroc) else "no AUROC (a failure and a success are needed)"
     threshold = "never flags" if math.isinf(monitor.threshold) else f"{monitor.threshold:.6g}"
@@ -135,6 +139,7 @@ def report(monitor: Monitor, rollouts: Rollouts, options: FitOptions, out: pathl
             else []
         ),
         ("episodes", f"{success.size} ({int((~success).sum())} failed), horizon {rollouts.execution_horizon}"),
+        *([("trusted on", "; ".join(monitor.prompts))] if monitor.kind == "gated" else []),
         ("training", f"{training.size} episodes ({int((~success[training]).sum())} failed), {ranked}"),
         ("threshold", f"{threshold} for alpha {monitor.alpha:g}"),
         ("calibration", f"{calibration.size} successes, false alarms {_rate(maxima[calibration] > monitor.threshold)}"),

@@ -402,7 +402,8 @@ class EpisodeExplainer:
                 t0 = time.perf_counter()
                 signals = with_sample_spread(self.policy, trace, self.info.sample_spread)
                 seconds["inference"] += time.perf_counter() - t0
-            pending.append((frame, trace, response, stream.step(signals, int(frame["frame_index"]))))
+            scored = stream.step(signals, int(frame["frame_index"]), trace.prompt)
+            pending.append((frame, trace, response, scored))
             if len(pending) == job.batch_size:
                 flush()
         if pending:
@@ -489,11 +490,11 @@ class _EpisodeStream:
         self._monitor = monitor
         self._previous: int | None = None
 
-    def step(self, signals: Mapping[str, np.ndarray], frame_index: int) -> StepScore:
+    def step(self, signals: Mapping[str, np.ndarray], frame_index: int, prompt: str) -> StepScore:
         follows = self._previous is not None and frame_index - self._previous == self._stream.horizon
         self._previous = frame_index
         try:
-            return self._stream.step(signals, follows=follows)
+            return self._stream.step(signals, follows=follows, prompt=prompt)
         except ValueError as e:  # the monitor reads an input this model's calls do not give
             raise ValueError(f"monitor {self._monitor}: {e}") from None
 

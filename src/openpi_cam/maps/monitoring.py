@@ -69,7 +69,7 @@ def read_rollouts(roots: Sequence[pathlib.Path]) -> Rollouts:
         features = [fmt.MONITOR_PREFIX + name for name in info.monitor_features]
         scalars = [fmt.MONITOR_PREFIX + name for name in info.monitor_scalars]
         for episode in ds.episodes:
-            table = ds.table(episode, ["index", fmt.FRAME_INDEX, fmt.EPISODE_SUCCESS, *scalars, *features])
+            table = ds.table(episode, ["index", fmt.FRAME_INDEX, "task", fmt.EPISODE_SUCCESS, *scalars, *features])
             if table.num_rows == 0:
                 continue
             columns = {n: _scalar(table.column(fmt.MONITOR_PREFIX + n).to_pylist()) for n in info.monitor_scalars}
@@ -78,7 +78,8 @@ def read_rollouts(roots: Sequence[pathlib.Path]) -> Rollouts:
                 columns[column[len(fmt.MONITOR_PREFIX) :]] = _vectors(table.column(column).to_pylist(), where)
             success = table.column(fmt.EPISODE_SUCCESS).to_pylist()
             frames = np.asarray(table.column(fmt.FRAME_INDEX).to_pylist(), np.int64)
-            episodes.append(Episode(columns, bool(success[0]), frames))
+            prompts = tuple(table.column("task").to_pylist())
+            episodes.append(Episode(columns, bool(success[0]), frames, prompts))
             names.append((str(root), episode))
     if len(horizons) > 1:
         raise ValueError(f"the maps datasets assumed different execution horizons {sorted(horizons)}: fit on one")

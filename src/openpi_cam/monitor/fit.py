@@ -15,7 +15,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from openpi_cam.monitor.monitor_file import KINDS, Monitor, MonitorInput, Standardised
+from openpi_cam.monitor.monitor_file import KINDS, STANDARDISED_KINDS, Monitor, MonitorInput, Standardised, instruction
 from openpi_cam.monitor.scores import Basis, MahalanobisScorer, ProbeScorer, with_running_mean
 from openpi_cam.monitor.signals import SAMPLE_SPREAD, STAC
 
@@ -24,11 +24,13 @@ from openpi_cam.monitor.signals import SAMPLE_SPREAD, STAC
 class Episode:
     """One labelled rollout. columns: input name -> [T] (a scalar signal per step) or [T, D] (a feature per step),
     every column with the episode's T steps; success: whether the episode succeeded; frames: [T] each step's source
-    frame index within the episode (LeRobot's `frame_index`), where known: what the detection figures count time in."""
+    frame index within the episode (LeRobot's `frame_index`), where known: what the detection figures count time in;
+    prompts: each step's prompt, where known (empty: unknown): the instructions a monitor is fitted on."""
 
     columns: Mapping[str, np.ndarray]
     success: bool
     frames: np.ndarray | None = None
+    prompts: tuple[str, ...] = ()
 
     def matrix(self, inputs: Sequence[MonitorInput]) -> np.ndarray:
         """The named inputs of every step, concatenated in order: [T, F]."""
@@ -277,20 +279,33 @@ def _scorer(
     return basis, scorer, {"l2": options.l2, "steps": int(rows.shape[0])}
 
 
-def _spread(scores: np.ndarray, what: str) -> tuple[float, float]:
+def _spread(scores: np.ndarray, what: str, kind: str) -> tuple[float, float]:
     s = np.asarray(scores, np.float64)
     s = s[np.isfinite(s)]
     if s.size < 2 or not s.std() > 0:
-        raise ValueError(f"a union needs the training successes' {what} scores to vary ({s.size} finite)")
+        raise ValueError(f"a {kind} monitor needs the training successes' {what} scores to vary ({s.size} finite)")
     return float(s.mean()), float(s.std())
 
 
-def standardise_union(probe: Monitor, x: Sequence[np.ndarray]) -> Standardised:
-    """A union's scales (`monitor_file.Standardised`): the mean and standard deviation of the probe's step scores
-    and of the `stac` input over the steps x (each episode's [T, F] inputs; the training successes')."""
+def standardise_union(probe: Monitor, x: Sequence[np.ndarray], kind: str = "union") -> Standardised:
+    """A union's (or gated monitor's) scales (`monitor_file.Standardised`): the mean and standard deviation of the
+    probe's step scores and of the `stac` input over the steps x (each episode's [T, F] inputs; the training
+    successes')."""
     scores = np.concatenate([probe.score_steps(m) for m in x])
     stac = np.concatenate([m[:, probe.stac_column] for m in x])
-    return Standardised(_spread(scores, "probe"), _spread(stac, STAC))
+    return Standardised(_spread(scores, "probe", kind), _spread(stac, STAC, kind))
+
+
+def _instructions(episodes: Sequence[Episode], kind: str) -> tuple[str, ...]:
+    """The instructions the episodes were served under (`instruction` form, sorted); a gated monitor needs every
+    step's."""
+    for index, episode in enumerate(episodes):
+        steps = len(next(iter(episode.columns.values()), ()))
+        if episode.prompts and len(episode.prompts) != steps:
+            raise ValueError(f"episode {index}: {len(episode.prompts)} prompts for {steps} steps")
+        if kind == "gated" and not episode.prompts:
+            raise ValueError(f"episode {index}: a gated monitor is fitted on episodes whose prompts are known")
+    return tuple(sorted({instruction(p) for e in episodes for p in e.prompts}))
 
 
 def fit_monitor(episodes: Sequence[Episode], options: FitOptions = FitOptions()) -> Monitor:
@@ -303,8 +318,10 @@ def fit_monitor(episodes: Sequence[Episode], options: FitOptions = FitOptions())
     inputs = _inputs(episodes, (STAC,) if options.kind == "stac" and not options.inputs else options.inputs)
     if options.kind == "stac" and (inputs != (MonitorInput(STAC, 1),) or options.temporal):
         raise ValueError(f"a stac monitor reads the one input {STAC!r} as it is, not {[i.name for i in inputs]}")
-    if options.kind == "union" and MonitorInput(STAC, 1) not in inputs:
-        raise ValueError(f"a union monitor reads {STAC!r} among its inputs, not only {[i.name for i in inputs]}")
+    if options.kind in STANDARDISED_KINDS and MonitorInput(STAC, 1) not in inputs:
+        kind = options.kind
+        raise ValueError(f"a {kind} monitor reads {STAC!r} among its inputs, not only {[i.name for i in inputs]}")
+    prompts = _instructions(episodes, options.kind)
     reads_spread = any(i.name == SAMPLE_SPREAD for i in inputs)
     if reads_spread and options.sample_spread is None:
         raise ValueError(f"the {SAMPLE_SPREAD!r} input needs its samples per call (FitOptions.sample_spread)")
@@ -315,7 +332,7 @@ def fit_monitor(episodes: Sequence[Episode], options: FitOptions = FitOptions())
     widths = [i.dim for i in inputs] * (2 if options.temporal else 1)
     basis, scorer, record = _scorer(options, prepared, widths, success, training)
     monitor = Monitor(
-        kind="probe" if options.kind == "union" else options.kind,
+        kind="probe" if options.kind in STANDARDISED_KINDS else options.kind,
         inputs=inputs,
         threshold=math.inf,
         alpha=options.alpha,
@@ -324,11 +341,12 @@ def fit_monitor(episodes: Sequence[Episode], options: FitOptions = FitOptions())
         temporal=options.temporal,
         execution_horizon=options.execution_horizon,
         sample_spread=options.sample_spread if reads_spread else None,
+        prompts=prompts,
     )
-    if options.kind == "union":
-        scales = standardise_union(monitor, [x[i] for i in training if success[i]])
-        monitor = dataclasses.replace(monitor, kind="union", standardised=scales)
-    maxima = [episode_max(monitor.score_steps(x[i])) for i in calibration]
+    if options.kind in STANDARDISED_KINDS:
+        scales = standardise_union(monitor, [x[i] for i in training if success[i]], options.kind)
+        monitor = dataclasses.replace(monitor, kind=options.kind, standardised=scales)
+    maxima = [episode_max(monitor.score_steps(x[i], episodes[i].prompts)) for i in calibration]
     record |= {
         "seed": options.seed,
         "calibration_share": options.calibration_share,

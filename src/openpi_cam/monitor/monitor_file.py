@@ -13,7 +13,7 @@ import json
 import math
 import os
 import pathlib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -22,11 +22,19 @@ from openpi_cam.monitor.scores import Basis, MahalanobisScorer, ProbeScorer, wit
 from openpi_cam.monitor.signals import SAMPLE_SPREAD, STAC
 
 FORMAT = "openpi-cam monitor"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: the `gated` kind and the `prompts` a monitor was fitted on
 # What a monitor scores (its kind): a logistic probe's log-odds of failure over its inputs; the Mahalanobis distance
-# of its inputs to successful steps; the consecutive-chunk disagreement itself (training-free, one input: `stac`); or
-# the union of a probe and `stac`, the larger of their standardised scores (`Standardised`).
-KINDS = ("probe", "mahalanobis", "stac", "union")
+# of its inputs to successful steps; the consecutive-chunk disagreement itself (training-free, one input: `stac`);
+# the union of a probe and `stac`, the larger of their standardised scores (`Standardised`); or a gated union, the
+# union on the instructions it was fitted on and the standardised `stac` alone on any other (`Monitor.knows`).
+KINDS = ("probe", "mahalanobis", "stac", "union", "gated")
+# The kinds that put a probe and `stac` on one scale (`Standardised`).
+STANDARDISED_KINDS = ("union", "gated")
+
+
+def instruction(prompt: str) -> str:
+    """A prompt as a monitor compares instructions: case and runs of whitespace do not make another one."""
+    return " ".join(prompt.split()).casefold()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,11 +50,12 @@ class Standardised:
     probe: tuple[float, float]
     stac: tuple[float, float]
 
-    def combine(self, probe: np.ndarray, stac: np.ndarray) -> np.ndarray:
-        """[T], [T] -> [T]: the larger standardised score; the probe's alone where `stac` is NaN (a first call)."""
+    def combine(self, probe: np.ndarray, stac: np.ndarray, trusted: np.ndarray | None = None) -> np.ndarray:
+        """[T], [T] -> [T]: the larger standardised score; the probe's alone where `stac` is NaN (a first call).
+        trusted: bool [T], where the probe counts (None: everywhere); elsewhere the standardised `stac` alone."""
         a = (np.asarray(probe, np.float64) - self.probe[0]) / self.probe[1]
         b = (np.asarray(stac, np.float64) - self.stac[0]) / self.stac[1]
-        return np.fmax(a, b)
+        return np.fmax(a, b) if trusted is None else np.where(trusted, np.fmax(a, b), b)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,8 +78,14 @@ class Monitor:
     successful episodes the threshold was calibrated for (`fit.conformal_threshold`). execution_horizon: the number
     of actions executed per call that the `stac` input assumes (None: unknown, the aligned variant). sample_spread:
     the action samples per call its `sample_spread` input compares (None: it reads none); whoever scores with it
-    draws as many. standardised: a union's scales (None for the other kinds). fit: how it was fitted (seed, episode
-    counts, options), for the record."""
+    draws as many. standardised: a union's or gated monitor's scales (None for the other kinds). prompts: the
+    instructions of the episodes it was fitted on (`instruction` form, sorted; empty where they were not known): a
+    gated monitor trusts its probe on these alone. fit: how it was fitted (seed, episode counts, options), for the
+    record.
+
+    Why gated: a probe learns what failure looked like on the tasks it was fitted on and can rank a task it never
+    saw backwards, while `stac` reads alike on any task; which tasks it saw is known exactly, by their instructions,
+    so a step under another instruction is scored by `stac` alone rather than by a probe outside what it learnt."""
 
     kind: str
     inputs: tuple[MonitorInput, ...]
@@ -83,8 +98,11 @@ class Monitor:
     standardised: Standardised | None = None
     fit: dict[str, Any] = dataclasses.field(default_factory=dict)
     sample_spread: int | None = None
+    prompts: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
+        if self.kind == "gated" and not self.prompts:
+            raise ValueError("a gated monitor names the instructions it was fitted on (prompts is empty)")
         reads = any(i.name == SAMPLE_SPREAD for i in self.inputs)
         if reads != (self.sample_spread is not None) or (reads and self.sample_spread < 2):
             raise ValueError(
@@ -108,35 +126,49 @@ class Monitor:
             parts.append(value)
         return np.concatenate(parts)
 
-    def score(self, step: Mapping[str, Any]) -> float:
-        """One step's score from its named inputs, on its own; a temporal monitor scores a step with its episode's
-        history, through `episode()`."""
+    def knows(self, prompt: str | None) -> bool:
+        """Whether a step under this prompt is one a gated monitor trusts its probe on (one of `prompts`); a monitor
+        of another kind trusts every step. A gated monitor refuses a step whose prompt it is not told."""
+        if self.kind != "gated":
+            return True
+        if prompt is None:
+            raise ValueError("a gated monitor scores a step with the prompt it was served under, and none was given")
+        return instruction(prompt) in self.prompts
+
+    def score(self, step: Mapping[str, Any], prompt: str | None = None) -> float:
+        """One step's score from its named inputs (and its prompt, for a gated monitor), on its own; a temporal
+        monitor scores a step with its episode's history, through `episode()`."""
         if self.temporal:
             raise ValueError("a temporal monitor scores a step with its episode's history: use Monitor.episode()")
-        return float(self.score_prepared(self.step_inputs(step)[None, :])[0])
+        return float(self.score_prepared(self.step_inputs(step)[None, :], self.knows(prompt))[0])
 
-    def score_steps(self, x: np.ndarray) -> np.ndarray:
+    def score_steps(self, x: np.ndarray, prompts: Sequence[str] | str | None = None) -> np.ndarray:
         """The step scores of one episode, in order: x [T, F] (`step_inputs` of each step, or `Episode.matrix`) ->
-        [T]. NaN where a step has no score (`stac` on an episode's first call)."""
+        [T]. NaN where a step has no score (`stac` on an episode's first call). prompts: each step's prompt, or one
+        for them all (read by a gated monitor alone; None or empty: unknown)."""
         x = np.asarray(x, np.float64).reshape(-1, self.input_dim)
         prepared = with_running_mean(x) if self.temporal else x
+        each = [prompts] * len(x) if prompts is None or isinstance(prompts, str) else list(prompts) or [None] * len(x)
+        if len(each) != len(x):
+            raise ValueError(f"{len(each)} prompts for {len(x)} steps")
         # one step at a time, as `EpisodeScore` scores: a matrix product over many rows may sum in another order
         # than over one, and the live and offline scores must be the same numbers, not merely close ones
-        return np.array([self.score_prepared(row[None, :])[0] for row in prepared])
+        rows = zip(prepared, each, strict=True)
+        return np.array([self.score_prepared(row[None, :], self.knows(p))[0] for row, p in rows])
 
-    def score_prepared(self, x: np.ndarray) -> np.ndarray:
+    def score_prepared(self, x: np.ndarray, trusted: bool = True) -> np.ndarray:
         """Scores of inputs as the basis reads them: x [T, F], or [T, 2F] for a temporal monitor (each step's inputs
-        beside their running mean) -> [T]."""
+        beside their running mean) -> [T]. trusted: whether a gated monitor's probe counts for these steps."""
         if self.kind == "stac":
             return x[:, 0].copy()
         assert self.basis is not None and self.scorer is not None
         if isinstance(self.scorer, MahalanobisScorer):
             return self.scorer.score(self.basis.apply(x), self.basis.residual_sq(x))
         probe = self.scorer.score(self.basis.apply(x))
-        if self.kind != "union":
+        if self.kind not in STANDARDISED_KINDS:
             return probe
         assert self.standardised is not None
-        return self.standardised.combine(probe, x[:, self.stac_column])
+        return self.standardised.combine(probe, x[:, self.stac_column], np.full(len(x), trusted))
 
     @property
     def stac_column(self) -> int:
@@ -172,8 +204,9 @@ class EpisodeScore:
     def flagged(self) -> bool:
         return self.flagged_at is not None
 
-    def update(self, step: Mapping[str, Any]) -> float:
-        """Score the next step (its named inputs) and return its score."""
+    def update(self, step: Mapping[str, Any], prompt: str | None = None) -> float:
+        """Score the next step (its named inputs, and the prompt it was served under) and return its score."""
+        trusted = self.monitor.knows(prompt)
         x = self.monitor.step_inputs(step)
         if self.monitor.temporal:
             finite = np.isfinite(x)
@@ -182,7 +215,7 @@ class EpisodeScore:
             with np.errstate(invalid="ignore", divide="ignore"):
                 means = np.where(self._counts > 0, self._sums / np.maximum(self._counts, 1), np.nan)
             x = np.concatenate([x, means])
-        value = float(self.monitor.score_prepared(x[None, :])[0])
+        value = float(self.monitor.score_prepared(x[None, :], trusted)[0])
         if math.isfinite(value) and value > self.score:
             self.score = value
         if self.flagged_at is None and self.monitor.flags(value):
@@ -206,6 +239,7 @@ def to_json(monitor: Monitor) -> dict[str, Any]:
         "sample_spread": monitor.sample_spread,
         "alpha": monitor.alpha,
         "threshold": monitor.threshold if math.isfinite(monitor.threshold) else None,
+        "prompts": list(monitor.prompts),
         "fit": monitor.fit,
     }
     if monitor.basis is not None:
@@ -221,7 +255,7 @@ def to_json(monitor: Monitor) -> dict[str, Any]:
     elif isinstance(monitor.scorer, ProbeScorer):
         data["probe"] = {"weights": _floats(monitor.scorer.weights), "bias": float(monitor.scorer.bias)}
     if monitor.standardised is not None:
-        data["union"] = {"probe": list(monitor.standardised.probe), "stac": list(monitor.standardised.stac)}
+        data[monitor.kind] = {"probe": list(monitor.standardised.probe), "stac": list(monitor.standardised.stac)}
     return data
 
 
@@ -347,19 +381,22 @@ def from_json(data: Any) -> Monitor:
     samples = data.get("sample_spread")
     if samples is not None and (not isinstance(samples, int) or isinstance(samples, bool)):
         raise ValueError(f"sample_spread {samples!r} is not an integer (null: the monitor reads no sample spread)")
+    prompts = data.get("prompts", [])
+    if not isinstance(prompts, list) or not all(isinstance(p, str) and p == instruction(p) for p in prompts):
+        raise ValueError("prompts is not a list of instructions (lower case, single spaces)")
     basis, scorer, standardised = None, None, None
     if kind == "stac":
         if inputs != (MonitorInput(STAC, 1),):
             raise ValueError(f"a stac monitor reads the one input {STAC!r}, not {[i.name for i in inputs]}")
     else:
         basis, scorer = _scorer(data, kind, sum(i.dim for i in inputs) * (2 if temporal else 1))
-    if kind == "union":
+    if kind in STANDARDISED_KINDS:
         if MonitorInput(STAC, 1) not in inputs:
-            raise ValueError(f"a union monitor reads {STAC!r} among its inputs, not only {[i.name for i in inputs]}")
-        scales = _section(data, "union")
-        pairs = {name: _array(scales, "union", name, (2,)) for name in ("probe", "stac")}
+            raise ValueError(f"a {kind} monitor reads {STAC!r} among its inputs, not only {[i.name for i in inputs]}")
+        scales = _section(data, kind)
+        pairs = {name: _array(scales, kind, name, (2,)) for name in ("probe", "stac")}
         if any(pair[1] <= 0 for pair in pairs.values()):
-            raise ValueError("union has a standard deviation <= 0")
+            raise ValueError(f"{kind} has a standard deviation <= 0")
         (p_mean, p_std), (s_mean, s_std) = (map(float, pairs[n]) for n in ("probe", "stac"))
         standardised = Standardised((p_mean, p_std), (s_mean, s_std))
     return Monitor(
@@ -374,4 +411,5 @@ def from_json(data: Any) -> Monitor:
         standardised=standardised,
         fit=dict(data.get("fit") or {}),
         sample_spread=samples,
+        prompts=tuple(sorted(set(prompts))),
     )

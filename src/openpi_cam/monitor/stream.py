@@ -79,11 +79,12 @@ class Stream:
     def flagged(self) -> bool:
         return self.episode is not None and self.episode.flagged
 
-    def step(self, signals: Mapping[str, np.ndarray], *, follows: bool = True) -> StepScore:
-        """Score the next call from its trace's signals. `follows`: whether the stream's previous call was served
-        `horizon` actions before this one (live: always; offline: the frame indices differ by it); STAC-single
-        against it is NaN otherwise, and on the stream's first call. Raises ValueError when the monitor reads an
-        input the call lacks (one line naming it)."""
+    def step(self, signals: Mapping[str, np.ndarray], *, follows: bool = True, prompt: str | None = None) -> StepScore:
+        """Score the next call from its trace's signals and the prompt it was served under (`InferenceTrace.prompt`,
+        which a gated monitor reads). `follows`: whether the stream's previous call was served `horizon` actions
+        before this one (live: always; offline: the frame indices differ by it); STAC-single against it is NaN
+        otherwise, and on the stream's first call. Raises ValueError when the monitor reads an input the call lacks
+        (one line naming it)."""
         if NORMALIZED_CHUNK not in signals:
             raise ValueError(f"the call's signals hold no {NORMALIZED_CHUNK!r} (it was served without signals)")
         chunk = np.asarray(signals[NORMALIZED_CHUNK], np.float64)
@@ -93,5 +94,5 @@ class Stream:
         inputs[STAC] = np.float64(stac)
         if self.episode is None:
             return StepScore(inputs)
-        score = self.episode.update(inputs)
+        score = self.episode.update(inputs, prompt)
         return StepScore(inputs, score, self.episode.flagged)
