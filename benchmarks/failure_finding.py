@@ -2,9 +2,10 @@
 
     python benchmarks/failure_finding.py --out /tmp/failures [--per-perturbation 40] [--sim metaworld]
 
-For each bundled model of the reaching task (pi0-FAST, pi0.5), or the Meta-World pi0.5 with `--sim metaworld`
-(perturbed by `METAWORLD_PERTURB` instead, with `--sim metaworld` in the first command and its config in the
-second), with the commands a user runs:
+For each bundled model of the reaching task (pi0-FAST, pi0.5), or the multi-task Meta-World pi0.5 on the demo's
+button task with `--sim metaworld` (perturbed by `METAWORLD_PERTURB` instead, with `--sim metaworld --model pi05` in
+the first command and its config in the second; the one-task button pi0.5 these strengths were chosen on is no
+longer one the demo drives), with the commands a user runs:
 
 1. `openpi-cam demo --model M --no-explain --num-episodes 6N --perturb clean distractors=2 hue=45 shift=32 dim=0.3
    absent --record OUT/M.lerobot`: N closed-loop episodes per perturbation through the websocket server, recorded
@@ -46,13 +47,13 @@ PERTURB = ("clean", "distractors=2", "hue=45", "shift=32", "dim=0.3", "absent")
 # and 0/8, dim 0.8 and 0.7 gave 7/8 and 2/8, a 5 cm camera shift 3/8; five distractor cubes 8/8.
 METAWORLD_PERTURB = ("clean", "hue=45", "dim=0.75", "shift=0.05", "distractors=5", "prompt=open the drawer")
 KINDS = ("gradnorm", "occlusion")
-LABELS = {"pi0_fast": "pi0-FAST", "pi05": "pi0.5", "metaworld": "Meta-World pi0.5"}
+LABELS = {"pi0_fast": "pi0-FAST", "pi05": "pi0.5", "metaworld_mt_pi05": "Meta-World multi-task pi0.5"}
 
 
 def record(model: str, out: pathlib.Path, per: int) -> None:
     if out.exists():
         return
-    sim = ["--sim", "metaworld"] if model == "metaworld" else ["--model", model]
+    sim = ["--sim", "metaworld", "--model", "pi05"] if model == "metaworld_mt_pi05" else ["--model", model]
     argv = ["demo", *sim, "--no-explain", "--num-episodes", str(per * len(PERTURB))]
     cli.main([*argv, "--perturb", *PERTURB, "--record", str(out)])
 
@@ -217,7 +218,7 @@ def main() -> None:
     if args.sim == "metaworld":
         global PERTURB
         PERTURB = METAWORLD_PERTURB
-    models = ["metaworld"] if args.sim == "metaworld" else ["pi0_fast", "pi05"]
+    models = ["metaworld_mt_pi05"] if args.sim == "metaworld" else ["pi0_fast", "pi05"]
     load_before = os.getloadavg()
     rollouts, views, perturbation_of, seconds, outcome_lines = {}, {}, {}, {}, {}
     for model in models:
