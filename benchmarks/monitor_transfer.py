@@ -26,8 +26,10 @@ The splits and perturbation strengths below were fixed before anything was measu
 docs/MONITOR.md): round 1 tested on seed 50000; round 2 (the union and the task folds added) on 60000; round 3 (the
 multi-task models' dev enlarged from 3 to 9 scenes per task and perturbation) on 70000; round 4 (the reaching
 models' dev enlarged from 32 to 96 scenes per perturbation) on 80000; round 5 (the same dev and choice, their test
-enlarged from 8 to 32 scenes per perturbation: 48 episodes put +-0.15 on an AUROC) on 90000. Stages already done are
-reused (delete a folder to redo it). Writes OUT/<setting>/report.json and prints markdown tables.
+enlarged from 8 to 32 scenes per perturbation: 48 episodes put +-0.15 on an AUROC) on 90000; the multi-task models'
+round 4 (the `gated` candidate added, their test and unseen splits enlarged from 3 to 6 scenes per task and
+perturbation) on 110000. Stages already done are reused (delete a folder to redo it). Writes
+OUT/<setting>/report.json and prints markdown tables.
 """
 
 from __future__ import annotations
@@ -74,6 +76,8 @@ CANDIDATES = {
     "probe-temporal": ("probe", True),
     "union": ("union", False),
     "union-temporal": ("union", True),
+    "gated": ("gated", False),
+    "gated-temporal": ("gated", True),
 }
 
 
@@ -107,17 +111,17 @@ def _reach(family: str) -> Setting:
     )
 
 
-def _metaworld(family: str, **rounds: int) -> Setting:
+def _metaworld(family: str) -> Setting:
     demo = ("--sim", "metaworld", "--model", family)
     name, model = f"metaworld-mt-{family}", f"metaworld_mt_{family}"
-    return Setting(name, model, demo, MW_DEV, MW_TEST, 3, 32, tasks=SEEN, **rounds)
+    return Setting(name, model, demo, MW_DEV, MW_TEST, 6, 32, tasks=SEEN, dev_scenes=9, test_seed=110_000)
 
 
 SETTINGS = (
     _reach("pi0_fast"),
     _reach("pi05"),
-    _metaworld("pi05", dev_scenes=9, test_seed=70_000),
-    _metaworld("pi0_fast", dev_scenes=9, test_seed=70_000),
+    _metaworld("pi05"),
+    _metaworld("pi0_fast"),
 )
 
 
@@ -147,7 +151,7 @@ def scored(maps: pathlib.Path, monitors: dict[str, monitor_file.Monitor]) -> lis
     rollouts = read_rollouts([maps])
     out = []
     for episode in rollouts.episodes:
-        scores = {name: m.score_steps(episode.matrix(m.inputs)) for name, m in monitors.items()}
+        scores = {name: m.score_steps(episode.matrix(m.inputs), episode.prompts) for name, m in monitors.items()}
         out.append(ScoredEpisode(episode.frames, scores, not episode.success))
     return out
 
@@ -179,7 +183,9 @@ def episode_tasks(maps: pathlib.Path) -> list[str]:
 def _aurocs(scored: Sequence[tuple[monitor_file.Monitor, Episode]], early: int) -> dict[str, float]:
     """The AUROC of episodes, each scored by its monitor, at `early` source frames and over whole episodes; one that
     cannot be computed (STAC on one call) counts as 0.5."""
-    episodes = [ScoredEpisode(e.frames, {"m": m.score_steps(e.matrix(m.inputs))}, not e.success) for m, e in scored]
+    episodes = [
+        ScoredEpisode(e.frames, {"m": m.score_steps(e.matrix(m.inputs), e.prompts)}, not e.success) for m, e in scored
+    ]
     out = {}
     for entry in detection(episodes, (early,), resamples=10):
         auroc = entry["figures"]["m"]["auroc"]

@@ -25,8 +25,9 @@ from openpi_cam import cli
 from openpi_cam.cam.monitoring import LiveMonitor
 from openpi_cam.cam.run_format import load_run
 from openpi_cam.cam.side_channel import CAMOptions, wrap_policy_with_cam
-from openpi_cam.checkpoints.model_spec import MONITOR_FILE, ModelSpec
+from openpi_cam.checkpoints.model_spec import BUNDLED_CONFIGS, MONITOR_FILE, ModelSpec, create_demo_policy
 from openpi_cam.cli import serve
+from openpi_cam.demo import metaworld_sim
 from openpi_cam.monitor import monitor_file
 from openpi_cam.monitor.fit import Episode, FitOptions, fit_monitor
 from openpi_cam.monitor.monitor_file import Monitor
@@ -270,3 +271,38 @@ def test_a_fleet_call_under_the_monitor_serves_each_row_its_own_actions_and_scor
     finally:
         wrapped.close(60)
     assert wrapped.stats()["monitor"]["calls_scored"] == 6
+
+
+def test_the_multi_task_models_monitors_trust_their_probe_under_the_instructions_they_were_fitted_on():
+    """The shipped multi-task monitors are gated (docs/MONITOR.md, round 4), fitted on rollouts of four of the six
+    trained tasks: the demo's instruction for each of those four is one they trust their probe under; under the other
+    trained tasks' and the held-out tasks' they score by STAC alone. A change to the demo's instructions that the
+    monitors were not refitted for would leave every task to STAC, silently: this is where it shows."""
+    fitted_on = {"button-press-topdown-v3", "reach-v3", "push-v3", "drawer-close-v3"}
+    for name in ("metaworld_mt_pi05", "metaworld_mt_pi0_fast"):
+        monitor = monitor_file.load(ModelSpec.demo(name).default_monitor())
+        assert monitor.kind == "gated" and len(monitor.prompts) == len(fitted_on), name
+        known = {task for task, spec in metaworld_sim.TASKS.items() if monitor.knows(spec.prompt)}
+        assert known == fitted_on, name
+
+
+# The bundled models the demo drives each ship a monitor; the one-task Meta-World button pi0.5, kept for the maps
+# bench and `--config demo_metaworld_pi05`, is no longer one the demo drives and ships none.
+MONITORED = sorted(set(BUNDLED_CONFIGS) - {"metaworld"})
+
+
+def test_the_models_the_demo_drives_ship_a_monitor_and_the_one_task_model_none():
+    assert {m for m in BUNDLED_CONFIGS if ModelSpec.demo(m).default_monitor() is not None} == set(MONITORED)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("model", MONITORED)
+def test_each_bundled_models_monitor_scores_its_own_calls(model):
+    """What `serve` checks before it reports ready, for every bundled model and the monitor it ships: the monitor
+    reads only inputs of the widths the model's served call gives, under the call's own prompt."""
+    path = ModelSpec.demo(model).default_monitor()
+    live = LiveMonitor(monitor_file.load(path), path.name)
+    trace = create_demo_policy(model).warm_up(signals=True)
+    live.check(trace.signals, trace.prompt)
+    scored = live.score("example", trace.signals, trace.prompt)
+    assert np.isnan(scored.inputs[STAC]) and scored.score is not None  # a first call: no previous chunk
