@@ -329,6 +329,9 @@ def test_a_gated_monitor_trusts_its_probe_only_under_the_instructions_it_was_fit
             [*train[:-1], dataclasses.replace(train[-1], prompts=())], dataclasses.replace(options, kind="gated")
         )
     assert_one_line(e.value, f"episode {len(train) - 1}", "prompts")
+    with pytest.raises(ValueError) as e:  # a recording without instructions: nothing to tell tasks apart by
+        fit_monitor(_prompted(train[:3], " ") + train[3:], dataclasses.replace(options, kind="gated"))
+    assert_one_line(e.value, "episode 0", "empty instruction")
 
 
 def test_the_fit_is_reproducible_from_its_seed():

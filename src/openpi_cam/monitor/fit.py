@@ -305,6 +305,8 @@ def _instructions(episodes: Sequence[Episode], kind: str) -> tuple[str, ...]:
             raise ValueError(f"episode {index}: {len(episode.prompts)} prompts for {steps} steps")
         if kind == "gated" and not episode.prompts:
             raise ValueError(f"episode {index}: a gated monitor is fitted on episodes whose prompts are known")
+        if kind == "gated" and not all(instruction(p) for p in episode.prompts):
+            raise ValueError(f"episode {index}: an empty instruction, and a gated monitor tells tasks by theirs")
     return tuple(sorted({instruction(p) for e in episodes for p in e.prompts}))
 
 
