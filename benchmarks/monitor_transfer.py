@@ -174,12 +174,6 @@ def fit(
     return monitor_file.load(out)
 
 
-def episode_tasks(maps: pathlib.Path) -> list[str]:
-    """Each episode's task (its instruction, as the rows carry it)."""
-    ds = open_maps_dataset(maps)
-    return [ds.table(episode, ["task"]).column(0)[0].as_py() for episode in ds.episodes]
-
-
 def _aurocs(scored: Sequence[tuple[monitor_file.Monitor, Episode]], early: int) -> dict[str, float]:
     """The AUROC of episodes, each scored by its monitor, at `early` source frames and over whole episodes; one that
     cannot be computed (STAC on one call) counts as 0.5."""
@@ -205,7 +199,7 @@ def choose(setting: Setting, dev_maps: pathlib.Path, rollouts: Rollouts) -> dict
     with each task left out in turn (fit on the other tasks; the left-out episodes, each scored by the monitor that
     never saw its task, ranked together, `task <N>`); `CHOICE` is the mean of them all."""
     folds = scene_folds(dev_maps, setting)
-    tasks = episode_tasks(dev_maps)
+    tasks = [e.prompts[0] for e in rollouts.episodes]  # each episode's instruction, as its rows carry it
     out = {}
     for name, (kind, temporal) in CANDIDATES.items():
         options = _options(kind, temporal, rollouts)

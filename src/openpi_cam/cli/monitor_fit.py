@@ -22,12 +22,9 @@ from openpi_cam.monitor.signals import STAC
 
 DEFAULTS = FitOptions()
 # Which kinds read each fitting flag (a flag given for another kind is refused, not ignored).
-_KIND_FLAGS = {
-    "l2": ("probe", "union", "gated"),
-    "shrinkage": ("mahalanobis",),
-    "max_dims": ("probe", "mahalanobis", "union", "gated"),
-    "temporal": ("probe", "mahalanobis", "union", "gated"),
-}
+_PROBES = ("probe", *monitor_file.STANDARDISED_KINDS)
+_FEATURE_KINDS = tuple(k for k in monitor_file.KINDS if k != "stac")
+_KIND_FLAGS = {"l2": _PROBES, "shrinkage": ("mahalanobis",), "max_dims": _FEATURE_KINDS, "temporal": _FEATURE_KINDS}
 
 
 def main(

@@ -50,12 +50,14 @@ class Standardised:
     probe: tuple[float, float]
     stac: tuple[float, float]
 
-    def combine(self, probe: np.ndarray, stac: np.ndarray, trusted: np.ndarray | None = None) -> np.ndarray:
+    def combine(self, probe: np.ndarray, stac: np.ndarray, trusted: bool = True) -> np.ndarray:
         """[T], [T] -> [T]: the larger standardised score; the probe's alone where `stac` is NaN (a first call).
-        trusted: bool [T], where the probe counts (None: everywhere); elsewhere the standardised `stac` alone."""
-        a = (np.asarray(probe, np.float64) - self.probe[0]) / self.probe[1]
+        Untrusted steps (a gated monitor's, under an instruction it was not fitted on): the standardised `stac`
+        alone."""
         b = (np.asarray(stac, np.float64) - self.stac[0]) / self.stac[1]
-        return np.fmax(a, b) if trusted is None else np.where(trusted, np.fmax(a, b), b)
+        if not trusted:
+            return b
+        return np.fmax((np.asarray(probe, np.float64) - self.probe[0]) / self.probe[1], b)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -148,7 +150,8 @@ class Monitor:
         for them all (read by a gated monitor alone; None or empty: unknown)."""
         x = np.asarray(x, np.float64).reshape(-1, self.input_dim)
         prepared = with_running_mean(x) if self.temporal else x
-        each = [prompts] * len(x) if prompts is None or isinstance(prompts, str) else list(prompts) or [None] * len(x)
+        single = prompts is None or isinstance(prompts, str)
+        each = [prompts] * len(x) if single else list(prompts) or [None] * len(x)
         if len(each) != len(x):
             raise ValueError(f"{len(each)} prompts for {len(x)} steps")
         # one step at a time, as `EpisodeScore` scores: a matrix product over many rows may sum in another order
@@ -168,7 +171,7 @@ class Monitor:
         if self.kind not in STANDARDISED_KINDS:
             return probe
         assert self.standardised is not None
-        return self.standardised.combine(probe, x[:, self.stac_column], np.full(len(x), trusted))
+        return self.standardised.combine(probe, x[:, self.stac_column], trusted)
 
     @property
     def stac_column(self) -> int:
