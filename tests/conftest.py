@@ -68,11 +68,12 @@ def pytest_make_collect_report(collector: pytest.Collector) -> Any:
 
 # The fast tier checks every behaviour once. The slow tier holds what repeats a computation the fast tier already
 # checks, under another configuration or along another path (a second layout, remat, bfloat16, a second device,
-# batched rows, larger occlusion regions, re-scoring, other side-channel targets, pi0 beside pi0.5, the batch-of-two
-# golden case, the golden pi0's replay), and the long runs of extra processes (hostile clients, stalled peers at
-# SIGTERM, the training script, `explain` in a fresh process, Ray's retries, every README command as written) or of
-# compilation counting, and the tests that step the Meta-World simulator. The fast tier leaves it out unless tests
-# are named by node id, `-m` selects, or `--full` asks for everything.
+# batched rows, larger occlusion regions, re-scoring, other side-channel targets and LRP entry points, pi0 beside
+# pi0.5, the second golden case, the golden pi0's replay, the demo end to end with every kind), and the long runs of
+# extra processes (hostile clients, stalled peers at SIGTERM, the training script, `explain` in a fresh process,
+# Ray's retries, every README command as written) or of compilation counting, and the tests that step the Meta-World
+# simulator. The fast tier leaves it out unless tests are named by node id, `-m` selects, or `--full` asks for
+# everything.
 SLOW = "slow"
 
 

@@ -413,6 +413,7 @@ def test_run_figures_on_a_hand_made_run(tmp_path):
     )
 
 
+@pytest.mark.slow
 def test_short_demo_run_is_readable(tmp_path):
     """`openpi-cam demo` end to end at toy length: a readable run of every map kind (those the demo leaves out by
     default, `lrp`, the four kinds after it and `occlusion-head`, asked for; the head a planted one) with the client's

@@ -170,7 +170,7 @@ def _fast_balance(model: Pi0FAST, obs: Observation, generated: np.ndarray, step:
     return value, {"terms": terms, "per_camera": pixels.sum(axis=(1, 2, 3, 4))}
 
 
-@pytest.mark.parametrize("name", ["case_a", "case_b"])
+@pytest.mark.parametrize("name", ["case_a", pytest.param("case_b", marks=pytest.mark.slow)])
 def test_pi0_fast_relevance_balances_over_the_whole_model(tiny_fast_model: Pi0FAST, name: str):
     """Golden tiny pi0-FAST (case_b has a masked camera, which upstream's decode window still lets the generated
     tokens see): the balance holds, and the kind's maps (through `maps_for_steps`, the explainer's entry point) are
@@ -197,6 +197,7 @@ def test_demo_pi0_fast_relevance_balances(demo_policy):
     assert abs(balance["terms"]["pixels"]) > 0.01 * abs(score)
 
 
+@pytest.mark.slow
 def test_pi0_fast_lrp_for_every_target_entry_point(tiny_fast_model: Pi0FAST):
     """`maps_for_steps` (one and several tokens), `maps_for_chunk` (a sum of log-probabilities),
     `gradcam_for_action_token` and `gradcam_for_token` (a counterfactual token): finite signed maps on the grid, the
@@ -297,7 +298,7 @@ def test_pi0_relevance_balances_over_the_whole_model():
     assert total == pytest.approx(terms["pixels"], rel=1e-4, abs=1e-4 * abs(float(value)))
 
 
-@pytest.mark.parametrize("folder", ["tiny_pi0", "tiny_pi05"])
+@pytest.mark.parametrize("folder", [pytest.param("tiny_pi0", marks=pytest.mark.slow), "tiny_pi05"])
 def test_flow_lrp_for_both_targets(folder: str):
     """`maps_for_actions` with `action` and `chunk` targets in one call: finite signed maps per camera, the score and
     chunk the gradient pass gives, and the gradient kinds unchanged by asking for `lrp` beside them."""
