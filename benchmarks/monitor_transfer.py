@@ -28,7 +28,9 @@ multi-task models' dev enlarged from 3 to 9 scenes per task and perturbation) on
 models' dev enlarged from 32 to 96 scenes per perturbation) on 80000; round 5 (the same dev and choice, their test
 enlarged from 8 to 32 scenes per perturbation: 48 episodes put +-0.15 on an AUROC) on 90000; the multi-task models'
 round 4 (the `gated` candidate added, their test and unseen splits enlarged from 3 to 6 scenes per task and
-perturbation) on 110000. Stages already done are reused (delete a folder to redo it). Writes
+perturbation) on 110000; their round 5 (the gated monitor told the instructions the policy was trained on, `monitor
+fit --trained-prompts`: a step under any other is flagged from the first call) on 120000. Stages already done are
+reused (delete a folder to redo it). Writes
 OUT/<setting>/report.json and prints markdown tables.
 """
 
@@ -95,6 +97,7 @@ class Setting:
     tasks: tuple[str, ...] = ()  # Meta-World: the tasks the monitor is fitted on (empty: the reaching task)
     dev_scenes: int | None = None  # scenes of dev (default: `scenes`)
     test_seed: int = 60_000  # the round's fresh test scenes (module docstring)
+    trained: tuple[str, ...] = ()  # the instructions the policy was trained on, told to gated monitors
 
     def splits(self) -> dict[str, tuple[tuple[str, ...], tuple[str, ...], int, int]]:
         """split -> (perturbations, tasks, seed, scenes)."""
@@ -114,7 +117,10 @@ def _reach(family: str) -> Setting:
 def _metaworld(family: str) -> Setting:
     demo = ("--sim", "metaworld", "--model", family)
     name, model = f"metaworld-mt-{family}", f"metaworld_mt_{family}"
-    return Setting(name, model, demo, MW_DEV, MW_TEST, 6, 32, tasks=SEEN, dev_scenes=9, test_seed=110_000)
+    trained = tuple(p for t in metaworld_sim.TRAINED_TASKS for p in metaworld_sim.TASKS[t].prompts)
+    return Setting(
+        name, model, demo, MW_DEV, MW_TEST, 6, 32, tasks=SEEN, dev_scenes=9, test_seed=120_000, trained=trained
+    )
 
 
 SETTINGS = (
@@ -146,11 +152,17 @@ def explain(setting: Setting, source: pathlib.Path, out: pathlib.Path, monitor: 
     cli.main([*argv, "--extra", "perturbation=perturbation"])
 
 
-def scored(maps: pathlib.Path, monitors: dict[str, monitor_file.Monitor]) -> list[ScoredEpisode]:
-    """Each episode of a maps dataset scored by every monitor (offline, over its explained frames in order)."""
+def scored(
+    maps: pathlib.Path, monitors: dict[str, monitor_file.Monitor], only: Sequence[str] | None = None
+) -> list[ScoredEpisode]:
+    """Each episode of a maps dataset scored by every monitor (offline, over its explained frames in order); `only`:
+    the episodes under these instructions alone."""
     rollouts = read_rollouts([maps])
     out = []
+    keep = None if only is None else {monitor_file.instruction(p) for p in only}
     for episode in rollouts.episodes:
+        if keep is not None and monitor_file.instruction(episode.prompts[0]) not in keep:
+            continue
         scores = {name: m.score_steps(episode.matrix(m.inputs), episode.prompts) for name, m in monitors.items()}
         out.append(ScoredEpisode(episode.frames, scores, not episode.success))
     return out
@@ -163,10 +175,16 @@ def scene_folds(maps: pathlib.Path, setting: Setting) -> list[int]:
 
 
 def fit(
-    maps: Sequence[pathlib.Path], kind: str, temporal: bool, alpha: float, out: pathlib.Path
+    maps: Sequence[pathlib.Path],
+    kind: str,
+    temporal: bool,
+    alpha: float,
+    out: pathlib.Path,
+    trained: Sequence[str] = (),
 ) -> monitor_file.Monitor:
-    """`openpi-cam monitor fit` of one candidate (reused when its file is there)."""
+    """`openpi-cam monitor fit` of one candidate (reused when its file is there); a gated one is told `trained`."""
     flags = ["--kind", kind, "--alpha", str(alpha), *(["--temporal"] if temporal else [])]
+    flags += ["--trained-prompts", *trained] if kind == "gated" and trained else []
     if not out.is_file():
         code = cli.main(["monitor", "fit", *map(str, maps), *flags, "--out", str(out)])
         if code:
@@ -256,7 +274,7 @@ def run(setting: Setting, root: pathlib.Path, ship: bool) -> dict[str, Any]:
     chosen = max(dev, key=lambda n: dev[n][CHOICE])
     alpha = false_alarm_rate(rollouts)
     fitted = {
-        name: fit([dev_maps], kind, temporal, alpha, folder / f"monitor-{name}.json")
+        name: fit([dev_maps], kind, temporal, alpha, folder / f"monitor-{name}.json", setting.trained)
         for name, (kind, temporal) in CANDIDATES.items()
     }
     shipped = ModelSpec.demo(setting.model).assets() / MONITOR_FILE
@@ -268,6 +286,10 @@ def run(setting: Setting, root: pathlib.Path, ship: bool) -> dict[str, Any]:
         explain(setting, folder / f"{split}.lerobot", maps, "" if shipped.is_file() else "--no-monitor")
         offline = detection(scored(maps, fitted))
         report["splits"][split] = {"stats": stats_detection(maps, folder), "candidates": offline}
+    if setting.trained and "unseen" in report["splits"]:
+        # the unseen tasks the policy was trained on (SAFE's unseen tasks), apart from those it never was
+        subset = detection(scored(folder / "unseen.maps", fitted, setting.trained))
+        report["splits"]["unseen, trained tasks"] = {"stats": [], "candidates": subset}
     report["seconds"] = {"record": recorded, "total": time.perf_counter() - t0}
     return report
 
@@ -295,7 +317,7 @@ def table(name: str, report: dict[str, Any]) -> list[str]:
         entries = {e["frames"]: e["figures"] for e in data["stats"]}
         offline = {e["frames"]: e["figures"] for e in data["candidates"]}
         # the shipped monitor first, then the training-free baselines, then the map figures
-        names = sorted(entries[1], key=lambda n: (not n.startswith("monitor"), n not in BASELINES, n))
+        names = sorted(entries.get(1, ()), key=lambda n: (not n.startswith("monitor"), n not in BASELINES, n))
         rows = [(n, entries) for n in names] + [(n, offline) for n in sorted(offline[1])]
         for figure, source in rows:
             label = figure if source is entries else f"fitted {figure}"

@@ -890,6 +890,14 @@ MAHALANOBIS_FIT = Run("monitor fit", (*FEATURED, "--kind", "mahalanobis"), slow=
 NOTHING = ("nothing.maps", "--out", "{scratch}/monitor.json")
 
 
+# The flags a gated monitor alone reads: a gated fit needs STAC values that vary among the training successes, and
+# these rollouts' successes end within a call or two; that test fits one on a copy with seeded STAC values.
+GATED_FIT_TEST = (
+    "tests/datasets/test_monitor_rollouts.py::test_monitor_fit_gated_records_the_instructions_it_trusts_its_probe_on"
+)
+GATED_FIT_WHY = "a gated fit on these rollouts is refused (their STAC does not vary among successes)"
+
+
 def fitted(*keys: str) -> Callable[[Output], Any]:
     return recorded("*.json", *keys)
 
@@ -927,6 +935,14 @@ MONITOR_FIT_CASES: dict[str, tuple[Case, ...]] = {
     "--shrinkage": (
         Changes(MAHALANOBIS_FIT, ("--shrinkage", "0.5"), fitted("fit", "shrinkage")),
         Refused("monitor fit", (*NOTHING, "--shrinkage", "0.5")),
+    ),
+    "--trained-on": (
+        Covered(GATED_FIT_TEST, GATED_FIT_WHY),
+        Refused("monitor fit", (*NOTHING, "--trained-on", "training.lerobot")),
+    ),
+    "--trained-prompts": (
+        Covered(GATED_FIT_TEST, GATED_FIT_WHY),
+        Refused("monitor fit", (*NOTHING, "--kind", "union", "--trained-prompts", "open the door")),
     ),
 }
 

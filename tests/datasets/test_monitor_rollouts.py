@@ -19,6 +19,7 @@ import pyarrow.parquet as pq
 import pytest
 from client_env import collect
 from datasets_support import model_job
+from paths import LEROBOT_DIR
 from real_clients import send_observations
 
 from openpi_cam import cli
@@ -145,6 +146,12 @@ def test_monitor_fit_refuses_flags_of_another_kind_and_bad_input_in_one_line(fea
         assert f"a {kind} monitor needs the training successes' stac scores to vary" in _fit_error(
             [maps, "--out", out, "--kind", kind], capsys
         )
+    assert "--trained-prompts is read by --kind gated, not probe" in _fit_error(
+        [maps, "--out", out, "--trained-prompts", "open the door"], capsys
+    )
+    gated = [maps, "--out", out, "--kind", "gated"]
+    assert f"{tmp_path / 'meta' / 'info.json'}: missing" in _fit_error([*gated, "--trained-on", str(tmp_path)], capsys)
+    assert "an empty instruction" in _fit_error([*gated, "--trained-prompts", "open the door", " "], capsys)
     assert "--alpha must be in (0, 1)" in _fit_error([maps, "--out", out, "--alpha", "1.5"], capsys)
     assert "no column 'features/elbow'" in _fit_error([maps, "--out", out, "--inputs", "features/elbow"], capsys)
     assert "is not a maps dataset" in _fit_error([str(tmp_path), "--out", out], capsys)
@@ -344,7 +351,9 @@ def test_stats_rank_each_figures_maximum_over_an_episodes_first_frames(scored, t
 def test_monitor_fit_gated_records_the_instructions_it_trusts_its_probe_on(featured, tmp_path, capsys):
     """`monitor fit --kind gated` on a copy whose STAC column is rewritten with seeded values on every row (these
     rollouts' own successes end too soon to put STAC on a scale): the file names the episodes' instructions, the
-    report prints them, and a step under another instruction scores its standardised STAC alone."""
+    report prints them, and a step under another instruction scores its standardised STAC alone. Told what the
+    policy was trained on (a LeRobot-written dataset's tasks and one more instruction), a step under an
+    instruction outside those scores above the threshold from the first call."""
     copy = tmp_path / "stac.maps"
     shutil.copytree(featured.root, copy)
     rng = np.random.default_rng(0)
@@ -354,17 +363,29 @@ def test_monitor_fit_gated_records_the_instructions_it_trusts_its_probe_on(featu
         stac = pa.array(rng.uniform(0.0, 1.0, table.num_rows), table.schema.field(i).type)
         pq.write_table(table.set_column(i, table.schema.field(i), stac), shard)
     out = tmp_path / "gated.json"
-    flags = ["--kind", "gated", "--inputs", "features/prompt", "stac", "--max-dims", "4"]
-    cli.main(["monitor", "fit", str(copy), "--out", str(out), *flags])
+    # alpha 0.5: these few calibration successes give no finite threshold at the default 0.1
+    flags = ["--kind", "gated", "--inputs", "features/prompt", "stac", "--max-dims", "4", "--alpha", "0.5"]
+    trained = ["--trained-on", str(LEROBOT_DIR / "demo_reach_v30_image"), "--trained-prompts", "Open the door"]
+    cli.main(["monitor", "fit", str(copy), "--out", str(out), *flags, *trained])
     monitor = monitor_file.load(out)
     tasks = {r["task"] for r in fmt.open_maps_dataset(copy).table(columns=["task"]).to_pylist()}
     assert monitor.kind == "gated" and monitor.prompts == tuple(sorted(monitor_file.instruction(t) for t in tasks))
-    (line,) = [row for row in capsys.readouterr().out.splitlines() if row.startswith("trusted on")]
+    lerobot_tasks = open_dataset(LEROBOT_DIR / "demo_reach_v30_image").tasks().values()
+    assert monitor.trained_on == tuple(sorted({*lerobot_tasks, "open the door"}))
+    printed = capsys.readouterr().out.splitlines()
+    (line,) = [row for row in printed if row.startswith("trusted on")]
     assert all(p in line for p in monitor.prompts)
+    assert [row.split()[2] for row in printed if row.startswith("trained on")] == [str(len(monitor.trained_on))]
     x = np.array([[*np.zeros(128), 0.7]])
     mean, std = monitor.standardised.stac
     assert monitor.score_steps(x, "open the door") == pytest.approx([(0.7 - mean) / std], rel=1e-12)
     assert monitor.score_steps(x, sorted(tasks)[0]) >= monitor.score_steps(x, "open the door")
+    assert math.isfinite(monitor.threshold)
+    floor = monitor.threshold + monitor_file.UNTRAINED_MARGIN
+    first = np.array([[*np.zeros(128), np.nan]])  # a first call: no STAC yet
+    assert np.isnan(monitor.score_steps(first, "open the door")) and monitor.score_steps(first, "open the window") == [
+        floor
+    ]
 
 
 def test_a_score_that_rises_after_frame_8_finds_nothing_by_frame_8(featured, tmp_path):

@@ -25,7 +25,9 @@ def monitors() -> dict[str, Monitor]:
     data = episodes(0, 30, 30)
     prompted = [dataclasses.replace(e, prompts=(PROMPT,) * len(e.columns["stac"])) for e in data]
     return {
-        "gated": fit_monitor(prompted, FitOptions(kind="gated", inputs=(FEATURE, "stac"), temporal=True)),
+        "gated": fit_monitor(
+            prompted, FitOptions(kind="gated", inputs=(FEATURE, "stac"), temporal=True, trained_on=(PROMPT, "x"))
+        ),
         "probe": fit_monitor(data, FitOptions(kind="probe", inputs=(FEATURE, "stac"), temporal=True)),
         "mahalanobis": fit_monitor(data, FitOptions(kind="mahalanobis", inputs=(FEATURE,), max_dims=4)),
         "stac": fit_monitor(data, FitOptions(kind="stac", execution_horizon=5)),
@@ -179,6 +181,35 @@ def test_a_bad_gated_monitor_file_is_refused_in_one_line(monitors, tmp_path, pro
     with pytest.raises(ValueError) as e:
         monitor_file.load(path)
     assert_one_line(e.value, str(path), named)
+
+
+@pytest.mark.parametrize(
+    ("kind", "trained_on", "named"),
+    [
+        ("gated", ["Open the door"], "trained_on is not a list of instructions"),
+        ("gated", "open the door", "trained_on is not a list"),
+        ("union", ["open the door"], "only a gated one"),
+    ],
+)
+def test_a_bad_list_of_the_policys_instructions_is_refused_in_one_line(monitors, tmp_path, kind, trained_on, named):
+    data = {**monitor_file.to_json(monitors[kind]), "trained_on": trained_on}
+    path = tmp_path / "monitor.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(ValueError) as e:
+        monitor_file.load(path)
+    assert_one_line(e.value, str(path), named)
+
+
+def test_a_format_2_gated_file_loads_not_knowing_the_policys_instructions(monitors, tmp_path):
+    """Files written before `trained_on` (format 2, the shipped monitors of round 4) load as monitors that know only
+    the instructions they were fitted on: a step under any other is scored by STAC alone, never flagged outright."""
+    data = monitor_file.to_json(monitors["gated"])
+    del data["trained_on"]
+    path = tmp_path / "monitor.json"
+    path.write_text(json.dumps({**data, "format_version": 2}))
+    loaded = monitor_file.load(path)
+    assert loaded.trained_on == () and loaded.trust("open the door") == monitor_file.TRAINED
+    assert monitors["gated"].trust("open the door") == monitor_file.UNTRAINED
 
 
 def test_a_saved_monitor_puts_each_list_of_numbers_on_one_line(monitors, tmp_path):

@@ -334,6 +334,52 @@ def test_a_gated_monitor_trusts_its_probe_only_under_the_instructions_it_was_fit
     assert_one_line(e.value, "episode 0", "empty instruction")
 
 
+def test_a_gated_monitor_told_the_policys_instructions_flags_any_other_from_the_first_call():
+    """Told the instructions the policy was trained on, a gated monitor scores a step under one it was fitted on by
+    the union and under another trained one by STAC alone, exactly as without being told; under an instruction the
+    policy never learnt it scores one standard deviation above the threshold at least (STAC's score where that is
+    higher), so the episode is flagged at its first call, where STAC has no value yet. Those episodes then rank
+    above every success whatever their features, which is what ranks a new task's failures without a probe."""
+    rng = np.random.default_rng(42)
+    drift = np.array([3.0, -3.0, 0, 0, 0, 0])
+    train = _prompted(_task(rng, 30, drift, 0), "Press the button")
+    options = FitOptions(kind="gated", inputs=(FEATURE, "stac"))
+    plain = fit_monitor(train, options)
+    told = fit_monitor(train, dataclasses.replace(options, trained_on=("press the button", "Open  the DOOR")))
+    assert told.trained_on == ("open the door", "press the button") and math.isfinite(told.threshold)
+    assert (told.standardised, told.threshold, told.prompts) == (plain.standardised, plain.threshold, plain.prompts)
+    episodes = _task(rng, 30, drift, 1.5)
+    for prompt in ("press the button", "open the door"):  # fitted, then trained but not fitted on
+        for e in episodes[::5]:
+            x = e.matrix(told.inputs)
+            np.testing.assert_array_equal(told.score_steps(x, prompt), plain.score_steps(x, prompt))
+    assert told.trust("Press the button") == monitor_file.FITTED and told.trust("open the door") == "trained"
+    floor = told.threshold + monitor_file.UNTRAINED_MARGIN
+    for e in episodes:
+        x = e.matrix(told.inputs)
+        stac = plain.score_steps(x, "open the door")  # its standardised STAC, NaN on the first call
+        scores = told.score_steps(x, "open the drawer")
+        assert np.isnan(stac[0]) and scores[0] == floor
+        np.testing.assert_array_equal(scores[1:], np.fmax(stac[1:], floor))
+        running = told.episode()
+        live = [running.update({FEATURE: row[:-1], "stac": row[-1]}, "open the drawer") for row in x]
+        np.testing.assert_array_equal(live, scores)
+        assert running.flagged_at == 0
+    # untold, the same instruction is a trained one: STAC alone, nothing on the first call
+    assert np.isnan(plain.score_steps(episodes[0].matrix(plain.inputs), "open the drawer")[0])
+    # a monitor that never flags (no finite threshold) keeps STAC's score there: no floor to raise it to
+    never = dataclasses.replace(told, threshold=math.inf)
+    x = episodes[0].matrix(told.inputs)
+    np.testing.assert_array_equal(never.score_steps(x, "open the drawer"), plain.score_steps(x, "open the drawer"))
+    for kind in ("probe", "union"):
+        with pytest.raises(ValueError) as e:
+            fit_monitor(train, dataclasses.replace(options, kind=kind, trained_on=("press the button",)))
+        assert_one_line(e.value, "gated", kind)
+    with pytest.raises(ValueError) as e:
+        dataclasses.replace(fit_monitor(train, dataclasses.replace(options, kind="union")), trained_on=("x",))
+    assert_one_line(e.value, "union", "gated")
+
+
 def test_the_fit_is_reproducible_from_its_seed():
     data = episodes(20, 30, 10)
     options = FitOptions(kind="probe", inputs=(FEATURE, "stac"), temporal=True, seed=7)

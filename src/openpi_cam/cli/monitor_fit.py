@@ -14,6 +14,7 @@ import numpy as np
 import tyro
 
 from openpi_cam.auroc import roc_auc
+from openpi_cam.lerobot.dataset import open_dataset
 from openpi_cam.maps.monitoring import Rollouts, read_rollouts
 from openpi_cam.monitor import monitor_file
 from openpi_cam.monitor.fit import FitOptions, episode_max, fit_monitor, split_episodes
@@ -24,7 +25,14 @@ DEFAULTS = FitOptions()
 # Which kinds read each fitting flag (a flag given for another kind is refused, not ignored).
 _PROBES = ("probe", *monitor_file.STANDARDISED_KINDS)
 _FEATURE_KINDS = tuple(k for k in monitor_file.KINDS if k != "stac")
-_KIND_FLAGS = {"l2": _PROBES, "shrinkage": ("mahalanobis",), "max_dims": _FEATURE_KINDS, "temporal": _FEATURE_KINDS}
+_KIND_FLAGS = {
+    "l2": _PROBES,
+    "shrinkage": ("mahalanobis",),
+    "max_dims": _FEATURE_KINDS,
+    "temporal": _FEATURE_KINDS,
+    "trained_on": ("gated",),
+    "trained_prompts": ("gated",),
+}
 
 
 def main(
@@ -39,6 +47,8 @@ def main(
     shrinkage: float | None = DEFAULTS.shrinkage,
     l2: float = DEFAULTS.l2,
     temporal: bool = DEFAULTS.temporal,
+    trained_on: tuple[pathlib.Path, ...] = (),
+    trained_prompts: tuple[str, ...] = (),
 ) -> int:
     """Fit a failure monitor on the labelled episodes of maps datasets and save it; print its training AUROC and its
     conformal threshold with the false-alarm rate it has on the calibration episodes. Exit status 2 with one line
@@ -65,9 +75,14 @@ def main(
         l2: the probe's L2 penalty (probe, union, gated).
         temporal: score each step beside the running mean of its episode's inputs (probe, mahalanobis, union,
             gated).
+        trained_on: the LeRobot datasets the policy was trained on (gated): their task strings are the
+            instructions it knows, and a step under any other flags its episode from the first call.
+        trained_prompts: instructions the policy was trained on, given as text (gated; beside `--trained-on`).
     """
     try:
-        _refuse_other_kinds_flags(kind, {"l2": l2, "shrinkage": shrinkage, "max_dims": max_dims, "temporal": temporal})
+        flags = {"l2": l2, "shrinkage": shrinkage, "max_dims": max_dims, "temporal": temporal}
+        _refuse_other_kinds_flags(kind, flags | {"trained_on": trained_on, "trained_prompts": trained_prompts})
+        known = _trained_instructions(trained_on, trained_prompts)
         rollouts = read_rollouts(maps)
         chosen = inputs or ((STAC,) if kind == "stac" else tuple(rollouts.inputs))
         options = FitOptions(
@@ -82,6 +97,7 @@ def main(
             temporal=temporal,
             execution_horizon=rollouts.execution_horizon,
             sample_spread=rollouts.sample_spread,
+            trained_on=known,
         )
         _check_options(options)
         monitor = fit_monitor(rollouts.episodes, options)
@@ -96,9 +112,23 @@ def main(
 
 def _refuse_other_kinds_flags(kind: str, given: dict[str, object]) -> None:
     for name, readers in _KIND_FLAGS.items():
-        if given[name] != getattr(DEFAULTS, name) and kind not in readers:
+        if given[name] != getattr(DEFAULTS, name, ()) and kind not in readers:
             flag = "--" + name.replace("_", "-")
             raise ValueError(f"{flag} is read by --kind {' or '.join(readers)}, not {kind}")
+
+
+def _trained_instructions(datasets: tuple[pathlib.Path, ...], prompts: tuple[str, ...]) -> tuple[str, ...]:
+    """Every task string of the training datasets and every instruction given, in `instruction` form."""
+    texts = [*prompts]
+    for path in datasets:
+        tasks = list(open_dataset(path).tasks().values())
+        if not tasks:
+            raise ValueError(f"{path}: the dataset names no task (meta/tasks), so it tells no instruction")
+        texts += tasks
+    known = {monitor_file.instruction(t) for t in texts}
+    if "" in known:
+        raise ValueError("an empty instruction among the policy's: a gated monitor tells instructions by their text")
+    return tuple(sorted(known))
 
 
 def _check_options(options: FitOptions) -> None:
@@ -137,6 +167,11 @@ def report(monitor: Monitor, rollouts: Rollouts, options: FitOptions, out: pathl
         ),
         ("episodes", f"{success.size} ({int((~success).sum())} failed), horizon {rollouts.execution_horizon}"),
         *([("trusted on", "; ".join(monitor.prompts))] if monitor.kind == "gated" else []),
+        *(
+            [("trained on", f"{len(monitor.trained_on)} instructions; a step under any other flags at once")]
+            if monitor.trained_on
+            else []
+        ),
         ("training", f"{training.size} episodes ({int((~success[training]).sum())} failed), {ranked}"),
         ("threshold", f"{threshold} for alpha {monitor.alpha:g}"),
         ("calibration", f"{calibration.size} successes, false alarms {_rate(maxima[calibration] > monitor.threshold)}"),

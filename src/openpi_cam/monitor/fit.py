@@ -62,6 +62,7 @@ class FitOptions:
     temporal: bool = False  # score each step with the running mean of its episode's inputs beside it
     execution_horizon: int | None = None  # recorded with the monitor: the actions per call that `stac` assumed
     sample_spread: int | None = None  # recorded with the monitor: the samples per call `sample_spread` compared
+    trained_on: tuple[str, ...] = ()  # gated: the instructions the policy was trained on (empty: not known)
 
 
 def split_episodes(success: Sequence[bool], calibration_share: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -324,6 +325,8 @@ def fit_monitor(episodes: Sequence[Episode], options: FitOptions = FitOptions())
         kind = options.kind
         raise ValueError(f"a {kind} monitor reads {STAC!r} among its inputs, not only {[i.name for i in inputs]}")
     prompts = _instructions(episodes, options.kind)
+    if options.trained_on and options.kind != "gated":
+        raise ValueError(f"the policy's instructions are read by a gated monitor, not a {options.kind} one")
     reads_spread = any(i.name == SAMPLE_SPREAD for i in inputs)
     if reads_spread and options.sample_spread is None:
         raise ValueError(f"the {SAMPLE_SPREAD!r} input needs its samples per call (FitOptions.sample_spread)")
@@ -347,7 +350,8 @@ def fit_monitor(episodes: Sequence[Episode], options: FitOptions = FitOptions())
     )
     if options.kind in STANDARDISED_KINDS:
         scales = standardise_union(monitor, [x[i] for i in training if success[i]], options.kind)
-        monitor = dataclasses.replace(monitor, kind=options.kind, standardised=scales)
+        trained_on = tuple(sorted({instruction(p) for p in options.trained_on}))
+        monitor = dataclasses.replace(monitor, kind=options.kind, standardised=scales, trained_on=trained_on)
     maxima = [episode_max(monitor.score_steps(x[i], episodes[i].prompts)) for i in calibration]
     record |= {
         "seed": options.seed,

@@ -22,7 +22,9 @@ from openpi_cam.monitor.scores import Basis, MahalanobisScorer, ProbeScorer, wit
 from openpi_cam.monitor.signals import SAMPLE_SPREAD, STAC
 
 FORMAT = "openpi-cam monitor"
-FORMAT_VERSION = 2  # 2: the `gated` kind and the `prompts` a monitor was fitted on
+# 2: the `gated` kind and the `prompts` a monitor was fitted on; 3: `trained_on`, the instructions the policy was
+# trained on
+FORMAT_VERSION = 3
 # What a monitor scores (its kind): a logistic probe's log-odds of failure over its inputs; the Mahalanobis distance
 # of its inputs to successful steps; the consecutive-chunk disagreement itself (training-free, one input: `stac`);
 # the union of a probe and `stac`, the larger of their standardised scores (`Standardised`); or a gated union, the
@@ -30,6 +32,13 @@ FORMAT_VERSION = 2  # 2: the `gated` kind and the `prompts` a monitor was fitted
 KINDS = ("probe", "mahalanobis", "stac", "union", "gated")
 # The kinds that put a probe and `stac` on one scale (`Standardised`).
 STANDARDISED_KINDS = ("union", "gated")
+# How a gated monitor scores a step, by the instruction it was served under: the union of its probe and `stac` (an
+# instruction it was fitted on); the standardised `stac` alone (one the policy was trained on, or any other where the
+# policy's are not known); that, raised to `UNTRAINED_MARGIN` above the threshold (one the policy was never trained
+# on: the episode is flagged from its first call). Any other kind scores every step as FITTED.
+FITTED, TRAINED, UNTRAINED = "fitted", "trained", "untrained"
+# One standard deviation of the training successes' scores, on a gated monitor's standardised scale.
+UNTRAINED_MARGIN = 1.0
 
 
 def instruction(prompt: str) -> str:
@@ -82,12 +91,16 @@ class Monitor:
     the action samples per call its `sample_spread` input compares (None: it reads none); whoever scores with it
     draws as many. standardised: a union's or gated monitor's scales (None for the other kinds). prompts: the
     instructions of the episodes it was fitted on (`instruction` form, sorted; empty where they were not known): a
-    gated monitor trusts its probe on these alone. fit: how it was fitted (seed, episode counts, options), for the
-    record.
+    gated monitor trusts its probe on these alone. trained_on: the instructions the policy was trained on
+    (`instruction` form, sorted; empty where they are not known), read by a gated monitor alone: a step under any
+    other is UNTRAINED. fit: how it was fitted (seed, episode counts, options), for the record.
 
     Why gated: a probe learns what failure looked like on the tasks it was fitted on and can rank a task it never
     saw backwards, while `stac` reads alike on any task; which tasks it saw is known exactly, by their instructions,
-    so a step under another instruction is scored by `stac` alone rather than by a probe outside what it learnt."""
+    so a step under another instruction is scored by `stac` alone rather than by a probe outside what it learnt. And
+    a policy fails a task it was never trained on whatever its features or `stac` say on the first calls (the
+    multi-task demo models: every held-out task's episode), so where the policy's instructions are known a step
+    under none of them flags the episode at once, with its reason in the instruction rather than in a score."""
 
     kind: str
     inputs: tuple[MonitorInput, ...]
@@ -101,10 +114,13 @@ class Monitor:
     fit: dict[str, Any] = dataclasses.field(default_factory=dict)
     sample_spread: int | None = None
     prompts: tuple[str, ...] = ()
+    trained_on: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.kind == "gated" and not self.prompts:
             raise ValueError("a gated monitor names the instructions it was fitted on (prompts is empty)")
+        if self.trained_on and self.kind != "gated":
+            raise ValueError(f"a {self.kind} monitor reads no instruction: only a gated one is told the policy's")
         reads = any(i.name == SAMPLE_SPREAD for i in self.inputs)
         if reads != (self.sample_spread is not None) or (reads and self.sample_spread < 2):
             raise ValueError(
@@ -128,21 +144,28 @@ class Monitor:
             parts.append(value)
         return np.concatenate(parts)
 
-    def knows(self, prompt: str | None) -> bool:
-        """Whether a step under this prompt is one a gated monitor trusts its probe on (one of `prompts`); a monitor
-        of another kind trusts every step. A gated monitor refuses a step whose prompt it is not told."""
+    def trust(self, prompt: str | None) -> str:
+        """How a step under this prompt is scored: FITTED, TRAINED or UNTRAINED (above). A gated monitor refuses a
+        step whose prompt it is not told."""
         if self.kind != "gated":
-            return True
+            return FITTED
         if prompt is None:
             raise ValueError("a gated monitor scores a step with the prompt it was served under, and none was given")
-        return instruction(prompt) in self.prompts
+        text = instruction(prompt)
+        if text in self.prompts:
+            return FITTED
+        return UNTRAINED if self.trained_on and text not in self.trained_on else TRAINED
+
+    def knows(self, prompt: str | None) -> bool:
+        """Whether a step under this prompt is one a monitor trusts its probe on (a gated one: one of `prompts`)."""
+        return self.trust(prompt) == FITTED
 
     def score(self, step: Mapping[str, Any], prompt: str | None = None) -> float:
         """One step's score from its named inputs (and its prompt, for a gated monitor), on its own; a temporal
         monitor scores a step with its episode's history, through `episode()`."""
         if self.temporal:
             raise ValueError("a temporal monitor scores a step with its episode's history: use Monitor.episode()")
-        return float(self.score_prepared(self.step_inputs(step)[None, :], self.knows(prompt))[0])
+        return float(self.score_prepared(self.step_inputs(step)[None, :], self.trust(prompt))[0])
 
     def score_steps(self, x: np.ndarray, prompts: Sequence[str] | str | None = None) -> np.ndarray:
         """The step scores of one episode, in order: x [T, F] (`step_inputs` of each step, or `Episode.matrix`) ->
@@ -157,11 +180,11 @@ class Monitor:
         # one step at a time, as `EpisodeScore` scores: a matrix product over many rows may sum in another order
         # than over one, and the live and offline scores must be the same numbers, not merely close ones
         rows = zip(prepared, each, strict=True)
-        return np.array([self.score_prepared(row[None, :], self.knows(p))[0] for row, p in rows])
+        return np.array([self.score_prepared(row[None, :], self.trust(p))[0] for row, p in rows])
 
-    def score_prepared(self, x: np.ndarray, trusted: bool = True) -> np.ndarray:
+    def score_prepared(self, x: np.ndarray, trust: str = FITTED) -> np.ndarray:
         """Scores of inputs as the basis reads them: x [T, F], or [T, 2F] for a temporal monitor (each step's inputs
-        beside their running mean) -> [T]. trusted: whether a gated monitor's probe counts for these steps."""
+        beside their running mean) -> [T]. trust: how a gated monitor scores these steps (`Monitor.trust`)."""
         if self.kind == "stac":
             return x[:, 0].copy()
         assert self.basis is not None and self.scorer is not None
@@ -171,7 +194,10 @@ class Monitor:
         if self.kind not in STANDARDISED_KINDS:
             return probe
         assert self.standardised is not None
-        return self.standardised.combine(probe, x[:, self.stac_column], trusted)
+        out = self.standardised.combine(probe, x[:, self.stac_column], trust == FITTED)
+        if trust == UNTRAINED and math.isfinite(self.threshold):
+            out = np.fmax(out, self.threshold + UNTRAINED_MARGIN)
+        return out
 
     @property
     def stac_column(self) -> int:
@@ -209,7 +235,7 @@ class EpisodeScore:
 
     def update(self, step: Mapping[str, Any], prompt: str | None = None) -> float:
         """Score the next step (its named inputs, and the prompt it was served under) and return its score."""
-        trusted = self.monitor.knows(prompt)
+        trust = self.monitor.trust(prompt)
         x = self.monitor.step_inputs(step)
         if self.monitor.temporal:
             finite = np.isfinite(x)
@@ -218,7 +244,7 @@ class EpisodeScore:
             with np.errstate(invalid="ignore", divide="ignore"):
                 means = np.where(self._counts > 0, self._sums / np.maximum(self._counts, 1), np.nan)
             x = np.concatenate([x, means])
-        value = float(self.monitor.score_prepared(x[None, :], trusted)[0])
+        value = float(self.monitor.score_prepared(x[None, :], trust)[0])
         if math.isfinite(value) and value > self.score:
             self.score = value
         if self.flagged_at is None and self.monitor.flags(value):
@@ -243,6 +269,7 @@ def to_json(monitor: Monitor) -> dict[str, Any]:
         "alpha": monitor.alpha,
         "threshold": monitor.threshold if math.isfinite(monitor.threshold) else None,
         "prompts": list(monitor.prompts),
+        "trained_on": list(monitor.trained_on),
         "fit": monitor.fit,
     }
     if monitor.basis is not None:
@@ -384,9 +411,7 @@ def from_json(data: Any) -> Monitor:
     samples = data.get("sample_spread")
     if samples is not None and (not isinstance(samples, int) or isinstance(samples, bool)):
         raise ValueError(f"sample_spread {samples!r} is not an integer (null: the monitor reads no sample spread)")
-    prompts = data.get("prompts", [])
-    if not isinstance(prompts, list) or not all(isinstance(p, str) and p == instruction(p) for p in prompts):
-        raise ValueError("prompts is not a list of instructions (lower case, single spaces)")
+    prompts, trained_on = (_instructions(data, key) for key in ("prompts", "trained_on"))
     basis, scorer, standardised = None, None, None
     if kind == "stac":
         if inputs != (MonitorInput(STAC, 1),):
@@ -414,5 +439,13 @@ def from_json(data: Any) -> Monitor:
         standardised=standardised,
         fit=dict(data.get("fit") or {}),
         sample_spread=samples,
-        prompts=tuple(sorted(set(prompts))),
+        prompts=prompts,
+        trained_on=trained_on,
     )
+
+
+def _instructions(data: Mapping[str, Any], key: str) -> tuple[str, ...]:
+    texts = data.get(key, [])
+    if not isinstance(texts, list) or not all(isinstance(p, str) and p == instruction(p) for p in texts):
+        raise ValueError(f"{key} is not a list of instructions (lower case, single spaces)")
+    return tuple(sorted(set(texts)))
