@@ -4,12 +4,15 @@ equals the monitor's offline score of the whole stream."""
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 import math
 
 import numpy as np
 import pytest
 from monitor_support import FEATURE, episodes
 
+from openpi_cam.cam.monitoring import LiveMonitor
 from openpi_cam.monitor.fit import FitOptions, fit_monitor
 from openpi_cam.monitor.signals import STAC, TOKEN_ENTROPY, stac_single
 from openpi_cam.monitor.stream import DEFAULT_EXECUTION_HORIZON, FLAG, SCORE, Stream, execution_horizon, step_inputs
@@ -86,3 +89,30 @@ def test_a_monitor_reading_an_input_the_call_lacks_is_refused_naming_it():
         Stream(monitor, 5).step({FEATURE: np.zeros(6)})
     with pytest.raises(ValueError, match="horizon must be >= 1"):
         Stream(monitor, 0)
+
+
+def test_a_live_connection_under_an_instruction_the_policy_never_learnt_is_flagged_at_once_and_counted(caplog):
+    """`serve --monitor` with a gated monitor told the policy's instructions: a connection served under another one
+    is flagged at its first call (no STAC yet), counted once in `/stats` however many calls it makes, and logged
+    once with its instruction; a connection under a trained instruction it was not fitted on is scored by STAC and
+    not counted. A closed connection leaves the open set, not the count."""
+    prompted = [
+        dataclasses.replace(e, prompts=("press the button",) * len(e.columns[STAC])) for e in episodes(3, 20, 10)
+    ]
+    options = FitOptions(kind="gated", inputs=(FEATURE, STAC), trained_on=("press the button", "open the door"))
+    live = LiveMonitor(fit_monitor(prompted, options), "m.json")
+    assert math.isfinite(live.monitor.threshold)
+    rng = np.random.default_rng(4)
+    with caplog.at_level(logging.WARNING, logger="openpi_cam.cam.monitoring"):
+        for connection, prompt in [("a", "Open the drawer"), ("b", "open the door"), ("a", "Open the drawer")]:
+            for call in _calls(rng, 3):
+                scored = live.score(connection, call, prompt)
+                if connection == "a":
+                    assert scored.flag and scored.score >= live.monitor.threshold + 1
+                else:
+                    assert math.isnan(scored.score) or scored.score < live.monitor.threshold + 1
+        live.closed("a")
+    stats = live.stats()
+    assert stats["connections_untrained"] == 1 and stats["connections_open"] == 1
+    (line,) = [r.getMessage() for r in caplog.records]
+    assert "connection a" in line and "'Open the drawer'" in line and line.endswith("(flagged)")

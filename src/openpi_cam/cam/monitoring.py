@@ -5,6 +5,7 @@ a call is scored (by its worker, or before the response for `--cam.monitor-respo
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 from collections.abc import Mapping
@@ -12,8 +13,10 @@ from typing import Any
 
 import numpy as np
 
-from openpi_cam.monitor.monitor_file import Monitor
+from openpi_cam.monitor.monitor_file import UNTRAINED, Monitor
 from openpi_cam.monitor.stream import StepScore, Stream, execution_horizon
+
+log = logging.getLogger(__name__)
 
 # The response key of `--cam.monitor-response`.
 RESPONSE_KEY = "monitor"
@@ -39,6 +42,8 @@ class LiveMonitor:
         self._streams: dict[str, Stream] = {}
         self._scored = 0
         self._flagged = 0  # connections that have been flagged, open or closed
+        self._untrained: set[str] = set()  # open connections served under an instruction the policy never learnt
+        self._untrained_count = 0  # such connections, open or closed
 
     def check(self, signals: Mapping[str, np.ndarray], prompt: str) -> None:
         """Raises ValueError (one line naming the monitor file and the input) when a call with these signals cannot
@@ -58,19 +63,32 @@ class LiveMonitor:
             scored = stream.step(signals, prompt=prompt)
             self._scored += 1
             self._flagged += int(stream.flagged and not was_flagged)
+            untrained = self.monitor.trust(prompt) == UNTRAINED and connection not in self._untrained
+            if untrained:
+                self._untrained.add(connection)
+                self._untrained_count += 1
+        if untrained:  # why the connection is flagged, once: no score of its says it
+            log.warning(
+                "monitor %s: connection %s is served under %r, an instruction the policy was not trained on%s",
+                self.source,
+                connection,
+                prompt[:200],  # the client's text: bounded in the log
+                " (flagged)" if scored.flag else "",
+            )
         return scored
 
     def closed(self, connection: str) -> None:
         """The connection ended: its stream (its episode) is over."""
         with self._lock:
             self._streams.pop(connection, None)
+            self._untrained.discard(connection)
 
     def stats(self) -> dict[str, Any]:
         """The `/stats` counters: calls scored, connections flagged (ever, and among those open now)."""
         with self._lock:
             open_flagged = sum(s.flagged for s in self._streams.values())
             streams = len(self._streams)
-            scored, flagged = self._scored, self._flagged
+            scored, flagged, untrained = self._scored, self._flagged, self._untrained_count
         threshold = self.monitor.threshold
         return {
             "file": self.source,
@@ -81,4 +99,5 @@ class LiveMonitor:
             "connections_flagged": flagged,
             "connections_open": streams,
             "connections_open_flagged": open_flagged,
+            "connections_untrained": untrained,
         }
