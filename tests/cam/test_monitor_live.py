@@ -274,16 +274,22 @@ def test_a_fleet_call_under_the_monitor_serves_each_row_its_own_actions_and_scor
 
 
 def test_the_multi_task_models_monitors_trust_their_probe_under_the_instructions_they_were_fitted_on():
-    """The shipped multi-task monitors are gated (docs/MONITOR.md, round 4), fitted on rollouts of four of the six
-    trained tasks: the demo's instruction for each of those four is one they trust their probe under; under the other
-    trained tasks' and the held-out tasks' they score by STAC alone. A change to the demo's instructions that the
-    monitors were not refitted for would leave every task to STAC, silently: this is where it shows."""
+    """The shipped multi-task monitors are gated (docs/MONITOR.md, rounds 4 and 5), fitted on rollouts of four of
+    the six trained tasks and told every phrasing the policy was trained on: the demo's instruction for each of those
+    four is one they trust their probe under; under the other two trained tasks' they score by STAC alone; under the
+    held-out tasks' they flag from the first call. A change to the demo's instructions that the monitors were not
+    refitted for would leave every task to STAC, or flag it, silently: this is where it shows."""
     fitted_on = {"button-press-topdown-v3", "reach-v3", "push-v3", "drawer-close-v3"}
+    trained = {metaworld_sim.TRAINED_TASKS: monitor_file.TRAINED, metaworld_sim.HELD_OUT_TASKS: monitor_file.UNTRAINED}
+    phrasings = [p for task in metaworld_sim.TRAINED_TASKS for p in metaworld_sim.TASKS[task].prompts]
     for name in ("metaworld_mt_pi05", "metaworld_mt_pi0_fast"):
         monitor = monitor_file.load(ModelSpec.demo(name).default_monitor())
         assert monitor.kind == "gated" and len(monitor.prompts) == len(fitted_on), name
-        known = {task for task, spec in metaworld_sim.TASKS.items() if monitor.knows(spec.prompt)}
-        assert known == fitted_on, name
+        assert monitor.trained_on == tuple(sorted(monitor_file.instruction(p) for p in phrasings)), name
+        for tasks, trust in trained.items():
+            for task in tasks:
+                expected = monitor_file.FITTED if task in fitted_on else trust
+                assert monitor.trust(metaworld_sim.TASKS[task].prompt) == expected, (name, task)
 
 
 # The bundled models the demo drives each ship a monitor; the one-task Meta-World button pi0.5, kept for the maps
