@@ -378,6 +378,9 @@ def test_a_gated_monitor_told_the_policys_instructions_flags_any_other_from_the_
     with pytest.raises(ValueError) as e:
         dataclasses.replace(fit_monitor(train, dataclasses.replace(options, kind="union")), trained_on=("x",))
     assert_one_line(e.value, "union", "gated")
+    with pytest.raises(ValueError) as e:  # rollouts under an instruction the named training data lacks
+        fit_monitor(train, dataclasses.replace(options, trained_on=("open the door", "close the door")))
+    assert_one_line(e.value, "'press the button'", "2 instructions")
 
 
 def test_the_fit_is_reproducible_from_its_seed():

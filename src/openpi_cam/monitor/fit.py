@@ -327,6 +327,13 @@ def fit_monitor(episodes: Sequence[Episode], options: FitOptions = FitOptions())
     prompts = _instructions(episodes, options.kind)
     if options.trained_on and options.kind != "gated":
         raise ValueError(f"the policy's instructions are read by a gated monitor, not a {options.kind} one")
+    trained_on = {instruction(p) for p in options.trained_on}
+    strangers = sorted(set(prompts) - trained_on) if trained_on else []
+    if strangers:  # most likely another policy's training data: every served call would be flagged
+        raise ValueError(
+            f"the episodes were served under {strangers[0]!r}, which is not among the {len(trained_on)} instructions "
+            "the policy was trained on: name this policy's training data"
+        )
     reads_spread = any(i.name == SAMPLE_SPREAD for i in inputs)
     if reads_spread and options.sample_spread is None:
         raise ValueError(f"the {SAMPLE_SPREAD!r} input needs its samples per call (FitOptions.sample_spread)")
@@ -350,8 +357,8 @@ def fit_monitor(episodes: Sequence[Episode], options: FitOptions = FitOptions())
     )
     if options.kind in STANDARDISED_KINDS:
         scales = standardise_union(monitor, [x[i] for i in training if success[i]], options.kind)
-        trained_on = tuple(sorted({instruction(p) for p in options.trained_on}))
-        monitor = dataclasses.replace(monitor, kind=options.kind, standardised=scales, trained_on=trained_on)
+        known = tuple(sorted(trained_on))
+        monitor = dataclasses.replace(monitor, kind=options.kind, standardised=scales, trained_on=known)
     maxima = [episode_max(monitor.score_steps(x[i], episodes[i].prompts)) for i in calibration]
     record |= {
         "seed": options.seed,
