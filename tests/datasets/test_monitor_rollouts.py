@@ -170,9 +170,10 @@ def test_monitor_fit_refuses_flags_of_another_kind_and_bad_input_in_one_line(fea
 @pytest.fixture(scope="module")
 def fitted(featured, tmp_path_factory):
     """A gated monitor on the features and STAC: the probe `monitor fit` fits, trusted under the first episode's
-    instruction alone (episodes instructed otherwise are scored by STAC alone: what the live and offline paths must
-    both read from the call's prompt), on the scales of every step, its threshold at the episodes' median maximum (so
-    that some episodes are flagged and the flags are checked). These rollouts end within a call or two, too few
+    instruction alone, told that the policy was trained on one other (its episodes scored by STAC alone) and on no
+    more (the rest flagged from their first call): what the live and offline paths must both read from the call's
+    prompt. On the scales of every step, its threshold at the episodes' median maximum (so that some episodes are
+    flagged and the flags are checked). These rollouts end within a call or two, too few
     STAC values among the training successes for `monitor fit --kind gated` to put STAC on a scale."""
     path = tmp_path_factory.mktemp("monitor") / "monitor.json"
     inputs = ["--inputs", "features/base_0_rgb", "features/prompt", "stac", "--max-dims", "4"]
@@ -182,10 +183,14 @@ def fitted(featured, tmp_path_factory):
     steps = np.concatenate([e.matrix(probe.inputs) for e in rollouts.episodes])
     scores, stac = probe.score_steps(steps), steps[:, probe.stac_column]
     scales = Standardised((scores.mean(), scores.std()), (np.nanmean(stac), np.nanstd(stac)))
-    trusted = (monitor_file.instruction(rollouts.episodes[0].prompts[0]),)
-    gated = dataclasses.replace(probe, kind="gated", standardised=scales, prompts=trusted)
-    known = [gated.knows(e.prompts[0]) for e in rollouts.episodes]
-    assert 0 < sum(known) < len(known), [e.prompts[0] for e in rollouts.episodes]
+    instructions = [monitor_file.instruction(e.prompts[0]) for e in rollouts.episodes]
+    other = next(i for i in instructions if i != instructions[0])
+    trained = tuple(sorted({instructions[0], other}))
+    gated = dataclasses.replace(
+        probe, kind="gated", standardised=scales, prompts=(instructions[0],), trained_on=trained
+    )
+    trust = {gated.trust(i) for i in instructions}
+    assert trust == {monitor_file.FITTED, monitor_file.TRAINED, monitor_file.UNTRAINED}, instructions
     maxima = [episode_max(gated.score_steps(e.matrix(gated.inputs), e.prompts)) for e in rollouts.episodes]
     monitor_file.save(dataclasses.replace(gated, threshold=float(np.median(maxima))), path)
     return path
@@ -247,10 +252,14 @@ def test_explain_dataset_scores_each_episode_as_the_monitor_scores_it_whole(feat
         rows = scored.table(episode).to_pylist()
         expected = monitor.score_steps(e.matrix(monitor.inputs), e.prompts)
         np.testing.assert_array_equal([_number(r["monitor/score"]) for r in rows], expected)
-        if not monitor.knows(rows[0]["task"]):  # an instruction it was not fitted on: STAC alone
+        trust = monitor.trust(rows[0]["task"])
+        if trust != monitor_file.FITTED:  # an instruction it was not fitted on: STAC alone, raised if untrained
             mean, std = monitor.standardised.stac
-            stac = np.array([_number(r["monitor/stac"]) for r in rows])
-            np.testing.assert_array_equal(expected, (stac - mean) / std)
+            stac = (np.array([_number(r["monitor/stac"]) for r in rows]) - mean) / std
+            if trust == monitor_file.UNTRAINED:
+                stac = np.fmax(stac, monitor.threshold + monitor_file.UNTRAINED_MARGIN)
+                assert rows[0]["monitor/flag"]
+            np.testing.assert_array_equal(expected, stac)
         flags = np.fmax.accumulate(expected) > monitor.threshold  # a step without a score flags nothing
         assert [r["monitor/flag"] for r in rows] == flags.tolist()
         flagged += bool(flags[-1])
@@ -328,7 +337,7 @@ def test_stats_rank_each_figures_maximum_over_an_episodes_first_frames(scored, t
     scores = {e: [r["monitor/score"] for r in rows if r["monitor/score"] is not None] for e, rows in by_episode.items()}
     first = {e: rows[0]["monitor/score"] for e, rows in by_episode.items() if rows[0]["monitor/score"] is not None}
     top = {e: max(s) for e, s in scores.items() if s}
-    assert 0 < len(first) < len(top)  # the untrusted episodes' first calls have no score
+    assert 0 < len(first) < len(top)  # the first calls of episodes scored by STAC alone have no score
     assert detection[0]["figures"]["monitor"]["auroc"] == pytest.approx(_pairs_auc(failed, first), abs=1e-12)
     assert detection[-1]["figures"]["monitor"]["auroc"] == pytest.approx(_pairs_auc(failed, top), abs=1e-12)
     assert detection[0]["figures"]["monitor"]["episodes"] == len(first)
