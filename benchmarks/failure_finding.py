@@ -198,8 +198,9 @@ def outcome_maps(ds: MapsDataset, kind: str, perturbation_of: dict[int, int], pn
                 use = (which == p) & (success != failed)
                 mean = maps[c][use].mean(axis=0) if use.any() else np.zeros(ds.grid(c))
                 scaled = mean / mean.max() if mean.max() > 0 else mean
-                up = np.kron(scaled, np.ones((cell // scaled.shape[0], cell // scaled.shape[1])))
-                row += [(up * 255).astype(np.uint8), np.full((cell, gap), 128, np.uint8)]
+                # nearest-neighbour to one cell size whatever the grid (4 x 4 for the demo, 6 x 6 at 96 px)
+                up = Image.fromarray((scaled * 255).astype(np.uint8)).resize((cell, cell), Image.Resampling.NEAREST)
+                row += [np.asarray(up), np.full((cell, gap), 128, np.uint8)]
                 counts.append(int(use.sum()))
         rows += [np.concatenate(row, axis=1), np.full((gap, sum(r.shape[1] for r in row)), 128, np.uint8)]
         cells = [f"{counts[2 * i]} / {counts[2 * i + 1]}" for i in range(len(cameras))]
