@@ -30,8 +30,7 @@ enlarged from 8 to 32 scenes per perturbation: 48 episodes put +-0.15 on an AURO
 round 4 (the `gated` candidate added, their test and unseen splits enlarged from 3 to 6 scenes per task and
 perturbation) on 110000; their round 5 (the gated monitor told the instructions the policy was trained on, `monitor
 fit --trained-prompts`: a step under any other is flagged from the first call) on 120000. Stages already done are
-reused (delete a folder to redo it). Writes
-OUT/<setting>/report.json and prints markdown tables.
+reused (delete a folder to redo it). Writes OUT/<setting>/report.json and prints markdown tables.
 """
 
 from __future__ import annotations

@@ -63,7 +63,7 @@ class LiveMonitor:
             scored = stream.step(signals, prompt=prompt)
             self._scored += 1
             self._flagged += int(stream.flagged and not was_flagged)
-            untrained = self.monitor.trust(prompt) == UNTRAINED and connection not in self._untrained
+            untrained = connection not in self._untrained and self.monitor.trust(prompt) == UNTRAINED
             if untrained:
                 self._untrained.add(connection)
                 self._untrained_count += 1

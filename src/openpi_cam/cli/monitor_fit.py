@@ -118,17 +118,14 @@ def _refuse_other_kinds_flags(kind: str, given: dict[str, object]) -> None:
 
 
 def _trained_instructions(datasets: tuple[pathlib.Path, ...], prompts: tuple[str, ...]) -> tuple[str, ...]:
-    """Every task string of the training datasets and every instruction given, in `instruction` form."""
+    """Every instruction given and every task string of the training datasets (`fit_monitor` normalises them)."""
     texts = [*prompts]
     for path in datasets:
         tasks = list(open_dataset(path).tasks().values())
         if not tasks:
             raise ValueError(f"{path}: the dataset names no task (meta/tasks), so it tells no instruction")
         texts += tasks
-    known = {monitor_file.instruction(t) for t in texts}
-    if "" in known:
-        raise ValueError("an empty instruction among the policy's: a gated monitor tells instructions by their text")
-    return tuple(sorted(known))
+    return tuple(texts)
 
 
 def _check_options(options: FitOptions) -> None:

@@ -328,6 +328,8 @@ def fit_monitor(episodes: Sequence[Episode], options: FitOptions = FitOptions())
     if options.trained_on and options.kind != "gated":
         raise ValueError(f"the policy's instructions are read by a gated monitor, not a {options.kind} one")
     trained_on = {instruction(p) for p in options.trained_on}
+    if "" in trained_on:
+        raise ValueError("an empty instruction among the policy's: a gated monitor tells instructions by their text")
     strangers = sorted(set(prompts) - trained_on) if trained_on else []
     if strangers:  # most likely another policy's training data: every served call would be flagged
         raise ValueError(
