@@ -1405,6 +1405,24 @@ def test_every_flag_has_a_case():
         assert all(CASES[command][flag] for flag in flags), f"{command}: a flag with an empty list of cases"
 
 
+def test_every_flag_says_what_it_does():
+    """Each flag's `--help` has text of its own: none is bare, and no two flags of a command share one text (a
+    comment above several fields gives tyro's help of each the same block, which then describes only the first)."""
+    for command, parsed in _parsers().items():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            parser = tyro.extras.get_parser(parsed)
+        by_text: dict[str, list[str]] = {}
+        for action in parser._actions:
+            if not action.option_strings or "--help" in action.option_strings:
+                continue
+            text = (action.help or "").split("(default:")[0].split("(required)")[0].strip()
+            by_text.setdefault(text, []).append(action.option_strings[0])
+        assert "" not in by_text, f"{command}: flags without help {by_text.get('')}"
+        shared = {text[:60]: flags for text, flags in by_text.items() if len(flags) > 1}
+        assert not shared, f"{command}: flags sharing one help text {shared}"
+
+
 def _params() -> list:
     params = []
     for command, by_flag in CASES.items():

@@ -90,6 +90,7 @@ def main(
         execution_horizon: the actions the robot executed per call: `monitor/stac` compares a frame's chunk with the
             previous explained frame's when that lies this many frames before (explain with `--every-k` equal to
             it). Default: the monitor's, else 5 (the demo robots').
+        progress: show progress on stderr.
     """
     try:
         if workers < 1:

@@ -69,12 +69,13 @@ class ExplainFlags:
     # 0: every `occlusion` region once; M > 0: M random region masks per camera, scored with the Interventional
     # Significance Score (for large grids).
     occlusion_masks: int = 0
-    # `smoothgrad`: how many noisy copies of the image tokens, and the noise's std in units of each channel's spread
-    # over the camera's tokens.
+    # `smoothgrad`: how many noisy copies of the image tokens are averaged over.
     smoothgrad_samples: int = MapOptions.smoothgrad_samples
+    # `smoothgrad`: the noise's std, in units of each channel's spread over the camera's tokens.
     smoothgrad_sigma: float = MapOptions.smoothgrad_sigma
-    # `rise`: random patch masks per camera (each a re-run), and the probability that a mask keeps a patch.
+    # `rise`: random patch masks per camera (each a re-run).
     rise_masks: int = MapOptions.rise_masks
+    # `rise`: the probability that a mask keeps a patch.
     rise_keep_prob: float = MapOptions.rise_keep_prob
     # where the `ig` path runs: between the SigLIP tokens of the baseline frame and the frame, or between the frames'
     # pixels, through SigLIP.

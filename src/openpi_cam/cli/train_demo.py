@@ -29,7 +29,7 @@ class RecordArgs:
     """Which tasks, how many expert episodes of each, and how noisy; None: the simulator choice's own (`SIMS`)."""
 
     episodes: int | None = None  # per task
-    tasks: tuple[str, ...] | None = None
+    tasks: tuple[str, ...] | None = None  # Meta-World task names, e.g. reach-v3 push-v3
     seed: int = 100_000  # episode i of a task is scene seed + i (the demo's evaluation episodes start at 0)
     noise: float = 0.3  # std of the noise added to executed actions (DART)
     clean_every: int = 4  # every this many episodes runs without noise (the expert's own path)

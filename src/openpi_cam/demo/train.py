@@ -46,17 +46,17 @@ class TrainArgs:
     (about 22 minutes on 2 CPU cores). The shipped model is the longer recipe `--steps 10000 --finetune-steps 0`,
     then `--steps 0 --init-from <params> --finetune-steps 800` (README, "The bundled demo")."""
 
-    model: Literal["pi0_fast", "pi05"] = "pi0_fast"
+    model: Literal["pi0_fast", "pi05"] = "pi0_fast"  # the family: pi0-FAST (action tokens) or pi0.5 (flow matching)
     out: Path | None = None  # None: the bundled assets of `model`
-    steps: int = 5000
-    batch_size: int = 32
-    lr: float = 2e-3
-    warmup: int = 50
-    seed: int = 0
-    width: int = 128
-    depth: int = 2
-    vit_width: int = 64
-    patch_size: int = bundled.PATCH_SIZE
+    steps: int = 5000  # optimizer steps of the first phase (0: none, e.g. to fine-tune from --init-from alone)
+    batch_size: int = 32  # examples per step
+    lr: float = 2e-3  # the first phase's peak learning rate (AdamW; warmup, then cosine decay to 5% of it)
+    warmup: int = 50  # steps of linear warmup to --lr
+    seed: int = 0  # the initialisation, the text tokenizer and the batches
+    width: int = 128  # the language model's width (pi0.5's action expert keeps its own, 64)
+    depth: int = 2  # the language model's layers
+    vit_width: int = 64  # the vision encoder's width
+    patch_size: int = bundled.PATCH_SIZE  # the vision encoder's patch side, in pixels
     # Batches of (same scene, two prompts) pairs (`task.contrast_pair`): without them the model settles on "head for
     # a block" and never binds the colour the prompt names (training curves: docs/DEMO_NOTES.md).
     contrast_pairs: bool = True
@@ -67,11 +67,11 @@ class TrainArgs:
     # toward the named block much less often than with the decoder's offset removed (docs/DEMO_NOTES.md). 0: no phase.
     # (pi0-FAST only; the phase is skipped for pi0.5.)
     finetune_steps: int = 400
-    finetune_lr: float = 1e-3
-    finetune_warmup: int = 20
+    finetune_lr: float = 1e-3  # the second phase's peak learning rate (a fresh AdamW, same schedule)
+    finetune_warmup: int = 20  # the second phase's warmup steps
     init_from: Path | None = None  # a params directory to start from instead of a fresh initialisation
-    eval_episodes: int = 30
-    log_every: int = 250
+    eval_episodes: int = 30  # closed-loop episodes run after training, their success logged (0: none)
+    log_every: int = 250  # log the training loss every this many steps
     probe_every: int = 500  # log the binding probe (`quality.binding_probe`) every this many steps; 0: never
 
     def unused(self) -> str | None:
