@@ -42,22 +42,25 @@ from openpi_cam.viz.stats import map_entropy
 
 SETTING = _reach("pi0_fast")
 MAPS = "gradnorm"
+PERTURBATION = "extra/perturbation"  # monitor_transfer explains with `--extra perturbation=perturbation`
 
 
-def with_map_figures(episodes: list[Episode], maps: pathlib.Path) -> tuple[list[Episode], tuple[str, ...]]:
-    """The episodes with each step's map entropy and peak share per camera as scalar columns `map/...`."""
+def with_map_figures(episodes: list[Episode], maps: pathlib.Path) -> tuple[list[Episode], tuple[str, ...], list[str]]:
+    """The episodes with each step's map entropy and peak share per camera as scalar columns `map/...`, those
+    columns' names, and each episode's perturbation (its rows' recorded `extra/perturbation` index into dev's)."""
     ds = open_maps_dataset(maps)
     cameras = ds.info.cameras
-    out, names = [], tuple(f"map/{f}/{c}" for c in cameras for f in ("entropy", "peak"))
+    out, names, perturbations = [], tuple(f"map/{f}/{c}" for c in cameras for f in ("entropy", "peak")), []
     for episode, index in zip(episodes, ds.episodes, strict=True):
-        table = ds.table(index, [f"{MAPS}/{c}" for c in cameras])
+        table = ds.table(index, [f"{MAPS}/{c}" for c in cameras] + [PERTURBATION])
+        perturbations.append(SETTING.dev[int(table.column(PERTURBATION)[0].as_py()[0])])
         columns = dict(episode.columns)
         for camera in cameras:
             rows = [np.clip(np.asarray(m, np.float64), 0, None) for m in table.column(f"{MAPS}/{camera}").to_pylist()]
             columns[f"map/entropy/{camera}"] = np.array([map_entropy(m) for m in rows])
             columns[f"map/peak/{camera}"] = np.array([m.max() / m.sum() if m.sum() > 0 else np.nan for m in rows])
         out.append(dataclasses.replace(episode, columns=columns))
-    return out, names
+    return out, names, perturbations
 
 
 def first_calls(episode: Episode, calls: int) -> Episode:
@@ -99,7 +102,7 @@ def main() -> None:
     load_before, t0 = os.getloadavg(), time.perf_counter()
     rollouts = read_rollouts([args.dev])
     folds = scene_folds(args.dev, SETTING)
-    episodes, map_inputs = with_map_figures(list(rollouts.episodes), args.dev)
+    episodes, map_inputs, perturbation = with_map_figures(list(rollouts.episodes), args.dev)
     union = _options("union", False, rollouts)
     rows: dict[str, float] = {"union as shipped (l2 0.01, 32 dims)": fold_auroc(episodes, folds, union)}
     for l2 in (1e-3, 1e-1, 1.0, 10.0):
@@ -113,8 +116,6 @@ def main() -> None:
     rows["union + map entropy and peak share per camera"] = fold_auroc(episodes, folds, with_maps)
 
     failed = np.array([not e.success for e in episodes])
-    per_scene = len(SETTING.dev)
-    perturbation = [SETTING.dev[i % per_scene] for i in range(len(episodes))]  # the demo cycles them per scene
     scores = first_call_scores(episodes, folds, union)
     within = {}
     for p in SETTING.dev:

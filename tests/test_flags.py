@@ -83,14 +83,18 @@ def _run_in_process(command: str, argv: list[str]) -> int:
     return 0
 
 
+def _parser(parsed: Callable[..., Any]) -> Any:
+    """tyro's argparse parser for `parsed`."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # get_parser is the one way to read the parser
+        return tyro.extras.get_parser(parsed)
+
+
 def flags_of(parsed: Callable[..., Any]) -> set[str]:
     """The flags tyro's parser takes for `parsed`, each by its own name (`--no-X` and earlier spellings are the same
     flag); positional arguments are not flags."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)  # get_parser is the one way to read the parser
-        parser = tyro.extras.get_parser(parsed)
     names = set()
-    for action in parser._actions:
+    for action in _parser(parsed)._actions:
         options = [o for o in action.option_strings if not o.startswith(("--no-", "--cam.no-"))]
         if not options or "--help" in options:
             continue
@@ -1409,11 +1413,8 @@ def test_every_flag_says_what_it_does():
     """Each flag's `--help` has text of its own: none is bare, and no two flags of a command share one text (a
     comment above several fields gives tyro's help of each the same block, which then describes only the first)."""
     for command, parsed in _parsers().items():
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", DeprecationWarning)
-            parser = tyro.extras.get_parser(parsed)
         by_text: dict[str, list[str]] = {}
-        for action in parser._actions:
+        for action in _parser(parsed)._actions:
             if not action.option_strings or "--help" in action.option_strings:
                 continue
             text = (action.help or "").split("(default:")[0].split("(required)")[0].strip()
