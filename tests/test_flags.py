@@ -1078,6 +1078,8 @@ METAWORLD = ("--sim", "metaworld", "--data", "{scratch}/expert", "--record.episo
              metaworld_sim.TASK)  # fmt: skip
 TRAIN_METAWORLD = Run("train_demo", (*METAWORLD, *TRAIN_DEMO_ARGS), slow=True)
 TRAIN_METAWORLD_PI05 = Run("train_demo", (*METAWORLD, *TRAIN_DEMO_ARGS, "--args.model", "pi05"), slow=True)
+# Two tasks' episodes, for a weight to shift the draws between.
+TRAIN_METAWORLD_TWO_TASKS = Run("train_demo", (*METAWORLD, "reach-v3", *TRAIN_DEMO_ARGS), slow=True)
 EXPERT_CAMERA = recorded("expert/meta/info.json", "features", metaworld_data.BASE_FEATURE, "shape")
 
 
@@ -1126,6 +1128,13 @@ TRAIN_DEMO_CASES: dict[str, tuple[Case, ...]] = {
     "--record.tasks": (Changes(TRAIN_METAWORLD, ("--record.tasks", "reach-v3"), expert_tasks),),
     "--record.image-size": (Changes(TRAIN_METAWORLD, ("--record.image-size", "32"), EXPERT_CAMERA),),
     "--record.phrasings": (Changes(TRAIN_METAWORLD, ("--record.phrasings", "1"), expert_tasks),),
+    "--task-weights": (
+        Changes(TRAIN_METAWORLD_TWO_TASKS, ("--task-weights", "reach-v3=4"), losses),
+        Refused("train_demo", ("--task-weights", "reach-v3=2")),  # the reaching task has no Meta-World tasks
+        Refused("train_demo", ("--sim", "metaworld", "--data", "{scratch}/expert", "--task-weights", "reach=2")),
+        # A task the recorded episodes do not show: refused once they are read, before any training.
+        Refused("train_demo", (*METAWORLD, "--task-weights", "reach-v3=2"), slow=True),
+    ),
 }
 
 CASES: dict[str, dict[str, tuple[Any, ...]]] = {

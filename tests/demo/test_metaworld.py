@@ -66,6 +66,42 @@ def test_a_chunk_repeats_its_episodes_last_action_past_the_end():
     np.testing.assert_array_equal(demos.chunk(3, 3), actions[[3, 4, 4]])
 
 
+def test_task_weights_set_how_often_each_tasks_frames_are_drawn():
+    """`train_demo --task-weights push-v3=3`: push's frames drawn three times as often as the others', frame for frame
+    (a task's share grows with its frames too); the unweighted draw is the uniform one the shipped models trained on."""
+    reach, push, button = (metaworld_sim.TASKS[t].prompts for t in ("reach-v3", "push-v3", metaworld_sim.TASK))
+    prompts = [reach[0]] * 20 + [push[1]] * 10 + [button[2]] * 10  # frames: reach 50%, push 25%, button 25%
+    n = len(prompts)
+    demos = metaworld_data.Demonstrations(
+        base_image=np.zeros((n, 2, 2, 3), np.uint8),
+        wrist_image=np.zeros((n, 2, 2, 3), np.uint8),
+        state=np.arange(n, dtype=np.float32)[:, None].repeat(4, 1),
+        actions=np.zeros((n, 4), np.float32),
+        episode_index=np.arange(n) // 5,
+        prompt=np.array(prompts),
+    )
+    weighted = demos.weighted(train_demo.parse_task_weights(["push-v3=3"]))
+    expected = {"reach-v3": 20 / 60, "push-v3": 30 / 60, metaworld_sim.TASK: 10 / 60}
+    assert weighted.task_shares() == pytest.approx(expected)
+    assert demos.task_shares() == pytest.approx({"reach-v3": 0.5, "push-v3": 0.25, metaworld_sim.TASK: 0.25})
+    draws = 30_000
+    rows = [int(s.state[0]) for s in weighted.samples(np.random.default_rng(0), draws, 2)]
+    tasks = weighted.tasks()[rows]
+    for name, share in expected.items():
+        # Binomial: the drawn share within 4 standard errors (<= 0.012 at these shares and draws) of the expected.
+        assert abs(np.mean(tasks == name) - share) < 4 * np.sqrt(share * (1 - share) / draws)
+    # Unweighted, the rows are the uniform draw the recipe has always made: same generator, same rows.
+    uniform = [int(s.state[0]) for s in demos.samples(np.random.default_rng(0), 50, 2)]
+    assert uniform == np.random.default_rng(0).integers(n, size=50).tolist()
+    with pytest.raises(ValueError, match="no episodes of drawer-close-v3"):
+        demos.weighted({"drawer-close-v3": 2.0})
+    for bad, says in [("push-v3", "TASK=WEIGHT"), ("pull-v3=2", "TASK=WEIGHT"), ("push-v3=0", "positive"),
+                      ("push-v3=x", "positive"), ("push-v3=nan", "positive")]:  # fmt: skip
+        with pytest.raises(ValueError, match=says) as e:
+            train_demo.parse_task_weights([bad])
+        assert "\n" not in str(e.value)
+
+
 @pytest.mark.slow
 def test_the_expert_presses_the_button_and_the_state_hides_it():
     with MetaWorldSim(3) as sim:

@@ -128,16 +128,36 @@ def read_demonstrations(roots: Sequence[Path]) -> metaworld_data.Demonstrations:
     return metaworld_data.Demonstrations.from_frames(frames, [frame["task"] for frame in frames])
 
 
+def parse_task_weights(given: Sequence[str]) -> dict[str, float]:
+    """`TASK=WEIGHT` pairs -> {task: weight}; a ValueError in one line names a malformed pair, an unknown task or a
+    weight that is not a positive number."""
+    weights: dict[str, float] = {}
+    for pair in given:
+        name, sep, value = pair.partition("=")
+        if not sep or name not in metaworld_sim.TASKS:
+            raise ValueError(f"{pair!r}: TASK=WEIGHT with TASK one of {', '.join(metaworld_sim.TASKS)}")
+        try:
+            weight = float(value)
+        except ValueError:
+            weight = float("nan")
+        if not (np.isfinite(weight) and weight > 0):
+            raise ValueError(f"{pair!r}: the weight must be a positive number")
+        weights[name] = weight
+    return weights
+
+
 DEFAULT_TRAIN = train.TrainArgs()
 DEFAULT_RECORD = RecordArgs()
 
 
-def _unused(args: train.TrainArgs, sim: str, data: tuple[Path, ...], record: RecordArgs) -> str | None:
-    """What the flags given leave without effect (and the command refuses), or None."""
+def _unused(
+    args: train.TrainArgs, sim: str, data: tuple[Path, ...], record: RecordArgs, task_weights: tuple[str, ...]
+) -> str | None:
+    """What the flags given leave without effect or cannot use (and the command refuses), or None."""
     recording = [f"--record.{f.name.replace('_', '-')}" for f in dataclasses.fields(record)
                  if getattr(record, f.name) != getattr(DEFAULT_RECORD, f.name)]  # fmt: skip
-    if sim == "reach" and (data or recording):
-        given = ", ".join((["--data"] if data else []) + recording)
+    if sim == "reach" and (data or recording or task_weights):
+        given = ", ".join((["--data"] if data else []) + recording + (["--task-weights"] if task_weights else []))
         return f"{given}: Meta-World's expert episodes: add --sim metaworld"
     # The reaching task's alone: Meta-World trains on its recorded frames, where the binding probe has no scenes.
     fixed = [f"--args.{n.replace('_', '-')}" for n in ("probe_every", "contrast_pairs")
@@ -150,6 +170,10 @@ def _unused(args: train.TrainArgs, sim: str, data: tuple[Path, ...], record: Rec
         return f"{', '.join(recording)}: {data[0]} holds its expert episodes already (a new folder records them)"
     if missing := [str(d) for d in data[1:] if not is_lerobot_dataset(d)]:
         return f"--data {' '.join(missing)}: no LeRobot dataset there (only the first folder is recorded into)"
+    try:
+        parse_task_weights(task_weights)
+    except ValueError as e:
+        return f"--task-weights {e}"
     return None
 
 
@@ -158,6 +182,7 @@ def main(
     sim: Literal["reach", "metaworld", "metaworld-button"] = "reach",
     data: tuple[Path, ...] = (),
     record: RecordArgs = DEFAULT_RECORD,
+    task_weights: tuple[str, ...] = (),
 ) -> int:
     """Train a demo model.
 
@@ -168,8 +193,10 @@ def main(
         data: metaworld: the LeRobot datasets of expert episodes, trained on together; the first is recorded first
             if its folder is absent or empty (`--record.*`), the others must hold datasets.
         record: metaworld: the expert episodes to record.
+        task_weights: metaworld: TASK=WEIGHT pairs (e.g. push-v3=3): the named tasks' frames are drawn for training
+            WEIGHT times as often as the others' (whose weight is 1); the shares printed before training.
     """
-    if refused := _unused(args, sim, data, record):
+    if refused := _unused(args, sim, data, record, task_weights):
         print(f"train_demo: {refused}")
         return 2
     if sim == "reach":
@@ -187,6 +214,14 @@ def main(
         record_expert(data[0], record)
     demos = read_demonstrations(data)
     print(f"{len(demos)} frames in {len(np.unique(demos.episode_index))} episodes from {', '.join(map(str, data))}")
+    if task_weights:
+        try:
+            demos = demos.weighted(parse_task_weights(task_weights))
+        except ValueError as e:
+            print(f"train_demo: --task-weights: {e} ({', '.join(map(str, data))})")
+            return 2
+    shares = ", ".join(f"{t or 'other'} {share:.0%}" for t, share in demos.task_shares().items())
+    print(f"training draws by task: {shares}", flush=True)
     train.train(
         args,
         demonstrations=demos,

@@ -74,6 +74,8 @@ class Demonstrations:
     actions: np.ndarray  # [N, ACTION_DIM] float32
     episode_index: np.ndarray  # [N] int
     prompt: np.ndarray  # [N] str
+    # [N]: how often each row is drawn for training, relative to the others (None: every row alike).
+    weight: np.ndarray | None = None
 
     @classmethod
     def from_frames(cls, frames: list[dict[str, Any]], prompts: list[str]) -> Demonstrations:
@@ -116,4 +118,28 @@ class Demonstrations:
         )
 
     def samples(self, rng: np.random.Generator, n: int, horizon: int) -> list[task.Sample]:
-        return [self.sample(int(r), horizon) for r in rng.integers(len(self), size=n)]
+        if self.weight is None:
+            rows = rng.integers(len(self), size=n)
+        else:
+            rows = rng.choice(len(self), size=n, p=self.weight / self.weight.sum())
+        return [self.sample(int(r), horizon) for r in rows]
+
+    def tasks(self) -> np.ndarray:
+        """[N] str: each row's Meta-World task, by its instruction ("" where the instruction is no task's)."""
+        names = {p: metaworld_sim.task_of(p) or "" for p in np.unique(self.prompt)}
+        return np.array([names[p] for p in self.prompt])
+
+    def weighted(self, task_weights: dict[str, float]) -> Demonstrations:
+        """These rows, those of each task in `task_weights` drawn that many times as often as the others (a task's
+        share of the draws grows with its weight and with its share of the frames); a ValueError names a weighted
+        task no row shows."""
+        tasks = self.tasks()
+        if absent := sorted(set(task_weights) - set(tasks)):
+            raise ValueError(f"no episodes of {', '.join(absent)} in the expert data")
+        return dataclasses.replace(self, weight=np.array([task_weights.get(t, 1.0) for t in tasks]))
+
+    def task_shares(self) -> dict[str, float]:
+        """Each task's expected share of the training draws."""
+        weight = np.ones(len(self)) if self.weight is None else self.weight
+        tasks = self.tasks()
+        return {t: float(weight[tasks == t].sum() / weight.sum()) for t in dict.fromkeys(tasks)}

@@ -81,6 +81,11 @@ def all_prompts() -> tuple[str, ...]:
     return tuple(p for spec in TASKS.values() for p in spec.prompts)
 
 
+def task_of(prompt: str) -> str | None:
+    """The task one of whose instructions `prompt` is, or None."""
+    return next((name for name, spec in TASKS.items() if prompt in spec.prompts), None)
+
+
 TRAINED_TASKS = ("button-press-topdown-v3", "reach-v3", "push-v3", "drawer-close-v3", "door-open-v3", "window-open-v3")
 HELD_OUT_TASKS = ("drawer-open-v3", "window-close-v3")
 BASE_CAMERA = "corner"
