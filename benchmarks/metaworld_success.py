@@ -1,7 +1,7 @@
 """Closed-loop success of the bundled multi-task Meta-World models, per model, task and perturbation.
 
     python benchmarks/metaworld_success.py [--models pi05 pi0_fast pi05=DIR] [--tasks all held-out] [--episodes 40]
-        [--perturb clean "prompt=open the door"] [--workers N] [--out FILE]
+        [--perturb clean "prompt=open the door"] [--fovy DEGREES] [--workers N] [--out FILE]
 
 Each (model, task, perturbation) runs the episodes `openpi-cam demo --sim metaworld --model M --task T --perturb P
 --num-episodes N --no-explain` runs: scene seeds `--seed` .. `--seed` + N - 1, the task's own step budget, `execute`
@@ -9,7 +9,9 @@ actions of each chunk, both cameras at the demo's size. The policy is called in 
 (the server returns the same actions; `tests/serving` holds that), so that the episodes can spread over `--workers`
 processes, each with its own copy of the models on the CPU. Prints a markdown table with Wilson 95% intervals and
 the machine, and writes the figures as JSON to `--out`. A model `FAMILY=DIR` is that family's bundled model with the
-weights and tokenizers of DIR instead (a candidate before it ships). Needs the `metaworld` extra.
+weights and tokenizers of DIR instead (a candidate before it ships); `--fovy` narrows the fixed camera's field of
+view from Meta-World's 45 degrees for every model of the run (a candidate trained on frames of such a camera). Needs
+the `metaworld` extra.
 """
 
 from __future__ import annotations
@@ -26,14 +28,14 @@ from bench_serving import machine_line
 _POLICIES: dict[str, object] = {}
 
 
-def _episode(job: tuple[str, str, str, int, int]) -> tuple[str, str, str, bool, int]:
-    """One episode in a worker: (model, task, perturbation, seed, execute) -> (model, task, perturbation, success,
-    steps)."""
+def _episode(job: tuple[str, str, str, int, int, float | None]) -> tuple[str, str, str, bool, int]:
+    """One episode in a worker: (model, task, perturbation, seed, execute, fovy) -> (model, task, perturbation,
+    success, steps)."""
     from openpi_cam.checkpoints import model_spec
     from openpi_cam.demo import bundled, metaworld_loop, metaworld_sim
     from openpi_cam.demo.run import METAWORLD_CAMERA_SIZE, METAWORLD_MODELS
 
-    model, task, perturb, seed, execute = job
+    model, task, perturb, seed, execute, fovy = job
     if model not in _POLICIES:
         family, _, assets = model.partition("=")
         folder = {"assets": pathlib.Path(assets)} if assets else {}
@@ -50,6 +52,7 @@ def _episode(job: tuple[str, str, str, int, int]) -> tuple[str, str, str, bool, 
         task=task,
         execute=execute,
         image_size=METAWORLD_CAMERA_SIZE,
+        fovy=fovy,
     )
     return model, task, perturb, bool(out["success"]), int(out["steps"])
 
@@ -62,6 +65,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=40)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--execute", type=int, default=5)
+    parser.add_argument("--fovy", type=float, default=None, help="the fixed camera's field of view, degrees")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
@@ -80,7 +84,7 @@ def main() -> None:
         parser.error(str(e))
     # Episode-major, so that a run cut short has as many episodes of every row as it could.
     jobs = [
-        (m, t, p, args.seed + e, args.execute)
+        (m, t, p, args.seed + e, args.execute, args.fovy)
         for e in range(args.episodes)
         for m in args.models
         for t in tasks
@@ -114,7 +118,17 @@ def main() -> None:
     print(f"\n{len(jobs)} episodes in {wall:.0f} s over {args.workers} workers; {machine}")
     if args.out:
         with open(args.out, "w") as f:
-            json.dump({"rows": rows, "episodes": results, "seed": args.seed, "wall_s": wall, "machine": machine}, f)
+            json.dump(
+                {
+                    "rows": rows,
+                    "episodes": results,
+                    "seed": args.seed,
+                    "fovy": args.fovy,
+                    "wall_s": wall,
+                    "machine": machine,
+                },
+                f,
+            )
 
 
 if __name__ == "__main__":

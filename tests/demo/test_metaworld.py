@@ -128,6 +128,31 @@ def test_scenes_follow_the_seed():
 
 
 @pytest.mark.slow
+def test_a_narrower_fixed_camera_shows_the_small_targets_larger():
+    """`fovy=25` against Meta-World's 45 degrees: the reach goal and the puck cover (tan 22.5 / tan 12.5)^2, about
+    3.5 times the fixed camera's pixels (measured 3-4 over scenes: pixel edges); the expert's episode and the wrist
+    camera are the same."""
+    for task in ("reach-v3", "push-v3"):
+        with (
+            MetaWorldSim(3, task=task, image_size=96) as wide,
+            MetaWorldSim(3, task=task, image_size=96, fovy=25) as narrow,
+        ):
+            a, b = wide.frame(), narrow.frame()
+        np.testing.assert_array_equal(a.wrist_image, b.wrist_image)
+        np.testing.assert_array_equal(a.state, b.state)
+        assert 2.5 < b.target_mask.sum() / a.target_mask.sum() < 5, (task, a.target_mask.sum(), b.target_mask.sum())
+    steps = list(metaworld_data.expert_episode(3, 0.3, task="reach-v3", image_size=32, fovy=25))
+    same = list(metaworld_data.expert_episode(3, 0.3, task="reach-v3", image_size=32))
+    assert [s.frame[metaworld_data.ACTION_FEATURE].tolist() for s in steps] == [
+        s.frame[metaworld_data.ACTION_FEATURE].tolist() for s in same
+    ]
+    assert all(
+        (s.frame[metaworld_data.BASE_FEATURE] != t.frame[metaworld_data.BASE_FEATURE]).any()
+        for s, t in zip(steps, same, strict=True)
+    )
+
+
+@pytest.mark.slow
 def test_a_hue_turn_touches_only_the_box_and_the_mask_is_where_it_is():
     with MetaWorldSim(4) as clean, MetaWorldSim(4, Perturbation.parse("hue=120")) as turned:
         before, after = clean.frame(), turned.frame()

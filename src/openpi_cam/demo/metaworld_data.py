@@ -40,12 +40,13 @@ def expert_episode(
     task: str = metaworld_sim.TASK,
     prompt: str | None = None,
     image_size: int = metaworld_sim.IMAGE_SIZE,
+    fovy: float | None = None,
 ) -> Iterator[ExpertStep]:
     """One expert episode of `task` in scene `seed`, instructed by `prompt` (None: the task's first); the executed
     action is the expert's plus Gaussian noise of std `noise` (the recorded one is the expert's). Ends `HOLD_STEPS`
-    after success, or at the task's step budget."""
+    after success, or at the task's step budget. `fovy`: the fixed camera's (`MetaWorldSim`)."""
     rng = np.random.default_rng([seed, 1])
-    with metaworld_sim.MetaWorldSim(seed, task=task, image_size=image_size, prompt=prompt) as sim:
+    with metaworld_sim.MetaWorldSim(seed, task=task, image_size=image_size, prompt=prompt, fovy=fovy) as sim:
         hold, max_steps = 0, sim.spec.max_steps
         while sim.steps < max_steps and hold < HOLD_STEPS:
             frame = sim.frame(with_target=False)

@@ -33,14 +33,16 @@ def run_episode(
     sink: RolloutSink | None = None,
     perturbation_index: int = 0,
     image_size: int | None = None,
+    fovy: float | None = None,
 ) -> dict[str, Any]:
     """One closed-loop episode of `task`; `infer` takes the client observation (with its `cam_extra/` entries) and
-    returns the server's reply. `max_calls` None: the task's budget (`max_calls_of`); `image_size` None: the
-    simulator's default. Recorded frames carry `perturbation_index` (the perturbation's place in the run's list)."""
+    returns the server's reply. `max_calls` None: the task's budget (`max_calls_of`); `image_size` and `fovy` (the
+    fixed camera's field of view) None: the simulator's defaults. Recorded frames carry `perturbation_index` (the
+    perturbation's place in the run's list)."""
     calls = 0
     max_calls = max_calls_of(task, execute) if max_calls is None else max_calls
     size = {} if image_size is None else {"image_size": image_size}
-    with MetaWorldSim(seed, perturbation, task=task, **size) as sim:
+    with MetaWorldSim(seed, perturbation, task=task, fovy=fovy, **size) as sim:
         while calls < max_calls and not sim.success:
             frame = sim.frame()
             chunk = np.asarray(infer(bundled.client_observation(frame))["actions"])[:execute]
