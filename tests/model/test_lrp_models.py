@@ -228,7 +228,9 @@ def test_pi0_fast_lrp_for_every_target_entry_point(tiny_fast_model: Pi0FAST):
         maps = np.stack([res.by_kind["lrp"][c] for c in FAST_CAMERAS])
         assert maps.shape[1:] == shape and np.all(np.isfinite(maps)) and np.any(maps > 0) and np.any(maps < 0)
     logp = fast_maps.maps_for_chunk(tiny_fast_model, obs, tokens, list(range(8)), kinds=("gradnorm",))
-    assert float(chunk.score[0]) == pytest.approx(float(logp.score[0]), rel=1e-6)
+    # The same log-probability through LRP's rewritten forward pass (its own float32 op order): 1.2e-6 apart relative
+    # with jax 0.10.2, about ten float32 steps of the sum; the bound leaves a margin of eight.
+    assert float(chunk.score[0]) == pytest.approx(float(logp.score[0]), rel=1e-5)
     assert one.logits is not None and counter.logits is not None  # token targets report their logit vectors
     assert int(np.ravel(counter.token_ids)[0]) == 7
     assert not np.array_equal(one.by_kind["lrp"]["base_0_rgb"], counter.by_kind["lrp"]["base_0_rgb"])
