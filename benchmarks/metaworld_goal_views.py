@@ -8,8 +8,9 @@ knows that position up to Gaussian noise of `--noise` pixels, and the goal range
 mean (importance weights over a reference half of the draws); a goal out of the camera's view tells it nothing (the
 range's mean). Printed per camera and for each pair a robot can carry (a fixed camera beside a hand camera): the
 share of goals it places within reach's success radius of 5 cm, and, per camera, the share in view and how far the
-image moves for a centimetre along each axis. Occlusion by the arm is ignored: a ceiling, not an estimate of a
-policy. Needs the `metaworld` extra; about half a minute on one core.
+image moves for a centimetre along each axis. The cameras are the task model's own (fixed ones hang off the world
+body, hand ones off the hand). Occlusion by the arm is ignored: a ceiling, not an estimate of a policy. Needs the
+`metaworld` extra.
 """
 
 from __future__ import annotations
@@ -23,8 +24,6 @@ import numpy as np
 
 TASK = "reach-v3"
 SUCCESS_RADIUS = 0.05  # m: its success, the hand's distance to the goal
-CAMERAS = ("corner", "corner2", "corner3", "topview", "gripperPOV", "behindGripper")
-FIXED = ("corner", "corner2", "corner3", "topview")
 
 
 def projector(model: Any, data: Any, camera: str, size: int) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
@@ -71,15 +70,18 @@ def main() -> None:
         env = sim.env
         low, high = env._random_reset_space.low[-3:], env._random_reset_space.high[-3:]
         goals = rng.uniform(low, high, (args.goals, 3))
+        model = env.model
+        cameras = [model.camera(i).name for i in range(model.ncam)]
+        fixed = [c for c in cameras if model.cam_bodyid[model.camera(c).id] == 0]  # body 0: the world
         views = {}
         centre = ((low + high) / 2)[None]
         print(f"{TASK}: goals in x {low[0]:.2f}..{high[0]:.2f}, y {low[1]:.2f}..{high[1]:.2f}, "
               f"z {low[2]:.2f}..{high[2]:.2f} m; {args.size} px cameras\n")  # fmt: skip
-        within = " | ".join(f"within 5 cm, {n} px" for n in args.noise)
+        within = " | ".join(f"within {SUCCESS_RADIUS * 100:.0f} cm, {n} px" for n in args.noise)
         print(f"| camera | in view | px per cm (x; y; z) | {within} |")
         print("| --- | --- | --- | " + " | ".join("---" for _ in args.noise) + " |")
-        for camera in CAMERAS:
-            project = projector(env.model, env.data, camera, args.size)
+        for camera in cameras:
+            project = projector(model, env.data, camera, args.size)
             pixels, depth = project(goals)
             seen = (depth > 0) & (np.abs(pixels) < args.size / 2).all(1)
             views[camera] = (pixels, seen)
@@ -89,13 +91,13 @@ def main() -> None:
             print(f"| {camera} | {seen.mean():.2f} | {per_cm} | " + " | ".join(f"{s:.2f}" for s in shares) + " |")
         print(f"\n| fixed + hand camera | {within} |")
         print("| --- | " + " | ".join("---" for _ in args.noise) + " |")
-        for fixed, hand in itertools.product(FIXED, ("gripperPOV", "behindGripper")):
-            (a, seen_a), (b, seen_b) = views[fixed], views[hand]
-            # A goal out of one camera's view reads from the other's pixels alone: out of view is one far-off pixel.
-            away = 10.0 * args.size
+        # A goal out of one camera's view reads from the other's pixels alone: out of view is one far-off pixel.
+        away = 10.0 * args.size
+        for base, hand in itertools.product(fixed, [c for c in cameras if c not in fixed]):
+            (a, seen_a), (b, seen_b) = views[base], views[hand]
             pixels = np.concatenate([np.where(seen_a[:, None], a, away), np.where(seen_b[:, None], b, away)], 1)
             shares = [placed(pixels, seen_a | seen_b, goals, n, rng) for n in args.noise]
-            print(f"| {fixed} + {hand} | " + " | ".join(f"{s:.2f}" for s in shares) + " |")
+            print(f"| {base} + {hand} | " + " | ".join(f"{s:.2f}" for s in shares) + " |")
 
 
 if __name__ == "__main__":
