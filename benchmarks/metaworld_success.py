@@ -1,7 +1,7 @@
 """Closed-loop success of the bundled multi-task Meta-World models, per model, task and perturbation.
 
     python benchmarks/metaworld_success.py [--models pi05 pi0_fast pi05=DIR] [--tasks all held-out] [--episodes 40]
-        [--perturb clean "prompt=open the door"] [--fovy DEGREES] [--workers N] [--out FILE]
+        [--perturb clean "prompt=open the door"] [--fovy DEGREES] [--wrist-camera NAME] [--workers N] [--out FILE]
 
 Each (model, task, perturbation) runs the episodes `openpi-cam demo --sim metaworld --model M --task T --perturb P
 --num-episodes N --no-explain` runs: scene seeds `--seed` .. `--seed` + N - 1, the task's own step budget, `execute`
@@ -10,8 +10,9 @@ actions of each chunk, both cameras at the demo's size. The policy is called in 
 processes, each with its own copy of the models on the CPU. Prints a markdown table with Wilson 95% intervals and
 the machine, and writes the figures as JSON to `--out`. A model `FAMILY=DIR` is that family's bundled model with the
 weights and tokenizers of DIR instead (a candidate before it ships); `--fovy` narrows the fixed camera's field of
-view from Meta-World's 45 degrees for every model of the run (a candidate trained on frames of such a camera). Needs
-the `metaworld` extra.
+view from Meta-World's 45 degrees for every model of the run (a candidate trained on frames of such a camera), and
+`--wrist-camera` shows every model another of the scene's cameras as the wrist view (a candidate recorded with
+`train_demo --record.wrist-camera`). Needs the `metaworld` extra.
 """
 
 from __future__ import annotations
@@ -28,14 +29,14 @@ from bench_serving import machine_line
 _POLICIES: dict[str, object] = {}
 
 
-def _episode(job: tuple[str, str, str, int, int, float | None]) -> tuple[str, str, str, bool, int]:
-    """One episode in a worker: (model, task, perturbation, seed, execute, fovy) -> (model, task, perturbation,
-    success, steps)."""
+def _episode(job: tuple[str, str, str, int, int, float | None, str]) -> tuple[str, str, str, bool, int]:
+    """One episode in a worker: (model, task, perturbation, seed, execute, fovy, wrist camera) -> (model, task,
+    perturbation, success, steps)."""
     from openpi_cam.checkpoints import model_spec
     from openpi_cam.demo import bundled, metaworld_loop, metaworld_sim
     from openpi_cam.demo.run import METAWORLD_CAMERA_SIZE, METAWORLD_MODELS
 
-    model, task, perturb, seed, execute, fovy = job
+    model, task, perturb, seed, execute, fovy, wrist_camera = job
     if model not in _POLICIES:
         family, _, assets = model.partition("=")
         folder = {"assets": pathlib.Path(assets)} if assets else {}
@@ -53,6 +54,7 @@ def _episode(job: tuple[str, str, str, int, int, float | None]) -> tuple[str, st
         execute=execute,
         image_size=METAWORLD_CAMERA_SIZE,
         fovy=fovy,
+        wrist_camera=wrist_camera,
     )
     return model, task, perturb, bool(out["success"]), int(out["steps"])
 
@@ -66,6 +68,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--execute", type=int, default=5)
     parser.add_argument("--fovy", type=float, default=None, help="the fixed camera's field of view, degrees")
+    parser.add_argument("--wrist-camera", default=None, help="the scene's camera seen as the wrist view")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
@@ -82,9 +85,14 @@ def main() -> None:
         tasks = DemoOptions(sim="metaworld", task=tuple(args.tasks)).tasks
     except ValueError as e:
         parser.error(str(e))
+    from openpi_cam.demo import metaworld_sim
+
+    wrist_camera = args.wrist_camera or metaworld_sim.WRIST_CAMERA
+    if wrist_camera not in (cameras := metaworld_sim.camera_names()):
+        parser.error(f"--wrist-camera {wrist_camera}: Meta-World has no such camera (one of {', '.join(cameras)})")
     # Episode-major, so that a run cut short has as many episodes of every row as it could.
     jobs = [
-        (m, t, p, args.seed + e, args.execute, args.fovy)
+        (m, t, p, args.seed + e, args.execute, args.fovy, wrist_camera)
         for e in range(args.episodes)
         for m in args.models
         for t in tasks
@@ -124,6 +132,7 @@ def main() -> None:
                     "episodes": results,
                     "seed": args.seed,
                     "fovy": args.fovy,
+                    "wrist_camera": wrist_camera,
                     "wall_s": wall,
                     "machine": machine,
                 },

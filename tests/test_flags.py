@@ -1097,6 +1097,17 @@ def expert_states(episode: int | None) -> Callable[[Output], Any]:
     return probe
 
 
+def expert_wrist(o: Output) -> str:
+    """A digest of the expert's recorded wrist frames (their encoded bytes, in order)."""
+    import pyarrow.parquet as pq
+
+    digest = hashlib.sha256()
+    for path in sorted(o.root.glob("expert/data/*/*.parquet")):
+        for image in pq.read_table(path, columns=[metaworld_data.WRIST_FEATURE]).column(0).to_pylist():
+            digest.update(image["bytes"])
+    return digest.hexdigest()
+
+
 def expert_tasks(o: Output) -> list[str]:
     """The instructions of the expert's episodes."""
     import pyarrow.parquet as pq
@@ -1128,6 +1139,11 @@ TRAIN_DEMO_CASES: dict[str, tuple[Case, ...]] = {
     "--record.tasks": (Changes(TRAIN_METAWORLD, ("--record.tasks", "reach-v3"), expert_tasks),),
     "--record.image-size": (Changes(TRAIN_METAWORLD, ("--record.image-size", "32"), EXPERT_CAMERA),),
     "--record.phrasings": (Changes(TRAIN_METAWORLD, ("--record.phrasings", "1"), expert_tasks),),
+    "--record.wrist-camera": (
+        Changes(TRAIN_METAWORLD, ("--record.wrist-camera", "behindGripper"), expert_wrist),
+        Refused("train_demo", ("--record.wrist-camera", "behindGripper")),  # the reaching task has no such cameras
+        Refused("train_demo", ("--sim", "metaworld", "--data", "{scratch}/expert", "--record.wrist-camera", "wrist")),
+    ),
     "--task-weights": (
         Changes(TRAIN_METAWORLD_TWO_TASKS, ("--task-weights", "reach-v3=4"), losses),
         Refused("train_demo", ("--task-weights", "reach-v3=2")),  # the reaching task has no Meta-World tasks

@@ -153,6 +153,29 @@ def test_a_narrower_fixed_camera_shows_the_small_targets_larger():
 
 
 @pytest.mark.slow
+def test_the_wrist_view_is_any_camera_of_the_scene():
+    """`wrist_camera` changes the wrist frames alone: the fixed camera, the state and the expert's actions stay; a
+    camera the scene lacks is refused in one line that names it and the scene's cameras."""
+    with (
+        MetaWorldSim(3, task="reach-v3", image_size=32) as shipped,
+        MetaWorldSim(3, task="reach-v3", image_size=32, wrist_camera="behindGripper") as behind,
+    ):
+        a, b = shipped.frame(), behind.frame()
+    np.testing.assert_array_equal(a.base_image, b.base_image)
+    np.testing.assert_array_equal(a.state, b.state)
+    assert (a.wrist_image != b.wrist_image).mean() > 0.5
+    steps = list(metaworld_data.expert_episode(3, 0.3, task="reach-v3", image_size=32, wrist_camera="behindGripper"))
+    same = list(metaworld_data.expert_episode(3, 0.3, task="reach-v3", image_size=32))
+    features = (metaworld_data.ACTION_FEATURE, metaworld_data.BASE_FEATURE)
+    for s, t in zip(steps, same, strict=True):
+        assert all(np.array_equal(s.frame[f], t.frame[f]) for f in features)
+        assert (s.frame[metaworld_data.WRIST_FEATURE] != t.frame[metaworld_data.WRIST_FEATURE]).any()
+    with pytest.raises(ValueError, match=r"no camera 'wrist'.*behindGripper") as e:
+        MetaWorldSim(3, task="reach-v3", image_size=32, wrist_camera="wrist")
+    assert "\n" not in str(e.value)
+
+
+@pytest.mark.slow
 def test_a_hue_turn_touches_only_the_box_and_the_mask_is_where_it_is():
     with MetaWorldSim(4) as clean, MetaWorldSim(4, Perturbation.parse("hue=120")) as turned:
         before, after = clean.frame(), turned.frame()

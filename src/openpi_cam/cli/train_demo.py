@@ -35,6 +35,7 @@ class RecordArgs:
     clean_every: int = 4  # every this many episodes runs without noise (the expert's own path)
     image_size: int | None = None  # both cameras, square
     phrasings: int | None = None  # how many of each task's instructions the episodes cycle through
+    wrist_camera: str = metaworld_sim.WRIST_CAMERA  # the scene's camera recorded as the wrist view
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,8 +104,9 @@ def record_expert(root: Path, args: RecordArgs) -> None:
             noise = 0.0 if e % args.clean_every == 0 else args.noise
             for task in args.tasks:
                 prompts = metaworld_sim.TASKS[task].prompts[: args.phrasings]
+                prompt = prompts[e % len(prompts)]
                 episode = metaworld_data.expert_episode(
-                    args.seed + e, noise, task=task, prompt=prompts[e % len(prompts)], image_size=size
+                    args.seed + e, noise, task=task, prompt=prompt, image_size=size, wrist_camera=args.wrist_camera
                 )
                 success = False
                 for step in episode:
@@ -166,6 +168,9 @@ def _unused(
         return f"{', '.join(fixed)}: the reaching task's; --sim {sim} trains on its recorded frames"
     if refused := args.unused():
         return refused.replace("--", "--args.")
+    camera = record.wrist_camera
+    if camera != DEFAULT_RECORD.wrist_camera and camera not in (cameras := metaworld_sim.camera_names()):
+        return f"--record.wrist-camera {camera}: Meta-World has no such camera (one of {', '.join(cameras)})"
     if sim != "reach" and recording and data and is_lerobot_dataset(data[0]):
         return f"{', '.join(recording)}: {data[0]} holds its expert episodes already (a new folder records them)"
     if missing := [str(d) for d in data[1:] if not is_lerobot_dataset(d)]:

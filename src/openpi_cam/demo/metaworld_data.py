@@ -41,12 +41,14 @@ def expert_episode(
     prompt: str | None = None,
     image_size: int = metaworld_sim.IMAGE_SIZE,
     fovy: float | None = None,
+    wrist_camera: str = metaworld_sim.WRIST_CAMERA,
 ) -> Iterator[ExpertStep]:
     """One expert episode of `task` in scene `seed`, instructed by `prompt` (None: the task's first); the executed
     action is the expert's plus Gaussian noise of std `noise` (the recorded one is the expert's). Ends `HOLD_STEPS`
-    after success, or at the task's step budget. `fovy`: the fixed camera's (`MetaWorldSim`)."""
+    after success, or at the task's step budget. `fovy` and `wrist_camera`: `MetaWorldSim`'s."""
     rng = np.random.default_rng([seed, 1])
-    with metaworld_sim.MetaWorldSim(seed, task=task, image_size=image_size, prompt=prompt, fovy=fovy) as sim:
+    scene = {"fovy": fovy, "wrist_camera": wrist_camera}
+    with metaworld_sim.MetaWorldSim(seed, task=task, image_size=image_size, prompt=prompt, **scene) as sim:
         hold, max_steps = 0, sim.spec.max_steps
         while sim.steps < max_steps and hold < HOLD_STEPS:
             frame = sim.frame(with_target=False)

@@ -11,7 +11,7 @@ import numpy as np
 
 from openpi_cam.demo import bundled
 from openpi_cam.demo.client import RolloutSink
-from openpi_cam.demo.metaworld_sim import CLEAN, TASK, TASKS, MetaWorldSim, Perturbation
+from openpi_cam.demo.metaworld_sim import CLEAN, TASK, TASKS, WRIST_CAMERA, MetaWorldSim, Perturbation
 
 EXECUTE = 5
 MAX_CALLS = TASKS[TASK].max_steps // EXECUTE  # the button task's: about twice the steps the expert needs
@@ -34,15 +34,16 @@ def run_episode(
     perturbation_index: int = 0,
     image_size: int | None = None,
     fovy: float | None = None,
+    wrist_camera: str = WRIST_CAMERA,
 ) -> dict[str, Any]:
     """One closed-loop episode of `task`; `infer` takes the client observation (with its `cam_extra/` entries) and
     returns the server's reply. `max_calls` None: the task's budget (`max_calls_of`); `image_size` and `fovy` (the
-    fixed camera's field of view) None: the simulator's defaults. Recorded frames carry `perturbation_index` (the
-    perturbation's place in the run's list)."""
+    fixed camera's field of view) None: the simulator's defaults; `wrist_camera`: `MetaWorldSim`'s. Recorded frames
+    carry `perturbation_index` (the perturbation's place in the run's list)."""
     calls = 0
     max_calls = max_calls_of(task, execute) if max_calls is None else max_calls
     size = {} if image_size is None else {"image_size": image_size}
-    with MetaWorldSim(seed, perturbation, task=task, fovy=fovy, **size) as sim:
+    with MetaWorldSim(seed, perturbation, task=task, fovy=fovy, wrist_camera=wrist_camera, **size) as sim:
         while calls < max_calls and not sim.success:
             frame = sim.frame()
             chunk = np.asarray(infer(bundled.client_observation(frame))["actions"])[:execute]

@@ -173,6 +173,15 @@ def _environment_class(task: str) -> Any:
     return ALL_V3_ENVIRONMENTS[task]
 
 
+def _cameras(model: Any) -> tuple[str, ...]:
+    return tuple(model.camera(i).name for i in range(model.ncam))
+
+
+def camera_names(task: str = TASK) -> tuple[str, ...]:
+    """The cameras of the task's scene, by name (what `MetaWorldSim`'s `wrist_camera` may name)."""
+    return _cameras(_environment_class(task)().model)
+
+
 def require_simulator(task: str = TASK) -> None:
     """Raises the `_environment_class` ImportError before anything is loaded, where the extra is missing."""
     _environment_class(task)
@@ -243,7 +252,9 @@ class MetaWorldSim:
     the button is pressed (Meta-World's `info["success"]`). Episode `seed` fixes the box's place (drawn from the task's
     own reset range) and the distractors' places, so every perturbation of a seed meets the same scene. `fovy`: the
     fixed camera's vertical field of view in degrees (None: Meta-World's, 45); a narrower one shows the table's
-    middle, where every task's object sits, larger at the same pixel count."""
+    middle, where every task's object sits, larger at the same pixel count. `wrist_camera`: the camera seen as the
+    wrist view, one of the scene's (`camera_names`); the bundled models see `WRIST_CAMERA`, and `behindGripper`
+    follows the hand from half a metre behind it, looking ahead past the gripper."""
 
     def __init__(
         self,
@@ -254,11 +265,15 @@ class MetaWorldSim:
         image_size: int = IMAGE_SIZE,
         prompt: str | None = None,
         fovy: float | None = None,
+        wrist_camera: str = WRIST_CAMERA,
     ) -> None:
         if task not in TASKS:
             raise ValueError(f"unknown Meta-World task {task!r}: one of {', '.join(TASKS)}")
         mujoco = _mujoco()
         env = _environment_class(task)()
+        if wrist_camera not in (cameras := _cameras(env.model)):
+            raise ValueError(f"Meta-World's {task} has no camera {wrist_camera!r}: one of {', '.join(cameras)}")
+        self.wrist_camera = wrist_camera
         rng = np.random.default_rng(seed)
         set_scene(env, _draw_scene(env, rng, TASKS[task].object_goal_distance))
         self.task, self.perturbation, self.seed, self.image_size = task, perturbation, seed, image_size
@@ -352,7 +367,7 @@ class MetaWorldSim:
         box = (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1) if len(xs) else (0, 0, 0, 0)
         return Frame(
             base_image=self._render(self._renderer, BASE_CAMERA),
-            wrist_image=self._render(self._renderer, WRIST_CAMERA),
+            wrist_image=self._render(self._renderer, self.wrist_camera),
             state=np.asarray(self._obs[:STATE_DIM], np.float32),
             prompt=self.prompt,
             target_mask=mask,
