@@ -13,6 +13,7 @@ same two scene folds the benchmark chooses by (fit on one half, AUROC at N=4 on 
 - the probe fitted on each episode's first one or two calls alone (the steps the figure reads);
 - the gradient-norm maps' entropy and peak share per camera as two more inputs (what the side channel would have to
   compute on every call);
+- the served chunk itself (the rows' `actions`: where the policy sends the arm) as one more input, and alone;
 - per perturbation, the union's AUROC within it and its failure rate; and a perturbation oracle (each episode scored
   by its perturbation's failure rate on dev itself: an upper bound for a monitor that only recognised the
   perturbation, and what a monitor must exceed by telling episodes apart within one).
@@ -43,18 +44,21 @@ from openpi_cam.viz.stats import map_entropy
 SETTING = _reach("pi0_fast")
 MAPS = "gradnorm"
 PERTURBATION = "extra/perturbation"  # monitor_transfer explains with `--extra perturbation=perturbation`
+CHUNK = "chunk"
 
 
 def with_map_figures(episodes: list[Episode], maps: pathlib.Path) -> tuple[list[Episode], tuple[str, ...], list[str]]:
-    """The episodes with each step's map entropy and peak share per camera as scalar columns `map/...`, those
-    columns' names, and each episode's perturbation (its rows' recorded `extra/perturbation` index into dev's)."""
+    """The episodes with each step's map entropy and peak share per camera as scalar columns `map/...` and its
+    served chunk (flattened) as `CHUNK`, the map columns' names, and each episode's perturbation (its rows' recorded
+    `extra/perturbation` index into dev's)."""
     ds = open_maps_dataset(maps)
     cameras = ds.info.cameras
     out, names, perturbations = [], tuple(f"map/{f}/{c}" for c in cameras for f in ("entropy", "peak")), []
     for episode, index in zip(episodes, ds.episodes, strict=True):
-        table = ds.table(index, [f"{MAPS}/{c}" for c in cameras] + [PERTURBATION])
+        table = ds.table(index, [f"{MAPS}/{c}" for c in cameras] + [PERTURBATION, "actions"])
         perturbations.append(SETTING.dev[int(table.column(PERTURBATION)[0].as_py()[0])])
         columns = dict(episode.columns)
+        columns[CHUNK] = np.array(table.column("actions").to_pylist(), np.float64)
         for camera in cameras:
             rows = [np.clip(np.asarray(m, np.float64), 0, None) for m in table.column(f"{MAPS}/{camera}").to_pylist()]
             columns[f"map/entropy/{camera}"] = np.array([map_entropy(m) for m in rows])
@@ -114,6 +118,9 @@ def main() -> None:
         rows[f"probe fitted on the first {calls} call(s)"] = fold_auroc(episodes, folds, probe, train_calls=calls)
     with_maps = dataclasses.replace(union, inputs=tuple(sorted(union.inputs + map_inputs)))
     rows["union + map entropy and peak share per camera"] = fold_auroc(episodes, folds, with_maps)
+    with_chunk = dataclasses.replace(union, inputs=(*union.inputs, CHUNK))
+    rows["union + the served chunk"] = fold_auroc(episodes, folds, with_chunk)
+    rows["probe on the served chunk alone"] = fold_auroc(episodes, folds, dataclasses.replace(probe, inputs=(CHUNK,)))
 
     failed = np.array([not e.success for e in episodes])
     scores = first_call_scores(episodes, folds, union)
