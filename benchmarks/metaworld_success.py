@@ -88,8 +88,10 @@ def main() -> None:
     from openpi_cam.demo import metaworld_sim
 
     wrist_camera = args.wrist_camera or metaworld_sim.WRIST_CAMERA
-    if wrist_camera not in (cameras := metaworld_sim.camera_names()):
-        parser.error(f"--wrist-camera {wrist_camera}: Meta-World has no such camera (one of {', '.join(cameras)})")
+    try:
+        metaworld_sim.require_camera(wrist_camera, tasks[0])
+    except ValueError as e:
+        parser.error(f"--wrist-camera {e}")
     # Episode-major, so that a run cut short has as many episodes of every row as it could.
     jobs = [
         (m, t, p, args.seed + e, args.execute, args.fovy, wrist_camera)

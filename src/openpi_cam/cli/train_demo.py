@@ -168,9 +168,11 @@ def _unused(
         return f"{', '.join(fixed)}: the reaching task's; --sim {sim} trains on its recorded frames"
     if refused := args.unused():
         return refused.replace("--", "--args.")
-    camera = record.wrist_camera
-    if camera != DEFAULT_RECORD.wrist_camera and camera not in (cameras := metaworld_sim.camera_names()):
-        return f"--record.wrist-camera {camera}: Meta-World has no such camera (one of {', '.join(cameras)})"
+    if record.wrist_camera != DEFAULT_RECORD.wrist_camera:
+        try:
+            metaworld_sim.require_camera(record.wrist_camera, (record.tasks or (metaworld_sim.TASK,))[0])
+        except ValueError as e:
+            return f"--record.wrist-camera {e}"
     if sim != "reach" and recording and data and is_lerobot_dataset(data[0]):
         return f"{', '.join(recording)}: {data[0]} holds its expert episodes already (a new folder records them)"
     if missing := [str(d) for d in data[1:] if not is_lerobot_dataset(d)]:

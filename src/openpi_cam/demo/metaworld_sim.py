@@ -173,13 +173,14 @@ def _environment_class(task: str) -> Any:
     return ALL_V3_ENVIRONMENTS[task]
 
 
-def _cameras(model: Any) -> tuple[str, ...]:
-    return tuple(model.camera(i).name for i in range(model.ncam))
+def _check_camera(model: Any, task: str, name: str) -> None:
+    if name not in (cameras := tuple(model.camera(i).name for i in range(model.ncam))):
+        raise ValueError(f"Meta-World's {task} has no camera {name!r}: one of {', '.join(cameras)}")
 
 
-def camera_names(task: str = TASK) -> tuple[str, ...]:
-    """The cameras of the task's scene, by name (what `MetaWorldSim`'s `wrist_camera` may name)."""
-    return _cameras(_environment_class(task)().model)
+def require_camera(name: str, task: str = TASK) -> None:
+    """`MetaWorldSim`'s ValueError for a `wrist_camera` the task's scene lacks, raised before anything is run."""
+    _check_camera(_environment_class(task)().model, task, name)
 
 
 def require_simulator(task: str = TASK) -> None:
@@ -252,9 +253,9 @@ class MetaWorldSim:
     the button is pressed (Meta-World's `info["success"]`). Episode `seed` fixes the box's place (drawn from the task's
     own reset range) and the distractors' places, so every perturbation of a seed meets the same scene. `fovy`: the
     fixed camera's vertical field of view in degrees (None: Meta-World's, 45); a narrower one shows the table's
-    middle, where every task's object sits, larger at the same pixel count. `wrist_camera`: the camera seen as the
-    wrist view, one of the scene's (`camera_names`); the bundled models see `WRIST_CAMERA`, and `behindGripper`
-    follows the hand from half a metre behind it, looking ahead past the gripper."""
+    middle, where every task's object sits, larger at the same pixel count. `wrist_camera`: the scene's camera seen
+    as the wrist view; the bundled models see `WRIST_CAMERA`, and `behindGripper` follows the hand from half a metre
+    behind it, looking ahead past the gripper."""
 
     def __init__(
         self,
@@ -271,8 +272,7 @@ class MetaWorldSim:
             raise ValueError(f"unknown Meta-World task {task!r}: one of {', '.join(TASKS)}")
         mujoco = _mujoco()
         env = _environment_class(task)()
-        if wrist_camera not in (cameras := _cameras(env.model)):
-            raise ValueError(f"Meta-World's {task} has no camera {wrist_camera!r}: one of {', '.join(cameras)}")
+        _check_camera(env.model, task, wrist_camera)
         self.wrist_camera = wrist_camera
         rng = np.random.default_rng(seed)
         set_scene(env, _draw_scene(env, rng, TASKS[task].object_goal_distance))
