@@ -47,8 +47,9 @@ def expert_episode(
     action is the expert's plus Gaussian noise of std `noise` (the recorded one is the expert's). Ends `HOLD_STEPS`
     after success, or at the task's step budget. `fovy` and `wrist_camera`: `MetaWorldSim`'s."""
     rng = np.random.default_rng([seed, 1])
-    scene = {"fovy": fovy, "wrist_camera": wrist_camera}
-    with metaworld_sim.MetaWorldSim(seed, task=task, image_size=image_size, prompt=prompt, **scene) as sim:
+    with metaworld_sim.MetaWorldSim(
+        seed, task=task, image_size=image_size, prompt=prompt, fovy=fovy, wrist_camera=wrist_camera
+    ) as sim:
         hold, max_steps = 0, sim.spec.max_steps
         while sim.steps < max_steps and hold < HOLD_STEPS:
             frame = sim.frame(with_target=False)
