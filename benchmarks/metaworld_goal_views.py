@@ -63,15 +63,15 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
 
-    from openpi_cam.demo.metaworld_sim import MetaWorldSim
+    from openpi_cam.demo import metaworld_sim
 
     rng = np.random.default_rng(args.seed)
-    with MetaWorldSim(args.seed, task=TASK, image_size=args.size) as sim:
+    with metaworld_sim.MetaWorldSim(args.seed, task=TASK, image_size=args.size) as sim:
         env = sim.env
         low, high = env._random_reset_space.low[-3:], env._random_reset_space.high[-3:]
         goals = rng.uniform(low, high, (args.goals, 3))
         model = env.model
-        cameras = [model.camera(i).name for i in range(model.ncam)]
+        cameras = metaworld_sim.camera_names(model)
         fixed = [c for c in cameras if model.cam_bodyid[model.camera(c).id] == 0]  # body 0: the world
         views = {}
         centre = ((low + high) / 2)[None]

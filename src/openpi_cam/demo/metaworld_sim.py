@@ -173,8 +173,13 @@ def _environment_class(task: str) -> Any:
     return ALL_V3_ENVIRONMENTS[task]
 
 
+def camera_names(model: Any) -> tuple[str, ...]:
+    """The cameras of a task's MuJoCo model, in the model's order."""
+    return tuple(model.camera(i).name for i in range(model.ncam))
+
+
 def _check_camera(model: Any, task: str, name: str) -> None:
-    if name not in (cameras := tuple(model.camera(i).name for i in range(model.ncam))):
+    if name not in (cameras := camera_names(model)):
         raise ValueError(f"Meta-World's {task} has no camera {name!r}: one of {', '.join(cameras)}")
 
 
