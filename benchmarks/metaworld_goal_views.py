@@ -49,7 +49,9 @@ def placed(pixels: np.ndarray, seen: np.ndarray, goals: np.ndarray, noise: float
     query = pixels[half:] + rng.normal(0.0, noise, pixels[half:].shape)
     width = max(noise, 0.25)  # a floor for the exact reader: its posterior is the reference draws nearest the pixel
     _, nearest = cKDTree(ref).query(query, k=256)
-    weight = np.exp(-((ref[nearest] - query[:, None]) ** 2).sum(-1) / (2 * width**2))
+    squared = ((ref[nearest] - query[:, None]) ** 2).sum(-1)
+    # Shifted by each query's nearest draw so that a query far from every draw keeps finite weights.
+    weight = np.exp(-(squared - squared.min(1, keepdims=True)) / (2 * width**2))
     estimate = (ref_goals[nearest] * weight[..., None]).sum(1) / weight.sum(1)[:, None]
     estimate[~seen[half:]] = goals.mean(0)
     return float((np.linalg.norm(estimate - goals[half:], axis=1) < SUCCESS_RADIUS).mean())
