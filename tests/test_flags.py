@@ -1053,6 +1053,11 @@ TRAIN_CASES: dict[str, tuple[Case, ...]] = {
     "--eval-episodes": (Changes(TRAIN, ("--eval-episodes", "1"), lambda o: "success_rate" in o.out),),
     "--log-every": (Changes(TRAIN, ("--log-every", "2"), log_period),),
     "--probe-every": (Changes(TRAIN, ("--probe-every", "1"), lambda o: "binding probe" in o.out),),
+    "--save-every": (
+        Changes(TRAIN, ("--save-every", "3"), lambda o: [s for s in o.out.splitlines() if "state saved" in s]),
+    ),
+    # What resuming continues to: tests/demo/test_train_state.py (runs stopped by SIGTERM and SIGKILL).
+    "--resume": (Refused("demo.train", (*TRAIN_ARGS, "--resume")),),
 }
 
 

@@ -17,7 +17,7 @@ from typing import Literal
 
 import numpy as np
 
-from openpi_cam.demo import metaworld_data, metaworld_sim, train
+from openpi_cam.demo import metaworld_data, metaworld_sim, train, train_state
 from openpi_cam.lerobot.dataset import is_lerobot_dataset, open_dataset
 from openpi_cam.lerobot.writer import Feature, create_dataset
 from openpi_cam.policies import demo_metaworld
@@ -206,16 +206,38 @@ def main(
     if refused := _unused(args, sim, data, record, task_weights):
         print(f"train_demo: {refused}")
         return 2
-    if sim == "reach":
-        train.train(args)
-        return 0
-    models = SIMS[sim]
-    if args.model not in models.configs:
+    models = SIMS.get(sim)
+    if models is not None and args.model not in models.configs:
         print(f"train_demo: --sim {sim} trains {', '.join(models.configs)}, not --args.model {args.model}")
         return 2
-    if not data:
+    config = None if models is None else models.configs[args.model]
+    if refused := train.resume_refused(args, config):
+        print(f"train_demo: {refused.replace('--', '--args.', 1)}")
+        return 2
+    if models is not None and not data:
         print(f"train_demo: --sim {sim} needs --data DIR (the expert episodes' LeRobot dataset)")
         return 2
+    try:
+        if models is None:
+            train.train(args)
+            return 0
+        return _train_metaworld(args, models, config, data, record, task_weights)
+    except train_state.StateError as e:
+        print(f"train_demo: --args.resume: {e}")
+        return 2
+    except train_state.Stopped as e:
+        print(f"train_demo: {e}")
+        return 1
+
+
+def _train_metaworld(
+    args: train.TrainArgs,
+    models: MetaWorldModels,
+    config: PolicyConfig,
+    data: tuple[Path, ...],
+    record: RecordArgs,
+    task_weights: tuple[str, ...],
+) -> int:
     record = with_defaults(record, models)
     if not is_lerobot_dataset(data[0]):
         record_expert(data[0], record)
@@ -229,13 +251,7 @@ def main(
             return 2
     shares = ", ".join(f"{t or 'other'} {share:.0%}" for t, share in demos.task_shares().items())
     print(f"training draws by task: {shares}", flush=True)
-    train.train(
-        args,
-        demonstrations=demos,
-        config=models.configs[args.model],
-        vocabulary=models.vocabulary,
-        eval_tasks=record.tasks,
-    )
+    train.train(args, demonstrations=demos, config=config, vocabulary=models.vocabulary, eval_tasks=record.tasks)
     return 0
 
 

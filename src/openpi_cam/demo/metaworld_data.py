@@ -10,6 +10,8 @@ the press held rather than a cut-off.
 from __future__ import annotations
 
 import dataclasses
+import functools
+import hashlib
 from collections.abc import Iterator
 from typing import Any
 
@@ -99,6 +101,18 @@ class Demonstrations:
 
     def __len__(self) -> int:
         return len(self.state)
+
+    @functools.cached_property
+    def digest(self) -> str:
+        """A digest of every row (frames, prompts and draw weights included): what tells two training sets apart."""
+        h = hashlib.blake2b(digest_size=16)
+        for name in ("base_image", "wrist_image", "state", "actions", "episode_index", "prompt", "weight"):
+            value = getattr(self, name)
+            h.update(name.encode())
+            if value is not None:
+                h.update(str((value.dtype, value.shape)).encode())
+                h.update(np.ascontiguousarray(value).data)
+        return h.hexdigest()
 
     def chunk(self, row: int, horizon: int) -> np.ndarray:
         """The actions of `horizon` frames from `row` on; past the episode's end its last action repeats (LeRobot's

@@ -15,6 +15,7 @@ import dataclasses
 import functools
 import json
 import shutil
+import signal
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -28,7 +29,7 @@ import optax
 import tyro
 
 from openpi_cam.checkpoints import model_spec
-from openpi_cam.demo import bundled, make_tokenizers, metaworld_loop, metaworld_sim, sim
+from openpi_cam.demo import bundled, make_tokenizers, metaworld_loop, metaworld_sim, sim, train_state
 from openpi_cam.demo.data import Batches, write_norm_stats
 from openpi_cam.demo.metaworld_data import Demonstrations
 from openpi_cam.demo.quality import binding_probe
@@ -73,6 +74,10 @@ class TrainArgs:
     eval_episodes: int = 30  # closed-loop episodes run after training, their success logged (0: none)
     log_every: int = 250  # log the training loss every this many steps
     probe_every: int = 500  # log the binding probe (`quality.binding_probe`) every this many steps; 0: never
+    # Write the run's state (`demo.train_state`) every this many steps, for --resume to continue from (0: only when
+    # a SIGTERM or SIGINT stops the run).
+    save_every: int = 0
+    resume: bool = False  # continue the stopped run whose state is in --out (same flags and data)
 
     def unused(self) -> str | None:
         """The fields set (other than their defaults) that the others leave without effect, or None: what the
@@ -176,8 +181,10 @@ def train(
     demonstrations' prompts and the `vocabulary` prompts (instructions the model may be sent but was not trained on);
     the evaluation drives the Meta-World `eval_tasks` in turn."""
     bundled_name = args.model if config is None else model_spec.BUNDLED_MODELS[config.name]
-    out = model_spec.BUNDLED_ASSETS[bundled_name] if args.out is None else args.out
+    out = output_dir(args, config)
     out.mkdir(parents=True, exist_ok=True)
+    run = run_identity(args, demonstrations)
+    saved = train_state.read(out, run) if args.resume else None
     image_size = None
     if demonstrations is None:
         normalize = write_norm_stats(out)
@@ -206,12 +213,19 @@ def train(
         demonstrations=demonstrations,
         config=config,
     )
+    names = [p.name for p in phases(args)]
     t0, summary = time.time(), {}
     for phase in phases(args):
-        params, summary[f"{phase.name}_loss"] = train_phase(params, cfg, batches, phase, args)
+        if saved is not None and names.index(phase.name) < names.index(saved.phase):
+            continue  # done before the stop
+        resumed = saved if saved is not None and saved.phase == phase.name else None
+        params, summary[f"{phase.name}_loss"] = train_phase(
+            params, cfg, batches, phase, args, out=out, run=run, resumed=resumed
+        )
     params_dir = out / demo_reach.CHECKPOINT.name / "params"
     shutil.rmtree(params_dir, ignore_errors=True)
     save_params(params_dir, params)
+    train_state.remove(out)
     summary["train_seconds"] = round(time.time() - t0)
     if args.eval_episodes:
         summary["success_rate"] = evaluate(
@@ -240,32 +254,77 @@ def training_step(losses: Callable, optimizer: optax.GradientTransformation) -> 
     return step
 
 
-def train_phase(params: dict, cfg: ModelConfig, batches: Batches, phase: Phase, args: TrainArgs) -> tuple[dict, float]:
-    """AdamW (fresh state) on a warmup-cosine schedule; returns the params and the mean loss of the last log window."""
+def output_dir(args: TrainArgs, config: PolicyConfig | None = None) -> Path:
+    """Where the run writes: --out, or the bundled assets of the model it trains."""
+    bundled_name = args.model if config is None else model_spec.BUNDLED_MODELS[config.name]
+    return model_spec.BUNDLED_ASSETS[bundled_name] if args.out is None else args.out
+
+
+def resume_refused(args: TrainArgs, config: PolicyConfig | None = None) -> str | None:
+    """Why --resume cannot continue (no state where the run writes), said before any data is read; or None."""
+    where = train_state.path(output_dir(args, config))
+    if args.resume and not where.exists():
+        return f"--resume: {where}: no saved training state (--save-every N saves one, and so does a stop)"
+    return None
+
+
+def run_identity(args: TrainArgs, demonstrations: Demonstrations | None) -> dict:
+    """What a saved state must match to be resumed: every flag that decides a step, and the training frames."""
+    flags = {f.name: getattr(args, f.name) for f in dataclasses.fields(args) if f.name not in train_state.FREE_FLAGS}
+    run = {name: str(v) if isinstance(v, Path) else v for name, v in flags.items()}
+    return run | {"data": None if demonstrations is None else demonstrations.digest}
+
+
+def train_phase(
+    params: dict,
+    cfg: ModelConfig,
+    batches: Batches,
+    phase: Phase,
+    args: TrainArgs,
+    *,
+    out: Path,
+    run: dict,
+    resumed: train_state.Saved | None = None,
+) -> tuple[dict, float]:
+    """AdamW (fresh state, or the `resumed` one's) on a warmup-cosine schedule; returns the params and the mean loss of
+    the last log window. Saves the state in `out` every `--save-every` steps, and before stopping on a signal."""
     schedule = optax.warmup_cosine_decay_schedule(
         0.0, phase.lr, min(phase.warmup, phase.steps // 2), phase.steps, 0.05 * phase.lr
     )
     optimizer = adamw(schedule)
     opt_state = optimizer.init(params)
+    start, losses = 0, []
+    if resumed is not None:
+        params, opt_state = resumed.restore(params, opt_state, train_state.path(out))
+        batches.rng.bit_generator.state = resumed.rng
+        start, losses = resumed.step, list(resumed.losses)
+        print(f"{phase.name}: resumed after step {start}/{phase.steps}", flush=True)
     losses_fn = example_losses(cfg, phase.decode_offset)
     step = training_step(losses_fn, optimizer)
     probe_losses = jax.jit(losses_fn)
     probe_key = jax.random.key(args.seed + 2)
     keys = jax.random.split(jax.random.key(args.seed + 3), max(phase.steps, 1))
-    t0, losses = time.time(), []
-    for i in range(phase.steps):
-        params, opt_state, loss = step(params, opt_state, batches(), keys[i])
-        # Wait for the previous step only, so that Python builds the next batch while XLA runs this one.
-        losses[-1:] = [float(x) for x in losses[-1:]]
-        losses.append(loss)
-        where = f"{phase.name} step {i + 1}/{phase.steps}"
-        if (i + 1) % args.log_every == 0:
-            print(f"{where} loss {np.mean(losses[-args.log_every :]):.4f} {time.time() - t0:.0f}s", flush=True)
-        if args.probe_every and (i + 1) % args.probe_every == 0:
-            probe = binding_probe(
-                lambda samples, p=params: np.asarray(probe_losses(p, batches.batch(samples), probe_key))
-            )
-            print(f"{where} binding probe {probe:.2f} (chance 0.5)", flush=True)
+    t0 = time.time()
+    with train_state.stop_request() as stop:
+        for i in range(start, phase.steps):
+            params, opt_state, loss = step(params, opt_state, batches(), keys[i])
+            # Wait for the previous step only, so that Python builds the next batch while XLA runs this one.
+            losses[-1:] = [float(x) for x in losses[-1:]]
+            losses.append(loss)
+            where = f"{phase.name} step {i + 1}/{phase.steps}"
+            if (i + 1) % args.log_every == 0:
+                print(f"{where} loss {np.mean(losses[-args.log_every :]):.4f} {time.time() - t0:.0f}s", flush=True)
+            if args.probe_every and (i + 1) % args.probe_every == 0:
+                probe = binding_probe(
+                    lambda samples, p=params: np.asarray(probe_losses(p, batches.batch(samples), probe_key))
+                )
+                print(f"{where} binding probe {probe:.2f} (chance 0.5)", flush=True)
+            if stop.signum is not None or (args.save_every and (i + 1) % args.save_every == 0):
+                state = train_state.Saved.capture(phase.name, i + 1, batches.rng, losses, params, opt_state)
+                print(f"{where}: state saved to {train_state.save(out, run, state)}", flush=True)
+            if stop.signum is not None:
+                name = signal.Signals(stop.signum).name
+                raise train_state.Stopped(f"stopped by {name} after {where}: the same command with --resume continues")
     losses[-1:] = [float(x) for x in losses[-1:]]
     return params, float(np.mean(losses[-args.log_every :]))
 
@@ -274,10 +333,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     """`python -m openpi_cam.demo.train [FLAGS]`: the flags are `TrainArgs`; ones the others leave without effect are
     refused in one line."""
     args = tyro.cli(TrainArgs, args=argv)
-    if refused := args.unused():
+    if refused := args.unused() or resume_refused(args):
         print(f"openpi_cam.demo.train: {refused}", file=sys.stderr)
         return 2
-    train(args)
+    try:
+        train(args)
+    except train_state.StateError as e:
+        print(f"openpi_cam.demo.train: --resume: {e}", file=sys.stderr)
+        return 2
+    except train_state.Stopped as e:
+        print(f"openpi_cam.demo.train: {e}", file=sys.stderr)
+        return 1
     return 0
 
 
