@@ -26,14 +26,18 @@ TINY = ("--steps", "40", "--finetune-steps", "30", "--eval-episodes", "0", "--pr
         "--width", "16", "--depth", "1", "--vit-width", "16", "--batch-size", "2")  # fmt: skip
 
 
+def _command(out: Path, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "openpi_cam.demo.train", "--out", str(out), *TINY, *extra]
+
+
 def _train(out: Path, *extra: str) -> subprocess.CompletedProcess:
-    command = [sys.executable, "-m", "openpi_cam.demo.train", "--out", str(out), *TINY, *extra]
-    return subprocess.run(command, capture_output=True, text=True, timeout=600)
+    return subprocess.run(_command(out, *extra), capture_output=True, text=True, timeout=600)
 
 
-def _stopped(out: Path, at: str, signum: int, *extra: str) -> tuple[int, str, str]:
-    """Runs the tiny training and sends `signum` once it logs the line starting with `at`; (exit status, out, err)."""
-    command = [sys.executable, "-m", "openpi_cam.demo.train", "--out", str(out), *TINY, *extra]
+def _stopped(out: Path, at: str, signum: int, *extra: str, command: list[str] | None = None) -> tuple[int, str, str]:
+    """Runs the tiny training (or `command`) and sends `signum` once it logs the line starting with `at`; (exit
+    status, out, err)."""
+    command = command or _command(out, *extra)
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     seen = []
     for line in process.stdout:
@@ -94,6 +98,41 @@ def test_a_stopped_run_resumes_to_the_unstopped_runs_params(tmp_path, unstopped,
     assert after and all(reference_log[step] == line for step, line in after.items())
     assert all(np.array_equal(a, b) for a, b in zip(_leaves(reference), _leaves(tmp_path), strict=True))
     assert not train_state.path(tmp_path).exists()  # a finished run leaves its checkpoint only
+
+
+@pytest.mark.slow
+def test_a_stopped_meta_world_run_resumes_on_its_own_frames_only(tmp_path):
+    """`train_demo --sim metaworld` stopped, resumed on other recorded frames (refused, naming the data), then on its
+    own (the unstopped run's checkpoint)."""
+    pytest.importorskip("metaworld", reason='the Meta-World demo needs pip install -e ".[metaworld]"')
+    # TINY for pi0.5 as `train_demo` spells it, without the reaching task's binding probe (refused on Meta-World).
+    pairs = [p for p in zip(TINY[::2], TINY[1::2], strict=True) if p[0] != "--probe-every"]
+    tiny = (*(x for flag, value in pairs for x in (f"--args.{flag[2:]}", value)), "--args.model", "pi05")
+
+    def command(data: Path, out: Path, *extra: str) -> list[str]:
+        module = [sys.executable, "-m", "openpi_cam.cli.train_demo", "--sim", "metaworld", "--data", str(data)]
+        return [*module, *tiny, "--args.out", str(out), *extra]
+
+    def run(data: Path, out: Path, extra: tuple[str, ...] = ()) -> subprocess.CompletedProcess:
+        return subprocess.run(command(data, out, *extra), capture_output=True, text=True, timeout=600)
+
+    record = ("--record.episodes", "1", "--record.tasks", "reach-v3")
+    unstopped = run(tmp_path / "expert", tmp_path / "unstopped", extra=record)
+    assert unstopped.returncode == 0, unstopped.stdout + unstopped.stderr
+    other = run(tmp_path / "other", tmp_path / "scratch", extra=(*record, "--record.seed", "7", "--args.steps", "0"))
+    assert other.returncode == 0, other.stdout + other.stderr
+
+    stopped = tmp_path / "stopped"
+    code, _, _ = _stopped(stopped, "main step 5/", signal.SIGTERM, command=command(tmp_path / "expert", stopped))
+    assert code == 1 and train_state.path(stopped).exists()
+    refused = run(tmp_path / "other", stopped, extra=("--args.resume",))
+    assert refused.returncode == 2 and "Traceback" not in refused.stderr
+    (line,) = [x for x in refused.stdout.splitlines() if "--args.resume" in x]
+    assert "was saved by another run (data: " in line
+    resumed = run(tmp_path / "expert", stopped, extra=("--args.resume",))
+    assert resumed.returncode == 0, resumed.stdout + resumed.stderr
+    leaves = zip(_leaves(tmp_path / "unstopped"), _leaves(stopped), strict=True)
+    assert all(np.array_equal(a, b) for a, b in leaves)
 
 
 def _main(out: Path, *extra: str) -> int:
