@@ -262,10 +262,8 @@ def output_dir(args: TrainArgs, config: PolicyConfig | None = None) -> Path:
 
 def resume_refused(args: TrainArgs, config: PolicyConfig | None = None) -> str | None:
     """Why --resume cannot continue (no state where the run writes), said before any data is read; or None."""
-    where = train_state.path(output_dir(args, config))
-    if args.resume and not where.exists():
-        return f"--resume: {where}: no saved training state (--save-every N saves one, and so does a stop)"
-    return None
+    absent = train_state.missing(output_dir(args, config)) if args.resume else None
+    return None if absent is None else f"--resume: {absent}"
 
 
 def run_identity(args: TrainArgs, demonstrations: Demonstrations | None) -> dict:

@@ -85,10 +85,10 @@ def save(out: Path, run: dict[str, Any], state: Saved) -> Path:
 
 
 def read(out: Path, run: dict[str, Any]) -> Saved:
-    """The state in `out`, checked to be the one `run` (`describe`'s) saved."""
+    """The state in `out`, checked to be the one saved by `run` (a run's flags and data digest)."""
     where = path(out)
-    if not where.exists():
-        raise StateError(f"{where}: no saved training state to resume (--save-every N saves one, and so does a stop)")
+    if absent := missing(out):
+        raise StateError(absent)
     try:
         with np.load(where) as z:
             meta = json.loads(str(z["meta"]))
@@ -100,6 +100,13 @@ def read(out: Path, run: dict[str, Any]) -> Saved:
     if differs := difference(saved_run, run):
         raise StateError(f"{where} was saved by another run ({differs}): resume with the flags and data it had")
     return Saved(phase, step, rng, [float(x) for x in losses], leaves)
+
+
+def missing(out: Path) -> str | None:
+    """Why there is nothing in `out` to resume, or None: what a command says before it reads any data."""
+    if (where := path(out)).exists():
+        return None
+    return f"{where}: no saved training state (--save-every N saves one, and so does a stop)"
 
 
 def difference(saved: dict[str, Any], now: dict[str, Any]) -> str | None:
