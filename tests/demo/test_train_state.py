@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 import tyro
 
+from openpi_cam.cli import train_demo
 from openpi_cam.demo import train, train_state
 from openpi_cam.model.checkpoint import load_params
 
@@ -189,3 +190,12 @@ def test_restore_refuses_arrays_of_another_shape(tmp_path):
         state.restore(params, (), tmp_path / train_state.FILE)
     params_back, _ = train_state.Saved("main", 1, {}, [], [np.ones((2, 3), np.float32)]).restore(params, (), tmp_path)
     assert np.array_equal(params_back["w"], np.ones((2, 3)))
+
+
+def test_train_demo_refuses_to_record_for_a_resumed_run(tmp_path, capsys):
+    """An empty --data folder would be recorded into: a resumed run trains on the frames it started on."""
+    args = train.TrainArgs(model="pi05", out=tmp_path / "model", resume=True)
+    assert train_demo.main(args, sim="metaworld", data=(tmp_path / "empty",)) == 2
+    (line,) = capsys.readouterr().out.strip().splitlines()
+    assert line.startswith("train_demo: --args.resume: no LeRobot dataset in ") and "empty" in line
+    assert not (tmp_path / "empty").exists()

@@ -175,6 +175,8 @@ def _unused(
             return f"--record.wrist-camera {e}"
     if sim != "reach" and recording and data and is_lerobot_dataset(data[0]):
         return f"{', '.join(recording)}: {data[0]} holds its expert episodes already (a new folder records them)"
+    if args.resume and data and not is_lerobot_dataset(data[0]):
+        return f"--args.resume: no LeRobot dataset in {data[0]} (a resumed run trains on the frames it started on)"
     if missing := [str(d) for d in data[1:] if not is_lerobot_dataset(d)]:
         return f"--data {' '.join(missing)}: no LeRobot dataset there (only the first folder is recorded into)"
     try:
