@@ -170,6 +170,11 @@ def test_the_free_flags_do_not_tell_runs_apart(tmp_path):
     assert train_state.difference(train.run_identity(args, None), train.run_identity(moved, None)) is None
     bigger = train.run_identity(train.TrainArgs(batch_size=64), None)
     assert train_state.difference(train.run_identity(args, None), bigger) == "batch_size: 32 there, 64 here"
+    # A state saved before a flag existed (here: batch_size) resumes while the flag keeps its default, and only then.
+    older = {k: v for k, v in train.run_identity(args, None).items() if k != "batch_size"}
+    defaults = train.run_identity(train.TrainArgs(), None)
+    assert train_state.difference(older, train.run_identity(args, None), defaults) is None
+    assert train_state.difference(older, bigger, defaults) == "batch_size: None there, 64 here"
 
 
 @pytest.mark.parametrize("damage", ["truncated", "not-npz"])

@@ -184,7 +184,7 @@ def train(
     out = output_dir(args, config)
     out.mkdir(parents=True, exist_ok=True)
     run = run_identity(args, demonstrations)
-    saved = train_state.read(out, run) if args.resume else None
+    saved = train_state.read(out, run, run_identity(TrainArgs(), None)) if args.resume else None
     image_size = None
     if demonstrations is None:
         normalize = write_norm_stats(out)

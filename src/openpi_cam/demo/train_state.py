@@ -84,8 +84,8 @@ def save(out: Path, run: dict[str, Any], state: Saved) -> Path:
     return target
 
 
-def read(out: Path, run: dict[str, Any]) -> Saved:
-    """The state in `out`, checked to be the one saved by `run` (a run's flags and data digest)."""
+def read(out: Path, run: dict[str, Any], defaults: dict[str, Any] | None = None) -> Saved:
+    """The state in `out`, checked to be the one saved by `run` (a run's flags and data digest; `difference`)."""
     where = path(out)
     if absent := missing(out):
         raise StateError(absent)
@@ -97,7 +97,7 @@ def read(out: Path, run: dict[str, Any]) -> Saved:
         saved_run = meta["run"]
     except (OSError, ValueError, KeyError, TypeError, zipfile.BadZipFile) as e:
         raise StateError(f"{where}: unreadable training state ({type(e).__name__}: {e})") from None
-    if differs := difference(saved_run, run):
+    if differs := difference(saved_run, run, defaults):
         raise StateError(f"{where} was saved by another run ({differs}): resume with the flags and data it had")
     return Saved(phase, step, rng, [float(x) for x in losses], leaves)
 
@@ -109,9 +109,12 @@ def missing(out: Path) -> str | None:
     return f"{where}: no saved training state (--save-every N saves one, and so does a stop)"
 
 
-def difference(saved: dict[str, Any], now: dict[str, Any]) -> str | None:
-    """The first thing that tells two runs apart, in a few words, or None."""
+def difference(saved: dict[str, Any], now: dict[str, Any], defaults: dict[str, Any] | None = None) -> str | None:
+    """The first thing that tells two runs apart, in a few words, or None. A flag the saved run did not have yet (a
+    later version's) tells nothing when this run leaves it at its `defaults` value."""
     for key in sorted(set(saved) | set(now)):
+        if key not in saved and defaults is not None and key in defaults and now.get(key) == defaults[key]:
+            continue
         if saved.get(key) != now.get(key):
             return f"{key}: {saved.get(key)!r} there, {now.get(key)!r} here"
     return None
