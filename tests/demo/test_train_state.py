@@ -190,10 +190,10 @@ def test_a_corrupt_state_is_named_in_one_line(tmp_path, capsys, damage):
 
 def test_restore_refuses_arrays_of_another_shape(tmp_path):
     params = {"w": np.zeros((2, 3), np.float32)}
-    state = train_state.Saved("main", 1, {}, [0.5], [np.zeros((3, 2), np.float32)])
+    state = train_state.Saved("main", 1, {}, [0.5], [np.zeros((3, 2), np.float32)], tmp_path / train_state.FILE)
     with pytest.raises(train_state.StateError, match=r"array 0 is float32\[3, 2\], this model's float32\[2, 3\]"):
-        state.restore(params, (), tmp_path / train_state.FILE)
-    params_back, _ = train_state.Saved("main", 1, {}, [], [np.ones((2, 3), np.float32)]).restore(params, (), tmp_path)
+        state.restore(params, ())
+    params_back, _ = train_state.Saved("main", 1, {}, [], [np.ones((2, 3), np.float32)]).restore(params, ())
     assert np.array_equal(params_back["w"], np.ones((2, 3)))
 
 

@@ -183,8 +183,9 @@ def train(
     bundled_name = args.model if config is None else model_spec.BUNDLED_MODELS[config.name]
     out = output_dir(args, config)
     out.mkdir(parents=True, exist_ok=True)
-    run = run_identity(args, demonstrations)
-    saved = train_state.read(out, run, run_identity(TrainArgs(), None)) if args.resume else None
+    # The data digest (a pass over every frame) is taken only when a state is read or written.
+    run = functools.cache(lambda: run_identity(args, demonstrations))
+    saved = train_state.read(out, run(), run_identity(TrainArgs(), None)) if args.resume else None
     image_size = None
     if demonstrations is None:
         normalize = write_norm_stats(out)
@@ -220,7 +221,7 @@ def train(
             continue  # done before the stop
         resumed = saved if saved is not None and saved.phase == phase.name else None
         params, summary[f"{phase.name}_loss"] = train_phase(
-            params, cfg, batches, phase, args, out=out, run=run, resumed=resumed
+            params, cfg, batches, phase, args, save=lambda state: train_state.save(out, run(), state), resumed=resumed
         )
     params_dir = out / demo_reach.CHECKPOINT.name / "params"
     shutil.rmtree(params_dir, ignore_errors=True)
@@ -280,12 +281,11 @@ def train_phase(
     phase: Phase,
     args: TrainArgs,
     *,
-    out: Path,
-    run: dict,
+    save: Callable[[train_state.Saved], Path],
     resumed: train_state.Saved | None = None,
 ) -> tuple[dict, float]:
     """AdamW (fresh state, or the `resumed` one's) on a warmup-cosine schedule; returns the params and the mean loss of
-    the last log window. Saves the state in `out` every `--save-every` steps, and before stopping on a signal."""
+    the last log window. Hands the state to `save` every `--save-every` steps, and before stopping on a signal."""
     schedule = optax.warmup_cosine_decay_schedule(
         0.0, phase.lr, min(phase.warmup, phase.steps // 2), phase.steps, 0.05 * phase.lr
     )
@@ -293,7 +293,7 @@ def train_phase(
     opt_state = optimizer.init(params)
     start, losses = 0, []
     if resumed is not None:
-        params, opt_state = resumed.restore(params, opt_state, train_state.path(out))
+        params, opt_state = resumed.restore(params, opt_state)
         batches.rng.bit_generator.state = resumed.rng
         start, losses = resumed.step, list(resumed.losses)
         print(f"{phase.name}: resumed after step {start}/{phase.steps}", flush=True)
@@ -319,7 +319,7 @@ def train_phase(
                 print(f"{where} binding probe {probe:.2f} (chance 0.5)", flush=True)
             if stop.signum is not None or (args.save_every and (i + 1) % args.save_every == 0):
                 state = train_state.Saved.capture(phase.name, i + 1, batches.rng, losses, params, opt_state)
-                print(f"{where}: state saved to {train_state.save(out, run, state)}", flush=True)
+                print(f"{where}: state saved to {save(state)}", flush=True)
             if stop.signum is not None:
                 name = signal.Signals(stop.signum).name
                 raise train_state.Stopped(f"stopped by {name} after {where}: the same command with --resume continues")

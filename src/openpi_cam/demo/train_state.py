@@ -51,6 +51,7 @@ class Saved:
     rng: dict[str, Any]  # the batch sampler's numpy bit generator state
     losses: list[float]  # the phase's losses so far
     leaves: list[np.ndarray]  # params, then optimizer state, flattened
+    source: Path | None = None  # the file it was read from (named by `restore`'s refusals)
 
     @classmethod
     def capture(
@@ -60,8 +61,9 @@ class Saved:
         leaves = [np.array(x) for x in jax.tree_util.tree_leaves((params, opt_state))]
         return cls(phase, step, rng.bit_generator.state, [float(x) for x in losses], leaves)
 
-    def restore(self, params: Any, opt_state: Any, where: Path) -> tuple[Any, Any]:
+    def restore(self, params: Any, opt_state: Any) -> tuple[Any, Any]:
         """(params, optimizer state) with the structure of the given ones; a StateError if shapes or dtypes differ."""
+        where = self.source
         template, treedef = jax.tree_util.tree_flatten((params, opt_state))
         if len(template) != len(self.leaves):
             raise StateError(f"{where}: {len(self.leaves)} arrays, this model and optimizer have {len(template)}")
@@ -99,7 +101,7 @@ def read(out: Path, run: dict[str, Any], defaults: dict[str, Any] | None = None)
         raise StateError(f"{where}: unreadable training state ({type(e).__name__}: {e})") from None
     if differs := difference(saved_run, run, defaults):
         raise StateError(f"{where} was saved by another run ({differs}): resume with the flags and data it had")
-    return Saved(phase, step, rng, [float(x) for x in losses], leaves)
+    return Saved(phase, step, rng, [float(x) for x in losses], leaves, where)
 
 
 def missing(out: Path) -> str | None:
